@@ -1,0 +1,3 @@
+from wbc_jax.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,26 @@
+"""User-facing error types.
+
+Every error a user can cause (bad spec file, CLI argument, factor value, input table)
+is raised as a subclass of :class:`WbcJaxError`; the CLI prints its message on one line
+and exits with code 2 instead of showing a traceback.
+"""
+
+
+class WbcJaxError(Exception):
+    """Base class of errors caused by user input."""
+
+
+class SceneError(WbcJaxError):
+    """A scene file is missing or does not contain what wbc_jax needs."""
+
+
+class FactorError(WbcJaxError):
+    """A factor value (object mass, size, friction, ...) is outside its physical range."""
+
+
+class SpecError(WbcJaxError):
+    """A sweep/spec file has an unknown key, a wrong type or an out-of-range value."""
+
+
+class InputError(WbcJaxError):
+    """An input table (e.g. a results CSV) is malformed."""
