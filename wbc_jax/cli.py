@@ -1,0 +1,81 @@
+"""The ``wbc-jax`` console script.
+
+Subcommands import their modules lazily so that ``wbc-jax report`` does not pay for JAX.
+User errors (:class:`wbc_jax.errors.WbcJaxError`) become one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from wbc_jax.errors import WbcJaxError
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from wbc_jax.report import run_report
+
+    run_report(args.results, args.out, alpha=args.alpha)
+    print(f"report written to {args.out}")
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    if args.what == "qp":
+        from wbc_jax.qp.bench import run_bench
+
+        run_bench(quick=args.quick, json_path=args.json)
+        return 0
+    raise WbcJaxError(f"bench: unknown target {args.what!r}")
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from wbc_jax.demo import run_demo
+
+    run_demo(out=args.out, scene=args.scene, seconds=args.seconds)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="wbc-jax", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("report", help="ANOVA report of a results table (one row per run)")
+    r.add_argument("results", help="results CSV (one row per run)")
+    r.add_argument("--out", required=True, help="output directory")
+    r.add_argument("--alpha", type=float, default=0.05, help="significance level (default 0.05)")
+    r.set_defaults(func=_cmd_report)
+
+    b = sub.add_parser("bench", help="benchmarks on the current device")
+    b.add_argument("what", choices=["qp"], help="what to benchmark")
+    b.add_argument("--quick", action="store_true", help="small sizes (CPU smoke run)")
+    b.add_argument("--json", default=None, help="also write the results as JSON here")
+    b.set_defaults(func=_cmd_bench)
+
+    d = sub.add_parser("demo", help="one run at default factors; summary, plots")
+    d.add_argument("--out", default="out/demo", help="output directory")
+    d.add_argument("--scene", choices=["flat", "transport"], default="flat")
+    d.add_argument("--seconds", type=float, default=None, help="simulated time [s]")
+    d.set_defaults(func=_cmd_demo)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from wbc_jax import jaxcfg
+
+    if args.command != "report":
+        jaxcfg.configure()
+    try:
+        return int(args.func(args) or 0)
+    except WbcJaxError as e:
+        print(f"wbc-jax {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"wbc-jax {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
