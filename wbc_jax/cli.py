@@ -15,7 +15,9 @@ from wbc_jax.errors import WbcJaxError
 def _cmd_report(args: argparse.Namespace) -> int:
     from wbc_jax.report import run_report
 
-    run_report(args.results, args.out, alpha=args.alpha)
+    factors = args.factors.split(",") if args.factors else None
+    metrics = args.metrics.split(",") if args.metrics else None
+    run_report(args.results, args.out, alpha=args.alpha, factors=factors, metrics=metrics)
     print(f"report written to {args.out}")
     return 0
 
@@ -44,6 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("results", help="results CSV (one row per run)")
     r.add_argument("--out", required=True, help="output directory")
     r.add_argument("--alpha", type=float, default=0.05, help="significance level (default 0.05)")
+    r.add_argument("--factors", default=None, help="comma-separated factor columns (default: m,mu,d)")
+    r.add_argument("--metrics", default=None, help="comma-separated metric columns (default: inferred)")
     r.set_defaults(func=_cmd_report)
 
     b = sub.add_parser("bench", help="benchmarks on the current device")
