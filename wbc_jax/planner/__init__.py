@@ -1,0 +1,57 @@
+"""Planner: pure jax.numpy reference generators (no MuJoCo), jit- and vmap-able.
+
+- :mod:`.spline`: piecewise cubic paths (object / CoM references), cubic segments.
+- :mod:`.gait`: trot scheduler (which feet swing, phases, times to liftoff/touchdown).
+- :mod:`.swing`: swing-foot references (two splines per swing), footholds, quintics.
+- :mod:`.zmp`: cart-table ZMP, support-polygon margin and clamping for CoM replanning.
+- :mod:`.capture_point`: LIPM capture-point walking pattern (centroidal paper).
+
+Conventions: world z up; feet ordered FL, FR, BL, BR (0..3); trot pairs (FL, BR) and
+(FR, BL), (FL, BR) swings first; heading = yaw of the walking direction (the transport
+scene walks along -y: heading -pi/2).
+"""
+
+from .capture_point import (
+    CPReference,
+    TrotFootsteps,
+    cp,
+    cp_rate,
+    cp_reference,
+    cp_trajectory,
+    desired_com_velocity,
+    end_of_step_cps,
+    first_footstep_for_rest,
+    footstep_plan_trot,
+    initial_cps,
+    omega,
+)
+from .gait import (
+    BL,
+    BR,
+    FL,
+    FOOT_NAMES,
+    FOOT_PAIR,
+    FR,
+    PAIRS,
+    GaitParams,
+    GaitState,
+    foot_stance_time,
+    gait_phase,
+    half_cycle,
+    t_stop_after,
+)
+from .spline import (
+    CubicPath,
+    cubic_hermite,
+    cubic_path,
+    eval_cubic,
+    eval_path,
+    max_abs_accel_z,
+    offset_path,
+    path_end_time,
+    poly_eval,
+    straight_path,
+    waypoint_times,
+)
+from .swing import quintic, raibert_foothold, swing_reference
+from .zmp import clamp_to_support, min_zmp_margin, support_margin, zmp_xy
