@@ -1,0 +1,121 @@
+"""Figures of the ANOVA report, rendered to PNG bytes with matplotlib's Agg canvas.
+
+No pyplot and no global backend state: each function builds a ``matplotlib.figure.Figure``
+and returns its PNG encoding, so callers decide where (and whether) the bytes are written.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Sequence
+
+import numpy as np
+import pandas as pd
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from scipy import stats as sps
+
+DPI = 110
+PANEL = (3.2, 2.5)  # inches per subplot (w, h)
+
+
+def _label(v) -> str:
+    return f"{v:g}" if isinstance(v, (float, np.floating)) else str(v)
+
+
+def _png(fig: Figure) -> bytes:
+    FigureCanvasAgg(fig)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI)
+    return buf.getvalue()
+
+
+def _axes(nrows: int, ncols: int) -> tuple[Figure, np.ndarray]:
+    fig = Figure(figsize=(PANEL[0] * ncols, PANEL[1] * nrows), layout="constrained")
+    return fig, np.atleast_2d(fig.subplots(nrows, ncols, squeeze=False))
+
+
+def means_grid(level_means: pd.DataFrame, factors: Sequence[str], metrics: Sequence[str]) -> bytes:
+    """Mean +- SD of each metric (rows) against each factor's levels (columns); the paper's Fig. 3.
+
+    Args:
+        level_means: :func:`wbc_jax.stats.level_means` output.
+    """
+    fig, ax = _axes(len(metrics), len(factors))
+    for i, m in enumerate(metrics):
+        for j, f in enumerate(factors):
+            t = level_means[(level_means["metric"] == m) & (level_means["factor"] == f)]
+            a = ax[i, j]
+            x = np.arange(len(t))
+            a.errorbar(x, t["mean"], yerr=t["sd"].fillna(0), marker="o", capsize=4, lw=1.5)
+            a.set_xticks(x, [_label(v) for v in t["level"]])
+            a.set_xlabel(f)
+            if j == 0:
+                a.set_ylabel(f"{m} (mean ± SD)")
+            a.grid(alpha=0.3)
+    fig.suptitle("Metric means ± SD per factor level (successful runs)")
+    return _png(fig)
+
+
+def interaction_grid(emms: dict[str, dict[str, pd.DataFrame]], metrics: Sequence[str],
+                     unreliable: Sequence[str] = ()) -> bytes | None:
+    """EMM +- 95 % CI interaction plots: rows metrics, columns two-way interactions; the paper's Fig. 4.
+
+    Args:
+        emms: metric -> {"A:B": :func:`wbc_jax.stats.emmeans` table over (A, B)}.
+        unreliable: metrics whose F tests are unreliable (marked in the panel titles).
+
+    Returns:
+        PNG bytes, or None when the model has no two-way interaction.
+    """
+    pairs = list(next(iter(emms.values())).keys()) if emms else []
+    if not pairs:
+        return None
+    fig, ax = _axes(len(metrics), len(pairs))
+    for i, m in enumerate(metrics):
+        for j, pair in enumerate(pairs):
+            xf, lf = pair.split(":")
+            t = emms[m][pair]
+            a = ax[i, j]
+            xs = list(dict.fromkeys(t[xf]))
+            for k, (lv, g) in enumerate(t.groupby(lf, sort=False)):
+                pos = np.array([xs.index(v) for v in g[xf]]) + (k - 1) * 0.04
+                err = np.vstack([g["emm"] - g["ci_low"], g["ci_high"] - g["emm"]])
+                a.errorbar(pos, g["emm"], yerr=err, marker="o", capsize=3, lw=1.3, label=f"{lf}={_label(lv)}")
+            a.set_xticks(np.arange(len(xs)), [_label(v) for v in xs])
+            a.set_xlabel(xf)
+            a.set_ylabel(f"{m} EMM (95% CI)" if j == 0 else "")
+            a.set_title(f"{m}: {xf} × {lf}" + (" (F tests unreliable)" if m in unreliable else ""), fontsize=9)
+            a.legend(fontsize=7, framealpha=0.6)
+            a.grid(alpha=0.3)
+    fig.suptitle("Estimated marginal means ± 95 % CI (interaction plots)")
+    return _png(fig)
+
+
+def qq_grid(residuals: dict[str, tuple[np.ndarray, float]]) -> bytes:
+    """Normal Q-Q plots of standardized residuals (residual / sqrt(MSE)), one panel per metric.
+
+    Args:
+        residuals: metric -> (residuals, MSE); MSE None when the residuals are numerically zero.
+    """
+    n = len(residuals)
+    ncols = min(n, 3)
+    nrows = -(-n // ncols)
+    fig, ax = _axes(nrows, ncols)
+    for a in ax.flat[n:]:
+        a.set_visible(False)
+    for a, (m, (r, mse)) in zip(ax.flat, residuals.items()):
+        r = np.asarray(r, float)
+        a.set_title(m)
+        if mse is None or not np.isfinite(mse) or mse <= 0 or np.ptp(r) == 0:
+            a.text(0.5, 0.5, "residuals ≈ 0\n(no Q-Q plot)", ha="center", va="center", transform=a.transAxes)
+            continue
+        (osm, osr), _ = sps.probplot(r / np.sqrt(mse), dist="norm")
+        a.plot(osm, osr, ".", ms=4)
+        lim = [min(osm.min(), osr.min()), max(osm.max(), osr.max())]
+        a.plot(lim, lim, "k--", lw=1)
+        a.set_xlabel("normal quantile")
+        a.set_ylabel("standardized residual")
+        a.grid(alpha=0.3)
+    fig.suptitle("Residual normal Q-Q plots")
+    return _png(fig)

@@ -1,0 +1,427 @@
+"""The ANOVA report of a results table (``wbc-jax report RESULTS.csv --out DIR``).
+
+Reads the CSV, checks it, runs :func:`wbc_jax.stats.analyze`, and writes into DIR:
+
+- ``report.md``: warnings first, design, summary of significant terms, per metric the ANOVA
+  table, assumption tests, simple main effects and descriptives, cell means, figures, method.
+- ``report.html``: the same, self-contained (figures embedded as base64 PNG).
+- ``anova.json``: ``metrics`` maps each metric to ``anova`` (a list of rows with keys
+  source, sum_sq, df, mean_sq, F, p, partial_eta_sq; the last row is Residual),
+  ``f_tests_reliable``, ``significant``, ``assumptions``, ``simple_effects`` and
+  ``warnings``; plus ``alpha``, ``ss_type``, ``factors`` (levels), table-wide ``warnings``,
+  ``design`` and ``manifest``. NaN is written as null.
+- ``design.csv``, ``cell_means.csv`` (mean, sd, n per cell and metric; CI baselines).
+- ``manifest.json``: input path and SHA-256, arguments, package versions, wall time.
+- ``figures/means.png`` (metric means +- SD per factor level), ``figures/interactions.png``
+  (EMM +- 95 % CI per two-way interaction), ``figures/qq.png`` (residual Q-Q plots).
+
+Nothing partial is left in DIR: everything is built in memory, written to a temporary
+sibling directory, and renamed into place; an existing DIR is replaced only on success.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import html
+import io
+import json
+import math
+import os
+import platform
+import shutil
+import tempfile
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from wbc_jax import stats
+from wbc_jax.errors import InputError, WbcJaxError
+
+SCHEMA = "wbc_jax.report/1"
+
+
+def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: list[str] | None = None,
+               metrics: list[str] | None = None, *, figures: bool = True, ss_type: int = 3, order: int = 2) -> dict:
+    """Write the ANOVA report of ``results_csv`` into ``out_dir``.
+
+    Args:
+        results_csv: results table, one row per run (factors, rep, seed, success, metrics).
+        out_dir: output directory; replaced as a whole on success, untouched on error.
+        alpha: significance level (0 < alpha < 1).
+        factors: factor columns (default: those of m, mu, d present).
+        metrics: metric columns (default: see :mod:`wbc_jax.stats`).
+        figures: render the PNG figures (tests switch them off for speed).
+        ss_type: sums-of-squares type, 1, 2 or 3.
+        order: highest interaction order of the model (2: main effects + two-way).
+
+    Returns:
+        The content of ``anova.json``.
+
+    Raises:
+        InputError: unreadable or malformed input (one-line message naming the problem).
+        WbcJaxError: the output directory cannot be written.
+    """
+    t0 = time.perf_counter()
+    if not (isinstance(alpha, (int, float)) and 0 < alpha < 1):
+        raise InputError(f"alpha must be between 0 and 1, not {alpha}")
+    raw, df = read_results(results_csv)
+    factors = stats.infer_factors(df, factors)
+    metrics = stats.infer_metrics(df, factors, metrics)
+    data = stats.prepare(df, factors, metrics)
+    res = stats.analyze(data, factors, metrics, alpha=alpha, ss_type=ss_type, order=order)
+
+    images = {}
+    if figures:
+        from wbc_jax import figures as fg
+
+        images["means.png"] = fg.means_grid(res["level_means"], factors, metrics)
+        fits = {m: r["fit"] for m, r in res["metrics"].items()}
+        inter = fg.interaction_grid({m: r["emms"] for m, r in res["metrics"].items()}, metrics,
+                                    [m for m, f in fits.items() if not f.reliable])
+        if inter is not None:
+            images["interactions.png"] = inter
+        images["qq.png"] = fg.qq_grid({m: (f.result.resid, None if f.degenerate else f.mse) for m, f in fits.items()})
+
+    manifest = {
+        "input": str(results_csv), "sha256": hashlib.sha256(raw).hexdigest(), "rows": len(df),
+        "alpha": alpha, "factors": factors, "metrics": metrics, "ss_type": stats.SS_NAMES[ss_type], "order": order,
+        "versions": _versions(), "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+    summary = _summary(res, data, factors, metrics, alpha, manifest)
+    doc = _document(res, summary, factors, metrics, alpha, list(images))
+    manifest["wall_s"] = round(time.perf_counter() - t0, 3)
+    files = {
+        "report.md": doc.markdown().encode(),
+        "report.html": doc.html(images, title=f"ANOVA report: {Path(results_csv).name}").encode(),
+        "anova.json": _dumps(summary).encode(),
+        "design.csv": res["design"].to_csv(index=False).encode(),
+        "cell_means.csv": res["cell_means"].to_csv(index=False).encode(),
+        "manifest.json": _dumps(manifest).encode(),
+        **{f"figures/{k}": v for k, v in images.items()},
+    }
+    write_dir_atomic(out_dir, files)
+    return summary
+
+
+# --------------------------------------------------------------------------- input / output
+
+
+def read_results(path: str) -> tuple[bytes, pd.DataFrame]:
+    """Raw bytes and parsed table of a results CSV; every failure is a one-line InputError."""
+    try:
+        raw = Path(path).read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"results file not found: {path}") from None
+    except IsADirectoryError:
+        raise InputError(f"results path is a directory, not a file: {path}") from None
+    except OSError as e:
+        raise InputError(f"cannot read results file {path}: {e.strerror or e}") from None
+    if not raw.strip():
+        raise InputError(f"results file is empty: {path}")
+    try:
+        df = pd.read_csv(io.BytesIO(raw))
+    except pd.errors.EmptyDataError:
+        raise InputError(f"results file is empty: {path}") from None
+    except (pd.errors.ParserError, UnicodeDecodeError, ValueError) as e:
+        raise InputError(f"results file {path} is not a readable CSV: {_one_line(e)}") from None
+    df.columns = [str(c).strip() for c in df.columns]
+    if df.empty:
+        raise InputError(f"results file has a header but no rows: {path}")
+    return raw, df
+
+
+def write_dir_atomic(out_dir: str, files: dict[str, bytes]) -> None:
+    """Write ``files`` (relative path -> bytes) as directory ``out_dir``, all or nothing."""
+    out = Path(out_dir).absolute()
+    if out.exists() and not out.is_dir():
+        raise WbcJaxError(f"output path exists and is not a directory: {out_dir}")
+    tmp = None
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+        for rel, data in files.items():
+            p = tmp / rel
+            p.parent.mkdir(parents=True, exist_ok=True)
+            p.write_bytes(data)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o777 & ~umask)
+        if out.exists():
+            old = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
+            os.rename(out, old)
+            try:
+                os.rename(tmp, out)
+            except OSError:
+                os.rename(old, out)
+                raise
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.rename(tmp, out)
+        tmp = None
+    except OSError as e:
+        raise WbcJaxError(f"cannot write report to {out_dir}: {e.strerror or e}") from None
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _one_line(e: Exception) -> str:
+    return " ".join(str(e).split())
+
+
+def _versions() -> dict:
+    import matplotlib
+    import scipy
+    import statsmodels
+
+    from wbc_jax import __version__
+
+    return {"wbc_jax": __version__, "python": platform.python_version(), "numpy": np.__version__,
+            "scipy": scipy.__version__, "pandas": pd.__version__, "statsmodels": statsmodels.__version__,
+            "matplotlib": matplotlib.__version__}
+
+
+def _clean(x):
+    """JSON-safe copy: numpy scalars to Python, NaN/inf to None, DataFrames to records."""
+    if isinstance(x, pd.DataFrame):
+        return [_clean(r) for r in x.to_dict(orient="records")]
+    if isinstance(x, dict):
+        return {str(k): _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    if isinstance(x, (np.bool_, bool)):
+        return bool(x)
+    if isinstance(x, (np.integer, int)):
+        return int(x)
+    if isinstance(x, (np.floating, float)):
+        return float(x) if math.isfinite(x) else None
+    return x
+
+
+def _dumps(obj) -> str:
+    return json.dumps(_clean(obj), indent=1, allow_nan=False) + "\n"
+
+
+def _summary(res: dict, data: pd.DataFrame, factors, metrics, alpha: float, manifest: dict) -> dict:
+    per = {}
+    for m, r in res["metrics"].items():
+        fit = r["fit"]
+        per[m] = {
+            "formula": fit.formula, "n": fit.n, "mse": fit.mse, "df_resid": fit.df_resid,
+            "ss_type": fit.ss_type, "anova": fit.table, "f_tests_reliable": fit.reliable,
+            "significant": r["significant"], "assumptions": r["assumptions"],
+            "simple_effects": r["simple_effects"],
+            "warnings": r["warnings"],
+        }
+    return {
+        "schema": SCHEMA, "alpha": alpha, "ss_type": manifest["ss_type"],
+        "contrasts": "sum-to-zero (C(x, Sum))", "model_order": manifest["order"],
+        "factors": {f: stats.levels(data[f]) for f in factors}, "n_runs": res["n_runs"],
+        "n_failed": res["n_failed"], "warnings": res["warnings"], "design": res["design"],
+        "metrics": per, "manifest": manifest,
+    }
+
+
+# --------------------------------------------------------------------------- document
+
+
+class _Doc:
+    """A list of blocks rendered to Markdown or to self-contained HTML."""
+
+    def __init__(self):
+        self.blocks: list[tuple] = []
+
+    def h(self, level: int, text: str):
+        self.blocks.append(("h", level, text))
+
+    def p(self, text: str):
+        self.blocks.append(("p", text))
+
+    def ul(self, items: list[str]):
+        if items:
+            self.blocks.append(("ul", list(items)))
+
+    def table(self, df: pd.DataFrame):
+        self.blocks.append(("table", df.astype(str)))
+
+    def img(self, name: str, caption: str):
+        self.blocks.append(("img", name, caption))
+
+    def markdown(self) -> str:
+        out = []
+        for b in self.blocks:
+            if b[0] == "h":
+                out.append("#" * b[1] + " " + b[2])
+            elif b[0] == "p":
+                out.append(b[1])
+            elif b[0] == "ul":
+                out.append("\n".join(f"- {i}" for i in b[1]))
+            elif b[0] == "table":
+                df = b[1]
+                esc = lambda s: str(s).replace("|", "\\|")  # noqa: E731
+                rows = ["| " + " | ".join(esc(c) for c in df.columns) + " |",
+                        "|" + "---|" * len(df.columns)]
+                rows += ["| " + " | ".join(esc(v) for v in r) + " |" for r in df.itertuples(index=False)]
+                out.append("\n".join(rows))
+            elif b[0] == "img":
+                out.append(f"![{b[2]}](figures/{b[1]})")
+        return "\n\n".join(out) + "\n"
+
+    def html(self, images: dict[str, bytes], title: str) -> str:
+        e = html.escape
+        out = []
+        for b in self.blocks:
+            if b[0] == "h":
+                out.append(f"<h{b[1]}>{e(b[2])}</h{b[1]}>")
+            elif b[0] == "p":
+                out.append(f"<p>{e(b[1]).replace('**', '')}</p>")
+            elif b[0] == "ul":
+                out.append("<ul>" + "".join(f"<li>{e(i)}</li>" for i in b[1]) + "</ul>")
+            elif b[0] == "table":
+                df = b[1]
+                head = "".join(f"<th>{e(str(c))}</th>" for c in df.columns)
+                body = "".join("<tr>" + "".join(f"<td>{e(v)}</td>" for v in r) + "</tr>"
+                               for r in df.itertuples(index=False))
+                out.append(f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>")
+            elif b[0] == "img" and b[1] in images:
+                data = base64.b64encode(images[b[1]]).decode()
+                out.append(f'<figure><img alt="{e(b[2])}" src="data:image/png;base64,{data}">'
+                           f"<figcaption>{e(b[2])}</figcaption></figure>")
+        style = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;line-height:1.4}"
+                 "table{border-collapse:collapse;margin:.5em 0;font-size:90%}"
+                 "td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}th{background:#eee}"
+                 "img{max-width:100%}figcaption{font-size:90%;color:#444}")
+        return (f'<!doctype html>\n<html><head><meta charset="utf-8"><title>{e(title)}</title>'
+                f"<style>{style}</style></head><body>\n" + "\n".join(out) + "\n</body></html>\n")
+
+
+def _f(x, spec: str = ".4g") -> str:
+    if x is None or (isinstance(x, (float, np.floating)) and not np.isfinite(x)):
+        return ""
+    if isinstance(x, (float, np.floating, int, np.integer)):
+        return format(x, spec)
+    return str(x)
+
+
+def _document(res: dict, summary: dict, factors, metrics, alpha: float, images: list[str]) -> _Doc:
+    d = _Doc()
+    man = summary["manifest"]
+    d.h(1, f"ANOVA report: {Path(man['input']).name}")
+    lv = "; ".join(f"{f}: {', '.join(_f(v, 'g') for v in summary['factors'][f])}" for f in factors)
+    d.p(f"{res['n_runs']} runs ({res['n_failed']} failed, excluded), factors {lv}; metrics {', '.join(metrics)}; "
+        f"alpha = {alpha:g}; type {summary['ss_type']} sums of squares, sum-to-zero contrasts; model: "
+        + ("main effects + two-way interactions" if summary["model_order"] == 2 else f"interactions up to order {summary['model_order']}")
+        + ".")
+
+    d.h(2, "Warnings")
+    allw = list(res["warnings"]) + [f"{m}: {w}" for m, r in res["metrics"].items() for w in r["warnings"]]
+    d.ul(allw) if allw else d.p("None.")
+
+    d.h(2, "Significant terms")
+    sources = list(next(iter(res["metrics"].values()))["anova"]["source"][:-1])
+    rows = []
+    for m, r in res["metrics"].items():
+        t = r["anova"].set_index("source")
+        cells = [("unreliable" if not r["fit"].reliable else
+                  f"F={_f(t.loc[s, 'F'])}, p={_f(t.loc[s, 'p'], '.3g')}" + (" *" if s in r["significant"] else ""))
+                 for s in sources]
+        failed = [a["test"] for a in r["assumptions"] if a["ok"] is False]
+        not_run = [a["test"] for a in r["assumptions"] if a["ok"] is None]
+        rows.append([m, *cells, ", ".join(failed + [f"{t} not run" for t in not_run]) or "none"])
+    d.table(pd.DataFrame(rows, columns=["metric", *sources, "assumption tests failed"]))
+    d.p(f"* p < {alpha:g}.")
+
+    d.h(2, "Design")
+    des = res["design"].copy()
+    for f in factors:
+        des[f] = des[f].map(lambda v: _f(v, "g"))
+    d.table(des)
+
+    for m, r in res["metrics"].items():
+        _metric_section(d, m, r, res["level_means"], alpha)
+
+    d.h(2, "Cell means (successful runs)")
+    cm = res["cell_means"]
+    wide = cm[cm["metric"] == metrics[0]][factors].reset_index(drop=True).map(lambda v: _f(v, "g"))
+    for m in metrics:
+        t = cm[cm["metric"] == m].reset_index(drop=True)
+        wide[m] = [f"{_f(a)} ± {_f(s)} ({n})" for a, s, n in zip(t["mean"], t["sd"], t["n"])]
+    d.table(wide)
+
+    if images:
+        d.h(2, "Figures")
+        captions = {"means.png": "Mean ± SD of each metric per factor level (rows: metrics, columns: factors).",
+                    "interactions.png": "Interaction plots: EMMs ± 95 % CI for each two-way interaction.",
+                    "qq.png": "Normal Q-Q plots of standardized model residuals."}
+        for name in images:
+            d.img(name, captions[name])
+
+    d.h(2, "Method")
+    d.ul([
+        "Runs with success = False are counted in the design table and excluded from every model and mean; "
+        "a missing metric value drops that run from that metric only.",
+        f"Per metric, an OLS model ({summary['metrics'][metrics[0]]['formula'].split('~', 1)[1].strip()}) with "
+        "sum-to-zero contrasts (statsmodels ols, C(x, Sum)); ANOVA by anova_lm with type "
+        f"{summary['ss_type']} sums of squares (equal to types I and II for balanced data). "
+        "Partial eta squared = SS_effect / (SS_effect + SS_residual).",
+        "Assumptions on the model residuals: Lilliefors-corrected Kolmogorov-Smirnov and Shapiro-Wilk for "
+        "normality; Levene (mean-centred) and Brown-Forsythe (median-centred) across cells for equal variances. "
+        f"A test with p < {alpha:g} is flagged, never hidden.",
+        f"F tests are marked unreliable when the residual SS is below {stats.PERFECT_FIT_RTOL:g} x the model SS "
+        "(R's rule), a cell has zero within-cell variance, or no residual degrees of freedom remain.",
+        "Simple main effects for each significant two-way interaction, in both directions: estimated marginal "
+        "means with equal weights over the other factors; simple-effect F per level of the conditioning factor; "
+        "pairwise EMM differences with SE, t, df, Bonferroni-adjusted p and Bonferroni 95 % CI, one family per "
+        "conditioning level, all with the pooled model MSE and residual df (as SPSS EMMEANS COMPARE, R emmeans).",
+    ])
+    return d
+
+
+def _metric_section(d: _Doc, m: str, r: dict, level_means: pd.DataFrame, alpha: float) -> None:
+    fit = r["fit"]
+    d.h(2, f"Metric {m}")
+    d.p(f"Model {fit.formula}; n = {fit.n}; residual df = {_f(fit.df_resid, 'g')}; MSE = {_f(fit.mse)}.")
+    if not fit.reliable:
+        d.p("**F tests unreliable**: " + next(w for w in fit.warnings if w.startswith("F tests are unreliable"))
+            + ". F, p and partial eta squared are omitted below (anova.json keeps the raw numbers).")
+    t = fit.table
+    shown = pd.DataFrame({
+        "source": t["source"], "SS": t["sum_sq"].map(_f), "df": t["df"].map(lambda v: _f(v, "g")),
+        "MS": t["mean_sq"].map(_f),
+        "F": t["F"].map(_f) if fit.reliable else "",
+        "p": t["p"].map(lambda v: _f(v, ".3g")) if fit.reliable else "",
+        "partial η²": t["partial_eta_sq"].map(lambda v: _f(v, ".3f")) if fit.reliable else "",
+        "sig.": ["*" if s in r["significant"] else "" for s in t["source"]],
+    })
+    d.h(3, f"ANOVA (type {fit.ss_type} SS)")
+    d.table(shown)
+    d.h(3, "Assumptions")
+    d.table(pd.DataFrame([{
+        "test": a["test"], "assumption": a["assumption"], "statistic": _f(a["statistic"]), "p": _f(a["p"], ".3g"),
+        "result": {True: "ok", False: f"REJECTED (p < {alpha:g})", None: "not run"}[a["ok"]], "note": a["note"],
+    } for a in r["assumptions"]]))
+    if r["simple_effects"]:
+        d.h(3, "Simple main effects")
+        for s in r["simple_effects"]:
+            d.h(4, f"{s['effect']} at each level of {s['by']}")
+            d.p(s["method"] + ".")
+            te = s["tests"].copy()
+            te[s["by"]] = te[s["by"]].map(lambda v: _f(v, "g"))
+            for c, spec in (("F", ".4g"), ("p", ".3g"), ("partial_eta_sq", ".3f"), ("df2", "g")):
+                te[c] = te[c].map(lambda v, spec=spec: _f(v, spec))
+            d.table(te)
+            pr = s["pairs"].copy()
+            for c in pr.columns:
+                spec = "g" if c in (s["by"], "level_a", "level_b", "df") else (".3g" if c.startswith("p_") else ".4g")
+                pr[c] = pr[c].map(lambda v, spec=spec: _f(v, spec))
+            d.table(pr)
+    elif fit.reliable:
+        d.p("No significant two-way interaction: no simple main effects.")
+    d.h(3, "Descriptives per factor level (successful runs)")
+    lm = level_means[level_means["metric"] == m]
+    d.table(pd.DataFrame({"factor": lm["factor"], "level": lm["level"].map(lambda v: _f(v, "g")),
+                          "mean": lm["mean"].map(_f), "SD": lm["sd"].map(_f), "n": lm["n"]}))
