@@ -58,7 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="one run at default factors; summary, plots")
     d.add_argument("--out", default="out/demo", help="output directory")
-    d.add_argument("--scene", choices=["flat", "transport"], default="flat")
+    d.add_argument("--scene", default="flat", help="'flat', 'transport' or a scene XML path")
     d.add_argument("--seconds", type=float, default=None, help="simulated time [s]")
     d.set_defaults(func=_cmd_demo)
     return p

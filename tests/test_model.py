@@ -1,0 +1,156 @@
+"""Foundation acceptance: scenes, MJX vs MuJoCo C dynamics, batched factors, object at rest."""
+
+import itertools
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from wbc_jax import scenario
+from wbc_jax.errors import FactorError, SceneError
+from wbc_jax.model import Robot, mjx, resolve_ids
+
+MASS_TARGET = 24.26  # [kg] public code's total robot mass
+MASS_TOL = 0.02  # relative
+DYN_ATOL = 2e-4  # MJX (float32) vs MuJoCo C (float64), absolute, on M and qfrc_bias entries
+DYN_RTOL = 2e-4
+JAC_ATOL = 2e-5  # [m / rad]
+FIELD_RTOL = 1e-6  # batched-model fields vs single-run compiled C model (float32 storage)
+REST_SLIP_MAX = 1e-3  # [m] object slip on the held tray over 2 s
+LEVELS = dict(m=(0.2, 0.3, 0.4), mu=(0.4, 0.7, 1.0), d=(0.06, 0.08, 0.10))
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return Robot("transport")
+
+
+def test_scene_loads_in_c_and_mjx(robot):
+    m = robot.mj_model
+    assert m.nu == 18
+    assert robot.ids.nv_robot == 24 and m.nv == 30
+    assert abs(robot.total_robot_mass - MASS_TARGET) <= MASS_TOL * MASS_TARGET
+    assert robot.mjx_model.nv == 30
+    flat = Robot("flat")
+    assert flat.mj_model.nv == 30 and flat.ids.wall_pair.size == 0
+    # the object rests on the tray at about 0.80 m, trunk at about 0.45 m
+    q = robot.home_qpos()
+    assert abs(q[2] - 0.45) < 0.01
+    assert abs(q[robot.ids.obj_qpos_adr + 2] - 0.80) < 0.02
+
+
+def test_mjx_matches_mujoco_c_at_home(robot):
+    m = robot.mj_model
+    rng = np.random.default_rng(0)
+    d = mujoco.MjData(m)
+    d.qpos[:] = robot.home_qpos()
+    d.qvel[:] = rng.normal(scale=0.5, size=m.nv)
+    mujoco.mj_forward(m, d)
+    M_c = np.zeros((m.nv, m.nv))
+    mujoco.mj_fullM(m, d, M_c)
+
+    mx = robot.mjx_model
+    dx = mjx.make_data(mx).replace(qpos=jnp.asarray(d.qpos), qvel=jnp.asarray(d.qvel))
+    dx = jax.jit(mjx.forward)(mx, dx)
+    np.testing.assert_allclose(np.asarray(mjx.full_m(mx, dx)), M_c, atol=DYN_ATOL, rtol=DYN_RTOL)
+    np.testing.assert_allclose(np.asarray(dx.qfrc_bias), d.qfrc_bias, atol=DYN_ATOL, rtol=DYN_RTOL)
+
+    ids = robot.ids
+    points = [(ids.foot_body[i], d.site_xpos[ids.foot_site[i]]) for i in range(4)]
+    points.append((ids.tray_body, d.site_xpos[ids.tray_site]))
+    for body, point in points:
+        jp_c, jr_c = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+        mujoco.mj_jac(m, d, jp_c, jr_c, point, body)
+        jp_x, jr_x = mjx.jac(mx, dx, jnp.asarray(point), body)
+        np.testing.assert_allclose(np.asarray(jp_x).T, jp_c, atol=JAC_ATOL)
+        np.testing.assert_allclose(np.asarray(jr_x).T, jr_c, atol=JAC_ATOL)
+
+
+def test_batched_model_matches_single_run_models(robot):
+    combos = list(itertools.product(LEVELS["m"], LEVELS["mu"], LEVELS["d"]))
+    m, mu, d = (np.array(c) for c in zip(*combos))
+    f = scenario.validate_factors(robot.ids, m, mu, d)
+    bm, in_axes = scenario.batch_model(robot.mjx_model, robot.mj_model, robot.ids, f)
+    ids = robot.ids
+    assert in_axes.body_mass == 0 and in_axes.body_pos is None
+    for i, (mi, mui, di) in enumerate(combos):
+        c = scenario.single_run_mj_model(str(robot.path), mi, mui, di)
+        ob = ids.obj_body
+        # requested values
+        np.testing.assert_allclose(bm.body_mass[i, ob], mi, rtol=FIELD_RTOL)
+        np.testing.assert_allclose(bm.body_inertia[i, ob], [mi * di**2 / 6] * 3, rtol=FIELD_RTOL)
+        np.testing.assert_allclose(bm.geom_size[i, ids.obj_box_geom], [di / 2] * 3, rtol=FIELD_RTOL)
+        np.testing.assert_allclose(bm.pair_friction[i, ids.obj_pair, :2], mui, rtol=FIELD_RTOL)
+        z = bm.geom_pos[i, ids.obj_contact_geom]
+        np.testing.assert_allclose(np.abs(z), di / 2 - ids.obj_sphere_radius, rtol=FIELD_RTOL)
+        # the same values, and the compiler-derived ones, in an independently compiled C model
+        for field in ("body_mass", "body_inertia", "body_invweight0"):
+            np.testing.assert_allclose(bm.__getattribute__(field)[i, ob], getattr(c, field)[ob], rtol=FIELD_RTOL)
+        np.testing.assert_allclose(bm.dof_invweight0[i, 24:], c.dof_invweight0[24:], rtol=FIELD_RTOL)
+        np.testing.assert_allclose(bm.geom_size[i, ids.obj_box_geom], c.geom_size[ids.obj_box_geom], rtol=FIELD_RTOL)
+        np.testing.assert_allclose(bm.geom_pos[i, ids.obj_contact_geom], c.geom_pos[ids.obj_contact_geom], rtol=FIELD_RTOL)
+        np.testing.assert_allclose(bm.pair_friction[i, ids.obj_pair], c.pair_friction[ids.obj_pair], rtol=FIELD_RTOL)
+        # and nothing else changed
+        np.testing.assert_allclose(bm.body_mass[i, :ob], robot.mj_model.body_mass[:ob], rtol=FIELD_RTOL)
+
+
+def _held_robot_model(robot: Robot, q0: np.ndarray) -> mujoco.MjModel:
+    """Test-only scene: trunk welded, every robot joint held by a stiff spring at its home angle."""
+    spec = mujoco.MjSpec.from_file(str(robot.path))
+    spec.delete(spec.joint("root"))
+    m0 = robot.mj_model
+    for j in range(m0.njnt):
+        if m0.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE:
+            js = spec.joint(m0.joint(j).name)
+            js.stiffness = [2000.0, 0, 0]
+            js.springref = float(q0[m0.jnt_qposadr[j]])
+            js.damping = [20.0, 0, 0]
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    return spec.compile()
+
+
+def test_object_rests_on_held_tray(robot):
+    m_obj, mu, d = 0.4, 0.4, 0.10
+    q0 = robot.home_qpos(d)
+    mm = _held_robot_model(robot, q0)
+    ids = resolve_ids(mm)
+    mx = mjx.put_model(mm)
+    bm, in_axes = scenario.batch_model(mx, mm, ids, scenario.validate_factors(ids, m_obj, mu, d))
+    data = mjx.make_data(mx).replace(qpos=jnp.asarray(q0[7:]))
+
+    def run(m, dd):
+        def body(dd, _):
+            dd = mjx.step(m, dd)
+            return dd, (dd.xpos[ids.obj_body], dd.site_xpos[ids.tray_site], dd.site_xmat[ids.tray_site])
+
+        return jax.lax.scan(body, dd, None, length=int(round(2.0 / mm.opt.timestep)))
+
+    _, (p_obj, p_tray, R_tray) = jax.jit(jax.vmap(run, in_axes=(in_axes, None)))(bm, data)
+    rel = np.einsum("tji,tj->ti", np.asarray(R_tray[0]), np.asarray(p_obj[0] - p_tray[0]))  # tray frame
+    slip = np.linalg.norm(rel[:, :2] - rel[0, :2], axis=1).max()
+    assert np.all(np.abs(rel[:, 2] - d / 2) < 2e-3), "object left the tray"
+    assert slip < REST_SLIP_MAX, f"object slid {slip * 1e3:.3f} mm"
+
+
+def test_bad_scene_and_factor_values(robot, tmp_path):
+    with pytest.raises(SceneError, match="no such file"):
+        Robot(tmp_path / "missing.xml")
+    bad = {"m": (0.0, 0.4, 0.08), "mu": (0.3, -0.1, 0.08), "d": (0.3, 0.4, 0.25)}
+    for name, (m, mu, d) in bad.items():
+        with pytest.raises(FactorError, match=rf"factor {name} = .* expected"):
+            scenario.validate_factors(robot.ids, m, mu, d)
+    with pytest.raises(FactorError, match="d = 0 m"):
+        scenario.validate_factors(robot.ids, 0.3, 0.7, 0.0)
+
+
+def test_cli_bad_scene_is_one_line_exit_2(tmp_path):
+    out = tmp_path / "demo"
+    p = subprocess.run([sys.executable, "-m", "wbc_jax", "demo", "--scene", str(tmp_path / "nope.xml"),
+                        "--out", str(out)], capture_output=True, text=True)
+    assert p.returncode == 2
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip() and "warp" not in ln]
+    assert len(lines) == 1 and "no such file" in lines[0], p.stderr
+    assert not out.exists()
