@@ -62,15 +62,19 @@ def band(n: int, p: float = ALPHA) -> tuple[float, float]:
 
 
 def test_planted_effects_found_exactly():
-    out = stats.analyze(planted(seed=0), FACTORS, ["R", "T"], alpha=ALPHA)
+    # A fixed seed: with 3 null terms in R and 6 in the pure-noise T, about 1 - 0.95^9 = 37 %
+    # of seeds show some false positive at alpha = 0.05 (seed 0 does: mu in T); seed 1 does
+    # not. The rate itself is what the two seed-loop tests below measure.
+    out = stats.analyze(planted(seed=1), FACTORS, ["R", "T"], alpha=ALPHA)
     assert set(out["metrics"]["R"]["significant"]) == PLANTED
     assert out["metrics"]["T"]["significant"] == []
     r = out["metrics"]["R"]
     # simple effects: both directions of the one significant interaction
     assert [(s["effect"], s["by"]) for s in r["simple_effects"]] == [("mu", "d"), ("d", "mu")]
-    # mu has no effect at the middle d (pattern row/column of zeros), a strong one at the ends
-    mu_by_d = r["simple_effects"][0]["tests"].set_index("d")["p"]
-    assert mu_by_d[0.06] < 1e-6 and mu_by_d[0.10] < 1e-6
+    # planted mu offsets at d = 0.06, 0.08, 0.10: main (-E, 0, E) + pattern column = 0, (-E, 0, E), (-2E, 0, 2E)
+    mu_by_d = r["simple_effects"][0]["tests"].set_index("d")
+    assert mu_by_d.loc[0.08, "p"] < 1e-6 and mu_by_d.loc[0.10, "p"] < 1e-6
+    assert mu_by_d.loc[0.10, "F"] > 2 * mu_by_d.loc[0.08, "F"] and mu_by_d.loc[0.06, "F"] < mu_by_d.loc[0.08, "F"] / 2
 
 
 def test_planted_power_and_false_positive_rate_over_seeds():

@@ -279,10 +279,12 @@ class AnovaFit:
 
     @property
     def degenerate(self) -> bool:
-        """Residuals numerically zero: residual SS <= PERFECT_FIT_RTOL x total SS."""
+        """Residuals numerically zero: residual SS <= PERFECT_FIT_RTOL x total SS, or residual
+        RMS <= ZERO_SD_RTOL x max|y| (rounding noise of a constant metric)."""
         y = np.asarray(self.result.model.endog, float)
+        ssr = float(self.result.ssr)
         tss = float(np.sum((y - y.mean()) ** 2))
-        return float(self.result.ssr) <= PERFECT_FIT_RTOL * tss
+        return ssr <= PERFECT_FIT_RTOL * tss or np.sqrt(ssr / len(y)) <= ZERO_SD_RTOL * float(np.max(np.abs(y)))
 
     def significant(self, alpha: float) -> list[str]:
         """Effect sources with p < alpha (none when the F tests are unreliable)."""
