@@ -16,7 +16,13 @@ ATOL_POS = 2e-5  # [m] float32 positions of order 1 m
 FD_H = 1e-3  # [s] central-difference step
 FD_RTOL = 2e-3  # finite differences vs analytic derivatives (relative to the signal scale)
 
+# jitted entry points (eager dispatch of many small ops is slower than one compile)
 eval_path_t = jax.jit(jax.vmap(pl.eval_path, in_axes=(None, 0)))
+eval_path_j = jax.jit(pl.eval_path)
+straight_j = jax.jit(pl.straight_path)
+plan_trot_j = jax.jit(pl.footstep_plan_trot, static_argnums=3)
+eos_j = jax.jit(pl.end_of_step_cps)
+ini_j = jax.jit(pl.initial_cps)
 
 
 def _fd_check(f, ts, h=FD_H, rtol=FD_RTOL):
@@ -84,7 +90,7 @@ def test_two_knot_path_is_hermite():
 def test_straight_path_profile():
     p_i, p_f = np.array([0.0, -0.7, 0.8]), np.array([0.3, -4.1, 0.6])
     speed, t0, ramp = 0.13, 0.5, 1.0
-    path = pl.straight_path(p_i, p_f, speed, t0, ramp)
+    path = straight_j(p_i, p_f, speed, t0, ramp)
     length = np.linalg.norm(p_f - p_i)
     t_end = t0 + length / speed + ramp
     np.testing.assert_allclose(float(pl.path_end_time(path)), t_end, rtol=1e-5)
@@ -96,7 +102,7 @@ def test_straight_path_profile():
     np.testing.assert_allclose(speed_t[cruise], speed, rtol=1e-4)
     np.testing.assert_allclose(p[0], p_i, atol=ATOL_POS)
     np.testing.assert_allclose(p[-1], p_f, atol=ATOL_POS)
-    np.testing.assert_allclose(pl.eval_path(path, t_end)[0], p_f, atol=ATOL_POS)
+    np.testing.assert_allclose(eval_path_j(path, t_end)[0], p_f, atol=ATOL_POS)
     assert np.abs(v[-1]).max() == 0.0 and np.abs(v[0]).max() == 0.0
     # velocity along the line, acceleration peak 2 speed / ramp, C2 (no jumps)
     u = (p_f - p_i) / length
@@ -120,7 +126,7 @@ def test_straight_path_short_and_batched():
     np.testing.assert_allclose(peak, [0.05, 0.02, 0.04], rtol=1e-3)
     np.testing.assert_allclose(p[:, -1], np.broadcast_to(p_f, (3, 3)), atol=ATOL_POS)
     # a zero-length path stays put
-    still = pl.straight_path(p_i, p_i, 0.1, 0.0, 1.0)
+    still = straight_j(p_i, p_i, 0.1, 0.0, 1.0)
     pp, vv, _ = eval_path_t(still, ts)
     assert np.all(np.isfinite(np.asarray(pp))) and np.abs(np.asarray(vv)).max() == 0.0
 
@@ -133,8 +139,8 @@ def test_max_abs_accel_z_and_offset():
     assert pl.max_abs_accel_z(path) == pytest.approx(np.abs(az).max(), rel=1e-3)
     assert pl.max_abs_accel_z(path) < 9.81
     off = pl.offset_path(path, jnp.array([0.0, 0.69, -0.36]))
-    p0, v0, a0 = pl.eval_path(path, 3.3)
-    p1, v1, a1 = pl.eval_path(off, 3.3)
+    p0, v0, a0 = eval_path_j(path, 3.3)
+    p1, v1, a1 = eval_path_j(off, 3.3)
     np.testing.assert_allclose(p1 - p0, [0.0, 0.69, -0.36], atol=ATOL_POS)
     np.testing.assert_allclose(v1, v0)
     np.testing.assert_allclose(a1, a0)
@@ -239,13 +245,12 @@ def test_swing_reference(kind):
 
 def test_quintic_and_raibert():
     p0, p1 = np.zeros((2, 3)), np.arange(6.0).reshape(2, 3)
-    for tt, ref in ((0.0, p0), (0.4, p1), (-1.0, p0), (2.0, p1)):
-        p, v, a = pl.quintic(p0, p1, 0.4, tt)
-        assert p.shape == (2, 3)
-        np.testing.assert_allclose(p, ref, atol=1e-5)
-        np.testing.assert_allclose(v, 0.0, atol=1e-5)
-        np.testing.assert_allclose(a, 0.0, atol=1e-4)
-    q = jax.vmap(lambda tt: pl.quintic(p0, p1, 0.4, tt))
+    q = jax.jit(jax.vmap(lambda tt: pl.quintic(p0, p1, 0.4, tt)))
+    p, v, a = q(jnp.array([0.0, 0.4, -1.0, 2.0]))
+    assert p.shape == (4, 2, 3)
+    np.testing.assert_allclose(p, np.stack([p0, p1, p0, p1]), atol=1e-5)
+    np.testing.assert_allclose(v, 0.0, atol=1e-5)
+    np.testing.assert_allclose(a, 0.0, atol=1e-4)
     _fd_check(q, np.linspace(0.01, 0.39, 50), h=1e-4)
     foot = pl.raibert_foothold([0.2, -0.3], [0.0, -0.2], [0.0, -0.13], 0.415, k_v=0.2, t_to_touchdown=0.05)
     np.testing.assert_allclose(foot, [0.2, -0.3 - 0.13 * (0.05 + 0.2075) - 0.2 * 0.07], atol=1e-6)
@@ -271,9 +276,9 @@ def _margin_ref(q, feet, stance):
     if len(pts) == 0:
         return -np.inf
     dist = min(_seg_dist(q, a, b) for a in pts for b in pts)
-    if len(pts) >= 3 and abs(np.cross(pts[1] - pts[0], pts[2:] - pts[0]).max(initial=0)) + abs(
-        np.cross(pts[1] - pts[0], pts[2:] - pts[0]).min(initial=0)
-    ) > 1e-9:
+    e = pts[1:] - pts[0]
+    area2 = np.abs(e[:, None, 0] * e[None, :, 1] - e[:, None, 1] * e[None, :, 0]).max(initial=0.0)
+    if len(pts) >= 3 and area2 > 1e-9:
         eq = ConvexHull(pts).equations  # n . x + c <= 0 inside, unit outward n
         s = eq[:, :2] @ q + eq[:, 2]
         if np.all(s <= 0):
@@ -329,7 +334,7 @@ def test_clamp_to_support():
     np.testing.assert_allclose(clamp_j(jnp.array([0.5, 0.9]), SQUARE, ALL, 0.3), [0.0, 0.0], atol=1e-6)
     # diagonal pair: closest point of the segment shortened by the margin at both ends
     diag = np.array([1, 0, 0, 1], bool)
-    np.testing.assert_allclose(clamp_j(jnp.array([0.1, 0.0]), SQUARE, diag, 0.0), [0.1 * 0.16 / 0.52, -0.1 * 0.24 / 0.52], atol=1e-6)
+    np.testing.assert_allclose(clamp_j(jnp.array([0.1, 0.0]), SQUARE, diag, 0.0), [0.1 * 0.16 / 0.52, 0.1 * 0.24 / 0.52], atol=1e-6)
     end = SQUARE[0] + 0.05 * (SQUARE[3] - SQUARE[0]) / np.linalg.norm(SQUARE[3] - SQUARE[0])
     np.testing.assert_allclose(clamp_j(jnp.array([0.5, 0.5]), SQUARE, diag, 0.05), end, atol=1e-6)
     np.testing.assert_allclose(clamp_j(jnp.array([0.5, 0.5]), SQUARE, np.array([0, 0, 1, 0], bool), 0.05), SQUARE[2], atol=1e-6)
@@ -350,17 +355,24 @@ def test_clamp_to_support():
 
 
 def test_zmp_and_com_segment():
-    np.testing.assert_allclose(pl.zmp_xy(jnp.array([0.1, 0.2, 0.45]), jnp.zeros(3)), [0.1, 0.2], atol=1e-7)
-    z = pl.zmp_xy(jnp.array([0.0, 0.0, 0.5]), jnp.array([1.0, -2.0, 0.19]), g=9.81, z_ground=0.05)
+    zmp = jax.jit(pl.zmp_xy)
+    np.testing.assert_allclose(zmp(jnp.array([0.1, 0.2, 0.45]), jnp.zeros(3)), [0.1, 0.2], atol=1e-7)
+    z = zmp(jnp.array([0.0, 0.0, 0.5]), jnp.array([1.0, -2.0, 0.19]), 9.81, 0.05)
     np.testing.assert_allclose(z, [-0.45 / 10.0, 0.9 / 10.0], atol=1e-6)
-    coef = pl.cubic_hermite(jnp.array([0.0, 0.0, 0.45]), jnp.zeros(3), jnp.array([0.0, 0.0, 0.45]), jnp.zeros(3), 0.265)
-    assert float(pl.min_zmp_margin(coef, 0.265, SQUARE, ALL)) == pytest.approx(0.2, abs=1e-6)
-    coef = pl.cubic_hermite(jnp.array([0.0, 0.0, 0.45]), jnp.zeros(3), jnp.array([0.0, -0.04, 0.45]), jnp.zeros(3), 0.265)
-    p, _, a = pl.eval_cubic(coef, 0.0)
-    zmp0 = np.asarray(pl.zmp_xy(p, a))
-    ref = min(_margin_ref(np.asarray(pl.zmp_xy(*pl.eval_cubic(coef, tt)[::2])), SQUARE, ALL) for tt in np.linspace(0, 0.265, 16))
-    assert float(pl.min_zmp_margin(coef, 0.265, SQUARE, ALL)) == pytest.approx(ref, abs=1e-5)
-    assert zmp0[1] > 0.0  # accelerating towards -y pushes the ZMP towards +y
+
+    @jax.jit
+    def plan(y1):
+        p0 = jnp.array([0.0, 0.0, 0.45])
+        coef = pl.cubic_hermite(p0, jnp.zeros(3), p0.at[1].set(y1), jnp.zeros(3), 0.265)
+        zmps = jax.vmap(lambda tt: pl.zmp_xy(*pl.eval_cubic(coef, tt)[::2]))(jnp.linspace(0.0, 0.265, 16))
+        return pl.min_zmp_margin(coef, 0.265, SQUARE, ALL), zmps
+
+    m_still, _ = plan(0.0)
+    assert float(m_still) == pytest.approx(0.2, abs=1e-6)
+    m_move, zmps = plan(-0.04)
+    ref = min(_margin_ref(zz, SQUARE, ALL) for zz in np.asarray(zmps, np.float64))
+    assert float(m_move) == pytest.approx(ref, abs=1e-5)
+    assert zmps[0, 1] > 0.0  # accelerating towards -y pushes the ZMP towards +y
 
 
 # ----------------------------------------------------------------------------- capture point
@@ -372,12 +384,12 @@ def test_cp_recursion_closed_form_constant_stride():
     assert w == pytest.approx(np.sqrt(9.81 / 0.43), rel=1e-6)
     N, s, T = 12, 0.1, 0.25
     P = np.stack([np.arange(N) * s, np.zeros(N)], 1)
-    eos = np.asarray(jax.jit(pl.end_of_step_cps)(P, T, w, P[-1]))
+    eos = np.asarray(eos_j(P, T, w, P[-1]))
     b = np.exp(-w * T)
     ref = s * (1 - b ** (N - 1 - np.arange(N))) / (1 - b)
     np.testing.assert_allclose(eos[:, 0] - P[:, 0], ref, atol=1e-5)
     np.testing.assert_allclose(eos[:, 1], 0.0, atol=1e-7)
-    ini = np.asarray(pl.initial_cps(P, eos, T, w))
+    ini = np.asarray(ini_j(P, eos, T, w))
     np.testing.assert_allclose(ini[1:], eos[:-1], atol=1e-5)
 
 
@@ -388,8 +400,8 @@ def test_cp_forward_simulation_reaches_end_of_step_cps():
     N = 7
     T = rng.uniform(0.2, 0.3, size=N)
     P = np.cumsum(rng.uniform(-0.05, 0.12, size=(N, 2)), axis=0)
-    eos = np.asarray(pl.end_of_step_cps(P, T, w, P[-1] + [0.01, -0.02]), np.float64)
-    ini = np.asarray(pl.initial_cps(P, eos, T, w), np.float64)
+    eos = np.asarray(eos_j(P, T, w, P[-1] + np.array([0.01, -0.02])), np.float64)
+    ini = np.asarray(ini_j(P, eos, T, w), np.float64)
     x = np.array([0.03, -0.02])
     xd = w * (ini[0] - x)  # so that x + xd / w = xi_ini[0]
     n_sub = 400
@@ -419,7 +431,7 @@ def test_cp_reference_and_trot_plan():
     T = params.t_stance + params.t_swing
     feet0 = np.array([[0.19, -0.29], [-0.19, -0.29], [0.19, 0.29], [-0.19, 0.29]])  # facing -y
     N, stride = 10, 0.1
-    plan = pl.footstep_plan_trot(feet0, -np.pi / 2, stride, N)
+    plan = plan_trot_j(feet0, -np.pi / 2, stride, N)
     P, feet = np.asarray(plan.P), np.asarray(plan.feet)
     np.testing.assert_allclose(P[:, 0], 0.0, atol=1e-6)
     np.testing.assert_allclose(P[:, 1], -stride * np.arange(N), atol=1e-6)
@@ -431,10 +443,10 @@ def test_cp_reference_and_trot_plan():
     np.testing.assert_allclose(plan.xi_final, P[-1], atol=1e-6)
 
     w = float(pl.omega(0.43))
-    eos = pl.end_of_step_cps(plan.P, T, w, plan.xi_final)
-    P0 = pl.first_footstep_for_rest(jnp.zeros(2), eos[0], T, w)
+    eos = eos_j(plan.P, T, w, plan.xi_final)
+    P0 = jax.jit(pl.first_footstep_for_rest)(jnp.zeros(2), eos[0], T, w)
     P_rest = plan.P.at[0].set(P0)
-    np.testing.assert_allclose(pl.initial_cps(P_rest, eos, T, w)[0], [0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(ini_j(P_rest, eos, T, w)[0], [0.0, 0.0], atol=1e-6)
 
     ref = jax.jit(jax.vmap(pl.cp_reference, in_axes=(None, None, 0, None, None, None)))
     ts = np.linspace(0.0, params.t_start + N * T + 0.5, 2001)
