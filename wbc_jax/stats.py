@@ -1,7 +1,8 @@
 """Statistics of a factorial campaign: design, descriptives, ANOVA, assumptions, EMMs.
 
 Pure functions on pandas DataFrames that return DataFrames and dicts: no files, no plots
-(``wbc_jax.report`` does those). The input is a tidy results table, one row per run:
+(``wbc_jax.report`` does those). scipy and statsmodels are imported where used, so that
+checking a table (and the CLI's error path) stays fast. The input is a tidy results table, one row per run:
 factor columns (``m``, ``mu``, ``d`` in the transport campaign; any others by name), a
 boolean ``success`` and numeric metric columns (``R``, ``T``, ``S``, ...).
 
@@ -33,7 +34,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
-from scipy import stats as sps
 
 from wbc_jax.errors import InputError
 
@@ -415,6 +415,7 @@ def assumption_tests(fit: AnovaFit, alpha: float = 0.05) -> list[dict]:
         One dict per test: test, assumption, statistic, p, ok (p >= alpha, or None if the
         test could not run), note. A failed test also appends a warning to ``fit.warnings``.
     """
+    from scipy import stats as sps
     from statsmodels.stats.diagnostic import lilliefors
 
     r = np.asarray(fit.result.resid, float)
@@ -516,6 +517,8 @@ def emmeans(fit: AnovaFit, by: Sequence[str], conf: float = CONF) -> pd.DataFram
     Returns:
         Columns: the ``by`` factors, emm, se, df, ci_low, ci_high (unadjusted ``conf`` CI).
     """
+    from scipy import stats as sps
+
     keys, L = _emm_rows(fit, by)
     est, cov = _estimate(fit, L)
     se = np.sqrt(np.diag(cov))
@@ -540,6 +543,8 @@ def simple_effects(fit: AnovaFit, effect: str, by: str, conf: float = CONF) -> d
         p, partial_eta_sq) and ``pairs`` (by level, level_a, level_b, diff, se, t, df,
         ci_low, ci_high, p_unadj, p_bonf) DataFrames.
     """
+    from scipy import stats as sps
+
     keys, L = _emm_rows(fit, [by, effect])
     est, cov = _estimate(fit, L)
     beta = np.asarray(fit.result.params, float)

@@ -1,0 +1,197 @@
+"""``wbc-jax report``: outputs, warnings, and bad input through the real CLI (subprocess)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_stats import FACTORS, PLANTED, planted
+
+from wbc_jax import report
+from wbc_jax.errors import InputError
+
+REPO = Path(__file__).resolve().parents[1]
+ROW_KEYS = {"source", "sum_sq", "df", "mean_sq", "F", "p", "partial_eta_sq"}
+
+
+def _cli(csv: Path, out: Path, *extra: str) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.Popen([sys.executable, "-m", "wbc_jax", "report", str(csv), "--out", str(out), *extra],
+                            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _strict_json(path: Path) -> dict:
+    def no_nan(c):
+        raise ValueError(f"non-JSON constant {c}")
+
+    return json.loads(path.read_text(), parse_constant=no_nan)
+
+
+def _leftovers(parent: Path, name: str) -> list[str]:
+    return [p.name for p in parent.iterdir() if p.name.startswith(f".{name}.")]
+
+
+def test_cli_full_report_with_figures(tmp_path):
+    """The one test that renders figures: the full CLI path on planted data."""
+    csv = tmp_path / "results.csv"
+    df = planted(seed=1)
+    df["S"] = df["R"] * 0.5 + np.random.default_rng(0).standard_normal(len(df))
+    df.loc[[3, 50], "success"] = False
+    df.to_csv(csv, index=False)
+    out = tmp_path / "rep"
+    p = _cli(csv, out)
+    stdout, stderr = p.communicate(timeout=120)
+    assert p.returncode == 0, stderr
+    assert {f.name for f in out.iterdir()} == {"report.md", "report.html", "anova.json", "design.csv",
+                                              "cell_means.csv", "manifest.json", "figures"}
+    for png in ("means.png", "interactions.png", "qq.png"):
+        data = (out / "figures" / png).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+    html = (out / "report.html").read_text()
+    assert html.count('src="data:image/png;base64,') == 3 and 'src="figures/' not in html
+    md = (out / "report.md").read_text()
+    assert "![" in md and "figures/means.png" in md and "## Metric R" in md
+    summary = _strict_json(out / "anova.json")
+    assert summary["ss_type"] == "III" and summary["n_failed"] == 2 and list(summary["metrics"]) == ["R", "T", "S"]
+    r = summary["metrics"]["R"]
+    assert set(r["significant"]) == PLANTED
+    assert all(set(row) == ROW_KEYS for row in r["anova"]) and r["anova"][-1]["source"] == "Residual"
+    assert {a["test"] for a in r["assumptions"]} == {"Lilliefors KS", "Shapiro-Wilk", "Levene (mean)",
+                                                   "Brown-Forsythe (median)"}
+    assert [s["by"] for s in r["simple_effects"]] == ["d", "mu"]
+    man = _strict_json(out / "manifest.json")
+    assert man["rows"] == len(df) and len(man["sha256"]) == 64
+    assert not _leftovers(tmp_path, "rep")
+
+
+def test_unbalanced_and_deterministic_metric_report(tmp_path):
+    df = planted(seed=3)
+    rng = np.random.default_rng(2)
+    df = df.drop(index=rng.choice(len(df), size=15, replace=False))  # missing runs
+    df.loc[df.index[:6], "success"] = False  # failed runs
+    df["S"] = 2.0 * df["m"] - df["d"]  # deterministic: zero within-cell variance
+    csv = tmp_path / "results.csv"
+    df.to_csv(csv, index=False)
+    out = tmp_path / "rep"
+    summary = report.run_report(str(csv), str(out), figures=False)
+    s, r = summary["metrics"]["S"], summary["metrics"]["R"]
+    assert s["f_tests_reliable"] is False and s["significant"] == []
+    assert any("zero within-cell variance" in w for w in s["warnings"])
+    assert r["f_tests_reliable"] is True and set(r["significant"]) >= PLANTED
+    assert any("unbalanced" in w for w in r["warnings"])
+    assert any("6 of 93 runs failed" in w for w in summary["warnings"])
+    md = (out / "report.md").read_text()
+    assert "S: F tests are unreliable" in md and "**F tests unreliable**" in md and "unbalanced design" in md
+    # the deterministic metric's ANOVA shows SS and MS but no F, p, partial eta squared
+    s_table = md.split("## Metric S")[1].split("### Assumptions")[0]
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in s_table.splitlines() if line.startswith("| ")]
+    assert rows[0][:7] == ["source", "SS", "df", "MS", "F", "p", "partial η²"] and len(rows) == 8
+    assert all(r[1] and r[3] and r[4:] == ["", "", "", ""] for r in rows[1:])
+    assert not (out / "figures").exists()
+    design = (out / "design.csv").read_text().splitlines()
+    assert design[0] == "m,mu,d,runs,successes,failures" and len(design) == 28
+    _strict_json(out / "anova.json")
+
+
+def test_existing_dir_replaced_only_on_success(tmp_path):
+    csv = tmp_path / "results.csv"
+    planted(seed=1).to_csv(csv, index=False)
+    out = tmp_path / "rep"
+    out.mkdir()
+    (out / "stale.txt").write_text("old")
+    with pytest.raises(InputError):
+        report.run_report(str(csv), str(out), factors=["m", "nope"], figures=False)
+    assert (out / "stale.txt").read_text() == "old"
+    report.run_report(str(csv), str(out), figures=False)
+    assert not (out / "stale.txt").exists() and (out / "anova.json").exists()
+    assert not _leftovers(tmp_path, "rep")
+    assert oct(out.stat().st_mode & 0o777) != "0o700"
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def _bad_cases(tmp: Path) -> dict:
+    """name -> (csv path, extra CLI args, expected message part)."""
+    good = planted(seed=1)
+    nonnum = good.astype({"R": object})
+    nonnum.loc[5, "R"] = "abc"
+    frames = {
+        "missing_column": (good, ["--factors", "m,mu,x"], "factor column 'x' is not in the table"),
+        "missing_metric": (good, ["--metrics", "R,Q"], "metric column 'Q' is not in the table"),
+        "non_numeric_metric": (nonnum, [], "metric 'R' is not numeric (e.g. 'abc')"),
+        "one_level_factor": (good.assign(d=0.06), [], "factor 'd' has only one level"),
+        "no_factors": (good.drop(columns=FACTORS), [], "no factor columns"),
+        "bad_alpha": (good, ["--alpha", "1.5"], "alpha must be between 0 and 1"),
+    }
+    out = {}
+    for name, (df, extra, msg) in frames.items():
+        csv = tmp / f"{name}.csv"
+        df.to_csv(csv, index=False)
+        out[name] = (csv, extra, msg)
+    out["empty_file"] = (_write(tmp / "empty.csv", ""), [], "results file is empty")
+    out["header_only"] = (_write(tmp / "header.csv", "m,mu,d,rep,seed,success,R\n"), [], "header but no rows")
+    out["not_found"] = (tmp / "nope.csv", [], "results file not found")
+    out["directory"] = (tmp, [], "results path is a directory")
+    out["binary"] = (tmp / "bin.csv", [], "not a readable CSV")
+    (tmp / "bin.csv").write_bytes(b"m,mu\n\xff\xfe\x00\x81,\x00\n")
+    return out
+
+
+CLI_CASES = ["missing_column", "non_numeric_metric", "one_level_factor", "empty_file", "not_found"]
+INPROC_CASES = ["missing_metric", "no_factors", "bad_alpha", "header_only", "directory", "binary"]
+
+
+@pytest.fixture(scope="module")
+def cases(tmp_path_factory):
+    return _bad_cases(tmp_path_factory.mktemp("bad"))
+
+
+@pytest.fixture(scope="module")
+def cli_runs(cases):
+    """The issue's bad-input kinds through the real CLI, as parallel subprocesses."""
+    runs = {}
+    for name in CLI_CASES:
+        csv, extra, msg = cases[name]
+        out = csv.parent / f"out_{name}"
+        runs[name] = (_cli(csv, out, *extra), out, msg)
+    csv, extra, msg = cases["one_level_factor"]  # an existing output directory stays untouched
+    kept = csv.parent / "out_existing"
+    kept.mkdir()
+    (kept / "old.md").write_text("previous report")
+    runs["existing_dir"] = (_cli(csv, kept, *extra), kept, msg)
+    return {name: (*p.communicate(timeout=120), p.returncode, out, msg) for name, (p, out, msg) in runs.items()}
+
+
+@pytest.mark.parametrize("name", [*CLI_CASES, "existing_dir"])
+def test_bad_input_cli(cli_runs, name):
+    stdout, stderr, rc, out, msg = cli_runs[name]
+    assert rc == 2, stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("wbc-jax report: error: ") and msg in lines[0], stderr
+    assert "Traceback" not in stderr and stdout == ""
+    if name == "existing_dir":
+        assert [p.name for p in out.iterdir()] == ["old.md"]
+    else:
+        assert not out.exists()
+    assert not _leftovers(out.parent, out.name)
+
+
+@pytest.mark.parametrize("name", INPROC_CASES)
+def test_bad_input_in_process(cases, name):
+    csv, extra, msg = cases[name]
+    kw = dict(zip(extra[::2], extra[1::2]))
+    args = {"factors": kw.get("--factors"), "metrics": kw.get("--metrics")}
+    args = {k: v.split(",") for k, v in args.items() if v}
+    out = csv.parent / f"inproc_{name}"
+    with pytest.raises(InputError) as e:
+        report.run_report(str(csv), str(out), alpha=float(kw.get("--alpha", 0.05)), figures=False, **args)
+    assert msg in str(e.value) and "\n" not in str(e.value)
+    assert not out.exists() and not _leftovers(out.parent, out.name)
