@@ -373,6 +373,15 @@ def test_zmp_and_com_segment():
     ref = min(_margin_ref(zz, SQUARE, ALL) for zz in np.asarray(zmps, np.float64))
     assert float(m_move) == pytest.approx(ref, abs=1e-5)
     assert zmps[0, 1] > 0.0  # accelerating towards -y pushes the ZMP towards +y
+    # replanning: the goal is pulled onto the stance diagonal (FL, BR), velocity kept
+    diag = np.array([1, 0, 0, 1], bool)
+    goal, v_goal = jnp.array([0.05, -0.04, 0.45]), jnp.array([0.0, -0.13, 0.0])
+    coef, m = jax.jit(pl.replan_com)(jnp.array([0.0, 0.0, 0.45]), jnp.zeros(3), goal, v_goal, 0.265, SQUARE, diag)
+    p_end, v_end, _ = pl.eval_cubic(np.asarray(coef), 0.265)
+    assert abs(_margin_ref(np.asarray(p_end[:2], np.float64), SQUARE, diag)) < 1e-6
+    np.testing.assert_allclose(p_end[:2], np.asarray(clamp_j(goal[:2], SQUARE, diag, 0.0)), atol=1e-6)
+    np.testing.assert_allclose(v_end, v_goal, atol=1e-5)
+    assert float(m) <= 0.0
 
 
 # ----------------------------------------------------------------------------- capture point

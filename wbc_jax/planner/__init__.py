@@ -54,4 +54,4 @@ from .spline import (
     waypoint_times,
 )
 from .swing import quintic, raibert_foothold, swing_reference
-from .zmp import clamp_to_support, min_zmp_margin, support_margin, zmp_xy
+from .zmp import clamp_to_support, min_zmp_margin, replan_com, support_margin, zmp_xy

@@ -28,6 +28,7 @@ __all__ = [
     "support_margin",
     "clamp_to_support",
     "min_zmp_margin",
+    "replan_com",
 ]
 
 _TOL = 1e-6  # [m] collinearity / feasibility tolerance
@@ -184,25 +185,61 @@ def clamp_to_support(point_xy, feet_xy, stance, margin=0.0):
     return jnp.where(jnp.any(stance), out, q)
 
 
-def min_zmp_margin(coef, T, feet_xy, stance, n: int = 16, g=9.81, z_ground=0.0):
+def min_zmp_margin(coef, T, feet_xy, stance, n: int = 16, g=9.81, z_ground=0.0, tau0=0.0):
     """Smallest support margin of the ZMP along a cubic CoM segment (fixed samples).
 
     Args:
         coef: (4, 3) CoM segment from :func:`cubic_hermite` (time since segment start).
-        T: () segment duration [s].
+        T: () end of the checked interval [s] (since the segment start).
         feet_xy: (4, 2) foot positions [m].
-        stance: (4,) bool stance mask (held over the segment).
+        stance: (4,) bool stance mask (held over the interval).
         n: number of samples, including both ends; static.
         g: gravity [m/s^2].
         z_ground: ground height [m].
+        tau0: () start of the checked interval [s] (e.g. ``t_stance`` to check only the
+            swing part of a footstep with the diagonal-pair mask).
 
     Returns:
         () min over the samples of ``support_margin(zmp_xy(p, a))`` [m].
     """
-    taus = jnp.linspace(0.0, 1.0, n) * T
+    taus = tau0 + jnp.linspace(0.0, 1.0, n) * (T - tau0)
 
     def one(tau):
         p, _, a = eval_cubic(coef, tau)
         return support_margin(zmp_xy(p, a, g, z_ground), feet_xy, stance)
 
     return jnp.min(jax.vmap(one)(taus))
+
+
+def replan_com(p0, v0, p_goal, v_goal, T, feet_xy, stance, margin=0.0, g=9.81, z_ground=0.0):
+    """One footstep of CoM reference (the transport paper's replanning at each footstep).
+
+    A cubic from the current CoM reference state ``(p0, v0)`` to the desired CoM state at
+    the end of the footstep ``(p_goal, v_goal)`` (e.g. the object path plus the initial
+    offset, evaluated at ``t + T``), with the goal's horizontal position moved to the
+    closest point of the support region of ``stance`` shrunk by ``margin``
+    (:func:`clamp_to_support`; a no-op when the goal is already there). Pass the stance
+    mask of the footstep's swing phase (the diagonal pair for a trot) so the CoM ends
+    over the support line. The goal velocity and height are kept. The ZMP margin along
+    the whole segment is returned so callers can monitor it.
+
+    Args:
+        p0: (3,) CoM reference position at the footstep start [m].
+        v0: (3,) CoM reference velocity at the footstep start [m/s].
+        p_goal: (3,) desired CoM position at the footstep end [m].
+        v_goal: (3,) desired CoM velocity at the footstep end [m/s].
+        T: () footstep duration [s].
+        feet_xy: (4, 2) foot positions (swing feet: their planned landing points) [m].
+        stance: (4,) bool support mask the goal is clamped to.
+        margin: () inner margin for the goal [m].
+        g: gravity [m/s^2].
+        z_ground: ground height [m].
+
+    Returns:
+        (coef, zmp_margin): coef (4, 3) for :func:`eval_cubic` on tau in [0, T];
+        zmp_margin () min ZMP support margin of the segment w.r.t. ``stance`` [m].
+    """
+    p_goal = jnp.asarray(p_goal, dtype=jnp.result_type(float))
+    goal_xy = clamp_to_support(p_goal[:2], feet_xy, stance, margin)
+    coef = cubic_hermite(p0, v0, p_goal.at[:2].set(goal_xy), v_goal, T)
+    return coef, min_zmp_margin(coef, T, feet_xy, stance, g=g, z_ground=z_ground)
