@@ -31,8 +31,21 @@ __all__ = [
     "replan_com",
 ]
 
-_TOL = 1e-6  # [m] collinearity / feasibility tolerance
+_TOL = 1e-6  # [m] collinearity tolerance
+_TOL_FEAS = 1e-5  # [m] feasibility tolerance of projection candidates
 _TINY = 1e-12
+
+
+def _local(point_xy, feet_xy, stance):
+    """float32 care: express point and feet relative to the stance centroid (metres from
+    the robot rather than from the world origin, which may be several metres away)."""
+    dtype = jnp.result_type(float)
+    q = jnp.asarray(point_xy, dtype=dtype)
+    feet = jnp.asarray(feet_xy, dtype=dtype)
+    stance = jnp.asarray(stance, dtype=bool)
+    n_st = jnp.maximum(jnp.sum(stance), 1)
+    origin = jnp.sum(jnp.where(stance[:, None], feet, 0.0), axis=0) / n_st  # (2,)
+    return q - origin, feet - origin, stance, origin
 
 
 def zmp_xy(p_com, a_com, g=9.81, z_ground=0.0):
@@ -106,10 +119,7 @@ def support_margin(point_xy, feet_xy, stance):
         distance to the hull); for hulls without interior (<= 2 feet or collinear feet)
         minus the distance to the segment/point; -inf with no stance foot.
     """
-    dtype = jnp.result_type(float)
-    q = jnp.asarray(point_xy, dtype=dtype)
-    feet = jnp.asarray(feet_xy, dtype=dtype)
-    stance = jnp.asarray(stance, dtype=bool)
+    q, feet, stance, _ = _local(point_xy, feet_xy, stance)
     fi, d, both = _pairs(feet, stance)
     dist = jnp.linalg.norm(_seg_closest(q, fi, d) - q, axis=-1)
     dist_hull = jnp.min(jnp.where(both, dist, jnp.inf))
@@ -139,11 +149,8 @@ def clamp_to_support(point_xy, feet_xy, stance, margin=0.0):
     Returns:
         (2,) clamped point [m] (the input point when no foot is in stance).
     """
-    dtype = jnp.result_type(float)
-    q = jnp.asarray(point_xy, dtype=dtype)
-    feet = jnp.asarray(feet_xy, dtype=dtype)
-    stance = jnp.asarray(stance, dtype=bool)
-    m = jnp.asarray(margin, dtype=dtype)
+    q, feet, stance, origin = _local(point_xy, feet_xy, stance)
+    m = jnp.asarray(margin, dtype=q.dtype)
 
     # --- degenerate hull: closest point on the (shortened) pair segments
     fi, d, both = _pairs(feet, stance)
@@ -163,7 +170,7 @@ def clamp_to_support(point_xy, feet_xy, stance, margin=0.0):
     c = c + m
 
     def feasible(x):  # x (..., 2)
-        return jnp.all(jnp.where(edge, x @ n.T - c >= -_TOL, True), axis=-1)
+        return jnp.all(jnp.where(edge, x @ n.T - c >= -_TOL_FEAS, True), axis=-1)
 
     L = _N_LINES
     proj = q - (n @ q - c)[:, None] * n  # (6, 2) projections on each line
@@ -177,12 +184,10 @@ def clamp_to_support(point_xy, feet_xy, stance, margin=0.0):
     cands = jnp.concatenate([q[None], proj, cross], axis=0)  # (43, 2)
     valid = jnp.concatenate([jnp.ones((1,), bool), edge, pair_edge]) & feasible(cands)
     cd = jnp.where(valid, jnp.linalg.norm(cands - q, axis=-1), jnp.inf)
-    n_st = jnp.maximum(jnp.sum(stance), 1)
-    centroid = jnp.sum(jnp.where(stance[:, None], feet, 0.0), axis=0) / n_st
-    poly_point = jnp.where(jnp.any(valid), cands[jnp.argmin(cd)], centroid)
+    poly_point = jnp.where(jnp.any(valid), cands[jnp.argmin(cd)], 0.0)  # else the centroid
 
     out = jnp.where(jnp.any(edge), poly_point, seg_point)
-    return jnp.where(jnp.any(stance), out, q)
+    return jnp.where(jnp.any(stance), out, q) + origin
 
 
 def min_zmp_margin(coef, T, feet_xy, stance, n: int = 16, g=9.81, z_ground=0.0, tau0=0.0):
