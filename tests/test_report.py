@@ -82,6 +82,7 @@ def test_unbalanced_and_deterministic_metric_report(tmp_path):
     s, r = summary["metrics"]["S"], summary["metrics"]["R"]
     assert s["f_tests_reliable"] is False and s["significant"] == []
     assert any("zero within-cell variance" in w for w in s["warnings"])
+    assert any("zero within-cell variance" in w for w in s["unreliable_reasons"]) and not r["unreliable_reasons"]
     assert r["f_tests_reliable"] is True and set(r["significant"]) >= PLANTED
     assert any("unbalanced" in w for w in r["warnings"])
     assert any("6 of 93 runs failed" in w for w in summary["warnings"])

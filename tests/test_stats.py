@@ -310,6 +310,22 @@ def test_empty_cell_is_reported():
     assert set(out["metrics"]["R"]["significant"]) >= PLANTED
 
 
+def test_missing_values_and_empty_two_way_cell():
+    """NaN metric values drop those runs; an empty m x mu cell makes its EMMs non-estimable, not a crash."""
+    df = planted(seed=8)
+    df = df[~((df["m"] == 0.2) & (df["mu"] == 0.4))].copy()
+    df.loc[df.index[:3], "R"] = np.nan
+    fit = stats.fit_anova(df, FACTORS, "R")
+    assert fit.n == len(df) - 3
+    assert any("3 successful run(s) have no R value" in w for w in fit.warnings)
+    assert any("rank-deficient model" in w for w in fit.warnings)
+    emm = stats.emmeans(fit, ["m", "mu"]).set_index(["m", "mu"])
+    assert np.isnan(emm.loc[(0.2, 0.4), "emm"]) and np.isfinite(emm.drop(index=(0.2, 0.4))["emm"]).all()
+    pairs = stats.simple_effects(fit, effect="m", by="mu")["pairs"]
+    at = pairs[pairs["mu"] == 0.4]
+    assert at[at["level_a"] == 0.2]["p_bonf"].isna().all() and at[at["level_a"] == 0.3]["p_bonf"].notna().all()
+
+
 # --------------------------------------------------------------------------- tables
 
 

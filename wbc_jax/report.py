@@ -29,6 +29,7 @@ import json
 import math
 import os
 import platform
+import re
 import shutil
 import tempfile
 import time
@@ -91,7 +92,7 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
         "alpha": alpha, "factors": factors, "metrics": metrics, "ss_type": stats.SS_NAMES[ss_type], "order": order,
         "versions": _versions(), "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
-    summary = _summary(res, data, factors, metrics, alpha, manifest)
+    summary = _clean(_summary(res, data, factors, metrics, alpha, manifest))
     doc = _document(res, summary, factors, metrics, alpha, list(images))
     manifest["wall_s"] = round(time.perf_counter() - t0, 3)
     files = {
@@ -213,6 +214,7 @@ def _summary(res: dict, data: pd.DataFrame, factors, metrics, alpha: float, mani
         per[m] = {
             "formula": fit.formula, "n": fit.n, "mse": fit.mse, "df_resid": fit.df_resid,
             "ss_type": fit.ss_type, "anova": fit.table, "f_tests_reliable": fit.reliable,
+            "unreliable_reasons": fit.unreliable_reasons,
             "significant": r["significant"], "assumptions": r["assumptions"],
             "simple_effects": r["simple_effects"],
             "warnings": r["warnings"],
@@ -246,7 +248,8 @@ class _Doc:
             self.blocks.append(("ul", list(items)))
 
     def table(self, df: pd.DataFrame):
-        self.blocks.append(("table", df.astype(str)))
+        self.blocks.append(("table", pd.DataFrame([[_f(v) for v in r] for r in df.itertuples(index=False)],
+                                                  columns=[str(c) for c in df.columns], dtype=object)))
 
     def img(self, name: str, caption: str):
         self.blocks.append(("img", name, caption))
@@ -278,7 +281,7 @@ class _Doc:
             if b[0] == "h":
                 out.append(f"<h{b[1]}>{e(b[2])}</h{b[1]}>")
             elif b[0] == "p":
-                out.append(f"<p>{e(b[1]).replace('**', '')}</p>")
+                out.append("<p>" + re.sub(r"\*\*(.+?)\*\*", r"<strong>\1</strong>", e(b[1])) + "</p>")
             elif b[0] == "ul":
                 out.append("<ul>" + "".join(f"<li>{e(i)}</li>" for i in b[1]) + "</ul>")
             elif b[0] == "table":
@@ -332,7 +335,7 @@ def _document(res: dict, summary: dict, factors, metrics, alpha: float, images: 
         failed = [a["test"] for a in r["assumptions"] if a["ok"] is False]
         not_run = [a["test"] for a in r["assumptions"] if a["ok"] is None]
         rows.append([m, *cells, ", ".join(failed + [f"{t} not run" for t in not_run]) or "none"])
-    d.table(pd.DataFrame(rows, columns=["metric", *sources, "assumption tests failed"]))
+    d.table(pd.DataFrame(rows, columns=["metric", *sources, "assumption tests failed / not run"]))
     d.p(f"* p < {alpha:g}.")
 
     d.h(2, "Design")
@@ -386,7 +389,7 @@ def _metric_section(d: _Doc, m: str, r: dict, level_means: pd.DataFrame, alpha: 
     d.h(2, f"Metric {m}")
     d.p(f"Model {fit.formula}; n = {fit.n}; residual df = {_f(fit.df_resid, 'g')}; MSE = {_f(fit.mse)}.")
     if not fit.reliable:
-        d.p("**F tests unreliable**: " + next(w for w in fit.warnings if w.startswith("F tests are unreliable"))
+        d.p("**F tests unreliable**: " + "; ".join(fit.unreliable_reasons)
             + ". F, p and partial eta squared are omitted below (anova.json keeps the raw numbers).")
     t = fit.table
     shown = pd.DataFrame({

@@ -250,6 +250,7 @@ class AnovaFit:
         reliable: False when F tests are not trustworthy (near-perfect fit, zero-variance
             cells, no residual degrees of freedom).
         warnings: human-readable findings about this fit.
+        unreliable_reasons: why ``reliable`` is False (empty when it is True).
     """
 
     metric: str
@@ -263,6 +264,7 @@ class AnovaFit:
     cells: pd.DataFrame
     reliable: bool
     warnings: list[str] = field(default_factory=list)
+    unreliable_reasons: list[str] = field(default_factory=list)
     _grid: tuple | None = None
 
     @property
@@ -333,9 +335,9 @@ def fit_anova(df: pd.DataFrame, factors: Sequence[str], metric: str, ss_type: in
     code = {f: _code(i) for i, f in enumerate(factors)}
     terms = model_terms(factors, order)
     rhs = " + ".join(":".join(f"C({code[f]}, Sum)" for f in t) for t in terms)
-    res = smf.ols(f"_y ~ {rhs}", x).fit()
     with warnings.catch_warnings(), np.errstate(all="ignore"):
-        warnings.simplefilter("ignore")
+        warnings.simplefilter("ignore")  # rank deficiency and perfect fits are reported by _check_fit
+        res = smf.ols(f"_y ~ {rhs}", x).fit()
         aov = anova_lm(res, typ=ss_type)
     aov = aov.drop(index="Intercept", errors="ignore")
     name = {f"C({code[f]}, Sum)": f for f in factors}
@@ -385,8 +387,9 @@ def _check_fit(fit: AnovaFit, n_nan: int) -> None:
         w.append(f"unbalanced design: {int(n.min())} to {int(n.max())} runs per cell; "
                  f"type {fit.ss_type} SS reported (types I, II and III differ)")
     if res.model.rank < res.model.exog.shape[1]:
-        w.append(f"rank-deficient model ({res.model.rank} of {res.model.exog.shape[1]} parameters estimable); "
-                 "some EMMs are not estimable")
+        w.append(f"rank-deficient model ({res.model.rank} of {res.model.exog.shape[1]} parameters estimable, "
+                 "empty cells): type III tests of terms involving the empty cells are not well defined, "
+                 "and EMMs of empty cells are not estimable")
     unreliable = []
     if res.df_resid <= 0:
         unreliable.append("no residual degrees of freedom")
@@ -402,6 +405,7 @@ def _check_fit(fit: AnovaFit, n_nan: int) -> None:
         unreliable.append(f"{int(zero.sum())} of {int((n >= 2).sum())} cells have zero within-cell variance")
     if unreliable:
         fit.reliable = False
+        fit.unreliable_reasons = unreliable
         w.append("F tests are unreliable (" + "; ".join(unreliable) + "): F and p are not evidence of effects")
 
 
@@ -577,7 +581,7 @@ def simple_effects(fit: AnovaFit, effect: str, by: str, conf: float = CONF) -> d
             p_un = float(2 * sps.t.sf(abs(t), df2)) if df2 > 0 else np.nan
             pairs.append({by: b, "level_a": lv_e[i], "level_b": lv_e[j], "diff": diff, "se": se, "t": t, "df": df2,
                           "ci_low": diff - tcrit * se, "ci_high": diff + tcrit * se,
-                          "p_unadj": p_un, "p_bonf": min(1.0, p_un * n_pairs)})
+                          "p_unadj": p_un, "p_bonf": min(1.0, p_un * n_pairs) if np.isfinite(p_un) else np.nan})
     method = (f"EMMs of {effect} at each level of {by} (equal weights over the other factors); "
               f"simple-effect F on ({k - 1}, {df2:g}) df with the pooled model MSE {mse:.4g}; pairwise "
               f"differences Bonferroni-adjusted within each level of {by} (family of {n_pairs}), "
