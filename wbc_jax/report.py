@@ -94,7 +94,7 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
     }
     summary = _clean(_summary(res, data, factors, metrics, alpha, manifest))
     doc = _document(res, summary, factors, metrics, alpha, list(images))
-    manifest["wall_s"] = round(time.perf_counter() - t0, 3)
+    manifest["wall_s"] = summary["manifest"]["wall_s"] = round(time.perf_counter() - t0, 3)
     files = {
         "report.md": doc.markdown().encode(),
         "report.html": doc.html(images, title=f"ANOVA report: {Path(results_csv).name}").encode(),

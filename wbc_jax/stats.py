@@ -613,6 +613,10 @@ def analyze(df: pd.DataFrame, factors: Sequence[str], metrics: Sequence[str], al
     """
     if not 0 < alpha < 1:
         raise InputError(f"alpha must be between 0 and 1, not {alpha}")
+    if ss_type not in SS_NAMES:
+        raise InputError(f"SS type must be 1, 2 or 3, not {ss_type!r}")
+    if not (isinstance(order, int) and order >= 1):
+        raise InputError(f"model order must be an integer >= 1, not {order!r}")
     factors, metrics = list(factors), list(metrics)
     design = design_table(df, factors)
     n_failed = int(design["failures"].sum())
