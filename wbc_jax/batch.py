@@ -1,0 +1,68 @@
+"""Build everything one batched transport rollout needs from factor values.
+
+:func:`prepare_batch` returns the batched MJX model and its in_axes, per-run initial states,
+plans, object models, gains, pushes and ground friction, each with a leading run axis B.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wbc_jax import scenario
+from wbc_jax.control.transport import ObjectModel, TransportGains, default_gains
+from wbc_jax.planner.transport import TransportPlan, straight_plan
+from wbc_jax.rollout import Push, RunState, Sim, init_state, no_push
+
+
+class Batch(NamedTuple):
+    model: object  # batched mjx.Model
+    in_axes: object
+    state: RunState
+    plan: TransportPlan
+    om: ObjectModel
+    gains: TransportGains
+    push: Push
+    mu_ground: jax.Array
+    factors: scenario.Factors
+
+
+def stack(trees):
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *trees)
+
+
+def broadcast(tree, B: int):
+    return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(jnp.asarray(x), (B,) + jnp.shape(x)), tree)
+
+
+def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push: Push | None = None,
+                  plan_kwargs: dict | None = None) -> Batch:
+    """Validated factors (each (B,) or scalar) -> a ready Batch.
+
+    Args:
+        sim: static rollout structure; m, mu, d: object mass [kg], tray friction, object side [m].
+        gains: per-run gains with leading axis B, or unbatched (broadcast), default gains if None.
+        push: per-run or unbatched Push (none if None).
+        plan_kwargs: keyword arguments of :func:`wbc_jax.planner.transport.straight_plan`.
+    """
+    robot = sim.robot
+    f = scenario.validate_factors(robot.ids, m, mu, d)
+    B = f.m.shape[0]
+    bm, in_axes = scenario.batch_model(robot.mjx_model, robot.mj_model, robot.ids, f)
+    qpos0 = np.stack([robot.home_qpos(di) for di in f.d])
+    plans = stack([straight_plan(robot, q, **(plan_kwargs or {})) for q in qpos0])
+    state = jax.jit(jax.vmap(functools.partial(init_state, sim), in_axes=(in_axes, 0)))(bm, jnp.asarray(qpos0))
+    om = ObjectModel(mass=jnp.asarray(f.m), side=jnp.asarray(f.d), mu=jnp.asarray(f.mu),
+                     inset=jnp.full(B, robot.ids.obj_sphere_radius))
+    gains = default_gains() if gains is None else gains
+    if jnp.ndim(gains.kp_obj) == 0:
+        gains = broadcast(gains, B)
+    push = no_push() if push is None else push
+    if jnp.ndim(push.t0) == 0:
+        push = broadcast(push, B)
+    mu_ground = jnp.full(B, float(robot.mj_model.pair_friction[robot.ids.foot_pair[0, 0], 0]))
+    return Batch(bm, in_axes, state, plans, om, gains, push, mu_ground, f)

@@ -1,0 +1,347 @@
+"""Transport whole-body controller (transport paper, Sec. IV-C), in JAX.
+
+Decision variables (n = nv_r + k n_l + k n_c + 3 n_l):
+    zeta = [vdot (nv_r = 24), Lambda_gr (k per foot, 4 feet), Lambda_b (k per object contact, 4),
+            gamma (3 per foot, swing slack)].
+Forces are non-negative combinations of friction-pyramid edges: F_gr = E_g Lambda_gr (ground, world z
+normal), F_c = E_c Lambda_b (tray on object, tray z normal). The robot receives -F_c at the object's
+contact points, i.e. the generalized force -J_o^T W_b with W_b = G F_c the object wrench about its CoM
+and J_o the 6D Jacobian of the tray at the object's CoM.
+
+Cost (7)-(8): ||H zeta - l||_Q + ||zeta||_R with H = [robot net contact wrench about its CoM;
+object wrench about its CoM] and l = [F_com,ref - observer estimate; F_b,ref].
+Constraints, switched between stance and swing through bounds only (fixed shapes):
+    (9)  floating-base rows of M vdot + h = J_f^T E_g Lambda_gr - J_o^T W_b Lambda_b
+    (10) stance feet: J_f vdot = -Jdot v - kd_stance v_f          (free rows for swing feet)
+    (11) tray at the object: J_o vdot = [a_b,des; alpha_b,des] - Jdot_o v
+    (12) Lambda >= 0 (swing feet: Lambda_gr = 0), normal force >= f_min on stance feet
+    (13) tau_min <= M_a vdot + h_a - J_f,a^T E_g Lambda_gr + J_o,a^T W_b Lambda_b <= tau_max
+    (14) swing feet: a_cmd - gamma <= J_sw vdot + Jdot_sw v <= a_cmd + gamma, gamma >= 0
+Torques (Sec. IV-C-4) are evaluated from the solution with the same expression as (13) and drive the
+motors directly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from wbc_jax.control.dynamics import GRAVITY, DynTerms, cone_edges, point_jacobians, rot_error, wrench_map
+from wbc_jax.model import RobotIds
+from wbc_jax.qp import QPResult, QPSettings, solve_qp
+
+N_FEET = 4
+N_OBJ = 4
+
+
+class TransportGains(NamedTuple):
+    """Controller gains and weights: pytree leaves, so a batch axis over them needs no recompilation.
+
+    Attributes (units in brackets; vectors are world-frame x, y, z):
+        kp_com, kd_com: (3,) CoM position gains [N/m], [N s/m].
+        kp_rot, kd_rot: (3,) trunk orientation gains [N m/rad], [N m s/rad].
+        kp_obj, kd_obj: () object position gains [1/s^2], [1/s] (acceleration level).
+        kp_obj_rot, kd_obj_rot: () object orientation gains [1/s^2], [1/s].
+        kp_sw, kd_sw: () swing-foot gains [1/s^2], [1/s].
+        kd_stance: () stance-foot velocity damping in (10) [1/s].
+        w_com: (6,) Q weights of the CoM wrench [1/N^2, 1/(N m)^2].
+        w_obj_f, w_obj_t: () Q weights of the object force and torque.
+        r_vdot, r_lam, r_slack: () R regularisation of vdot, Lambda and gamma.
+        k_obs: () momentum-observer gain [1/s]; 0 disables the observer.
+        f_min: () minimum normal force per stance foot [N].
+        f_max: () normal-force cap of a fully loaded stance foot [N] (scaled by Reference.load).
+        tau_margin: () fraction of the torque limit the QP may use.
+    """
+
+    kp_com: jax.Array
+    kd_com: jax.Array
+    kp_rot: jax.Array
+    kd_rot: jax.Array
+    kp_obj: jax.Array
+    kd_obj: jax.Array
+    kp_obj_rot: jax.Array
+    kd_obj_rot: jax.Array
+    kp_sw: jax.Array
+    kd_sw: jax.Array
+    kd_stance: jax.Array
+    w_com: jax.Array
+    w_obj_f: jax.Array
+    w_obj_t: jax.Array
+    r_vdot: jax.Array
+    r_lam: jax.Array
+    r_slack: jax.Array
+    k_obs: jax.Array
+    f_min: jax.Array
+    f_max: jax.Array
+    tau_margin: jax.Array
+
+
+def default_gains() -> TransportGains:
+    """Defaults; public-code values where they exist (see README, "Transport controller")."""
+    f = lambda *x: jnp.asarray(x if len(x) > 1 else x[0], dtype=float)  # noqa: E731
+    return TransportGains(
+        kp_com=f(2000.0, 2000.0, 2000.0), kd_com=f(300.0, 300.0, 300.0),
+        kp_rot=f(600.0, 600.0, 600.0), kd_rot=f(50.0, 50.0, 50.0),
+        kp_obj=f(250.0), kd_obj=f(50.0), kp_obj_rot=f(250.0), kd_obj_rot=f(50.0),
+        kp_sw=f(1500.0), kd_sw=f(80.0), kd_stance=f(10.0),
+        w_com=f(50.0, 50.0, 50.0, 50.0, 50.0, 50.0), w_obj_f=f(1000.0), w_obj_t=f(10000.0),
+        r_vdot=f(1e-3), r_lam=f(1e-3), r_slack=f(1000.0), k_obs=f(10.0), f_min=f(2.0), f_max=f(400.0), tau_margin=f(0.98),
+    )
+
+
+class ObjectModel(NamedTuple):
+    """What the controller knows about the object (assumptions A1, A2, A5), per run.
+
+    Attributes:
+        mass: () [kg]; side: () cube side d [m]; mu: () tray friction [-];
+        inset: () horizontal inset of the contact points from the cube's edges [m].
+    """
+
+    mass: jax.Array
+    side: jax.Array
+    mu: jax.Array
+    inset: jax.Array
+
+
+class ObjectState(NamedTuple):
+    """Measured object state: p (3,) [m], R (3, 3), v (3,) [m/s], omega (3,) world [rad/s]."""
+
+    p: jax.Array
+    R: jax.Array
+    v: jax.Array
+    omega: jax.Array
+
+
+class Reference(NamedTuple):
+    """Planner output at one instant (world frame).
+
+    Attributes:
+        p_obj, v_obj, a_obj: (3,) object reference; R_obj: (3, 3) object orientation reference.
+        p_com, v_com, a_com: (3,) CoM reference; R_base: (3, 3) trunk orientation reference.
+        swing: (4,) bool swing mask; p_sw, v_sw, a_sw: (4, 3) swing-foot references.
+        load: (4,) in [0, 1], fraction of the normal-force cap a stance foot may carry (ramps to 0
+            before liftoff and back up after touchdown so the force distribution changes smoothly).
+    """
+
+    p_obj: jax.Array
+    v_obj: jax.Array
+    a_obj: jax.Array
+    R_obj: jax.Array
+    p_com: jax.Array
+    v_com: jax.Array
+    a_com: jax.Array
+    R_base: jax.Array
+    swing: jax.Array
+    p_sw: jax.Array
+    v_sw: jax.Array
+    a_sw: jax.Array
+    load: jax.Array
+
+
+class ObserverState(NamedTuple):
+    """First-order centroidal momentum observer ([33]): r = K_O (h_G - h_G0 - int(W + m g + r) dt).
+
+    Attributes: h0 (6,) initial momentum; integral (6,); r (6,) estimated external wrench about the
+    CoM [N, N m]; w_cmd (6,) last commanded net contact wrench about the CoM.
+    """
+
+    h0: jax.Array
+    integral: jax.Array
+    r: jax.Array
+    w_cmd: jax.Array
+
+
+class ControlState(NamedTuple):
+    """Controller memory between steps: warm start, observer."""
+
+    warm: QPResult
+    obs: ObserverState
+
+
+@dataclass(frozen=True)
+class TransportConfig:
+    """Static controller structure (hashable; changing it recompiles).
+
+    Attributes:
+        k: friction-pyramid edges; qp: ADMM settings; dt: control period [s].
+    """
+
+    k: int = 4
+    qp: QPSettings = QPSettings(iters=30)
+    dt: float = 0.001
+
+    @property
+    def n_var(self) -> int:
+        return 24 + self.k * (N_FEET + N_OBJ) + 3 * N_FEET
+
+    @property
+    def n_con(self) -> int:
+        return 6 + 12 + 6 + 4 + 18 + 24 + self.k * (N_FEET + N_OBJ) + 12
+
+
+class QPDiag(NamedTuple):
+    """Per-step QP health and command: tau (18,), prim_res, dual_res, flag, tau_excess (how far beyond
+    the limit the unclipped torque was [N m]), w_cmd (6,) commanded wrench."""
+
+    tau: jax.Array
+    prim_res: jax.Array
+    dual_res: jax.Array
+    flag: jax.Array
+    tau_excess: jax.Array
+
+
+def object_state(d, ids: RobotIds) -> ObjectState:
+    a = ids.obj_dof_adr
+    R = d.xmat[ids.obj_body]
+    return ObjectState(p=d.xpos[ids.obj_body], R=R, v=d.qvel[a : a + 3], omega=R @ d.qvel[a + 3 : a + 6])
+
+
+def contact_points(obj: ObjectState, om: ObjectModel):
+    """(4, 3) world positions of the object's bottom contact points (A3)."""
+    h = om.side / 2 - om.inset
+    local = jnp.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]]) * h
+    local = jnp.concatenate([local, -jnp.full((4, 1), om.side / 2)], axis=1)
+    return obj.p + local @ obj.R.T
+
+
+def init_control_state(cfg: TransportConfig, dyn: DynTerms) -> ControlState:
+    n, mcon = cfg.n_var, cfg.n_con
+    z = jnp.zeros
+    warm = QPResult(x=z(n), y=z(mcon), z=z(mcon), prim_res=z(()), dual_res=z(()),
+                    flag=jnp.zeros((), jnp.int32), iters=jnp.zeros((), jnp.int32), rho=z(()))
+    obs = ObserverState(h0=dyn.h_G, integral=z(6), r=z(6), w_cmd=z(6))
+    return ControlState(warm=warm, obs=obs)
+
+
+def observer_update(obs: ObserverState, dyn: DynTerms, k_obs, dt) -> ObserverState:
+    """One Euler step of the momentum observer, using last step's commanded contact wrench."""
+    g = jnp.array([0.0, 0.0, -GRAVITY * dyn.mass, 0.0, 0.0, 0.0])
+    integral = obs.integral + (obs.w_cmd + g + obs.r) * dt
+    r = k_obs * (dyn.h_G - obs.h0 - integral)
+    return obs._replace(integral=integral, r=r)
+
+
+def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: ObjectModel, gains: TransportGains,
+             r_ext, ids: RobotIds, cfg: TransportConfig, mu_ground):
+    """Assemble the QP in OSQP form.
+
+    Returns:
+        (P (n, n), q (n,), A (m, n), l (m,), u (m,), A_tau (18, n), h_a (18,), H_com (6, n)) where
+        tau = A_tau zeta + h_a and H_com zeta is the robot's net contact wrench about its CoM.
+    """
+    k, nv = cfg.k, ids.nv_robot
+    ng, nb, ns = k * N_FEET, k * N_OBJ, 3 * N_FEET
+    n = nv + ng + nb + ns
+    inf = jnp.inf
+    stance = ~ref.swing
+
+    # friction pyramids
+    Eg1 = cone_edges(mu_ground, k)  # (3, k) ground normal = world z
+    Eg = jax.scipy.linalg.block_diag(*([Eg1] * N_FEET))  # (12, 4k)
+    Ec1 = cone_edges(om.mu, k, dyn.R_tray)  # (3, k) contact normal = tray z axis
+    Ec = jax.scipy.linalg.block_diag(*([Ec1] * N_OBJ))  # (12, 4k)
+    p_c = contact_points(obj, om)
+
+    Jf = dyn.J_foot.reshape(12, nv)  # (12, nv)
+    JfE = Jf.T @ Eg  # (nv, 4k) generalized force per ground multiplier
+    Wb = wrench_map(p_c, obj.p) @ Ec  # (6, 4k) object wrench about its CoM
+    JoW = J_o.T @ Wb  # (nv, 4k) generalized force on the robot is -JoW Lambda_b
+
+    # ---- cost: robot net contact wrench about its CoM, object wrench about its CoM
+    H = jnp.zeros((12, n))
+    H = H.at[0:6, nv : nv + ng].set(wrench_map(dyn.p_foot, dyn.com) @ Eg)
+    H = H.at[0:6, nv + ng : nv + ng + nb].set(-(wrench_map(p_c, dyn.com) @ Ec))
+    H = H.at[6:12, nv + ng : nv + ng + nb].set(Wb)
+
+    # CoM wrench reference: F = Kp e + Kd edot + m g + M_com a_ref
+    m_r = dyn.mass
+    e_p, e_v = ref.p_com - dyn.com, ref.v_com - dyn.com_vel
+    e_o = rot_error(ref.R_base, dyn.R_base)
+    e_w = -dyn.omega_base
+    f_com = gains.kp_com * e_p + gains.kd_com * e_v + m_r * (ref.a_com + jnp.array([0.0, 0.0, GRAVITY]))
+    t_com = gains.kp_rot * e_o + gains.kd_rot * e_w
+    l_com = jnp.concatenate([f_com, t_com]) - r_ext
+
+    # object: F_b = M_b (a_ref + Kd edot + Kp e) + C_b V_b + N_b, world frame
+    a_b = ref.a_obj + gains.kd_obj * (ref.v_obj - obj.v) + gains.kp_obj * (ref.p_obj - obj.p)
+    al_b = gains.kd_obj_rot * (-obj.omega) + gains.kp_obj_rot * rot_error(ref.R_obj, obj.R)
+    I_b = om.mass * om.side**2 / 6.0
+    f_b = om.mass * (a_b + jnp.array([0.0, 0.0, GRAVITY]))
+    t_b = I_b * al_b  # cube: isotropic inertia, omega x I omega = 0
+    l_vec = jnp.concatenate([l_com, f_b, t_b])
+    Qw = jnp.concatenate([gains.w_com, jnp.full(3, gains.w_obj_f), jnp.full(3, gains.w_obj_t)])
+    Rw = jnp.concatenate([jnp.full(nv, gains.r_vdot), jnp.full(ng + nb, gains.r_lam), jnp.full(ns, gains.r_slack)])
+    P = H.T @ (Qw[:, None] * H) + jnp.diag(Rw)
+    q = -H.T @ (Qw * l_vec)
+
+    # ---- constraints
+    iv, ig, ib, isl = slice(0, nv), slice(nv, nv + ng), slice(nv + ng, nv + ng + nb), slice(nv + ng + nb, n)
+    act = jnp.asarray(ids.act_dof)
+    rows, lo, hi = [], [], []
+
+    def add(Arow, lrow, urow):
+        rows.append(Arow), lo.append(lrow), hi.append(urow)
+
+    # (9) floating base
+    A9 = jnp.zeros((6, n)).at[:, iv].set(dyn.M[0:6]).at[:, ig].set(-JfE[0:6]).at[:, ib].set(JoW[0:6])
+    add(A9, -dyn.h[0:6], -dyn.h[0:6])
+    # (10) stance feet
+    st3 = jnp.repeat(stance, 3)
+    b10 = -(dyn.Jdv_foot + gains.kd_stance * dyn.v_foot).reshape(12)
+    add(jnp.zeros((12, n)).at[:, iv].set(Jf), jnp.where(st3, b10, -inf), jnp.where(st3, b10, inf))
+    # (11) tray at the object follows the object's desired acceleration
+    b11 = jnp.concatenate([a_b, al_b]) - Jdv_o
+    add(jnp.zeros((6, n)).at[:, iv].set(J_o), b11, b11)
+    # (12b) normal force of stance feet between f_min and the (ramped) cap
+    An = jnp.zeros((4, n)).at[:, ig].set(jax.scipy.linalg.block_diag(*([Eg1[2:3]] * N_FEET)))
+    cap = gains.f_max * ref.load
+    add(An, jnp.where(stance, jnp.minimum(gains.f_min, cap), -inf), jnp.where(stance, cap, inf))
+    # (13) torque limits
+    A_tau = jnp.zeros((18, n)).at[:, iv].set(dyn.M[act]).at[:, ig].set(-JfE[act]).at[:, ib].set(JoW[act])
+    h_a = dyn.h[act]
+    tmax = gains.tau_margin * jnp.asarray(ids.tau_max)
+    add(A_tau, -tmax - h_a, tmax - h_a)
+    # (14) swing band with slack
+    sw3 = jnp.repeat(ref.swing, 3)
+    v_f = dyn.v_foot
+    a_cmd = ref.a_sw + gains.kd_sw * (ref.v_sw - v_f) + gains.kp_sw * (ref.p_sw - dyn.p_foot)
+    b14 = (a_cmd - dyn.Jdv_foot).reshape(12)
+    eye = jnp.eye(12)
+    add(jnp.zeros((12, n)).at[:, iv].set(Jf).at[:, isl].set(eye), jnp.where(sw3, b14, -inf), jnp.full(12, inf))
+    add(jnp.zeros((12, n)).at[:, iv].set(Jf).at[:, isl].set(-eye), jnp.full(12, -inf), jnp.where(sw3, b14, inf))
+    # (12) multipliers and slack bounds
+    add(jnp.zeros((ng, n)).at[:, ig].set(jnp.eye(ng)), jnp.zeros(ng), jnp.where(jnp.repeat(stance, k), inf, 0.0))
+    add(jnp.zeros((nb, n)).at[:, ib].set(jnp.eye(nb)), jnp.zeros(nb), jnp.full(nb, inf))
+    add(jnp.zeros((ns, n)).at[:, isl].set(eye), jnp.zeros(ns), jnp.where(sw3, inf, 0.0))
+
+    A = jnp.concatenate(rows)
+    l = jnp.concatenate(lo)
+    u = jnp.concatenate(hi)
+    return P, q, A, l, u, A_tau, h_a, H[0:6]
+
+
+def transport_control(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gains: TransportGains,
+                      cs: ControlState, ids: RobotIds, cfg: TransportConfig, mu_ground=1.0):
+    """One control step: observer, QP, torques.
+
+    Returns:
+        (tau (18,) actuator torques [N m], new ControlState, QPDiag).
+    """
+    obs = observer_update(cs.obs, dyn, gains.k_obs, cfg.dt)
+    obj = object_state(d, ids)
+    Jp, Jr, Jdp, Jdr = point_jacobians(m, d, ids, obj.p[None], [ids.tray_body])
+    J_o = jnp.concatenate([Jp[0], Jr[0]])  # (6, nv)
+    Jdv_o = jnp.concatenate([Jdp[0], Jdr[0]])
+    P, q, A, l, u, A_tau, h_a, H_com = build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, obs.r, ids, cfg, mu_ground)
+    res = solve_qp(P, q, A, l, u, warm=cs.warm, settings=cfg.qp)
+    tau_raw = A_tau @ res.x + h_a
+    tmax = jnp.asarray(ids.tau_max)
+    tau = jnp.clip(tau_raw, -tmax, tmax)
+    # commanded net contact wrench about the CoM, for the observer's next step
+    obs = obs._replace(w_cmd=H_com @ res.x)
+    diag = QPDiag(tau=tau, prim_res=res.prim_res, dual_res=res.dual_res, flag=res.flag,
+                  tau_excess=jnp.max(jnp.abs(tau_raw) - tmax))
+    return tau, ControlState(warm=res, obs=obs), diag

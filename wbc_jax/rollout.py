@@ -1,0 +1,215 @@
+"""Batched closed-loop rollout: MJX physics + transport WBC, lax.scan over time, vmap over runs.
+
+One control step: :func:`wbc_jax.physics.sense` (kinematics, M, bias) -> planner reference ->
+QP build -> ADMM (warm-started) -> torques -> :func:`wbc_jax.physics.advance` (rest of the forward
+pass + integration). Long runs are executed in chunks (one jit call per chunk) so progress can be
+shown and finished chunks kept. Per-step quantities are reduced online (max, min, sums) and logged
+once every ``log_every`` steps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wbc_jax import physics
+from wbc_jax.control.dynamics import dyn_terms
+from wbc_jax.control.transport import (ControlState, ObjectModel, TransportConfig, TransportGains,
+                                       init_control_state, transport_control)
+from wbc_jax.model import Robot, mjx
+from wbc_jax.planner.transport import TransportPlan, reference
+
+
+class Push(NamedTuple):
+    """External force on the trunk (world frame): force (3,) [N] applied for t in [t0, t0 + duration)."""
+
+    force: jax.Array
+    t0: jax.Array
+    duration: jax.Array
+
+
+def no_push() -> Push:
+    return Push(jnp.zeros(3), jnp.asarray(0.0), jnp.asarray(0.0))
+
+
+class Accum(NamedTuple):
+    """Online reductions since the start of the run (per run)."""
+
+    min_trunk_z: jax.Array  # [m]
+    max_slip: jax.Array  # [m] object displacement on the tray, tray frame, xy
+    max_lift: jax.Array  # [m] object bottom above the tray surface
+    nonfoot_floor: jax.Array  # bool, a non-foot robot part touched the floor
+    wall_contact: jax.Array  # bool
+    max_tau_ratio: jax.Array  # max |tau| / limit of the applied torques
+    max_tau_excess: jax.Array  # [N m] largest unclipped-torque excess over the limit
+    sum_prim_res: jax.Array
+    n_flag: jax.Array  # steps whose QP was flagged
+    n_steps: jax.Array
+    sum_track: jax.Array  # integral of ||p_obj,ref - p_obj|| [m s]
+    nonfinite: jax.Array  # bool
+
+
+class RunState(NamedTuple):
+    """Carried state of one run: MJX data, controller memory, swing bookkeeping, accumulators."""
+
+    d: mjx.Data
+    cs: ControlState
+    p_lift: jax.Array  # (4, 3)
+    rel0: jax.Array  # (3,) object position in the tray frame at t = 0
+    acc: Accum
+
+
+class Log(NamedTuple):
+    """Logged every ``log_every`` steps (per run): time, object and CoM actual vs reference, QP residual."""
+
+    t: jax.Array
+    p_obj: jax.Array
+    p_obj_ref: jax.Array
+    com: jax.Array
+    com_ref: jax.Array
+    slip: jax.Array
+    trunk_z: jax.Array
+    prim_res: jax.Array
+    tau: jax.Array
+
+
+@dataclass(frozen=True)
+class Sim:
+    """Static rollout structure: the robot, controller config, physics substeps and contact slots."""
+
+    robot: Robot
+    cfg: TransportConfig
+    n_substeps: int
+    log_every: int
+    nonfoot_slots: np.ndarray
+    wall_slots: np.ndarray
+
+    @property
+    def dt_control(self) -> float:
+        return self.cfg.dt
+
+
+def contact_slots(robot: Robot):
+    """Indices of MJX contact slots belonging to non-foot-vs-floor pairs and to wall pairs."""
+    m = robot.mj_model
+    d = jax.jit(physics.sense)(robot.mjx_model, mjx.make_data(robot.mjx_model))
+    geom = np.asarray(d._impl.contact.geom)
+    pairs = {(int(m.pair_geom1[i]), int(m.pair_geom2[i])): i for i in range(m.npair)}
+    slot_pair = np.array([pairs.get((int(a), int(b)), pairs.get((int(b), int(a)), -1)) for a, b in geom])
+    return (np.where(np.isin(slot_pair, robot.ids.nonfoot_floor_pair))[0],
+            np.where(np.isin(slot_pair, robot.ids.wall_pair))[0])
+
+
+def make_sim(robot: Robot, cfg: TransportConfig | None = None, n_substeps: int = 1, log_every: int = 20) -> Sim:
+    cfg = cfg or TransportConfig(dt=float(robot.mj_model.opt.timestep) * n_substeps)
+    nf, wl = contact_slots(robot)
+    return Sim(robot=robot, cfg=cfg, n_substeps=n_substeps, log_every=log_every, nonfoot_slots=nf, wall_slots=wl)
+
+
+def _tray_rel(d, ids):
+    R = d.site_xmat[ids.tray_site]
+    return R.T @ (d.xpos[ids.obj_body] - d.site_xpos[ids.tray_site])
+
+
+def init_state(sim: Sim, m, qpos0) -> RunState:
+    """Initial RunState of one run (vmappable over m and qpos0)."""
+    ids = sim.robot.ids
+    d = mjx.make_data(sim.robot.mjx_model).replace(qpos=qpos0)
+    d = physics.sense(m, d)
+    dyn = dyn_terms(m, d, ids)
+    z = jnp.zeros(())
+    acc = Accum(min_trunk_z=dyn.p_base[2], max_slip=z, max_lift=z, nonfoot_floor=jnp.bool_(False),
+                wall_contact=jnp.bool_(False), max_tau_ratio=z, max_tau_excess=jnp.asarray(-jnp.inf), sum_prim_res=z,
+                n_flag=jnp.zeros((), jnp.int32), n_steps=jnp.zeros((), jnp.int32), sum_track=z,
+                nonfinite=jnp.bool_(False))
+    return RunState(d=d, cs=init_control_state(sim.cfg, dyn), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids), acc=acc)
+
+
+def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel, gains: TransportGains,
+                 push: Push, mu_ground):
+    """One control period of one run. Returns (new RunState, per-step values for the log)."""
+    ids = sim.robot.ids
+    d = physics.sense(m, rs.d)
+    t = d.time
+    dyn = dyn_terms(m, d, ids)
+    ref = reference(plan, t, rs.p_lift)
+    tau, cs, qd = transport_control(m, d, dyn, ref, om, gains, rs.cs, ids, sim.cfg, mu_ground)
+    on = (t >= push.t0) & (t < push.t0 + push.duration)
+    xfrc = jnp.zeros_like(d.xfrc_applied).at[ids.trunk_body, 0:3].set(jnp.where(on, push.force, 0.0))
+    d_next = physics.advance(m, d.replace(xfrc_applied=xfrc), tau, sim.n_substeps)
+    p_lift = jnp.where(ref.swing[:, None], rs.p_lift, dyn.p_foot)
+
+    # online metrics (from the sensed state d at time t)
+    rel = _tray_rel(d, ids)
+    slip = jnp.linalg.norm(rel[:2] - rs.rel0[:2])
+    lift = rel[2] - rs.rel0[2]
+    dist = d._impl.contact.dist
+    p_obj = d.xpos[ids.obj_body]
+    a = rs.acc
+    finite = jnp.all(jnp.isfinite(d_next.qpos)) & jnp.all(jnp.isfinite(tau))
+    acc = Accum(
+        min_trunk_z=jnp.minimum(a.min_trunk_z, dyn.p_base[2]),
+        max_slip=jnp.maximum(a.max_slip, slip),
+        max_lift=jnp.maximum(a.max_lift, lift),
+        nonfoot_floor=a.nonfoot_floor | jnp.any(dist[sim.nonfoot_slots] < 0.0),
+        wall_contact=a.wall_contact | (jnp.any(dist[sim.wall_slots] < 0.0) if sim.wall_slots.size else False),
+        max_tau_ratio=jnp.maximum(a.max_tau_ratio, jnp.max(jnp.abs(tau) / jnp.asarray(ids.tau_max))),
+        max_tau_excess=jnp.maximum(a.max_tau_excess, qd.tau_excess),
+        sum_prim_res=a.sum_prim_res + qd.prim_res,
+        n_flag=a.n_flag + (qd.flag != 0).astype(jnp.int32),
+        n_steps=a.n_steps + 1,
+        sum_track=a.sum_track + jnp.linalg.norm(ref.p_obj - p_obj) * sim.dt_control,
+        nonfinite=a.nonfinite | ~finite,
+    )
+    # a run that went non-finite is frozen (its state no longer advances) so it cannot poison others
+    d_next = jax.tree_util.tree_map(lambda new, old: jnp.where(finite, new, old), d_next, rs.d)
+    log = Log(t=t, p_obj=p_obj, p_obj_ref=ref.p_obj, com=dyn.com, com_ref=ref.p_com, slip=slip,
+              trunk_z=dyn.p_base[2], prim_res=qd.prim_res, tau=tau)
+    return RunState(d=d_next, cs=cs, p_lift=p_lift, rel0=rs.rel0, acc=acc), log
+
+
+def make_chunk_fn(sim: Sim, n_logs: int):
+    """jit(vmap(run n_logs x log_every control steps)) over runs.
+
+    Returns f(batched_model, in_axes-bound) -> callable(state, plan, om, gains, push, mu_ground).
+    """
+
+    def run_one(m, rs, plan, om, gains, push, mu_ground):
+        def inner(rs, _):
+            return control_step(sim, m, rs, plan, om, gains, push, mu_ground)
+
+        def outer(rs, _):
+            rs, logs = jax.lax.scan(inner, rs, None, length=sim.log_every)
+            return rs, jax.tree_util.tree_map(lambda x: x[-1], logs)
+
+        return jax.lax.scan(outer, rs, None, length=n_logs)
+
+    return run_one
+
+
+def simulate(sim: Sim, bmodel, in_axes, state: RunState, plan, om, gains, push, mu_ground, seconds: float,
+             chunk_seconds: float = 2.0, progress=None):
+    """Run ``seconds`` of simulated time in chunks; returns (final state, Log with time axis 1)."""
+    steps_per_log = sim.log_every
+    dt = sim.dt_control
+    logs_per_chunk = max(1, int(round(chunk_seconds / (dt * steps_per_log))))
+    n_logs_total = int(np.ceil(seconds / (dt * steps_per_log)))
+    fns = {}
+    out_logs = []
+    done = 0
+    while done < n_logs_total:
+        n = min(logs_per_chunk, n_logs_total - done)
+        if n not in fns:
+            run_one = make_chunk_fn(sim, n)
+            fns[n] = jax.jit(jax.vmap(run_one, in_axes=(in_axes, 0, 0, 0, 0, 0, 0)))
+        state, logs = fns[n](bmodel, state, plan, om, gains, push, mu_ground)
+        out_logs.append(jax.device_get(logs))
+        done += n
+        if progress is not None:
+            progress(done * steps_per_log * dt)
+    logs = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=1), *out_logs)
+    return state, logs
