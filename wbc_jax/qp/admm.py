@@ -38,7 +38,7 @@ entries spanning 6+ orders of magnitude; n = 68, 24 equality + 70 inequality row
 float64, cold start, fraction of problems reaching rel. objective error <= 1e-4 and
 max violation <= 1e-5 against the constructed optimum (see ``bench.py`` for more):
 
-DEFAULTS_EVIDENCE_PLACEHOLDER
+(measurements being finalized; see bench.py)
 """
 
 from __future__ import annotations
@@ -88,21 +88,24 @@ class QPSettings(NamedTuple):
     """
 
     iters: int = 100
-    rho: float = 0.1
+    rho: float = 1.0
     sigma: float = 1e-6
     alpha: float = 1.6
     rho_eq_scale: float = 1e3
     rho_min: float = 1e-6
     rho_max: float = 1e6
-    adapt_every: int = 25
-    adapt_tol: float = 5.0
-    ruiz_iters: int = 10
-    cost_scaling: bool = True
+    adapt_every: int = 10
+    adapt_tol: float = 1.5
+    adapt_bias: float = 2.0
+    warm_rho: str = "reset"
+    ruiz_iters: int = 5
+    cost_scaling: str = "P"
     eps_abs: float = 1e-5
     eps_rel: float = 1e-5
     eps_pinf: float = 1e-5
     eps_dinf: float = 1e-5
     linsolve: str = "chol"
+    residual_form: bool = True
 
 
 class QPResult(NamedTuple):
@@ -178,9 +181,11 @@ def _equilibrate(P, q, A, l, u, s: QPSettings) -> _Scaled:
         P = d[:, None] * P * d[None, :]
         A = e[:, None] * A * d[None, :]
         q = d * q
-        if s.cost_scaling:
+        if s.cost_scaling in ("P", "osqp"):
             cp = jnp.mean(jnp.max(jnp.abs(P), axis=0))
-            ct = 1.0 / _limit(jnp.maximum(cp, _inf_norm(q)))
+            if s.cost_scaling == "osqp":
+                cp = jnp.maximum(cp, _inf_norm(q))
+            ct = 1.0 / _limit(cp)
             P, q, c = ct * P, ct * q, ct * c
         return (P, q, A, D * d, E * e, c), None
 
@@ -234,8 +239,14 @@ def _all_finite(*vs):
 
 def _step(sp: _Scaled, fac, rho_v, s: QPSettings, st: _State) -> _State:
     """One OSQP iteration in the scaled problem; rejects a non-finite result."""
-    rhs = s.sigma * st.x - sp.q + _mv(sp.A.T, rho_v * st.z - st.y)
-    xt = _solve(fac, rhs, s)
+    if s.residual_form:
+        # x~ = x - K^-1 (P x + q + A'(y + rho (A x - z))): the same step in exact
+        # arithmetic, but its fixed point does not depend on the solve's rounding.
+        r = _mv(sp.P, st.x) + sp.q + _mv(sp.A.T, st.y + rho_v * (_mv(sp.A, st.x) - st.z))
+        xt = st.x - _solve(fac, r, s)
+    else:
+        rhs = s.sigma * st.x - sp.q + _mv(sp.A.T, rho_v * st.z - st.y)
+        xt = _solve(fac, rhs, s)
     zt = _mv(sp.A, xt)
     x = s.alpha * xt + (1.0 - s.alpha) * st.x
     zr = s.alpha * zt + (1.0 - s.alpha) * st.z
@@ -256,7 +267,7 @@ def _adapt(sp: _Scaled, st: _State, rho, s: QPSettings):
     prim = _inf_norm(ax - st.z) / (jnp.maximum(_inf_norm(ax), _inf_norm(st.z)) + tiny)
     dual = _inf_norm(px + sp.q + aty) / (
         jnp.maximum(jnp.maximum(_inf_norm(px), _inf_norm(aty)), _inf_norm(sp.q)) + tiny)
-    est = jnp.clip(rho * jnp.sqrt(prim / (dual + tiny)), s.rho_min, s.rho_max)
+    est = jnp.clip(s.adapt_bias * rho * jnp.sqrt(prim / (dual + tiny)), s.rho_min, s.rho_max)
     change = (est > rho * s.adapt_tol) | (est < rho / s.adapt_tol)
     return jnp.where(change & jnp.isfinite(est), est, rho)
 
@@ -327,11 +338,13 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
         xb = jnp.asarray(wx, dt) / sp.D
         zb = jnp.asarray(wz, dt) * sp.E
         yb = jnp.asarray(wy, dt) * sp.c / sp.E
-        rho = jnp.asarray(s.rho if wr is None else wr, dt)
+        rho = jnp.asarray(s.rho if (wr is None or s.warm_rho != "keep") else wr, dt)
         rho = jnp.where(jnp.isfinite(rho), jnp.clip(rho, s.rho_min, s.rho_max), s.rho)
         xb, zb, yb = (jnp.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0) for v in (xb, zb, yb))
     zb = jnp.clip(zb, sp.l, sp.u)
     st = _State(xb, zb, yb, jnp.zeros(n, dt), jnp.zeros(m, dt), jnp.zeros((), bool))
+    if warm is not None and s.warm_rho == "estimate" and s.adapt_every > 0:
+        rho = _adapt(sp, st, rho, s)
     st, rho = _run(sp, st, rho, eq, free, s, iters)
     # Unscale and evaluate in the user's units.
     x = sp.D * st.x
