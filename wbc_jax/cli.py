@@ -28,6 +28,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
         run_bench(quick=args.quick, json_path=args.json)
         return 0
+    if args.what == "rollout":
+        from wbc_jax.bench_rollout import run_bench as run_rollout_bench
+
+        batches = [int(x) for x in args.batches.split(",")] if args.batches else ((1, 4) if args.quick else (1, 1024, 4096, 16384))
+        run_rollout_bench(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json)
+        return 0
     raise WbcJaxError(f"bench: unknown target {args.what!r}")
 
 
@@ -51,7 +57,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_cmd_report)
 
     b = sub.add_parser("bench", help="benchmarks on the current device")
-    b.add_argument("what", choices=["qp"], help="what to benchmark")
+    b.add_argument("what", choices=["qp", "rollout"], help="what to benchmark")
+    b.add_argument("--batches", default=None, help="rollout: comma-separated batch sizes")
+    b.add_argument("--steps", type=int, default=200, help="rollout: control steps per timed call")
+    b.add_argument("--iters", type=int, default=30, help="rollout: ADMM iterations per control step")
     b.add_argument("--quick", action="store_true", help="small sizes (CPU smoke run)")
     b.add_argument("--json", default=None, help="also write the results as JSON here")
     b.set_defaults(func=_cmd_bench)
