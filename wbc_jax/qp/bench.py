@@ -6,8 +6,9 @@ One run on the current device (``jax.devices()[0]``), in the device's default dt
 half with WBC structure and scales):
 
 * batched QPs per second at batch 1, 1024, 4096, 16384 (quick: 1, 64, 256), default
-  iterations, cold start; compile time reported separately; also the ``linsolve="inv"``
-  variant at the largest batch (explicit inverse: matrix-vector products only).
+  iterations, cold start; compile time reported separately; also, at the largest batch,
+  the ``linsolve="inv"`` variant (explicit inverse: matrix-vector products only) and
+  Anderson acceleration (``anderson=10``), whose cost per iteration is device-dependent.
 * accuracy versus iteration count, cold and warm (warm: from the solution of the same
   problems with all data perturbed by 1 %): median and 95th percentile of the relative
   objective error and of the max violation (relative to ``max(1, ||Ax||_inf)``), against
@@ -66,7 +67,8 @@ def _throughput(pool: pr.QPProblem, batches, dtype, settings: QPSettings) -> lis
     for b in batches:
         data = [_tile(a, b, dtype) for a in pool[:5]]
         compile_s, per = _timed(fn, *data)
-        rows.append(dict(batch=b, linsolve=settings.linsolve, seconds_per_call=per,
+        variant = settings.linsolve + (f"+aa{settings.anderson}" if settings.anderson else "")
+        rows.append(dict(batch=b, variant=variant, seconds_per_call=per,
                          qps_per_s=b / per, compile_s=compile_s))
     return rows
 
@@ -154,12 +156,13 @@ def run_bench(quick: bool = False, json_path: str | None = None) -> dict[str, An
           f"(eq {out['problem']['m_eq']}), default iters={settings.iters}")
 
     thr = _throughput(pool, cfg["batches"], dtype, settings)
-    thr += _throughput(pool, cfg["batches"][-1:], dtype, settings._replace(linsolve="inv"))
+    for variant in (dict(linsolve="inv"), dict(anderson=10)):
+        thr += _throughput(pool, cfg["batches"][-1:], dtype, settings._replace(**variant))
     out["throughput"] = thr
     print("\nthroughput (cold start, default iters; compile excluded)")
-    print(f"{'batch':>7} {'linsolve':>8} {'QPs/s':>12} {'ms/call':>10} {'compile s':>10}")
+    print(f"{'batch':>7} {'variant':>9} {'QPs/s':>12} {'ms/call':>10} {'compile s':>10}")
     for r in thr:
-        print(f"{r['batch']:>7} {r['linsolve']:>8} {r['qps_per_s']:>12.1f} "
+        print(f"{r['batch']:>7} {r['variant']:>9} {r['qps_per_s']:>12.1f} "
               f"{1e3 * r['seconds_per_call']:>10.3f} {r['compile_s']:>10.2f}")
 
     acc_batch = pr.make_batch(SEED + 2, cfg["n_acc"])
