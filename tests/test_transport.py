@@ -29,6 +29,9 @@ DYN_TOL = 0.5  # [N, N m] residual of the floating-base equations at the ADMM so
 STAND_SECONDS = 0.3
 SLIP_MAX = 1e-3  # [m]
 HEIGHT_TOL = 0.01  # [m]
+TROT_SECONDS = 0.7  # two diagonal swings (gait starts at 0.1 s)
+TROT_SLIP_MAX = 3e-3  # [m] over the segment (the full-walk figures are in the issue notes)
+TROT_Z_BAND = (0.40, 0.50)  # [m] trunk height band during the segment
 
 
 @pytest.fixture(scope="module")
@@ -108,3 +111,22 @@ def test_loaded_stand_under_qp_torques(setup):
     assert not acc.nonfoot_floor.any() and not acc.nonfinite.any()
     assert np.all(acc.max_tau_ratio <= 1.0)
     assert np.all(acc.max_tau_excess <= 0.0), "QP asked for torques beyond the limits"
+
+
+def test_short_loaded_trot_segment(setup):
+    """Two diagonal swings with the object on the tray: the QP keeps the robot up and the object on."""
+    robot, sim, _ = setup
+    b = prepare_batch(sim, [0.2, 0.4], [0.4, 1.0], [0.10, 0.06],
+                      plan_kwargs=dict(gait=GaitParams(t_start=0.1), distance=0.3, ramp=0.5))
+    st, logs = simulate(sim, b.model, b.in_axes, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground,
+                        TROT_SECONDS, chunk_seconds=TROT_SECONDS)
+    acc = jax.device_get(st.acc)
+    feet_z = np.asarray(st.d.site_xpos[:, robot.ids.foot_site, 2])
+    assert np.all(acc.min_trunk_z > TROT_Z_BAND[0]) and np.all(logs.trunk_z < TROT_Z_BAND[1])
+    assert not acc.nonfoot_floor.any() and not acc.nonfinite.any()
+    assert np.all(acc.max_slip < TROT_SLIP_MAX), acc.max_slip
+    assert np.all(acc.max_tau_ratio <= 1.0)
+    # it really stepped: the object moved forward along -y with the reference
+    dy = np.asarray(logs.p_obj[:, -1, 1] - logs.p_obj[:, 0, 1])
+    assert np.all(dy < -0.02), dy
+    assert np.all(np.abs(feet_z - robot.ids.foot_radius) < 0.02)

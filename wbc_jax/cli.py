@@ -40,7 +40,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from wbc_jax.demo import run_demo
 
-    run_demo(out=args.out, scene=args.scene, seconds=args.seconds)
+    run_demo(out=args.out, scene=args.scene, seconds=args.seconds, all_cells=args.all_cells, push=args.push,
+             observer=not args.no_observer, iters=args.iters, distance=args.distance)
     return 0
 
 
@@ -68,7 +69,12 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="one run at default factors; summary, plots")
     d.add_argument("--out", default="out/demo", help="output directory")
     d.add_argument("--scene", default="flat", help="'flat', 'transport' or a scene XML path")
-    d.add_argument("--seconds", type=float, default=None, help="simulated time [s]")
+    d.add_argument("--seconds", type=float, default=None, help="simulated time [s] (default: whole path + 0.5)")
+    d.add_argument("--all-cells", action="store_true", help="all 27 (m, mu, d) cells in one batch")
+    d.add_argument("--push", action="store_true", help="push the trunk 40 N sideways for 0.2 s mid-walk")
+    d.add_argument("--no-observer", action="store_true", help="disable the momentum observer")
+    d.add_argument("--iters", type=int, default=50, help="ADMM iterations per control step")
+    d.add_argument("--distance", type=float, default=3.4, help="transport distance [m]")
     d.set_defaults(func=_cmd_demo)
     return p
 

@@ -30,16 +30,14 @@ import math
 import os
 import platform
 import re
-import shutil
-import tempfile
 import time
-import uuid
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from wbc_jax import stats
+from wbc_jax.io_utils import atomic_dir
 from wbc_jax.errors import InputError, WbcJaxError
 
 SCHEMA = "wbc_jax.report/1"
@@ -140,34 +138,14 @@ def write_dir_atomic(out_dir: str, files: dict[str, bytes]) -> None:
     out = Path(out_dir).absolute()
     if out.exists() and not out.is_dir():
         raise WbcJaxError(f"output path exists and is not a directory: {out_dir}")
-    tmp = None
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-        for rel, data in files.items():
-            p = tmp / rel
-            p.parent.mkdir(parents=True, exist_ok=True)
-            p.write_bytes(data)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o777 & ~umask)
-        if out.exists():
-            old = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
-            os.rename(out, old)
-            try:
-                os.rename(tmp, out)
-            except OSError:
-                os.rename(old, out)
-                raise
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.rename(tmp, out)
-        tmp = None
+        with atomic_dir(out) as tmp:
+            for rel, data in files.items():
+                p = tmp / rel
+                p.parent.mkdir(parents=True, exist_ok=True)
+                p.write_bytes(data)
     except OSError as e:
         raise WbcJaxError(f"cannot write report to {out_dir}: {e.strerror or e}") from None
-    finally:
-        if tmp is not None:
-            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _one_line(e: Exception) -> str:

@@ -191,6 +191,9 @@ def make_chunk_fn(sim: Sim, n_logs: int):
     return run_one
 
 
+_CHUNK_FNS: dict = {}
+
+
 def simulate(sim: Sim, bmodel, in_axes, state: RunState, plan, om, gains, push, mu_ground, seconds: float,
              chunk_seconds: float = 2.0, progress=None):
     """Run ``seconds`` of simulated time in chunks; returns (final state, Log with time axis 1)."""
@@ -198,15 +201,14 @@ def simulate(sim: Sim, bmodel, in_axes, state: RunState, plan, om, gains, push, 
     dt = sim.dt_control
     logs_per_chunk = max(1, int(round(chunk_seconds / (dt * steps_per_log))))
     n_logs_total = int(np.ceil(seconds / (dt * steps_per_log)))
-    fns = {}
     out_logs = []
     done = 0
     while done < n_logs_total:
         n = min(logs_per_chunk, n_logs_total - done)
-        if n not in fns:
-            run_one = make_chunk_fn(sim, n)
-            fns[n] = jax.jit(jax.vmap(run_one, in_axes=(in_axes, 0, 0, 0, 0, 0, 0)))
-        state, logs = fns[n](bmodel, state, plan, om, gains, push, mu_ground)
+        key = (id(sim), n)
+        if key not in _CHUNK_FNS:  # one compiled function per (sim, chunk length), reused across calls
+            _CHUNK_FNS[key] = jax.jit(jax.vmap(make_chunk_fn(sim, n), in_axes=(in_axes, 0, 0, 0, 0, 0, 0)))
+        state, logs = _CHUNK_FNS[key](bmodel, state, plan, om, gains, push, mu_ground)
         out_logs.append(jax.device_get(logs))
         done += n
         if progress is not None:
