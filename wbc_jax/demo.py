@@ -71,6 +71,7 @@ def run_demo(out: str, scene: str = "flat", seconds: float | None = None, all_ce
             fell=fell, dropped=dropped, hit_wall=bool(acc.wall_contact[i]), max_slip_mm=float(acc.max_slip[i] * 1e3),
             final_object_error_m=err, T_mean_tracking_m=float(acc.sum_track[i] / (n_steps * sim.dt_control)),
             min_trunk_z_m=float(acc.min_trunk_z[i]), max_tau_ratio=float(acc.max_tau_ratio[i]),
+            max_qp_tau_excess_Nm=float(acc.max_tau_excess[i]),
             qp_prim_res_median=float(np.median(logs.prim_res[i])), qp_flag_fraction=float(acc.n_flag[i] / n_steps)))
     summary = dict(scene=str(robot.path), controller="transport WBC", push=push, observer=observer,
                    qp_iters=iters, simulated_s=seconds, runs=runs, wall_time_s=wall,

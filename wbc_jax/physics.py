@@ -9,8 +9,6 @@ plain ``mjx.step``.
 
 from __future__ import annotations
 
-import jax.numpy as jnp
-
 from wbc_jax.model import mjx
 
 
@@ -35,7 +33,3 @@ def advance(m, d, ctrl, n_substeps: int = 1):
     for _ in range(n_substeps - 1):
         d = mjx.step(m, d)
     return d
-
-
-def zero_xfrc(d):
-    return d.replace(xfrc_applied=jnp.zeros_like(d.xfrc_applied))

@@ -183,8 +183,8 @@ class TransportConfig:
 
 
 class QPDiag(NamedTuple):
-    """Per-step QP health and command: tau (18,), prim_res, dual_res, flag, tau_excess (how far beyond
-    the limit the unclipped torque was [N m]), w_cmd (6,) commanded wrench."""
+    """Per-step QP health and command: tau (18,) applied (clipped) torques [N m], prim_res, dual_res, flag,
+    tau_excess: () largest amount by which the unclipped QP torque exceeded its limit [N m] (< 0: within)."""
 
     tau: jax.Array
     prim_res: jax.Array
