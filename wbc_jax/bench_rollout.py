@@ -11,10 +11,8 @@ import json
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax import physics
 from wbc_jax.batch import prepare_batch
 from wbc_jax.control.transport import TransportConfig
 from wbc_jax.model import Robot, mjx

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.batch import prepare_batch
+from wbc_jax.batch import broadcast, prepare_batch
 from wbc_jax.control.transport import TransportConfig, default_gains
 from wbc_jax.io_utils import atomic_dir
 from wbc_jax.model import Robot
@@ -45,7 +45,7 @@ def run_demo(out: str, scene: str = "flat", seconds: float | None = None, all_ce
     seconds = T + 0.5 if seconds is None else float(seconds)
     p = Push(jnp.array([40.0, 0.0, 0.0]), jnp.asarray(0.5 * T), jnp.asarray(0.2)) if push else None
     if p is not None:
-        b = b._replace(push=jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (len(cells),) + x.shape), p))
+        b = b._replace(push=broadcast(p, len(cells)))
     print(f"{len(cells)} run(s), {seconds:.1f} s simulated, scene {robot.path.name}", flush=True)
     tw = time.perf_counter()
     marks = []  # (simulated s, wall s) after each chunk; the first chunk includes compilation

@@ -25,6 +25,11 @@ M_RANGE = (0.0, 20.0)  # object mass [kg]
 PAIR_FRICTION_TAIL = (0.005, 0.0001, 0.0001)
 
 
+def cube_inertia(m, d):
+    """Principal moment of inertia of a solid cube about its centre, m d^2 / 6 [kg m^2]."""
+    return m * d**2 / 6.0
+
+
 class Factors(NamedTuple):
     """Per-run factor values, each (B,).
 
@@ -82,7 +87,7 @@ def object_fields(ids: RobotIds, f: Factors, geom_pos0: np.ndarray) -> dict[str,
     """
     B = f.m.shape[0]
     half = f.d / 2
-    inertia = f.m * f.d**2 / 6.0  # solid cube about its centre
+    inertia = cube_inertia(f.m, f.d)
     r = ids.obj_sphere_radius
     signs = np.sign(geom_pos0[ids.obj_contact_geom])  # (4, 3)
     off = (half - r)[:, None, None] * np.ones((1, 4, 3))

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 from wbc_jax.control.dynamics import GRAVITY, DynTerms, cone_edges, point_jacobians, rot_error, wrench_map
 from wbc_jax.model import RobotIds
 from wbc_jax.qp import QPResult, QPSettings, solve_qp
+from wbc_jax.scenario import cube_inertia
 
 N_FEET = 4
 N_OBJ = 4
@@ -268,7 +269,7 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     # object: F_b = M_b (a_ref + Kd edot + Kp e) + C_b V_b + N_b, world frame
     a_b = ref.a_obj + gains.kd_obj * (ref.v_obj - obj.v) + gains.kp_obj * (ref.p_obj - obj.p)
     al_b = gains.kd_obj_rot * (-obj.omega) + gains.kp_obj_rot * rot_error(ref.R_obj, obj.R)
-    I_b = om.mass * om.side**2 / 6.0
+    I_b = cube_inertia(om.mass, om.side)
     f_b = om.mass * (a_b + jnp.array([0.0, 0.0, GRAVITY]))
     t_b = I_b * al_b  # cube: isotropic inertia, omega x I omega = 0
     l_vec = jnp.concatenate([l_com, f_b, t_b])
