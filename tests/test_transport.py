@@ -13,7 +13,7 @@ import scipy.sparse as sp
 from wbc_jax import physics
 from wbc_jax.batch import prepare_batch
 from wbc_jax.control.dynamics import dyn_terms, point_jacobians
-from wbc_jax.control.transport import TransportConfig, build_qp, object_state
+from wbc_jax.control.transport import TransportConfig, build_qp, control_qp_settings, object_state
 from wbc_jax.model import Robot
 from wbc_jax.planner.gait import GaitParams
 from wbc_jax.planner.transport import reference
@@ -37,7 +37,7 @@ TROT_Z_BAND = (0.40, 0.50)  # [m] trunk height band during the segment
 @pytest.fixture(scope="module")
 def setup():
     robot = Robot("flat")
-    sim = make_sim(robot, TransportConfig(dt=0.001, qp=QPSettings(iters=100)), log_every=50)
+    sim = make_sim(robot, TransportConfig(dt=0.001, qp=control_qp_settings(100)), log_every=50)
     # gait starts after the test horizon: the robot stands under QP torque control, loaded
     plan_kwargs = dict(gait=GaitParams(t_start=10.0), distance=0.1)
     b = prepare_batch(sim, [0.2, 0.4], [0.4, 1.0], [0.10, 0.06], plan_kwargs=plan_kwargs)
@@ -64,7 +64,8 @@ def test_qp_matches_reference_and_dynamics(setup):
         obj = object_state(d, ids)
         Jp, Jr, Jdp, Jdr = point_jacobians(m, d, ids, obj.p[None], [ids.tray_body])
         J_o, Jdv_o = jnp.concatenate([Jp[0], Jr[0]]), jnp.concatenate([Jdp[0], Jdr[0]])
-        return dyn, build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, jnp.zeros(6), ids, sim.cfg, 1.0)
+        return dyn, build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, jnp.zeros(6), ids, sim.cfg, 1.0,
+                                rs.cs.q_post)
 
     dyn, (P, q, A, l, u, A_tau, h_a, H_com) = build(m, rs, plan, om, gains)
     Pn, qn, An, ln, un, Atn, han = (np.asarray(x, float) for x in (P, q, A, l, u, A_tau, h_a))

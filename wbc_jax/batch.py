@@ -15,7 +15,8 @@ import numpy as np
 
 from wbc_jax import scenario
 from wbc_jax.control.transport import ObjectModel, TransportGains, default_gains
-from wbc_jax.planner.transport import TransportPlan, straight_plan
+from wbc_jax.planner.scene_geometry import scene_geometry
+from wbc_jax.planner.transport import TransportPlan, course_plan, straight_plan
 from wbc_jax.rollout import Push, RunState, Sim, init_state, no_push
 
 
@@ -47,14 +48,22 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
         sim: static rollout structure; m, mu, d: object mass [kg], tray friction, object side [m].
         gains: per-run gains with leading axis B, or unbatched (broadcast), default gains if None.
         push: per-run or unbatched Push (none if None).
-        plan_kwargs: keyword arguments of :func:`wbc_jax.planner.transport.straight_plan`.
+        plan_kwargs: keyword arguments of the planner: :func:`wbc_jax.planner.transport.course_plan` when
+            the scene has obstacles or terrain (blocks, a wall), else :func:`~wbc_jax.planner.transport.straight_plan`.
     """
     robot = sim.robot
     f = scenario.validate_factors(robot.ids, m, mu, d)
     B = f.m.shape[0]
     bm, in_axes = scenario.batch_model(robot.mjx_model, robot.mj_model, robot.ids, f)
     qpos0 = np.stack([robot.home_qpos(di) for di in f.d])
-    plans = stack([straight_plan(robot, q, **(plan_kwargs or {})) for q in qpos0])
+    geo = scene_geometry(robot)
+    kw = plan_kwargs or {}
+    course = bool(geo.obstacles.shape[0] or geo.terrain.shape[0])
+    # a plan depends on the run only through d (start pose and carried height): plan each level once
+    levels, inverse = np.unique(f.d, return_inverse=True)
+    unique = [course_plan(robot, robot.home_qpos(di), side=float(di), **kw) if course
+              else straight_plan(robot, robot.home_qpos(di), **kw) for di in levels]
+    plans = jax.tree_util.tree_map(lambda x: x[jnp.asarray(inverse)], stack(unique))
     state = jax.jit(jax.vmap(functools.partial(init_state, sim), in_axes=(in_axes, 0)))(bm, jnp.asarray(qpos0))
     om = ObjectModel(mass=jnp.asarray(f.m), side=jnp.asarray(f.d), mu=jnp.asarray(f.mu),
                      inset=jnp.full(B, robot.ids.obj_sphere_radius))

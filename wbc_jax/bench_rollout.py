@@ -1,6 +1,6 @@
 """``wbc-jax bench rollout``: env-steps/s of physics-only MJX and of physics + transport WBC.
 
-Both are measured in the same process on the current device, on the flat scene with the object,
+Both are measured in the same process on the current device, on the flat scene (or ``scene``) with the object,
 excluding compile time (reported separately); the ratio WBC / physics-only is printed next to the
 absolute figures. The WBC runs the loaded stand-and-walk plan from t = 0.
 """
@@ -14,9 +14,8 @@ import jax
 import numpy as np
 
 from wbc_jax.batch import prepare_batch
-from wbc_jax.control.transport import TransportConfig
+from wbc_jax.control.transport import TransportConfig, control_qp_settings
 from wbc_jax.model import Robot, mjx
-from wbc_jax.qp import QPSettings
 from wbc_jax.rollout import make_chunk_fn, make_sim
 
 
@@ -26,9 +25,10 @@ def _timed(f, *args):
     return out, time.perf_counter() - t0
 
 
-def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30, json_path: str | None = None):
-    robot = Robot("flat")
-    sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=QPSettings(iters=iters)),
+def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30, json_path: str | None = None,
+              scene: str = "flat"):
+    robot = Robot(scene)
+    sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=control_qp_settings(iters)),
                    log_every=steps)
     device = jax.devices()[0].device_kind
     rows = []
@@ -48,7 +48,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         args = (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
         _, c_wbc = _timed(f_wbc, *args)
         _, t_wbc = _timed(f_wbc, *args)
-        row = dict(device=device, batch=B, steps=steps, qp_iters=iters,
+        row = dict(device=device, scene=robot.path.name, batch=B, steps=steps, qp_iters=iters,
                    physics_steps_per_s=B * steps / t_phys, wbc_steps_per_s=B * steps / t_wbc,
                    ratio=(B * steps / t_wbc) / (B * steps / t_phys), compile_physics_s=c_phys - t_phys,
                    compile_wbc_s=c_wbc - t_wbc)

@@ -32,7 +32,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from wbc_jax.bench_rollout import run_bench as run_rollout_bench
 
         batches = [int(x) for x in args.batches.split(",")] if args.batches else ((1, 4) if args.quick else (1, 1024, 4096, 16384))
-        run_rollout_bench(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json)
+        run_rollout_bench(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json, scene=args.scene)
         return 0
     raise WbcJaxError(f"bench: unknown target {args.what!r}")
 
@@ -40,8 +40,16 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from wbc_jax.demo import run_demo
 
+    for name in ("seconds", "distance", "push_at"):
+        v = getattr(args, name)
+        if v is not None and not (v > 0 and (name != "push_at" or v < 1)):
+            raise WbcJaxError(f"--{name.replace('_', '-')} = {v}: expected "
+                              + ("0 < value < 1 (fraction of the planned duration)" if name == "push_at" else "> 0"))
+    if args.iters < 1:
+        raise WbcJaxError(f"--iters = {args.iters}: expected >= 1")
     run_demo(out=args.out, scene=args.scene, seconds=args.seconds, all_cells=args.all_cells, push=args.push,
-             observer=not args.no_observer, iters=args.iters, distance=args.distance)
+             observer=not args.no_observer, iters=args.iters, distance=args.distance, push_at=args.push_at,
+             video=not args.no_video)
     return 0
 
 
@@ -62,16 +70,21 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--batches", default=None, help="rollout: comma-separated batch sizes")
     b.add_argument("--steps", type=int, default=200, help="rollout: control steps per timed call")
     b.add_argument("--iters", type=int, default=30, help="rollout: ADMM iterations per control step")
+    b.add_argument("--scene", default="flat", help="rollout: 'flat' (default), 'transport' or a scene XML path")
     b.add_argument("--quick", action="store_true", help="small sizes (CPU smoke run)")
     b.add_argument("--json", default=None, help="also write the results as JSON here")
     b.set_defaults(func=_cmd_bench)
 
-    d = sub.add_parser("demo", help="one run at default factors; summary, plots")
+    d = sub.add_parser("demo", help="the transport course, one run at default factors or all 27 cells; summary, "
+                                    "plots, video")
     d.add_argument("--out", default="out/demo", help="output directory")
-    d.add_argument("--scene", default="flat", help="'flat', 'transport' or a scene XML path")
+    d.add_argument("--scene", default="transport", help="'transport' (default), 'flat' or a scene XML path")
     d.add_argument("--seconds", type=float, default=None, help="simulated time [s] (default: whole path + 0.5)")
     d.add_argument("--all-cells", action="store_true", help="all 27 (m, mu, d) cells in one batch")
     d.add_argument("--push", action="store_true", help="push the trunk 40 N sideways for 0.2 s mid-walk")
+    d.add_argument("--push-at", type=float, default=0.35,
+                   help="push start as a fraction of the planned duration (default 0.35: before the wall)")
+    d.add_argument("--no-video", action="store_true", help="skip video.gif")
     d.add_argument("--no-observer", action="store_true", help="disable the momentum observer")
     d.add_argument("--iters", type=int, default=50, help="ADMM iterations per control step")
     d.add_argument("--distance", type=float, default=3.4, help="transport distance [m]")

@@ -1,7 +1,9 @@
-"""``wbc-jax demo``: the transport WBC carrying the object on flat ground, one run or all 27 cells.
+"""``wbc-jax demo``: the transport WBC carrying the object through the course (or on flat ground), one
+run or all 27 cells in one batch.
 
-Writes ``summary.json`` (one entry per run, plus the batch's wall time and env-steps/s), ``runs.csv``
-and ``plots.png`` (object and CoM reference vs actual, object slip on the tray) into DIR, atomically.
+Writes ``summary.json`` (one entry per run, plus the batch's wall time and env-steps/s), ``runs.csv``,
+``plots.png`` (object and CoM reference vs actual, object slip on the tray) and ``video.gif`` (the first
+run, when offscreen rendering is available) into DIR, atomically.
 """
 
 from __future__ import annotations
@@ -15,25 +17,33 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.batch import broadcast, prepare_batch
-from wbc_jax.control.transport import TransportConfig, default_gains
+from wbc_jax.control.transport import TransportConfig, control_qp_settings, default_gains
 from wbc_jax.io_utils import atomic_dir
 from wbc_jax.model import Robot
+from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.planner.transport import plan_duration
-from wbc_jax.qp import QPSettings
 from wbc_jax.rollout import Push, make_sim, simulate
+from wbc_jax.scenario import single_run_mj_model
+from wbc_jax.video import render_gif
 
 LEVELS = dict(m=(0.2, 0.3, 0.4), mu=(0.4, 0.7, 1.0), d=(0.06, 0.08, 0.10))
 DEFAULT = dict(m=0.3, mu=0.7, d=0.08)
-FALL_Z = 0.3  # [m] trunk height below which a run counts as fallen
+FALL_Z_FLAT = 0.3  # [m] trunk height below which a run counts as fallen on flat ground
+FALL_Z_COURSE = 0.15  # [m] the same on the course (the robot crouches under the wall)
 DROP_LIFT = 0.01  # [m] object lifted this far off the tray counts as dropped
 DONE_TOL = 0.05  # [m] final object error for a completed transport
+MAX_OFF_S = 0.05  # [s] the object may touch nothing on the tray for at most this long
 
 
-def run_demo(out: str, scene: str = "flat", seconds: float | None = None, all_cells: bool = False,
+def run_demo(out: str, scene: str = "transport", seconds: float | None = None, all_cells: bool = False,
              push: bool = False, observer: bool = True, iters: int = 50, distance: float = 3.4,
-             speed: float = 0.13) -> dict:
+             speed: float = 0.13, push_at: float = 0.35, video: bool = True) -> dict:
+    """Run the demo and write DIR. ``push_at``: push start as a fraction of the planned duration (0.35 is
+    mid-course, before the wall)."""
     robot = Robot(scene)
-    sim = make_sim(robot, TransportConfig(qp=QPSettings(iters=iters)), log_every=20)
+    course = bool(scene_geometry(robot).obstacles.shape[0] or scene_geometry(robot).terrain.shape[0])
+    fall_z = FALL_Z_COURSE if course else FALL_Z_FLAT
+    sim = make_sim(robot, TransportConfig(qp=control_qp_settings(iters)), log_every=20)
     cells = list(itertools.product(*LEVELS.values())) if all_cells else [tuple(DEFAULT.values())]
     m, mu, d = (np.array(c) for c in zip(*cells))
     gains = default_gains()
@@ -43,7 +53,7 @@ def run_demo(out: str, scene: str = "flat", seconds: float | None = None, all_ce
     b = prepare_batch(sim, m, mu, d, gains=gains, plan_kwargs=dict(distance=distance, speed=speed))
     T = plan_duration(b.plan)
     seconds = T + 0.5 if seconds is None else float(seconds)
-    p = Push(jnp.array([40.0, 0.0, 0.0]), jnp.asarray(0.5 * T), jnp.asarray(0.2)) if push else None
+    p = Push(jnp.array([40.0, 0.0, 0.0]), jnp.asarray(push_at * T), jnp.asarray(0.2)) if push else None
     if p is not None:
         b = b._replace(push=broadcast(p, len(cells)))
     print(f"{len(cells)} run(s), {seconds:.1f} s simulated, scene {robot.path.name}", flush=True)
@@ -63,13 +73,13 @@ def run_demo(out: str, scene: str = "flat", seconds: float | None = None, all_ce
     p_goal = np.asarray(logs.p_obj_ref[:, -1])
     runs = []
     for i, (mi, mui, di) in enumerate(cells):
-        fell = bool(acc.min_trunk_z[i] < FALL_Z or acc.nonfoot_floor[i] or acc.nonfinite[i])
-        dropped = bool(acc.max_lift[i] > DROP_LIFT)
+        fell = bool(acc.min_trunk_z[i] < fall_z or acc.nonfoot_floor[i] or acc.nonfinite[i])
+        dropped = bool(acc.max_lift[i] > DROP_LIFT or acc.max_off_s[i] > MAX_OFF_S)
         err = float(np.linalg.norm(p_obj[i] - p_goal[i]))
         runs.append(dict(
             m=float(mi), mu=float(mui), d=float(di), completed=bool(not fell and not dropped and err < DONE_TOL),
             fell=fell, dropped=dropped, hit_wall=bool(acc.wall_contact[i]), max_slip_mm=float(acc.max_slip[i] * 1e3),
-            final_object_error_m=err, T_mean_tracking_m=float(acc.sum_track[i] / (n_steps * sim.dt_control)),
+            max_off_tray_ms=float(acc.max_off_s[i] * 1e3), final_object_error_m=err, T_mean_tracking_m=float(acc.sum_track[i] / (n_steps * sim.dt_control)),
             min_trunk_z_m=float(acc.min_trunk_z[i]), max_tau_ratio=float(acc.max_tau_ratio[i]),
             max_qp_tau_excess_Nm=float(acc.max_tau_excess[i]),
             qp_prim_res_median=float(np.median(logs.prim_res[i])), qp_flag_fraction=float(acc.n_flag[i] / n_steps)))
@@ -84,10 +94,29 @@ def run_demo(out: str, scene: str = "flat", seconds: float | None = None, all_ce
 
         pd.DataFrame(runs).to_csv(tmp / "runs.csv", index=False)
         _plot(tmp / "plots.png", logs)
-    for r in runs:
-        print(json.dumps(r))
+        if video:
+            mj = single_run_mj_model(robot.path, *cells[0])
+            why = render_gif(tmp / "video.gif", mj, np.asarray(logs.qpos[0]), np.asarray(logs.t[0]),
+                             track_body=robot.ids.trunk_body)
+            if why:
+                print(why)
+    _print_table(runs)
     print(f"wall {wall:.1f} s, {summary['env_steps_per_s']:.0f} env-steps/s; written to {out}")
     return summary
+
+
+def _print_table(runs):
+    cols = [("m", "m", "{:.1f}"), ("mu", "mu", "{:.1f}"), ("d", "d", "{:.2f}"), ("ok", "completed", "{}"),
+            ("fell", "fell", "{}"), ("drop", "dropped", "{}"), ("wall", "hit_wall", "{}"),
+            ("slip mm", "max_slip_mm", "{:.2f}"), ("off ms", "max_off_tray_ms", "{:.0f}"),
+            ("final cm", "final_object_error_m", "{:.2f}"), ("T mm", "T_mean_tracking_m", "{:.2f}"),
+            ("trunk min", "min_trunk_z_m", "{:.3f}"), ("tau excess", "max_qp_tau_excess_Nm", "{:.1f}"),
+            ("prim med", "qp_prim_res_median", "{:.1e}"), ("flag %", "qp_flag_fraction", "{:.1f}")]
+    scale = {"final_object_error_m": 100.0, "T_mean_tracking_m": 1e3, "qp_flag_fraction": 100.0}
+    print("  ".join(f"{h:>9}" for h, _, _ in cols))
+    for r in runs:
+        print("  ".join(f"{f.format(r[k] * scale.get(k, 1.0) if isinstance(r[k], float) else r[k]):>9}"
+                        for _, k, f in cols))
 
 
 def _steps_per_s(marks, n_runs, dt):

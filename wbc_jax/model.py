@@ -91,7 +91,7 @@ class RobotIds:
         tau_max: (18,) actuator torque limits [N m] (symmetric).
         nv_robot: number of robot dofs (24).
         floor_geom: floor plane geom id.
-        nonfoot_floor_pair: ids of pairs robot-part (not foot) vs floor.
+        nonfoot_floor_pair: ids of pairs robot-part (not foot) vs floor or terrain (what the feet stand on).
         foot_pair: (4, K) pair ids of each foot vs floor and blocks (K surfaces).
         wall_pair: ids of pairs anything vs a wall geom (may be empty).
         key_home: id of the 'home' keyframe.
@@ -158,11 +158,13 @@ def resolve_ids(m: mujoco.MjModel, path: str = "<model>") -> RobotIds:
         obj_box, obj_qpos, obj_dof, r_s = -1, -1, -1, 0.0
 
     g1, g2 = m.pair_geom1, m.pair_geom2
-    is_floor = (g1 == floor) | (g2 == floor)
-    robot_geom = m.geom_bodyid[np.where(g1 == floor, g2, g1)]
-    nonfoot = np.where(is_floor & ~np.isin(np.where(g1 == floor, g2, g1), foot_geom)
-                       & (robot_geom != obj_body))[0]
     foot_pair = np.array([np.where((g1 == fg) | (g2 == fg))[0] for fg in foot_geom])
+    # ground: the floor and whatever the feet may stand on (the other geom of each foot pair)
+    ground = np.unique(np.concatenate([[floor], np.where(np.isin(g1[foot_pair], foot_geom), g2[foot_pair],
+                                                         g1[foot_pair]).ravel()]))
+    on_ground = np.isin(g1, ground) | np.isin(g2, ground)
+    other = np.where(np.isin(g1, ground), g2, g1)
+    nonfoot = np.where(on_ground & ~np.isin(other, foot_geom) & (m.geom_bodyid[other] != obj_body))[0]
     wall_geoms = [i for i in range(m.ngeom) if (m.geom(i).name or "").startswith("wall")]
     wall_pair = np.where(np.isin(g1, wall_geoms) | np.isin(g2, wall_geoms))[0]
 

@@ -51,6 +51,8 @@ class Accum(NamedTuple):
     n_steps: jax.Array
     sum_track: jax.Array  # integral of ||p_obj,ref - p_obj|| [m s]
     nonfinite: jax.Array  # bool
+    off_steps: jax.Array  # int32, consecutive steps (up to now) with the object touching nothing on the tray
+    max_off_s: jax.Array  # [s] longest such spell
 
 
 class RunState(NamedTuple):
@@ -64,7 +66,8 @@ class RunState(NamedTuple):
 
 
 class Log(NamedTuple):
-    """Logged every ``log_every`` steps (per run): time, object and CoM actual vs reference, QP residual."""
+    """Logged every ``log_every`` steps (per run): time, object and CoM actual vs reference, QP residual,
+    torques, and the full configuration qpos (nq,) for replay and video."""
 
     t: jax.Array
     p_obj: jax.Array
@@ -75,6 +78,10 @@ class Log(NamedTuple):
     trunk_z: jax.Array
     prim_res: jax.Array
     tau: jax.Array
+    qpos: jax.Array
+
+
+CONTACT_DIST = 1e-3  # [m] a foot closer than this to the floor or terrain counts as touching
 
 
 @dataclass(frozen=True)
@@ -87,6 +94,8 @@ class Sim:
     log_every: int
     nonfoot_slots: np.ndarray
     wall_slots: np.ndarray
+    foot_slots: np.ndarray
+    obj_slots: np.ndarray
 
     @property
     def dt_control(self) -> float:
@@ -94,20 +103,24 @@ class Sim:
 
 
 def contact_slots(robot: Robot):
-    """Indices of MJX contact slots belonging to non-foot-vs-floor pairs and to wall pairs."""
+    """Indices of MJX contact slots: non-foot parts vs floor or terrain, anything vs a wall, (4, K) each
+    foot vs floor and terrain, and the object's contact spheres vs the tray."""
     m = robot.mj_model
     d = jax.jit(physics.sense)(robot.mjx_model, mjx.make_data(robot.mjx_model))
     geom = np.asarray(d._impl.contact.geom)
     pairs = {(int(m.pair_geom1[i]), int(m.pair_geom2[i])): i for i in range(m.npair)}
     slot_pair = np.array([pairs.get((int(a), int(b)), pairs.get((int(b), int(a)), -1)) for a, b in geom])
+    foot = np.array([np.where(np.isin(slot_pair, fp))[0] for fp in robot.ids.foot_pair])
     return (np.where(np.isin(slot_pair, robot.ids.nonfoot_floor_pair))[0],
-            np.where(np.isin(slot_pair, robot.ids.wall_pair))[0])
+            np.where(np.isin(slot_pair, robot.ids.wall_pair))[0], foot,
+            np.where(np.isin(slot_pair, robot.ids.obj_pair))[0])
 
 
 def make_sim(robot: Robot, cfg: TransportConfig | None = None, n_substeps: int = 1, log_every: int = 20) -> Sim:
     cfg = cfg or TransportConfig(dt=float(robot.mj_model.opt.timestep) * n_substeps)
-    nf, wl = contact_slots(robot)
-    return Sim(robot=robot, cfg=cfg, n_substeps=n_substeps, log_every=log_every, nonfoot_slots=nf, wall_slots=wl)
+    nf, wl, ft, ob = contact_slots(robot)
+    return Sim(robot=robot, cfg=cfg, n_substeps=n_substeps, log_every=log_every, nonfoot_slots=nf, wall_slots=wl,
+               foot_slots=ft, obj_slots=ob)
 
 
 def _tray_rel(d, ids):
@@ -125,8 +138,8 @@ def init_state(sim: Sim, m, qpos0) -> RunState:
     acc = Accum(min_trunk_z=dyn.p_base[2], max_slip=z, max_lift=z, nonfoot_floor=jnp.bool_(False),
                 wall_contact=jnp.bool_(False), max_tau_ratio=z, max_tau_excess=jnp.asarray(-jnp.inf), sum_prim_res=z,
                 n_flag=jnp.zeros((), jnp.int32), n_steps=jnp.zeros((), jnp.int32), sum_track=z,
-                nonfinite=jnp.bool_(False))
-    return RunState(d=d, cs=init_control_state(sim.cfg, dyn), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids), acc=acc)
+                nonfinite=jnp.bool_(False), off_steps=jnp.zeros((), jnp.int32), max_off_s=z)
+    return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids), acc=acc)
 
 
 def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel, gains: TransportGains,
@@ -136,7 +149,8 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     d = physics.sense(m, rs.d)
     t = d.time
     dyn = dyn_terms(m, d, ids)
-    ref = reference(plan, t, rs.p_lift)
+    contact = jnp.any(d._impl.contact.dist[sim.foot_slots] < CONTACT_DIST, axis=1)  # (4,)
+    ref = reference(plan, t, rs.p_lift, contact, dyn.p_foot)
     tau, cs, qd = transport_control(m, d, dyn, ref, om, gains, rs.cs, ids, sim.cfg, mu_ground)
     on = (t >= push.t0) & (t < push.t0 + push.duration)
     xfrc = jnp.zeros_like(d.xfrc_applied).at[ids.trunk_body, 0:3].set(jnp.where(on, push.force, 0.0))
@@ -150,6 +164,8 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     dist = d._impl.contact.dist
     p_obj = d.xpos[ids.obj_body]
     a = rs.acc
+    off = jnp.all(dist[sim.obj_slots] > CONTACT_DIST) if sim.obj_slots.size else jnp.bool_(False)
+    off_steps = jnp.where(off, a.off_steps + 1, 0)
     finite = jnp.all(jnp.isfinite(d_next.qpos)) & jnp.all(jnp.isfinite(tau))
     acc = Accum(
         min_trunk_z=jnp.minimum(a.min_trunk_z, dyn.p_base[2]),
@@ -164,11 +180,13 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
         n_steps=a.n_steps + 1,
         sum_track=a.sum_track + jnp.linalg.norm(ref.p_obj - p_obj) * sim.dt_control,
         nonfinite=a.nonfinite | ~finite,
+        off_steps=off_steps,
+        max_off_s=jnp.maximum(a.max_off_s, off_steps * sim.dt_control),
     )
     # a run that went non-finite is frozen (its state no longer advances) so it cannot poison others
     d_next = jax.tree_util.tree_map(lambda new, old: jnp.where(finite, new, old), d_next, rs.d)
     log = Log(t=t, p_obj=p_obj, p_obj_ref=ref.p_obj, com=dyn.com, com_ref=ref.p_com, slip=slip,
-              trunk_z=dyn.p_base[2], prim_res=qd.prim_res, tau=tau)
+              trunk_z=dyn.p_base[2], prim_res=qd.prim_res, tau=tau, qpos=d.qpos)
     return RunState(d=d_next, cs=cs, p_lift=p_lift, rel0=rs.rel0, acc=acc), log
 
 

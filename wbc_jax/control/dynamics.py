@@ -27,6 +27,7 @@ class DynTerms(NamedTuple):
     Attributes:
         M: (nv_r, nv_r) joint-space mass matrix (armature included).
         h: (nv_r,) bias forces C(q, v) v + g(q) [N, N m].
+        q: (nq_r,) robot generalized position (free joint first).
         v: (nv_r,) robot generalized velocity.
         R_base: (3, 3) trunk orientation (world from body).
         p_base: (3,) trunk origin [m].
@@ -45,6 +46,7 @@ class DynTerms(NamedTuple):
 
     M: jax.Array
     h: jax.Array
+    q: jax.Array
     v: jax.Array
     R_base: jax.Array
     p_base: jax.Array
@@ -96,7 +98,7 @@ def dyn_terms(m, d, ids: RobotIds) -> DynTerms:
     p_foot = d.site_xpos[ids.foot_site]
     Jp, _, Jdv, _ = point_jacobians(m, d, ids, p_foot, ids.foot_body)
     return DynTerms(
-        M=M, h=d.qfrc_bias[:nvr], v=v, R_base=R, p_base=p_base, omega_base=R @ v[3:6], com=com,
+        M=M, h=d.qfrc_bias[:nvr], q=d.qpos[: nvr + 1], v=v, R_base=R, p_base=p_base, omega_base=R @ v[3:6], com=com,
         com_vel=lin / mass, h_G=jnp.concatenate([lin, ang_G]), mass=mass, p_foot=p_foot, J_foot=Jp,
         Jdv_foot=Jdv, v_foot=Jp @ v, R_tray=d.site_xmat[ids.tray_site], p_tray=d.site_xpos[ids.tray_site],
     )

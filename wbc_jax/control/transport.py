@@ -48,8 +48,10 @@ class TransportGains(NamedTuple):
         kp_obj_rot, kd_obj_rot: () object orientation gains [1/s^2], [1/s].
         kp_sw, kd_sw: () swing-foot gains [1/s^2], [1/s].
         kd_stance: () stance-foot velocity damping in (10) [1/s].
+        kp_post, kd_post: () arm posture gains [1/s^2], [1/s] (acceleration level, null space of (11)).
         w_com: (6,) Q weights of the CoM wrench [1/N^2, 1/(N m)^2].
         w_obj_f, w_obj_t: () Q weights of the object force and torque.
+        w_post: () Q weight of the arm posture task [1/(rad/s^2)^2].
         r_vdot, r_lam, r_slack: () R regularisation of vdot, Lambda and gamma.
         k_obs: () momentum-observer gain [1/s]; 0 disables the observer.
         f_min: () minimum normal force per stance foot [N].
@@ -68,9 +70,12 @@ class TransportGains(NamedTuple):
     kp_sw: jax.Array
     kd_sw: jax.Array
     kd_stance: jax.Array
+    kp_post: jax.Array
+    kd_post: jax.Array
     w_com: jax.Array
     w_obj_f: jax.Array
     w_obj_t: jax.Array
+    w_post: jax.Array
     r_vdot: jax.Array
     r_lam: jax.Array
     r_slack: jax.Array
@@ -87,8 +92,8 @@ def default_gains() -> TransportGains:
         kp_com=f(2000.0, 2000.0, 2000.0), kd_com=f(300.0, 300.0, 300.0),
         kp_rot=f(600.0, 600.0, 600.0), kd_rot=f(50.0, 50.0, 50.0),
         kp_obj=f(250.0), kd_obj=f(50.0), kp_obj_rot=f(250.0), kd_obj_rot=f(50.0),
-        kp_sw=f(1500.0), kd_sw=f(80.0), kd_stance=f(10.0),
-        w_com=f(50.0, 50.0, 50.0, 50.0, 50.0, 50.0), w_obj_f=f(1000.0), w_obj_t=f(10000.0),
+        kp_sw=f(1500.0), kd_sw=f(80.0), kd_stance=f(10.0), kp_post=f(100.0), kd_post=f(20.0),
+        w_com=f(50.0, 50.0, 50.0, 50.0, 50.0, 50.0), w_obj_f=f(1000.0), w_obj_t=f(10000.0), w_post=f(1.0),
         r_vdot=f(1e-3), r_lam=f(1e-3), r_slack=f(1000.0), k_obs=f(10.0), f_min=f(2.0), f_max=f(400.0), tau_margin=f(0.98),
     )
 
@@ -156,10 +161,18 @@ class ObserverState(NamedTuple):
 
 
 class ControlState(NamedTuple):
-    """Controller memory between steps: warm start, observer."""
+    """Controller memory between steps: warm start, observer, and the arm's nominal posture q_post (6,)
+    [rad] (its configuration at the start)."""
 
     warm: QPResult
     obs: ObserverState
+    q_post: jax.Array
+
+
+def control_qp_settings(iters: int = 30) -> QPSettings:
+    """ADMM settings for the control loop: ``iters`` warm-started iterations; the flag tolerance is
+    1e-3 (abs and rel), what float32 residuals at WBC scales (forces up to hundreds of N) can show."""
+    return QPSettings(iters=iters, eps_abs=1e-3, eps_rel=1e-3)
 
 
 @dataclass(frozen=True)
@@ -171,7 +184,7 @@ class TransportConfig:
     """
 
     k: int = 4
-    qp: QPSettings = QPSettings(iters=30)
+    qp: QPSettings = control_qp_settings()
     dt: float = 0.001
 
     @property
@@ -208,13 +221,13 @@ def contact_points(obj: ObjectState, om: ObjectModel):
     return obj.p + local @ obj.R.T
 
 
-def init_control_state(cfg: TransportConfig, dyn: DynTerms) -> ControlState:
+def init_control_state(cfg: TransportConfig, dyn: DynTerms, ids: RobotIds) -> ControlState:
     n, mcon = cfg.n_var, cfg.n_con
     z = jnp.zeros
     warm = QPResult(x=z(n), y=z(mcon), z=z(mcon), prim_res=z(()), dual_res=z(()),
                     flag=jnp.zeros((), jnp.int32), iters=jnp.zeros((), jnp.int32), rho=z(()))
     obs = ObserverState(h0=dyn.h_G, integral=z(6), r=z(6), w_cmd=z(6))
-    return ControlState(warm=warm, obs=obs)
+    return ControlState(warm=warm, obs=obs, q_post=dyn.q[ids.act_qpos[12:]])
 
 
 def observer_update(obs: ObserverState, dyn: DynTerms, k_obs, dt) -> ObserverState:
@@ -226,8 +239,13 @@ def observer_update(obs: ObserverState, dyn: DynTerms, k_obs, dt) -> ObserverSta
 
 
 def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: ObjectModel, gains: TransportGains,
-             r_ext, ids: RobotIds, cfg: TransportConfig, mu_ground):
+             r_ext, ids: RobotIds, cfg: TransportConfig, mu_ground, q_post):
     """Assemble the QP in OSQP form.
+
+    ``q_post`` (6,) is the arm's nominal posture [rad]; the posture task only acts in the null space
+    of the tray constraint (11): without it that null space is free and the QP uses the arm as a
+    reaction wheel (joint accelerations of 1000 rad/s^2 at the torque limits, flipping sign within a
+    millisecond) to make up the moment two stance feet cannot produce.
 
     Returns:
         (P (n, n), q (n,), A (m, n), l (m,), u (m,), A_tau (18, n), h_a (18,), H_com (6, n)) where
@@ -272,8 +290,12 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     I_b = cube_inertia(om.mass, om.side)
     f_b = om.mass * (a_b + jnp.array([0.0, 0.0, GRAVITY]))
     t_b = I_b * al_b  # cube: isotropic inertia, omega x I omega = 0
-    l_vec = jnp.concatenate([l_com, f_b, t_b])
-    Qw = jnp.concatenate([gains.w_com, jnp.full(3, gains.w_obj_f), jnp.full(3, gains.w_obj_t)])
+    # arm posture: vdot_arm = Kp (q_post - q) - Kd qdot
+    arm_v, arm_q = ids.act_dof[12:], ids.act_qpos[12:]
+    H = jnp.concatenate([H, jnp.zeros((6, n)).at[jnp.arange(6), arm_v].set(1.0)])
+    a_post = gains.kp_post * (q_post - dyn.q[arm_q]) - gains.kd_post * dyn.v[arm_v]
+    l_vec = jnp.concatenate([l_com, f_b, t_b, a_post])
+    Qw = jnp.concatenate([gains.w_com, jnp.full(3, gains.w_obj_f), jnp.full(3, gains.w_obj_t), jnp.full(6, gains.w_post)])
     Rw = jnp.concatenate([jnp.full(nv, gains.r_vdot), jnp.full(ng + nb, gains.r_lam), jnp.full(ns, gains.r_slack)])
     P = H.T @ (Qw[:, None] * H) + jnp.diag(Rw)
     q = -H.T @ (Qw * l_vec)
@@ -336,7 +358,8 @@ def transport_control(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gain
     Jp, Jr, Jdp, Jdr = point_jacobians(m, d, ids, obj.p[None], [ids.tray_body])
     J_o = jnp.concatenate([Jp[0], Jr[0]])  # (6, nv)
     Jdv_o = jnp.concatenate([Jdp[0], Jdr[0]])
-    P, q, A, l, u, A_tau, h_a, H_com = build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, obs.r, ids, cfg, mu_ground)
+    P, q, A, l, u, A_tau, h_a, H_com = build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, obs.r, ids, cfg, mu_ground,
+                                                      cs.q_post)
     res = solve_qp(P, q, A, l, u, warm=cs.warm, settings=cfg.qp)
     tau_raw = A_tau @ res.x + h_a
     tmax = jnp.asarray(ids.tau_max)
@@ -345,4 +368,4 @@ def transport_control(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gain
     obs = obs._replace(w_cmd=H_com @ res.x)
     diag = QPDiag(tau=tau, prim_res=res.prim_res, dual_res=res.dual_res, flag=res.flag,
                   tau_excess=jnp.max(jnp.abs(tau_raw) - tmax))
-    return tau, ControlState(warm=res, obs=obs), diag
+    return tau, cs._replace(warm=res, obs=obs), diag

@@ -1,8 +1,15 @@
 """Transport-paper motion planner: object path -> CoM reference -> trot footholds and swing refs.
 
 The CoM reference is the object reference plus the constant initial offset (Sec. IV-B,
-q_r,d = q_b,ref + q_b,r), the trunk keeps its initial orientation, feet follow a time-based trot
-and land at their nominal offset from the CoM reference at mid-stance.
+q_r,d = q_b,ref + q_b,r), except that a dip of the object below its start height is shared between
+the CoM and the arm: the CoM goes down by ``com_dip_share`` of the object's dip and the arm folds
+for the rest (the tray constraint of the QP makes the arm follow the object; its posture task acts
+in the null space). The trunk keeps its initial orientation; feet follow a time-based trot and land
+at their nominal offset from the CoM reference at mid-stance, on the terrain height there, moved off
+block edges.
+
+Plans: :func:`straight_plan` (flat ground) and :func:`course_plan` (the obstacle course: the object's
+height profile from the artificial-potential planner over the scene's wall, :mod:`.apf`).
 """
 
 from __future__ import annotations
@@ -17,8 +24,16 @@ import numpy as np
 
 from wbc_jax.control.transport import Reference
 from wbc_jax.planner.gait import GaitParams, foot_stance_time, gait_phase
-from wbc_jax.planner.spline import CubicPath, eval_path, path_end_time, straight_path
+from wbc_jax.planner.apf import APFParams, overhead, plan_dip
+from wbc_jax.planner.scene_geometry import clear_of_edges, scene_geometry, terrain_height
+from wbc_jax.planner.spline import (CubicPath, cubic_path, eval_path, max_abs_accel_z, path_end_time,
+                                    straight_path)
 from wbc_jax.planner.swing import swing_reference
+
+GRAVITY = 9.81
+EDGE_MARGIN = 0.01  # [m] footholds keep foot radius + this from a block's edge
+LATE_WINDOW = 0.08  # [s] how long a foot may look for a late touchdown
+LATE_SPEED = 0.2  # [m/s] descent speed of a foot looking for a late touchdown
 
 
 class TransportPlan(NamedTuple):
@@ -33,6 +48,11 @@ class TransportPlan(NamedTuple):
         gait: GaitParams.
         swing_height: () swing apex above the higher end point [m].
         t_ramp: () duration of the load ramps before liftoff and after touchdown [s].
+        z_obj0: () object start height [m]; com_dip_share: () fraction of the object's dip below
+            z_obj0 that the CoM follows (the arm takes the rest).
+        terrain: (nt, 2, 3) standable boxes (:mod:`.scene_geometry`); foot_clear: () [m] minimum
+            distance of a foothold from a box edge.
+        heading: (2,) unit walking direction in the horizontal plane.
     """
 
     obj_path: CubicPath
@@ -43,6 +63,42 @@ class TransportPlan(NamedTuple):
     gait: GaitParams
     swing_height: jax.Array
     t_ramp: jax.Array
+    z_obj0: jax.Array
+    com_dip_share: jax.Array
+    terrain: jax.Array
+    foot_clear: jax.Array
+    heading: jax.Array
+
+
+class PlanError(ValueError):
+    """A plan that violates one of its checks (clearance, vertical acceleration)."""
+
+
+def _start_state(robot, qpos0):
+    """(object position, CoM, foot centres (4, 3), object R, trunk R) at qpos0 (MuJoCo C)."""
+    m, ids = robot.mj_model, robot.ids
+    d = mujoco.MjData(m)
+    d.qpos[:] = qpos0
+    mujoco.mj_kinematics(m, d)
+    mujoco.mj_comPos(m, d)
+    return (d.xpos[ids.obj_body].copy(), d.subtree_com[ids.trunk_body].copy(), d.site_xpos[ids.foot_site].copy(),
+            d.xmat[ids.obj_body].reshape(3, 3).copy(), d.xmat[ids.trunk_body].reshape(3, 3).copy())
+
+
+def _make_plan(robot, qpos0, path: CubicPath, gait: GaitParams, swing_height, t_ramp, com_dip_share,
+               terrain, heading) -> TransportPlan:
+    p_obj, com, feet, R_obj, R_base = _start_state(robot, qpos0)
+    gait = gait._replace(t_stop=float(path_end_time(path)))
+    foot_off = feet.copy()
+    foot_off[:, :2] -= com[:2]
+    foot_off[:, 2] -= np.asarray(terrain_height(terrain, jnp.asarray(feet[:, :2])))  # height above the ground
+    f = lambda x: jnp.asarray(x, float)  # noqa: E731
+    return TransportPlan(
+        obj_path=path, com_offset=f(com - p_obj), R_obj=f(R_obj), R_base=f(R_base), foot_offset=f(foot_off),
+        gait=GaitParams(*(f(x) for x in gait)), swing_height=f(swing_height), t_ramp=f(t_ramp),
+        z_obj0=f(p_obj[2]), com_dip_share=f(com_dip_share), terrain=f(terrain),
+        foot_clear=f(robot.ids.foot_radius + EDGE_MARGIN), heading=f(heading[:2] / np.linalg.norm(heading[:2])),
+    )
 
 
 def straight_plan(robot, qpos0: np.ndarray, distance: float = 3.4, speed: float = 0.13, ramp: float = 1.0,
@@ -53,26 +109,59 @@ def straight_plan(robot, qpos0: np.ndarray, distance: float = 3.4, speed: float 
     Args:
         robot: wbc_jax.model.Robot; qpos0: (nq,) initial configuration (object on the tray).
     """
-    m, ids = robot.mj_model, robot.ids
-    d = mujoco.MjData(m)
-    d.qpos[:] = qpos0
-    mujoco.mj_kinematics(m, d)
-    mujoco.mj_comPos(m, d)
-    p_obj = d.xpos[ids.obj_body].copy()
-    com = d.subtree_com[ids.trunk_body].copy()
-    feet = d.site_xpos[ids.foot_site].copy()
+    p_obj = _start_state(robot, qpos0)[0]
     u = np.asarray(direction, float) / np.linalg.norm(direction)
     path = straight_path(jnp.asarray(p_obj), jnp.asarray(p_obj + distance * u), speed, t0=gait.t_start, ramp=ramp)
-    t_end = float(path_end_time(path))
-    gait = gait._replace(t_stop=t_end)
-    foot_off = feet.copy()
-    foot_off[:, :2] -= com[:2]
-    return TransportPlan(
-        obj_path=path, com_offset=jnp.asarray(com - p_obj), R_obj=jnp.asarray(d.xmat[ids.obj_body].reshape(3, 3)),
-        R_base=jnp.asarray(d.xmat[ids.trunk_body].reshape(3, 3)), foot_offset=jnp.asarray(foot_off),
-        gait=GaitParams(*(jnp.asarray(x, float) for x in gait)), swing_height=jnp.asarray(swing_height),
-        t_ramp=jnp.asarray(t_ramp),
-    )
+    return _make_plan(robot, qpos0, path, gait, swing_height, t_ramp, 1.0, np.zeros((0, 2, 3)), u)
+
+
+def _time_law(length: float, speed: float, t0: float, ramp: float):
+    """Knot-time function s -> t of the rest-to-rest speed profile of :func:`straight_path` (numpy)."""
+    prof = straight_path(jnp.zeros(3), jnp.array([length, 0.0, 0.0]), speed, t0=t0, ramp=ramp)
+    t = np.linspace(t0, float(path_end_time(prof)), 20001)
+    s = np.asarray(jax.vmap(lambda tt: eval_path(prof, tt)[0][0])(jnp.asarray(t)))
+    s = np.maximum.accumulate(s)
+    return lambda q: np.interp(q, s, t)
+
+
+def course_plan(robot, qpos0: np.ndarray, side: float, distance: float = 3.4, speed: float = 0.13,
+                ramp: float = 1.0, gait: GaitParams = GaitParams(), swing_height: float = 0.05,
+                t_ramp: float = 0.06, direction=(0.0, -1.0, 0.0), com_dip_share: float = 0.6,
+                apf: APFParams = APFParams(), max_accel_z: float = GRAVITY) -> TransportPlan:
+    """Plan the transport through the scene's obstacles (the transport paper's course).
+
+    The object's height along the straight horizontal path comes from :func:`.apf.plan_dip` over the
+    scene's wall; cubic splines through its waypoints, timed by the rest-to-rest speed profile of
+    :func:`straight_plan`, give the object reference. Checked here, raising :class:`PlanError`: the
+    spline's clearance under every obstacle (at least half the APF margin, sampled every 5 mm) and
+    its vertical acceleration (|a_z| < ``max_accel_z``; the paper's condition is a_z < g).
+
+    Args:
+        side: object side d [m] (the carried top is d / 2 above the object centre).
+        com_dip_share: fraction of the object's dip the CoM follows; the arm folds for the rest.
+    """
+    geo = scene_geometry(robot)
+    p_obj = _start_state(robot, qpos0)[0]
+    u = np.asarray(direction, float) / np.linalg.norm(direction)
+    p_f = p_obj + distance * u
+    dip = plan_dip(p_obj, p_f, geo.obstacles, side / 2.0, apf)
+    wp = dip.waypoints
+    s_wp = np.linalg.norm(wp[:, :2] - p_obj[:2], axis=1)
+    times = _time_law(distance, speed, gait.t_start, ramp)(s_wp)
+    path = cubic_path(wp, times)
+    # checks on the spline actually used
+    t = np.linspace(times[0], times[-1], max(int(distance / 0.005), 2))
+    p = np.asarray(jax.vmap(lambda tt: eval_path(path, tt)[0])(jnp.asarray(t)))
+    under = overhead(geo.obstacles, p[:, :2], apf.footprint)
+    clearance = float(np.min(under - (p[:, 2:3] + side / 2.0))) if under.size else np.inf
+    if clearance < 0.5 * apf.margin:
+        raise PlanError(f"object path clearance under the scene's obstacles is {clearance:.3f} m "
+                        f"(need >= {0.5 * apf.margin:.3f} m)")
+    az = max_abs_accel_z(path)
+    if az >= max_accel_z:
+        raise PlanError(f"object path vertical acceleration {az:.2f} m/s^2 exceeds {max_accel_z:.2f} m/s^2; "
+                        "lower the speed")
+    return _make_plan(robot, qpos0, path, gait, swing_height, t_ramp, com_dip_share, geo.terrain, u)
 
 
 def plan_duration(plan: TransportPlan) -> float:
@@ -80,19 +169,41 @@ def plan_duration(plan: TransportPlan) -> float:
     return float(np.max(np.asarray(plan.obj_path.t_knots)[..., -1]))
 
 
-def reference(plan: TransportPlan, t, p_lift) -> Reference:
-    """References at time t.
+def _com_from_object(plan: TransportPlan, p_o, v_o, a_o):
+    """CoM reference from the object's: constant offset, vertical dip scaled by com_dip_share."""
+    k = jnp.array([1.0, 1.0, 0.0]) + jnp.array([0.0, 0.0, 1.0]) * plan.com_dip_share
+    p_c = p_o + plan.com_offset
+    p_c = p_c.at[2].add((plan.com_dip_share - 1.0) * (p_o[2] - plan.z_obj0))
+    return p_c, k * v_o, k * a_o
+
+
+def reference(plan: TransportPlan, t, p_lift, contact=None, p_foot=None) -> Reference:
+    """References at time t, with the touchdown rule.
+
+    The trot is time-based; the simulator's foot contacts adjust it:
+
+    * early touchdown: a foot past mid-swing that already touches the ground (a block higher than
+      planned, tracking error) becomes a stance foot at once, with its load cap at the minimum until the
+      scheduled touchdown's load ramp takes over;
+    * late touchdown: a foot whose scheduled touchdown has passed without contact stays a swing foot for
+      up to ``LATE_WINDOW`` seconds, holding its horizontal position and descending at ``LATE_SPEED``
+      until it touches.
 
     Args:
         plan: TransportPlan; t: () time [s]; p_lift: (4, 3) each foot's position at its last liftoff [m].
+        contact: (4,) bool, foot touches floor or terrain (None: scheduled contacts, no adjustment).
+        p_foot: (4, 3) measured foot centres [m] (needed with ``contact``).
     """
     p_o, v_o, a_o = eval_path(plan.obj_path, t)
-    p_c, v_c, a_c = p_o + plan.com_offset, v_o, a_o
+    p_c, v_c, a_c = _com_from_object(plan, p_o, v_o, a_o)
     g = gait_phase(plan.gait, t)
     t_mid = t + g.t_to_touchdown + 0.5 * foot_stance_time(plan.gait)  # (4,) mid-stance after touchdown
     t_mid = jnp.where(jnp.isfinite(t_mid), t_mid, t)
-    com_mid = jax.vmap(lambda tt: eval_path(plan.obj_path, tt)[0])(t_mid) + plan.com_offset
-    p_land = jnp.concatenate([com_mid[:, :2] + plan.foot_offset[:, :2], plan.foot_offset[:, 2:]], axis=1)
+    com_mid = jax.vmap(lambda tt: _com_from_object(plan, *eval_path(plan.obj_path, tt))[0])(t_mid)
+    xy = com_mid[:, :2] + plan.foot_offset[:, :2]
+    xy = jax.vmap(clear_of_edges, in_axes=(None, 0, None, None))(plan.terrain, xy, plan.heading, plan.foot_clear)
+    z = terrain_height(plan.terrain, xy) + plan.foot_offset[:, 2]
+    p_land = jnp.concatenate([xy, z[:, None]], axis=1)
     # quintic pieces: the acceleration is continuous at liftoff, apex and touchdown (cubic pieces jump by
     # ~200 m/s^2 at the apex for a 0.06 m step in 0.115 s, a jolt the whole body and the tray feel)
     swing_fn = functools.partial(swing_reference, kind="quintic")
@@ -101,5 +212,17 @@ def reference(plan: TransportPlan, t, p_lift) -> Reference:
     t_since_td = foot_stance_time(plan.gait) - g.t_to_liftoff  # valid while stepping
     ramp_td = jnp.where(jnp.isfinite(g.t_to_liftoff) & g.stepping, t_since_td, jnp.inf)
     load = jnp.clip(jnp.minimum(g.t_to_liftoff, ramp_td) / plan.t_ramp, 0.02, 1.0)
+    swing = g.swing
+    if contact is not None:
+        early = g.swing & (g.swing_phase > 0.5) & contact
+        late = ~g.swing & ~contact & (t_since_td >= 0.0) & (t_since_td < LATE_WINDOW)
+        swing = (g.swing & ~early) | late
+        load = jnp.where(early, 0.02, load)
+        z_late = terrain_height(plan.terrain, p_foot[:, :2]) + plan.foot_offset[:, 2] - LATE_SPEED * t_since_td
+        p_late = jnp.concatenate([p_foot[:, :2], z_late[:, None]], axis=1)
+        v_late = jnp.zeros((4, 3)).at[:, 2].set(-LATE_SPEED)
+        p_sw = jnp.where(late[:, None], p_late, p_sw)
+        v_sw = jnp.where(late[:, None], v_late, v_sw)
+        a_sw = jnp.where(late[:, None], 0.0, a_sw)
     return Reference(p_obj=p_o, v_obj=v_o, a_obj=a_o, R_obj=plan.R_obj, p_com=p_c, v_com=v_c, a_com=a_c,
-                     R_base=plan.R_base, swing=g.swing, p_sw=p_sw, v_sw=v_sw, a_sw=a_sw, load=load)
+                     R_base=plan.R_base, swing=swing, p_sw=p_sw, v_sw=v_sw, a_sw=a_sw, load=load)

@@ -1,0 +1,112 @@
+"""The obstacle course: scene geometry from the MJCF, the artificial-potential dip, footholds on blocks,
+and the wall passage walked by the transport WBC in MJX (a segment, on a test scene whose wall is closer)."""
+
+import mujoco
+import numpy as np
+import pytest
+
+from wbc_jax.control.transport import TransportConfig, control_qp_settings
+from wbc_jax.model import Robot, mjcf_dir
+from wbc_jax.planner.apf import overhead, plan_dip
+from wbc_jax.planner.scene_geometry import clear_of_edges, scene_geometry, terrain_height
+from wbc_jax.planner.spline import eval_path, max_abs_accel_z
+from wbc_jax.planner.transport import course_plan
+from wbc_jax.batch import prepare_batch
+from wbc_jax.rollout import make_sim, simulate
+
+LINTEL_UNDERSIDE = 0.65  # [m] scene_transport.xml: lintel box centre 0.925, half-height 0.275
+WALL_Y = -2.45  # [m]
+SEG_WALL_Y = -1.40  # [m] wall of the wall-passage test scene
+SEG_DISTANCE = 1.35  # [m] the object ends 0.6 m past that wall
+SEG_SLIP_MAX = 0.010  # [m] the acceptance bound on the object's slip
+FALL_Z = 0.15  # [m]
+
+
+def _moved_scene(tmp_path, wall_y: float, blocks_away: bool = True):
+    """The transport scene with the wall at ``wall_y`` (and the blocks moved out of the way), saved as XML."""
+    spec = mujoco.MjSpec.from_file(str(mjcf_dir() / "scene_transport.xml"))
+    spec.body("wall").pos = [0.0, wall_y, 0.0]
+    if blocks_away:
+        for i, name in enumerate(("block1", "block2", "block3")):
+            g = spec.geom(name)
+            g.pos = [5.0 + i, 5.0, g.pos[2]]
+    spec.compile()
+    path = tmp_path / f"scene_wall_{abs(wall_y):.2f}.xml"
+    path.write_text(spec.to_xml())
+    return path
+
+
+def test_scene_geometry_reads_blocks_and_wall():
+    geo = scene_geometry(Robot("transport"))
+    assert geo.terrain.shape == (3, 2, 3) and geo.obstacles.shape == (3, 2, 3)
+    tops = sorted(np.round(geo.terrain[:, 1, 2], 4))
+    assert tops == [0.015, 0.02, 0.035]
+    lintel = geo.obstacles[np.argmax(geo.obstacles[:, 0, 2])]
+    assert lintel[0, 2] == pytest.approx(LINTEL_UNDERSIDE)
+    assert 0.5 * (lintel[0, 1] + lintel[1, 1]) == pytest.approx(WALL_Y)
+    # terrain height: on block2 (0.035 m) and on the floor between blocks
+    h = np.asarray(terrain_height(geo.terrain, np.array([[0.1, -1.75], [0.1, -1.4]])))
+    np.testing.assert_allclose(h, [0.035, 0.0])
+    # a foothold 1 cm from block2's near edge (y = -1.6) is moved to foot radius + margin from it
+    xy = np.asarray(clear_of_edges(geo.terrain, np.array([0.1, -1.59]), np.array([0.0, -1.0]), 0.038))
+    assert abs(xy[1] - (-1.6)) == pytest.approx(0.038) and xy[0] == pytest.approx(0.1)
+
+
+@pytest.mark.parametrize("top", [0.03, 0.05])
+def test_apf_dip_clears_the_lintel_and_only_there(top):
+    geo = scene_geometry(Robot("transport"))
+    p_i = np.array([0.0, -0.69, 0.81])
+    dip = plan_dip(p_i, p_i + [0.0, -3.4, 0.0], geo.obstacles, top)
+    y = p_i[1] - dip.s
+    under = np.isfinite(overhead(geo.obstacles, np.stack([np.zeros_like(y), y], 1), 0.1)).any(1)
+    assert under.any()
+    # under the lintel the carried top is below its underside with the APF margin (0.03 m) kept
+    assert np.all(dip.z[under] + top <= LINTEL_UNDERSIDE - 0.03 + 1e-6)
+    # away from the wall (> 1 m) the path stays at the nominal height, and never rises above it
+    far = np.abs(y - WALL_Y) > 1.0
+    np.testing.assert_allclose(dip.z[far], p_i[2], atol=2e-3)
+    assert dip.z.max() <= p_i[2] + 1e-6
+
+
+def test_dip_moves_with_the_wall(tmp_path):
+    for wall_y in (-1.8, -2.9):
+        robot = Robot(_moved_scene(tmp_path, wall_y))
+        qpos0 = robot.home_qpos(0.08)
+        plan = course_plan(robot, qpos0, side=0.08)
+        t = np.linspace(0.0, 30.0, 6001)
+        p = np.stack([np.asarray(eval_path(plan.obj_path, tt)[0]) for tt in t[::10]])
+        y_low = p[np.argmin(p[:, 2]), 1]
+        assert abs(y_low - wall_y) < 0.15, (wall_y, y_low)
+        assert p[:, 2].min() + 0.04 <= LINTEL_UNDERSIDE - 0.015
+        assert max_abs_accel_z(plan.obj_path) < 9.81
+
+
+@pytest.fixture(scope="module")
+def wall_segment(tmp_path_factory):
+    robot = Robot(_moved_scene(tmp_path_factory.mktemp("scene"), SEG_WALL_Y))
+    sim = make_sim(robot, TransportConfig(qp=control_qp_settings(50)), log_every=50)
+    b = prepare_batch(sim, [0.4], [0.4], [0.10], plan_kwargs=dict(distance=SEG_DISTANCE))
+    from wbc_jax.planner.transport import plan_duration
+
+    T = plan_duration(b.plan) + 0.3
+    st, logs = simulate(sim, b.model, b.in_axes, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground, T,
+                        chunk_seconds=T)
+    return robot, st, logs
+
+
+def test_wall_passage_segment(wall_segment):
+    """Heaviest, largest, least grippy cell (m 0.4, d 0.10, mu 0.4) walks under the lintel."""
+    robot, st, logs = wall_segment
+    acc = st.acc
+    assert not bool(acc.nonfinite[0])
+    assert not bool(acc.wall_contact[0]), "touched the wall"
+    assert not bool(acc.nonfoot_floor[0]), "a non-foot part touched the floor"
+    assert float(acc.min_trunk_z[0]) > FALL_Z
+    z0 = float(logs.trunk_z[0, 0])
+    assert float(acc.min_trunk_z[0]) < z0 - 0.1, "the robot did not lower itself"
+    assert float(acc.max_slip[0]) < SEG_SLIP_MAX
+    assert float(acc.max_off_s[0]) <= 0.05
+    assert float(acc.max_tau_excess[0]) <= 0.0
+    p_obj = np.asarray(st.d.xpos[0, robot.ids.obj_body])
+    assert p_obj[1] < SEG_WALL_Y - 0.3, "the object did not get past the wall"
+    assert np.linalg.norm(p_obj - np.asarray(logs.p_obj_ref[0, -1])) < 0.05
