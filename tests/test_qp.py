@@ -35,8 +35,8 @@ OSQP_EPS = 1e-9
 OSQP_AGREE_TOL = 1e-7  # OSQP itself vs the constructed optimum (validates the generator)
 WARM_PERTURBATION = 0.01  # relative perturbation of all data for the warm-start test
 WARM_COLD_GRID = (40, 50, 60, 75, 100, 125, 150)  # cold iteration counts tried
-WARM_HALF_MIN_FRAC = 0.5  # warm pass fraction at half the cold count (measured ~0.6-0.7)
-WARM_HALF_GAIN = 0.25  # ... and its lead over the cold start there (measured ~0.35)
+WARM_HALF_MIN_FRAC = 0.8  # warm pass fraction at half the cold count (measured 0.90-0.915)
+WARM_HALF_GAIN = 0.5  # ... and its lead over the cold start there (measured ~0.6)
 WARM_FULL_FRAC = 1.0  # warm meets the acceptance within this fraction of the cold count
 VMAP_RTOL = 1e-9
 
@@ -114,31 +114,38 @@ def test_float32_default_iters(batch, osqp_x):
 def test_warm_start_halves_iterations(batch):
     """Warm start from the solution of a 1 %-perturbed problem, vs cold, float64.
 
-    Cold: the smallest count in WARM_COLD_GRID meeting the float64 acceptance
-    (tolerances on >= 99 %). Asserted (measured to hold): at half that count the warm
-    start passes on at least WARM_HALF_MIN_FRAC of the problems and on clearly more than
-    the cold start does, and at WARM_FULL_FRAC of the cold count it meets the acceptance.
-    The issue's line (acceptance at half the count) is measured and reported as xfail
-    when it does not hold: a 1 % change of every entry moves the optimum by ~1-3 %, so
-    the warm start skips only the first ~10-15 iterations of ADMM's linear tail.
+    The perturbed problems come from ``problems.perturb`` (every entry of q, A, l, u
+    * (1 + 0.01 N(0,1)); P -> S P S, S = diag(1 + 0.007 N(0,1))); the warm point is the
+    default-count solve of those, as a controller would reuse it. Cold: the smallest
+    count in WARM_COLD_GRID meeting the float64 acceptance (tolerances on >= 99 %).
+    Asserted (measured to hold): at half that count the warm start passes on at least
+    WARM_HALF_MIN_FRAC of the problems and on clearly more than the cold start does, and
+    at WARM_FULL_FRAC of the cold count it meets the acceptance. The issue's line
+    (acceptance at half the count) is measured and reported as xfail when it does not
+    hold: it holds on the generic family, not on the WBC family, where ~8 of the 70
+    inequality rows change activity under the perturbation and ADMM's linear tail
+    needs ~50 iterations from the warm point (see the admm module docstring).
     """
     perturbed = pr.perturb(batch, SEED + 1, WARM_PERTURBATION)
     warm = _solve64(pr.QPProblem(*perturbed, batch.x, batch.y, batch.f))
 
-    def frac(n, w=None):
-        return _pass_frac(batch, _solve64(batch, iters=n, warm=w).x, F64_OBJ_TOL, F64_VIOL_TOL)
+    def ok(n, w=None):
+        oe, v = _errors(batch, _solve64(batch, iters=n, warm=w).x)
+        return (oe <= F64_OBJ_TOL) & (v <= F64_VIOL_TOL)
 
-    n_cold = next((n for n in WARM_COLD_GRID if frac(n) >= F64_PASS_FRAC), None)
+    n_cold = next((n for n in WARM_COLD_GRID if ok(n).mean() >= F64_PASS_FRAC), None)
     assert n_cold is not None, "cold start never met the acceptance on the grid"
     n_half = n_cold // 2
-    cold_half, warm_half = frac(n_half), frac(n_half, warm)
+    cold_half, warm_ok = float(ok(n_half).mean()), ok(n_half, warm)
+    warm_half = float(warm_ok.mean())
     assert warm_half >= WARM_HALF_MIN_FRAC, (n_cold, cold_half, warm_half)
     assert warm_half >= cold_half + WARM_HALF_GAIN, (n_cold, cold_half, warm_half)
     n_full = int(round(WARM_FULL_FRAC * n_cold))
-    assert frac(n_full, warm) >= F64_PASS_FRAC, (n_cold, n_full)
+    assert ok(n_full, warm).mean() >= F64_PASS_FRAC, (n_cold, n_full)
     if warm_half < F64_PASS_FRAC:
         pytest.xfail(f"acceptance at half the iterations not met: cold {n_cold} iters; at "
-                     f"{n_half}: cold {cold_half:.1%}, warm {warm_half:.1%} pass")
+                     f"{n_half}: cold {cold_half:.1%}, warm {warm_half:.1%} pass (generic "
+                     f"{warm_ok[0::2].mean():.0%}, WBC {warm_ok[1::2].mean():.0%})")
 
 
 def test_vmap_equals_one_by_one(batch):

@@ -241,13 +241,21 @@ def make_batch(seed: int, count: int, family: str = "mixed") -> QPProblem:
     return QPProblem(*(np.stack(f) for f in zip(*probs)))
 
 
-def perturb(batch: QPProblem, seed: int, rel: float = 0.01) -> tuple:
+def perturb(batch: QPProblem, seed: int, rel: float = 0.01, p_mode: str = "congruence") -> tuple:
     """Perturb the data ``(P, q, A, l, u)`` of a batch by a relative ``rel``.
 
-    ``P`` gets a symmetric multiplicative perturbation (kept positive definite by a
-    diagonal shift), ``q``, ``A`` and finite bounds entrywise ``* (1 + rel N(0,1))``;
+    ``q``, ``A`` and finite bounds are perturbed entrywise ``* (1 + rel N(0,1))``;
     equalities stay equalities and zero entries stay zero (structure is fixed, as in
-    consecutive control steps). The known optimum no longer applies.
+    consecutive control steps). ``P`` (``p_mode="congruence"``, default) becomes
+    ``S P S`` with ``S = diag(1 + rel / sqrt(2) N(0,1))``: every entry changes by ~``rel``
+    rms, zeros stay zero and ``P`` stays positive definite, as when the generator's
+    weights change. ``p_mode="entrywise"``: ``P * (1 + rel E)`` with symmetric Gaussian
+    ``E``, shifted by a multiple of the identity where that made it indefinite. That
+    shift is not a small perturbation on ill-conditioned ``P``: on the WBC family
+    (eigenvalues 2..1e5) 1 % entrywise noise makes ~13 % of the ``P`` indefinite, the
+    shift adds up to ~140 I to a cost whose regularization is 2..20, and the optimum
+    moves by ~50 % with 20-35 of the 70 inequality rows changing activity. The known
+    optimum no longer applies.
 
     Returns:
         (P, q, A, l, u) float64 arrays of the batch's shapes.
@@ -257,11 +265,17 @@ def perturb(batch: QPProblem, seed: int, rel: float = 0.01) -> tuple:
     def mul(a):
         return a * (1.0 + rel * rng.standard_normal(a.shape))
 
-    E = rng.standard_normal(batch.P.shape)
-    E = 0.5 * (E + np.swapaxes(E, -1, -2))
-    P = batch.P * (1.0 + rel * E)
-    shift = np.maximum(0.0, -np.linalg.eigvalsh(P).min(axis=-1)) * 1.01
-    P = P + shift[..., None, None] * np.eye(P.shape[-1])
+    if p_mode == "congruence":
+        S = 1.0 + rel / np.sqrt(2.0) * rng.standard_normal(batch.P.shape[:-1])
+        P = S[..., :, None] * batch.P * S[..., None, :]
+    elif p_mode == "entrywise":
+        E = rng.standard_normal(batch.P.shape)
+        E = 0.5 * (E + np.swapaxes(E, -1, -2))
+        P = batch.P * (1.0 + rel * E)
+        shift = np.maximum(0.0, -np.linalg.eigvalsh(P).min(axis=-1)) * 1.01
+        P = P + shift[..., None, None] * np.eye(P.shape[-1])
+    else:
+        raise ValueError(f"p_mode must be 'congruence' or 'entrywise', not {p_mode!r}")
     A = mul(batch.A)
     q = mul(batch.q)
     eq = batch.l == batch.u
