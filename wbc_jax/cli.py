@@ -53,6 +53,19 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_trot(args: argparse.Namespace) -> int:
+    from wbc_jax.trot import run_trot
+
+    try:
+        errors = [float(x) for x in args.mass_errors.split(",")]
+    except ValueError:
+        raise WbcJaxError(f"--mass-errors = {args.mass_errors!r}: expected comma-separated numbers, "
+                          "e.g. --mass-errors=-0.2,0,0.2") from None
+    run_trot(out=args.out, seconds=args.seconds, stride=args.stride, step_time=args.step_time, t_four=args.four_foot,
+             mass_errors=errors, carry_object=not args.no_object, iters=args.iters)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="wbc-jax", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -89,6 +102,19 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--iters", type=int, default=50, help="ADMM iterations per control step")
     d.add_argument("--distance", type=float, default=3.4, help="transport distance [m]")
     d.set_defaults(func=_cmd_demo)
+
+    t = sub.add_parser("trot", help="centroidal WBC trot study on flat ground (one batch over controller mass "
+                                    "errors); summary.json and the paper's figures")
+    t.add_argument("--out", default="out/trot", help="output directory")
+    t.add_argument("--seconds", type=float, default=10.0, help="walking time [s] (default 10)")
+    t.add_argument("--stride", type=float, default=0.10, help="advance per step [m] (default 0.10)")
+    t.add_argument("--step-time", type=float, default=0.25, help="step (half-cycle) duration [s] (default 0.25)")
+    t.add_argument("--four-foot", type=float, default=0.08, help="four-foot support per step [s] (default 0.08)")
+    t.add_argument("--mass-errors", default="-0.2,-0.1,0,0.1,0.2",
+                   help="controller model mass errors, comma-separated fractions; write --mass-errors=-0.2,0,0.2")
+    t.add_argument("--no-object", action="store_true", help="take the cube off the tray")
+    t.add_argument("--iters", type=int, default=40, help="ADMM iterations per control step")
+    t.set_defaults(func=_cmd_trot)
     return p
 
 

@@ -17,6 +17,10 @@ leg, so the pattern ends at rest). With the trot scheduler of :mod:`.gait`, step
 half-cycle ``i`` (``T = t_stance + t_swing``, ``t0 = t_start``) and ``P_i`` is the midpoint of
 the pair that does not swing in it (:func:`footstep_plan_trot`).
 
+The walking pattern of a trot (:func:`cp_walk_plan`, :func:`cp_walk_reference`) puts these together
+with the gait scheduler and quintic swing-foot references: desired CP, desired CoM velocity from the
+measured CoM (eq. 19) and swing references at any time t.
+
 All functions are pure jax.numpy, jit- and vmap-able; ``N`` is static.
 """
 
@@ -24,10 +28,12 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jax import lax
 
-from .gait import PAIRS
+from .gait import PAIRS, GaitParams, gait_phase
+from .swing import swing_reference
 
 
 def _f(x):
@@ -253,3 +259,104 @@ def footstep_plan_trot(feet0_xy, heading, stride, n_steps: int) -> TrotFootsteps
     P = mids[idx, stance_pair]
     xi_final = 0.5 * (mids[-1, 0] + mids[-1, 1])
     return TrotFootsteps(P, feet, xi_final)
+
+
+# ----------------------------------------------------------------------------- walking pattern of a trot
+
+
+class CPWalkPlan(NamedTuple):
+    """Capture-point walking pattern of a straight trot (pytree; leaves may carry a batch axis).
+
+    Attributes:
+        feet: (N+1, 4, 2) footholds (FL, FR, BL, BR): ``feet[0]`` initial, ``feet[i+1]`` after step i [m].
+        P: (N, 2) virtual legs (midpoint of the stance pair; ``P[0]`` set for a start from rest) [m].
+        xi_eos: (N, 2) end-of-step CPs (eq. 22) [m].
+        w: () LIPM frequency [1/s].
+        z0: () CoM height of the LIPM (the CoM height reference) [m].
+        foot_z: () foot-centre height at touchdown [m].
+        swing_height: () swing apex above the higher end point [m].
+        heading: (2,) unit walking direction.
+        gait: GaitParams; half-cycle k is step k (``t_stop`` ends the plan).
+    """
+
+    feet: jnp.ndarray
+    P: jnp.ndarray
+    xi_eos: jnp.ndarray
+    w: jnp.ndarray
+    z0: jnp.ndarray
+    foot_z: jnp.ndarray
+    swing_height: jnp.ndarray
+    heading: jnp.ndarray
+    gait: GaitParams
+
+
+def cp_walk_plan(feet0, com0, heading, stride, n_steps: int, gait: GaitParams, swing_height,
+                 g=9.81) -> CPWalkPlan:
+    """Plan a straight trot of ``n_steps`` half-cycles that starts and ends at rest (Sec. 2.3.1).
+
+    The footholds are :func:`footstep_plan_trot` of the initial feet moved so that their centroid is
+    under the CoM (a CoM ahead of the feet's centre, as with the arm on this robot, would otherwise end
+    the walk with the legs leaning forward); the first virtual leg is
+    :func:`first_footstep_for_rest`, so the desired CP starts at the resting CoM.
+
+    Args:
+        feet0: (4, 3) initial foot centres [m] (z gives the touchdown height).
+        com0: (3,) initial CoM [m] (z gives the LIPM height z0).
+        heading: () walking direction yaw [rad] (along world -y: -pi/2).
+        stride: () virtual-leg advance per step [m].
+        n_steps: N >= 2 (static).
+        gait: GaitParams; its t_stop is replaced by the end of step N - 1.
+        swing_height: () [m].
+
+    Returns:
+        CPWalkPlan.
+    """
+    feet0, com0 = _f(feet0), _f(com0)
+    T = _f(gait.t_stance) + _f(gait.t_swing)
+    w = omega(com0[2], g)
+    shift = com0[:2] - jnp.mean(feet0[:, :2], axis=0)
+    plan = footstep_plan_trot(feet0[:, :2] + shift, heading, stride, n_steps)
+    feet = plan.feet.at[0].set(feet0[:, :2])
+    eos = end_of_step_cps(plan.P, T, w, plan.xi_final)
+    P = plan.P.at[0].set(first_footstep_for_rest(com0[:2], eos[0], T, w))
+    gait = GaitParams(*(_f(x) for x in gait._replace(t_stop=_f(gait.t_start) + n_steps * T)))
+    h = _f(heading)
+    return CPWalkPlan(feet=feet, P=P, xi_eos=eos, w=w, z0=com0[2], foot_z=jnp.mean(feet0[:, 2]),
+                      swing_height=_f(swing_height), heading=jnp.stack([jnp.cos(h), jnp.sin(h)]), gait=gait)
+
+
+class WalkReference(NamedTuple):
+    """Pattern output at one instant (world frame).
+
+    Attributes:
+        cp: CPReference (desired CP, its rate, virtual leg, step).
+        v_xy: (2,) desired horizontal CoM velocity from the measured CoM, eq. 19 [m/s].
+        swing: (4,) bool swing mask.
+        p_sw, v_sw, a_sw: (4, 3) quintic swing-foot references [m, m/s, m/s^2].
+    """
+
+    cp: CPReference
+    v_xy: jnp.ndarray
+    swing: jnp.ndarray
+    p_sw: jnp.ndarray
+    v_sw: jnp.ndarray
+    a_sw: jnp.ndarray
+
+
+def cp_walk_reference(plan: CPWalkPlan, t, com_xy, p_lift) -> WalkReference:
+    """Desired CP (eq. 21), CoM velocity (eq. 19) and swing-foot references at time t.
+
+    Args:
+        plan: CPWalkPlan; t: () time [s]; com_xy: (2,) measured CoM [m];
+        p_lift: (4, 3) foot positions at their last liftoff (swing start) [m].
+    """
+    n = plan.P.shape[0]
+    T = plan.gait.t_stance + plan.gait.t_swing
+    ref = cp_reference(plan.P, plan.xi_eos, t, plan.gait.t_start, T, plan.w)
+    gs = gait_phase(plan.gait, t)
+    step = jnp.clip(gs.step_index, 0, n - 1)
+    land = jnp.concatenate([plan.feet[step + 1], jnp.full((4, 1), plan.foot_z)], axis=1)  # (4, 3)
+    p, v, a = jax.vmap(lambda pl, pd, ph: swing_reference(pl, pd, ph, plan.gait.t_swing, plan.swing_height,
+                                                          kind="quintic"))(p_lift, land, gs.swing_phase)
+    return WalkReference(cp=ref, v_xy=desired_com_velocity(com_xy, ref.xi, plan.w), swing=gs.swing,
+                         p_sw=p, v_sw=v, a_sw=a)
