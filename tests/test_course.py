@@ -8,7 +8,7 @@ import pytest
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
 from wbc_jax.model import Robot, mjcf_dir
 from wbc_jax.planner.apf import overhead, plan_dip
-from wbc_jax.planner.scene_geometry import clear_of_edges, scene_geometry, terrain_height
+from wbc_jax.planner.scene_geometry import SHIN_SLOPE, clear_of_edges, scene_geometry, terrain_height
 from wbc_jax.planner.spline import eval_path, max_abs_accel_z
 from wbc_jax.planner.transport import course_plan
 from wbc_jax.batch import prepare_batch
@@ -47,9 +47,16 @@ def test_scene_geometry_reads_blocks_and_wall():
     # terrain height: on block2 (0.035 m) and on the floor between blocks
     h = np.asarray(terrain_height(geo.terrain, np.array([[0.1, -1.75], [0.1, -1.4]])))
     np.testing.assert_allclose(h, [0.035, 0.0])
-    # a foothold 1 cm from block2's near edge (y = -1.6) is moved to foot radius + margin from it
-    xy = np.asarray(clear_of_edges(geo.terrain, np.array([0.1, -1.59]), np.array([0.0, -1.0]), 0.038))
-    assert abs(xy[1] - (-1.6)) == pytest.approx(0.038) and xy[0] == pytest.approx(0.1)
+    # walking -y: block2's entry edge is y = -1.6, its exit edge y = -1.9
+    u = np.array([0.0, -1.0])
+    xy = np.asarray(clear_of_edges(geo.terrain, np.array([0.1, -1.59]), u, 0.038))  # 1 cm before entry edge
+    assert xy[1] == pytest.approx(-1.6 + 0.038) and xy[0] == pytest.approx(0.1)
+    xy = np.asarray(clear_of_edges(geo.terrain, np.array([0.1, -1.95]), u, 0.038))  # 5 cm past the exit edge
+    assert xy[1] == pytest.approx(-1.9 - 0.038 - SHIN_SLOPE * 0.035)
+    xy = np.asarray(clear_of_edges(geo.terrain, np.array([0.1, -1.88]), u, 0.038))  # on the block, near its end
+    assert xy[1] == pytest.approx(-1.9 + 0.038)
+    xy = np.asarray(clear_of_edges(geo.terrain, np.array([0.1, -1.75]), u, 0.038))  # mid-block: unchanged
+    assert xy[1] == pytest.approx(-1.75)
 
 
 @pytest.mark.parametrize("top", [0.03, 0.05])

@@ -2,8 +2,9 @@
 run or all 27 cells in one batch.
 
 Writes ``summary.json`` (one entry per run, plus the batch's wall time and env-steps/s), ``runs.csv``,
-``plots.png`` (object and CoM reference vs actual, object slip on the tray) and ``video.gif`` (the first
-run, when offscreen rendering is available) into DIR, atomically.
+``plots.png`` (object and CoM reference vs actual, object slip on the tray), ``trajectory.npz`` (logged
+configurations of every run: t (T,), qpos (B, T, nq), factors) and ``video.gif`` (the first run, when
+offscreen rendering is available) into DIR, atomically.
 """
 
 from __future__ import annotations
@@ -94,6 +95,8 @@ def run_demo(out: str, scene: str = "transport", seconds: float | None = None, a
 
         pd.DataFrame(runs).to_csv(tmp / "runs.csv", index=False)
         _plot(tmp / "plots.png", logs)
+        np.savez_compressed(tmp / "trajectory.npz", t=np.asarray(logs.t[0]), qpos=np.asarray(logs.qpos, np.float32),
+                            m=m, mu=mu, d=d)
         if video:
             mj = single_run_mj_model(robot.path, *cells[0])
             why = render_gif(tmp / "video.gif", mj, np.asarray(logs.qpos[0]), np.asarray(logs.t[0]),

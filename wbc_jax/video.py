@@ -9,7 +9,6 @@ still writes its other outputs.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import mujoco
@@ -37,7 +36,6 @@ def render_gif(path, mj_model: mujoco.MjModel, qpos: np.ndarray, times: np.ndarr
     Returns:
         None on success, else a one-line reason why no video was written.
     """
-    os.environ.setdefault("MUJOCO_GL", "egl")
     try:
         from PIL import Image
 

@@ -76,9 +76,17 @@ def terrain_height(terrain, xy):
     return jnp.max(jnp.where(inside, terrain[:, 1, 2], 0.0), axis=-1)
 
 
+SHIN_SLOPE = 1.8  # [-] 1 / tan(30 deg): the shins slope up backwards from the feet at 30 deg or more
+
+
 def clear_of_edges(terrain, xy, direction, clearance):
-    """Move a foothold along ``direction`` so that it is at least ``clearance`` from any terrain box's
-    edge across the walking direction (a sphere foot landing on an edge rolls off it).
+    """Move a foothold along ``direction`` away from the edges of terrain boxes that cross the walking
+    direction.
+
+    Every edge: the foot centre keeps ``clearance`` from it (a sphere foot landing on an edge rolls off).
+    The far edge of a box (the one the robot steps down from), when the foot lands beyond it on the lower
+    ground: ``clearance + SHIN_SLOPE * h`` for a box of height h, because the shin slopes up backwards from
+    the foot and would strike the edge just stepped off (seen in the course with the robot crouched).
 
     Args:
         terrain: (nt, 2, 3) boxes; xy: (2,) nominal foothold [m]; direction: (2,) unit walking
@@ -96,10 +104,14 @@ def clear_of_edges(terrain, xy, direction, clearance):
     c = xy @ across
     for b in range(terrain.shape[0]):
         lo, hi = terrain[b, 0, :2], terrain[b, 1, :2]
-        edges = jnp.sort(jnp.array([lo @ u, hi @ u]))
+        e_in, e_out = jnp.sort(jnp.array([lo @ u, hi @ u]))
         c_lo, c_hi = jnp.sort(jnp.array([lo @ across, hi @ across]))
         in_lane = (c >= c_lo) & (c <= c_hi)
-        for e in (edges[0], edges[1]):
-            near = in_lane & (jnp.abs(s - e) < clearance)
-            s = jnp.where(near, jnp.where(s < e, e - clearance, e + clearance), s)
+        near_in = in_lane & (jnp.abs(s - e_in) < clearance)
+        s = jnp.where(near_in, jnp.where(s < e_in, e_in - clearance, e_in + clearance), s)
+        beyond = clearance + SHIN_SLOPE * terrain[b, 1, 2]
+        near_out = in_lane & (s > e_out - clearance) & (s < e_out + beyond)
+        # nearer safe side: back on the box, or far enough beyond it
+        s = jnp.where(near_out, jnp.where(s - (e_out - clearance) < (e_out + beyond) - s, e_out - clearance,
+                                          e_out + beyond), s)
     return s * u + c * across

@@ -126,7 +126,7 @@ def _time_law(length: float, speed: float, t0: float, ramp: float):
 
 def course_plan(robot, qpos0: np.ndarray, side: float, distance: float = 3.4, speed: float = 0.13,
                 ramp: float = 1.0, gait: GaitParams = GaitParams(), swing_height: float = 0.05,
-                t_ramp: float = 0.06, direction=(0.0, -1.0, 0.0), com_dip_share: float = 0.6,
+                t_ramp: float = 0.06, direction=(0.0, -1.0, 0.0), com_dip_share: float = 0.4,
                 apf: APFParams = APFParams(), max_accel_z: float = GRAVITY) -> TransportPlan:
     """Plan the transport through the scene's obstacles (the transport paper's course).
 
