@@ -17,6 +17,7 @@ from wbc_jax.batch import prepare_batch
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
 from wbc_jax.model import Robot, mjx
 from wbc_jax.rollout import make_chunk_fn, make_sim
+from wbc_jax.sharding import shard_batch
 
 
 def _timed(f, *args):
@@ -52,10 +53,19 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
                    physics_steps_per_s=B * steps / t_phys, wbc_steps_per_s=B * steps / t_wbc,
                    ratio=(B * steps / t_wbc) / (B * steps / t_phys), compile_physics_s=c_phys - t_phys,
                    compile_wbc_s=c_wbc - t_wbc)
-        rows.append(row)
         print(f"{device} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   physics+WBC "
               f"{row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   compile {row['compile_wbc_s']:.1f} s",
               flush=True)
+        n_dev = len(jax.devices())
+        if n_dev > 1:  # the same batch with the run axis sharded over every local device
+            bs, _ = shard_batch(b)
+            sargs = (bs.model, bs.state, bs.plan, bs.om, bs.gains, bs.push, bs.mu_ground)
+            _timed(f_wbc, *sargs)
+            _, t_sh = _timed(f_wbc, *sargs)
+            row.update(n_devices=n_dev, wbc_steps_per_s_sharded=B * steps / t_sh, sharded_speedup=t_wbc / t_sh)
+            print(f"{'':>{len(device)}} batch {B:6d}: physics+WBC on {n_dev} devices {B * steps / t_sh:12.0f} "
+                  f"steps/s   speed-up {t_wbc / t_sh:.2f}x", flush=True)
+        rows.append(row)
     if json_path:
         with open(json_path, "w") as fh:
             json.dump(rows, fh, indent=2)
