@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax import physics
+from wbc_jax import metrics, physics
 from wbc_jax.control.dynamics import dyn_terms
 from wbc_jax.control.transport import (ControlState, ObjectModel, TransportConfig, TransportGains,
                                        init_control_state, transport_control)
@@ -53,6 +53,9 @@ class Accum(NamedTuple):
     nonfinite: jax.Array  # bool
     off_steps: jax.Array  # int32, consecutive steps (up to now) with the object touching nothing on the tray
     max_off_s: jax.Array  # [s] longest such spell
+    sum_invH: jax.Array  # integral of 1/H (transport paper's robustness integrand, wbc_jax.metrics) [rad^2 s]
+    sum_acc: jax.Array  # integral of ||object CoM linear acceleration|| [m/s]
+    n_boundary: jax.Array  # int32, steps with 1/H = 0 (a contact unloaded or on/outside its cone)
 
 
 class RunState(NamedTuple):
@@ -128,17 +131,20 @@ def _tray_rel(d, ids):
     return R.T @ (d.xpos[ids.obj_body] - d.site_xpos[ids.tray_site])
 
 
-def init_state(sim: Sim, m, qpos0) -> RunState:
-    """Initial RunState of one run (vmappable over m and qpos0)."""
+def init_state(sim: Sim, m, qpos0, qvel0=None) -> RunState:
+    """Initial RunState of one run (vmappable over m, qpos0 and qvel0; qvel0 None: at rest)."""
     ids = sim.robot.ids
     d = mjx.make_data(sim.robot.mjx_model).replace(qpos=qpos0)
+    if qvel0 is not None:
+        d = d.replace(qvel=qvel0)
     d = physics.sense(m, d)
     dyn = dyn_terms(m, d, ids)
     z = jnp.zeros(())
     acc = Accum(min_trunk_z=dyn.p_base[2], max_slip=z, max_lift=z, nonfoot_floor=jnp.bool_(False),
                 wall_contact=jnp.bool_(False), max_tau_ratio=z, max_tau_excess=jnp.asarray(-jnp.inf), sum_prim_res=z,
                 n_flag=jnp.zeros((), jnp.int32), n_steps=jnp.zeros((), jnp.int32), sum_track=z,
-                nonfinite=jnp.bool_(False), off_steps=jnp.zeros((), jnp.int32), max_off_s=z)
+                nonfinite=jnp.bool_(False), off_steps=jnp.zeros((), jnp.int32), max_off_s=z,
+                sum_invH=z, sum_acc=z, n_boundary=jnp.zeros((), jnp.int32))
     return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids), acc=acc)
 
 
@@ -167,6 +173,13 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     off = jnp.all(dist[sim.obj_slots] > CONTACT_DIST) if sim.obj_slots.size else jnp.bool_(False)
     off_steps = jnp.where(off, a.off_steps + 1, 0)
     finite = jnp.all(jnp.isfinite(d_next.qpos)) & jnp.all(jnp.isfinite(tau))
+    if sim.obj_slots.size:  # paper metrics: forces of this step's constraint solve, object acceleration
+        oa = ids.obj_dof_adr
+        inv_h, _, acc_norm = metrics.step_integrands(m, d_next, sim.obj_slots, om.mu, ref.p_obj, p_obj,
+                                                     d.qvel[oa:oa + 3], d_next.qvel[oa:oa + 3], sim.dt_control)
+        inv_h, acc_norm = jnp.where(finite, inv_h, 0.0), jnp.where(finite, acc_norm, 0.0)
+    else:
+        inv_h = acc_norm = jnp.zeros(())
     acc = Accum(
         min_trunk_z=jnp.minimum(a.min_trunk_z, dyn.p_base[2]),
         max_slip=jnp.maximum(a.max_slip, slip),
@@ -182,6 +195,9 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
         nonfinite=a.nonfinite | ~finite,
         off_steps=off_steps,
         max_off_s=jnp.maximum(a.max_off_s, off_steps * sim.dt_control),
+        sum_invH=a.sum_invH + inv_h * sim.dt_control,
+        sum_acc=a.sum_acc + acc_norm * sim.dt_control,
+        n_boundary=a.n_boundary + (inv_h <= 0.0).astype(jnp.int32),
     )
     # a run that went non-finite is frozen (its state no longer advances) so it cannot poison others
     d_next = jax.tree_util.tree_map(lambda new, old: jnp.where(finite, new, old), d_next, rs.d)

@@ -1,0 +1,139 @@
+"""The transport paper's metrics (wbc_jax.metrics) against hand computations."""
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from wbc_jax import metrics
+from wbc_jax.model import mjx
+from wbc_jax.rollout import Accum
+
+TOL = 1e-6
+
+
+def test_cone_angle_by_hand():
+    f = jnp.array([[2.0, 0.0, 0.0], [1.0, 0.3, 0.4], [0.0, 0.1, 0.0], [1e-4, 0.0, 0.0]])
+    alpha, loaded = metrics.cone_angle(f)
+    np.testing.assert_allclose(alpha[:2], [0.0, np.arctan(0.5)], atol=TOL)
+    assert loaded.tolist() == [True, True, False, False]  # 1e-4 N <= LOAD_EPS: no load
+
+
+def test_inv_H_by_hand():
+    mu = 0.7
+    th = np.arctan(mu)
+    # all forces along the normals: H = (1/4) * 4 / th^2 -> 1/H = th^2
+    np.testing.assert_allclose(metrics.inv_H(jnp.zeros(4), jnp.ones(4, bool), mu), th**2, rtol=TOL)
+    a = np.array([0.1, 0.2, 0.3, 0.05])
+    H = (1 / 4) * np.sum(1 / ((th - a) * (a + th)))
+    np.testing.assert_allclose(metrics.inv_H(jnp.asarray(a), jnp.ones(4, bool), mu), 1 / H, rtol=1e-5)
+    # larger friction -> larger 1/H for the same angles
+    assert metrics.inv_H(jnp.asarray(a), jnp.ones(4, bool), 1.0) > metrics.inv_H(jnp.asarray(a), jnp.ones(4, bool), 0.4)
+
+
+def test_inv_H_boundary_rule():
+    mu = 0.4
+    th = np.arctan(mu)
+    ok = jnp.ones(4, bool)
+    # one contact unloaded -> at the boundary -> 1/H = 0
+    assert float(metrics.inv_H(jnp.zeros(4), ok.at[2].set(False), mu)) == 0.0
+    # one force on / outside the circular cone -> 0
+    th32 = jnp.arctan(jnp.float32(mu))  # exactly on the cone in the rollout's precision
+    assert float(metrics.inv_H(jnp.array([0.0, 0.0, 0.0, 0.0]).at[2].set(th32), ok, mu)) == 0.0
+    assert float(metrics.inv_H(jnp.array([0.0, 0.0, th + 0.2, 0.0]), ok, mu)) == 0.0
+    # just inside: small but positive, finite
+    v = float(metrics.inv_H(jnp.array([0.0, 0.0, th - 1e-3, 0.0]), ok, mu))
+    assert 0.0 < v < 1e-2 and np.isfinite(v)
+    # gradient-free and jit/vmap-able
+    f = jax.jit(jax.vmap(metrics.inv_H, in_axes=(0, 0, 0)))
+    out = f(jnp.zeros((3, 4)), jnp.ones((3, 4), bool).at[1, 0].set(False), jnp.array([0.4, 0.7, 1.0]))
+    np.testing.assert_allclose(out, [np.arctan(0.4) ** 2, 0.0, np.arctan(1.0) ** 2], rtol=1e-5)
+
+
+def _accum(**kw):
+    z = np.zeros(2)
+    base = dict(min_trunk_z=np.array([0.45, 0.45]), max_slip=z, max_lift=z, nonfoot_floor=np.zeros(2, bool),
+                wall_contact=np.zeros(2, bool), max_tau_ratio=z, max_tau_excess=z, sum_prim_res=z,
+                n_flag=np.zeros(2, int), n_steps=np.array([1000, 1000]), sum_track=z, nonfinite=np.zeros(2, bool),
+                off_steps=np.zeros(2, int), max_off_s=z, sum_invH=z, sum_acc=z, n_boundary=np.zeros(2, int))
+    base.update(kw)
+    return Accum(**base)
+
+
+def test_finalize_by_hand():
+    dt = 1e-3  # 1000 steps -> T_run = 1 s
+    acc = _accum(sum_invH=np.array([0.3, 0.1]), sum_track=np.array([0.002, 0.004]), sum_acc=np.array([0.5, 2.0]),
+                 max_slip=np.array([0.004, 0.012]), n_flag=np.array([0, 20]), n_boundary=np.array([0, 100]),
+                 wall_contact=np.array([False, True]))
+    r = metrics.finalize(acc, dt, np.array([0.7, 0.7]), course=False, final_err=np.array([0.001, 0.002]))
+    np.testing.assert_allclose(r["R"], [0.3, 0.1])
+    np.testing.assert_allclose(r["T"], [0.002, 0.004])
+    np.testing.assert_allclose(r["S"], [1 / 0.5, 1 / 2.0])  # T_run / int ||a|| dt
+    np.testing.assert_allclose(r["max_slip_mm"], [4.0, 12.0])
+    np.testing.assert_allclose(r["boundary_fraction"], [0.0, 0.1])
+    assert r["slid"].tolist() == [False, True]
+    assert r["hit_wall"].tolist() == [False, True]
+    assert r["qp_flagged"].tolist() == [False, True]  # 2 % > 1 %
+    assert r["success"].tolist() == [True, True]  # sliding, wall contact and QP flags are flags, not failures
+
+
+def test_finalize_failures():
+    acc = _accum(min_trunk_z=np.array([0.2, 0.45]), max_lift=np.array([0.0, 0.02]), sum_acc=np.array([1.0, 1.0]))
+    r = metrics.finalize(acc, 1e-3, np.array([0.7, 0.7]), course=False, final_err=np.array([0.0, 0.0]))
+    assert r["fell"].tolist() == [True, False] and r["dropped"].tolist() == [False, True]
+    assert r["success"].tolist() == [False, False]
+    # the course allows a lower trunk (crouching under the wall); a NaN run fails
+    acc = _accum(min_trunk_z=np.array([0.2, 0.45]), nonfinite=np.array([False, True]), sum_acc=np.array([1.0, 1.0]))
+    r = metrics.finalize(acc, 1e-3, np.array([0.7, 0.7]), course=True, final_err=np.array([0.0, np.nan]))
+    assert r["fell"].tolist() == [False, True] and r["success"].tolist() == [True, False]
+
+
+CUBE = """
+<mujoco>
+  <option timestep="0.001" cone="pyramidal" gravity="{gx} 0 {gz}"/>
+  <worldbody>
+    <geom name="floor" type="plane" size="1 1 0.1" contype="0" conaffinity="0"/>
+    <body name="cube" pos="0 0 0.05">
+      <freejoint/>
+      <geom type="box" size="0.04 0.04 0.04" mass="{m}" contype="0" conaffinity="0"/>
+      <geom name="c0" type="sphere" size="0.005" pos=" 0.035  0.035 -0.035" mass="0" contype="0" conaffinity="0"/>
+      <geom name="c1" type="sphere" size="0.005" pos="-0.035  0.035 -0.035" mass="0" contype="0" conaffinity="0"/>
+      <geom name="c2" type="sphere" size="0.005" pos="-0.035 -0.035 -0.035" mass="0" contype="0" conaffinity="0"/>
+      <geom name="c3" type="sphere" size="0.005" pos=" 0.035 -0.035 -0.035" mass="0" contype="0" conaffinity="0"/>
+    </body>
+  </worldbody>
+  <contact>
+    <pair geom1="c0" geom2="floor" condim="3" friction="{mu} {mu} 0.005 0.0001 0.0001"/>
+    <pair geom1="c1" geom2="floor" condim="3" friction="{mu} {mu} 0.005 0.0001 0.0001"/>
+    <pair geom1="c2" geom2="floor" condim="3" friction="{mu} {mu} 0.005 0.0001 0.0001"/>
+    <pair geom1="c3" geom2="floor" condim="3" friction="{mu} {mu} 0.005 0.0001 0.0001"/>
+  </contact>
+</mujoco>
+"""
+
+
+def test_simulator_contact_forces_on_an_incline():
+    """A cube at rest under gravity tilted by phi (an incline, phi < atan mu): the simulator's contact forces
+    read by metrics.contact_forces carry the weight, with total tangential / normal = tan(phi) (hand statics)."""
+    m_obj, mu, phi, g = 0.3, 0.7, 0.2, 9.81
+    mj = mujoco.MjModel.from_xml_string(CUBE.format(gx=g * np.sin(phi), gz=-g * np.cos(phi), m=m_obj, mu=mu))
+    mx = mjx.put_model(mj)
+
+    def step(d, _):
+        return mjx.step(mx, d), None
+
+    d, _ = jax.jit(lambda d: jax.lax.scan(step, d, None, length=600))(mjx.make_data(mx))
+    d = jax.jit(mjx.forward)(mx, d)
+    f = np.asarray(metrics.contact_forces(mx, d, np.arange(4)))  # (4, 3) contact frames, normal first
+    total = mj.body_mass[1] * g
+    fn = f[:, 0].sum()
+    ft = np.linalg.norm(f[:, 1:].sum(axis=0))
+    np.testing.assert_allclose(fn, total * np.cos(phi), rtol=0.02)
+    np.testing.assert_allclose(ft, total * np.sin(phi), rtol=0.05)
+    alpha, loaded = metrics.cone_angle(jnp.asarray(f))
+    assert bool(jnp.all(loaded))
+    th = np.arctan(mu)
+    ih = float(metrics.inv_H(alpha, loaded, mu))
+    np.testing.assert_allclose(ih, 4 / np.sum(1 / (th**2 - np.asarray(alpha) ** 2)), rtol=1e-5)
+    assert 0 < ih < th**2

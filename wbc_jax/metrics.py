@@ -1,0 +1,120 @@
+"""The transport paper's metrics (Sec. V-B), computed online inside the rollout, plus safety flags.
+
+Per control step (inside the jitted scan, cheap: four contact forces and a few norms):
+
+* **Robustness** integrand 1/H(t), with
+  H = (1/lambda) sum_i 1 / ((theta_i - alpha_i)(alpha_i + theta_i)), lambda = 4,
+  theta_i = atan(mu) (the cone's half-aperture), alpha_i = the angle between contact i's normal and the
+  force the *simulator* applies there (``mujoco.mjx._src.support.contact_force`` on the object's four
+  contact slots, contact frame: row 0 normal, rows 1-2 tangential), alpha_i = atan2(||f_t||, f_n).
+  **Boundary rule** (documented choice): a contact carrying no load (f_n <= :data:`LOAD_EPS`, e.g. a
+  corner lifted off the tray or a slot not active this step) or a force on or outside the circular cone
+  (alpha_i >= theta_i; MuJoCo's pyramidal cone admits up to sqrt(2) mu f_n on a diagonal) counts as *at the
+  cone boundary*: its term 1/((theta-alpha)(theta+alpha)) is +inf, so H = inf and 1/H(t) = 0 at that step.
+  1/H is therefore in [0, lambda / (n_c / theta^2)] = [0, theta^2] for n_c = 4 = lambda: a cube resting
+  still on a level tray scores theta^2 = atan(mu)^2.
+* **Tracking** integrand ||p_b,ref(t) - p_b(t)|| (object CoM vs the planned object path).
+* **Smoothness** integrand ||vdot_b(t)||: the object CoM's linear acceleration over the control period,
+  (v(t + dt) - v(t)) / dt from the free joint's linear velocity (world frame).
+
+Over a run of duration T_run (all simulated control steps):
+R = (1/T_run) int 1/H dt [rad^2]; T = (1/T_run) int ||p_ref - p|| dt [m]; S = T_run / int ||vdot_b|| dt
+[s^2/m] (the paper's S uses the duration T, not the tracking metric T).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+LAMBDA = 4.0  # [-] the paper's lambda
+LOAD_EPS = 1e-3  # [N] a contact whose normal force is at most this carries no load (counts at the boundary)
+
+# flags (thresholds of :func:`finalize`)
+SLIP_LIMIT = 0.010  # [m] max slip above this sets `slid`
+DROP_LIFT = 0.01  # [m] object bottom lifted this far above the tray sets `dropped`
+MAX_OFF_S = 0.05  # [s] object touching nothing on the tray for longer than this sets `dropped`
+FALL_Z_FLAT = 0.3  # [m] trunk below this on flat ground sets `fell`
+FALL_Z_COURSE = 0.15  # [m] the same on the obstacle course (the robot crouches under the wall)
+DONE_TOL = 0.05  # [m] final object error above this: transport not completed
+QP_FLAG_FRACTION = 0.01  # more than this fraction of flagged QPs sets `qp_flagged`
+
+
+def contact_forces(m, d, slots) -> jax.Array:
+    """Simulator forces at the given contact slots in their contact frames: (n, 3) [N], column 0 normal.
+
+    Args:
+        m: mjx.Model; d: mjx.Data after the constraint solve (``efc_force`` filled); slots: static (n,) ints.
+    """
+    from mujoco.mjx._src.support import contact_force
+
+    if len(slots) == 0:
+        return jnp.zeros((0, 3))
+    return jnp.stack([contact_force(m, d, int(s))[:3] for s in slots])
+
+
+def cone_angle(f) -> tuple[jax.Array, jax.Array]:
+    """alpha (n,) [rad] between normal and force, and loaded (n,) bool, from contact-frame forces f (n, 3)."""
+    fn = f[..., 0]
+    ft = jnp.linalg.norm(f[..., 1:3], axis=-1)
+    loaded = fn > LOAD_EPS
+    return jnp.arctan2(ft, jnp.where(loaded, fn, 1.0)), loaded
+
+
+def inv_H(alpha, loaded, mu, lam: float = LAMBDA) -> jax.Array:
+    """1/H for one instant: alpha (n,) [rad], loaded (n,) bool, mu scalar friction. Boundary rule in the
+    module docstring: any unloaded contact or alpha >= theta gives 0."""
+    theta = jnp.arctan(mu)
+    g = (theta - alpha) * (theta + alpha)  # (n,) > 0 strictly inside the cone
+    inside = loaded & (g > 0)
+    ok = jnp.all(inside) & (alpha.shape[-1] > 0)
+    s = jnp.sum(1.0 / jnp.where(inside, g, 1.0))
+    return jnp.where(ok, lam / s, 0.0)
+
+
+def step_integrands(m, d_after, slots, mu, p_ref, p_obj, v_obj_before, v_obj_after, dt):
+    """Per-step integrands (1/H, ||p_ref - p||, ||vdot||) of one run."""
+    alpha, loaded = cone_angle(contact_forces(m, d_after, slots))
+    a = jnp.linalg.norm((v_obj_after - v_obj_before) / dt)
+    return inv_H(alpha, loaded, mu), jnp.linalg.norm(p_ref - p_obj), a
+
+
+def finalize(acc, dt: float, mu, course: bool, final_err) -> dict[str, np.ndarray]:
+    """Per-run metrics and flags from a (batched, host) rollout ``Accum``.
+
+    Args:
+        acc: rollout.Accum with leading run axis; dt: control period [s]; mu: (B,) tray friction;
+        course: the scene has obstacles (fall threshold); final_err: (B,) final object error [m].
+
+    Returns:
+        dict of (B,) arrays: R [rad^2], T [m], S [s^2/m], max_slip_mm, flags fell, dropped, slid, hit_wall,
+        qp_flagged, nonfinite, and success (no fall, no drop, finite, final object error <= DONE_TOL).
+    """
+    n = np.asarray(acc.n_steps, float)
+    dur = np.maximum(n * dt, 1e-12)
+    fell = (np.asarray(acc.min_trunk_z) < (FALL_Z_COURSE if course else FALL_Z_FLAT)) | np.asarray(acc.nonfoot_floor)
+    nonfinite = np.asarray(acc.nonfinite)
+    dropped = (np.asarray(acc.max_lift) > DROP_LIFT) | (np.asarray(acc.max_off_s) > MAX_OFF_S)
+    final_err = np.asarray(final_err, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        S = np.where(np.asarray(acc.sum_acc) > 0, dur / np.asarray(acc.sum_acc), np.nan)
+    out = dict(
+        R=np.asarray(acc.sum_invH) / dur,
+        T=np.asarray(acc.sum_track) / dur,
+        S=S,
+        max_slip_mm=np.asarray(acc.max_slip) * 1e3,
+        boundary_fraction=np.asarray(acc.n_boundary) / np.maximum(n, 1),
+        fell=fell | nonfinite,
+        dropped=dropped,
+        slid=np.asarray(acc.max_slip) > SLIP_LIMIT,
+        hit_wall=np.asarray(acc.wall_contact),
+        qp_flagged=np.asarray(acc.n_flag) / np.maximum(n, 1) > QP_FLAG_FRACTION,
+        nonfinite=nonfinite,
+        final_err_mm=final_err * 1e3,
+    )
+    bad = out["fell"] | dropped | nonfinite | ~np.isfinite(final_err) | (final_err > DONE_TOL)
+    for k in ("R", "T", "S"):
+        bad |= ~np.isfinite(out[k])
+    out["success"] = ~bad
+    return out
