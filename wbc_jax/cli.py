@@ -66,6 +66,13 @@ def _cmd_trot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_campaign(args: argparse.Namespace) -> int:
+    from wbc_jax.campaign import run_campaign
+
+    run_campaign(args.spec, args.out, resume=args.resume, report=not args.no_report)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="wbc-jax", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -102,6 +109,15 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--iters", type=int, default=50, help="ADMM iterations per control step")
     d.add_argument("--distance", type=float, default=3.4, help="transport distance [m]")
     d.set_defaults(func=_cmd_demo)
+
+    c = sub.add_parser("campaign", help="a spec's factorial design (cells x repetitions) as one batched rollout; "
+                                        "results.csv, ANOVA report, manifest.json")
+    c.add_argument("--spec", default=None, help="TOML spec (default: sweeps/quick.toml on a CPU-only machine, "
+                                                "sweeps/paper_campaign.toml when an accelerator is present)")
+    c.add_argument("--out", default="out/campaign", help="output directory (default out/campaign)")
+    c.add_argument("--resume", action="store_true", help="continue from the checkpoint of an interrupted run")
+    c.add_argument("--no-report", action="store_true", help="skip the ANOVA report")
+    c.set_defaults(func=_cmd_campaign)
 
     t = sub.add_parser("trot", help="centroidal WBC trot study on flat ground (one batch over controller mass "
                                     "errors); summary.json and the paper's figures")

@@ -1,0 +1,156 @@
+"""`wbc-jax campaign`: spec validation, design table, one tiny batched campaign, interrupt + resume."""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from wbc_jax import cli
+from wbc_jax.errors import SpecError
+from wbc_jax.spec import SWEEPS, design, load_spec, parse_spec
+
+TINY = """
+[campaign]
+name = "tiny"
+reps = 1
+seed = 3
+scene = "flat"
+distance = 0.1
+extra_seconds = 0.0
+max_seconds = 0.12
+chunk_seconds = 0.04
+qp_iters = 20
+
+[factors]
+m = [0.2, 0.4]
+mu = [0.4, 1.0]
+d = [0.06, 0.10]
+
+[perturbations]
+object_xy_mm = 2.0
+object_yaw_deg = 2.0
+base_speed_std = 0.01
+push_max_N = 20.0
+push_duration_s = 0.05
+push_window = [0.0, 0.04]
+"""
+NUMERIC = ["m", "mu", "d", "rep", "seed", "R", "T", "S", "max_slip_mm", "boundary_fraction", "final_err_mm"]
+
+
+@pytest.fixture(scope="session")
+def tiny_spec(tmp_path_factory):
+    p = tmp_path_factory.mktemp("spec") / "tiny.toml"
+    p.write_text(TINY)
+    return p
+
+
+@pytest.fixture(scope="session")
+def full_run(tiny_spec, tmp_path_factory):
+    from wbc_jax.campaign import run_campaign
+
+    out = tmp_path_factory.mktemp("camp") / "full"
+    manifest = run_campaign(str(tiny_spec), str(out), progress=False)
+    return out, manifest
+
+
+# ---------------------------------------------------------------- specs
+
+
+def test_shipped_specs_load():
+    paper = load_spec(SWEEPS / "paper_campaign.toml")
+    quick = load_spec(SWEEPS / "quick.toml")
+    assert design(paper).n == 270 and paper.reps == 10 and paper.campaign["scene"] == "transport"
+    assert paper.factors == dict(m=[0.2, 0.3, 0.4], mu=[0.4, 0.7, 1.0], d=[0.06, 0.08, 0.10])
+    assert quick.factors == paper.factors and design(quick).n < 270
+    assert not paper.zero_noise and not quick.zero_noise
+
+
+@pytest.mark.parametrize("text, key, expect", [
+    ("[campaign]\nrepz = 3\n[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n", "campaign.repz", "unknown key"),
+    ("[campaign]\nreps = 'ten'\n[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n", "campaign.reps", "integer"),
+    ("[campaign]\nreps = 2.5\n[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n", "campaign.reps", "integer"),
+    ("[campaign]\nreps = 0\n[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n", "campaign.reps", "1 <= value <= 1000"),
+    ("[factors]\nm=[0.2,0.3]\nmu=[0.4,7.0]\nd=[0.06,0.1]\n", "factors.mu", "0.0 < value <= 5.0"),
+    ("[factors]\nm=[0.2]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n", "factors.m", "at least 2 levels"),
+    ("[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\n", "factors.d", "missing"),
+    ("[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\nk=[1,2]\n", "factors.k", "unknown factor"),
+    ("[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n[perturbations]\nobject_xy_mm = -1\n",
+     "perturbations.object_xy_mm", "0.0 <= value <= 20.0"),
+    ("[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n[perturbations]\npush_window = [0.8, 0.2]\n",
+     "perturbations.push_window", "0 <= a <= b < 1"),
+    ("[campaign]\nscene = 'moon'\n[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n", "campaign.scene", "flat"),
+    ("[gains]\nkp = 1\n", "gains", "unknown table"),
+])
+def test_bad_spec_names_file_key_and_range(tmp_path, text, key, expect):
+    p = tmp_path / "bad.toml"
+    p.write_text(text)
+    with pytest.raises(SpecError) as e:
+        load_spec(p)
+    msg = str(e.value)
+    assert str(p) in msg and key in msg and expect in msg and "\n" not in msg
+
+
+def test_bad_spec_cli_is_one_line_exit_2_nothing_written(tmp_path, capsys):
+    p = tmp_path / "bad.toml"
+    p.write_text("[campaign]\nreps = [\n")  # not TOML
+    out = tmp_path / "out"
+    assert cli.main(["campaign", "--spec", str(p), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("wbc-jax campaign: error:") and str(p) in err[0]
+    assert cli.main(["campaign", "--spec", str(tmp_path / "missing.toml"), "--out", str(out)]) == 2
+    assert not out.exists() and list(tmp_path.iterdir()) == [p]
+
+
+def test_design_seeds_and_perturbations(tiny_spec):
+    s = load_spec(tiny_spec)
+    a, b = design(s), design(s)
+    for k, v in a.asdict().items():
+        np.testing.assert_array_equal(v, b.asdict()[k])  # deterministic
+    assert a.n == 8 and len(set(a.seed.tolist())) == 8
+    assert np.all(np.abs(a.obj_dx) <= 2e-3) and np.all(np.abs(a.obj_yaw) <= np.deg2rad(2.0))
+    assert np.all(np.linalg.norm(a.push_force, axis=1) <= 20.0) and np.all((a.push_frac >= 0) & (a.push_frac <= 0.04))
+    assert np.std(a.obj_dx) > 0  # repetitions differ
+    z = parse_spec(dict(factors=s.factors, campaign=dict(reps=2)), "zero.toml")
+    dz = design(z)
+    assert z.zero_noise and np.all(dz.obj_dx == 0) and np.all(dz.push_force == 0) and np.all(dz.v0 == 0)
+
+
+# ---------------------------------------------------------------- one tiny campaign
+
+
+def test_campaign_writes_results_report_manifest(full_run):
+    out, man = full_run
+    df = pd.read_csv(out / "results.csv")
+    assert len(df) == 8
+    for col in ["m", "mu", "d", "rep", "seed", "success", "R", "T", "S", "max_slip_mm", "fell", "dropped", "slid",
+                "hit_wall", "qp_flagged"]:
+        assert col in df.columns
+    assert df.success.all(), df
+    th2 = np.arctan(df.mu) ** 2
+    assert np.all(df.R > 0) and np.all(df.R <= th2 + 1e-6)  # 1/H <= atan(mu)^2 (metrics docstring)
+    assert np.all(df["T"] >= 0) and np.all(df["T"] < 0.01) and np.all(df.S > 0)
+    assert (out / "report" / "report.md").exists() and (out / "report" / "anova.json").exists()
+    m = json.loads((out / "manifest.json").read_text())
+    for k in ("versions", "device", "spec_hash", "seeds", "wall_s_total", "compile_s_estimate", "env_steps_per_s"):
+        assert k in m
+    assert m["seeds"] == df.seed.tolist() and m["versions"]["jax"] and m["n_runs"] == 8
+    assert m["n_chunks"] == 3 and abs(m["simulated_s"] - 0.12) < 1e-9 and m["env_steps_per_s"] > 0
+    assert not list(out.parent.glob(".full.campaign-ckpt"))  # checkpoint removed after success
+
+
+def test_interrupt_and_resume_equal_uninterrupted(full_run, tiny_spec, tmp_path):
+    from wbc_jax.campaign import run_campaign
+
+    ref = pd.read_csv(full_run[0] / "results.csv")
+    out = tmp_path / "resumed"
+    with pytest.raises(KeyboardInterrupt):
+        run_campaign(str(tiny_spec), str(out), report=False, progress=False, _interrupt_after=1)
+    assert not out.exists()  # nothing partial in DIR
+    ck = tmp_path / ".resumed.campaign-ckpt"
+    assert json.loads((ck / "meta.json").read_text())["chunks_done"] == 1
+    man = run_campaign(str(tiny_spec), str(out), resume=True, report=False, progress=False)
+    got = pd.read_csv(out / "results.csv")
+    assert man["resumed"]
+    pd.testing.assert_frame_equal(got, ref, check_exact=True)
+    assert not ck.exists()

@@ -1,0 +1,305 @@
+"""``wbc-jax campaign``: a spec's whole factorial design (cells x repetitions) as one batched rollout.
+
+spec (``wbc_jax.spec``) -> design table with per-run seeds and perturbations -> one :class:`wbc_jax.batch.Batch`
+(all runs) -> chunked, jitted, vmapped rollout (``chunk_seconds`` of simulated time per call; the state is
+checkpointed after every chunk) -> per-run metrics and flags (``wbc_jax.metrics``) -> ``results.csv``,
+the ANOVA report (``wbc_jax.report``) in ``report/`` and ``manifest.json``, all in DIR, written atomically.
+
+Checkpoint: ``.<DIR name>.campaign-ckpt/`` next to DIR holds the state after the last finished chunk
+(``state.npz``: every leaf of the batched RunState) and ``meta.json`` (spec hash, chunks done, wall time so
+far). Ctrl-C keeps it; ``--resume`` continues from it (the chunks are the same, so the results equal an
+uninterrupted run's); it is deleted once DIR is written. A run that goes non-finite is frozen by the
+rollout and reported failed; the others continue.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from importlib import metadata
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wbc_jax import metrics
+from wbc_jax.errors import SpecError, WbcJaxError
+from wbc_jax.io_utils import atomic_dir, write_json_atomic
+from wbc_jax.spec import Design, Spec, default_spec_path, design, load_spec
+
+LOG_EVERY = 20  # control steps per logged sample (the rollout's outer scan)
+PACKAGES = ("wbc_jax", "jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy", "scipy", "statsmodels", "pandas")
+_SIMS: dict = {}
+_FNS: dict = {}
+
+
+def has_accelerator() -> bool:
+    return jax.default_backend() != "cpu"
+
+
+def _sim(scene: str, iters: int):
+    from wbc_jax.control.transport import TransportConfig, control_qp_settings
+    from wbc_jax.model import Robot
+    from wbc_jax.rollout import make_sim
+
+    key = (scene, iters)
+    if key not in _SIMS:
+        _SIMS[key] = make_sim(Robot(scene), TransportConfig(qp=control_qp_settings(iters)), log_every=LOG_EVERY)
+    return _SIMS[key]
+
+
+def _chunk_fn(sim, in_axes, n_logs: int):
+    from wbc_jax.rollout import make_chunk_fn
+
+    key = (id(sim), n_logs)
+    if key not in _FNS:
+        _FNS[key] = jax.jit(jax.vmap(make_chunk_fn(sim, n_logs), in_axes=(in_axes, 0, 0, 0, 0, 0, 0)))
+    return _FNS[key]
+
+
+def _quat_mul(a, b):
+    w1, x1, y1, z1 = a.T
+    w2, x2, y2, z2 = b.T
+    return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=1)
+
+
+def initial_configuration(robot, dz: Design):
+    """Perturbed initial (qpos (B, nq), qvel (B, nv)): the object shifted by (obj_dx, obj_dy) in the world's
+    horizontal plane (the tray is level at home) and yawed by obj_yaw about world z; robot base and object
+    moving horizontally at v0."""
+    ids = robot.ids
+    qpos = np.stack([robot.home_qpos(float(di)) for di in dz.d])
+    a = ids.obj_qpos_adr
+    qpos[:, a] += dz.obj_dx
+    qpos[:, a + 1] += dz.obj_dy
+    qyaw = np.stack([np.cos(dz.obj_yaw / 2), np.zeros(dz.n), np.zeros(dz.n), np.sin(dz.obj_yaw / 2)], axis=1)
+    qpos[:, a + 3:a + 7] = _quat_mul(qyaw, qpos[:, a + 3:a + 7])
+    qvel = np.zeros((dz.n, robot.mj_model.nv))
+    qvel[:, 0:2] = dz.v0
+    qvel[:, ids.obj_dof_adr:ids.obj_dof_adr + 2] = dz.v0
+    return qpos, qvel
+
+
+def build(spec: Spec):
+    """Spec -> (sim, design, Batch with perturbed initial states and pushes, simulated seconds, chunk plan)."""
+    from wbc_jax.batch import prepare_batch
+    from wbc_jax.planner.transport import plan_duration
+    from wbc_jax.rollout import Push, init_state
+
+    c = spec.campaign
+    sim = _sim(c["scene"], c["qp_iters"])
+    dz = design(spec)
+    b = prepare_batch(sim, dz.m, dz.mu, dz.d, plan_kwargs=dict(distance=c["distance"], speed=c["speed"]))
+    T_plan = plan_duration(b.plan)
+    qpos0, qvel0 = initial_configuration(sim.robot, dz)
+    state = jax.jit(jax.vmap(functools.partial(init_state, sim), in_axes=(b.in_axes, 0, 0)))(
+        b.model, jnp.asarray(qpos0), jnp.asarray(qvel0))
+    push = Push(force=jnp.asarray(dz.push_force), t0=jnp.asarray(dz.push_frac * T_plan),
+                duration=jnp.asarray(dz.push_duration))
+    b = b._replace(state=state, push=push)
+    log_dt = sim.dt_control * LOG_EVERY
+    logs_per_chunk = max(1, int(round(c["chunk_seconds"] / log_dt)))
+    horizon = T_plan + c["extra_seconds"]
+    if c["max_seconds"] > 0:
+        horizon = min(horizon, c["max_seconds"])
+    n_chunks = max(1, int(np.ceil(horizon / (logs_per_chunk * log_dt) - 1e-9)))
+    return sim, dz, b, T_plan, logs_per_chunk, n_chunks
+
+
+def _ckpt_dir(out: Path) -> Path:
+    return out.parent / f".{out.name}.campaign-ckpt"
+
+
+def _save_ckpt(ck: Path, state, meta: dict) -> None:
+    ck.mkdir(parents=True, exist_ok=True)
+    leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(jax.device_get(state))]
+    fd, tmp = tempfile.mkstemp(prefix=".state.", suffix=".npz", dir=ck)
+    with os.fdopen(fd, "wb") as f:
+        np.savez(f, *leaves)
+    os.replace(tmp, ck / "state.npz")
+    write_json_atomic(ck / "meta.json", meta)
+
+
+def _load_ckpt(ck: Path, state_like, spec_hash: str, n_runs: int):
+    meta_p = ck / "meta.json"
+    if not meta_p.exists():
+        return None, None
+    meta = json.loads(meta_p.read_text())
+    if meta.get("spec_hash") != spec_hash or meta.get("n_runs") != n_runs:
+        raise SpecError(f"{ck}: checkpoint belongs to another spec (hash {meta.get('spec_hash', '?')[:12]}); "
+                        "delete it or run without --resume")
+    with np.load(ck / "state.npz") as z:
+        leaves = [z[f"arr_{i}"] for i in range(len(z.files))]
+    treedef = jax.tree_util.tree_structure(state_like)
+    if treedef.num_leaves != len(leaves):
+        raise WbcJaxError(f"{ck}: checkpoint does not match this version's rollout state; delete it")
+    return jax.tree_util.tree_unflatten(treedef, [jnp.asarray(x) for x in leaves]), meta
+
+
+def _versions() -> dict:
+    out = {"python": platform.python_version()}
+    for p in PACKAGES:
+        try:
+            out[p] = metadata.version(p)
+        except metadata.PackageNotFoundError:
+            out[p] = None
+    return out
+
+
+def _git_commit() -> str | None:
+    try:
+        r = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent, capture_output=True,
+                           text=True, timeout=5)
+        return r.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def results_table(spec: Spec, dz: Design, res: dict):
+    import pandas as pd
+
+    df = pd.DataFrame(dict(run=np.arange(dz.n), m=dz.m, mu=dz.mu, d=dz.d, rep=dz.rep, seed=dz.seed,
+                           success=res["success"]))
+    for k in ("R", "T", "S", "max_slip_mm", "fell", "dropped", "slid", "hit_wall", "qp_flagged", "nonfinite",
+              "boundary_fraction", "final_err_mm"):
+        df[k] = res[k]
+    df["obj_dx_mm"] = dz.obj_dx * 1e3
+    df["obj_dy_mm"] = dz.obj_dy * 1e3
+    df["obj_yaw_deg"] = np.rad2deg(dz.obj_yaw)
+    df["push_N"] = np.linalg.norm(dz.push_force, axis=1)
+    return df
+
+
+def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: bool = True,
+                 progress: bool = True, _interrupt_after: int | None = None) -> dict:
+    """Run a campaign and write DIR (see module docstring). Returns the manifest.
+
+    Args:
+        spec_path: TOML spec; None: :func:`wbc_jax.spec.default_spec_path` for this machine.
+        out: output directory (replaced atomically on success).
+        resume: continue from the checkpoint next to DIR if there is one.
+        report: also write the ANOVA report (``report/``).
+        _interrupt_after: testing hook: raise KeyboardInterrupt after this many chunks (checkpoint kept).
+    """
+    t_start = time.perf_counter()
+    spec = load_spec(spec_path if spec_path is not None else default_spec_path(has_accelerator()))
+    out_p = Path(out).absolute()
+    ck = _ckpt_dir(out_p)
+    sim, dz, b, T_plan, logs_per_chunk, n_chunks = build(spec)
+    chunk_s = logs_per_chunk * LOG_EVERY * sim.dt_control
+    seconds = n_chunks * chunk_s
+    state, done, wall_before, marks, p_goal = b.state, 0, 0.0, [], None
+    if resume:
+        st, meta = _load_ckpt(ck, b.state, spec.hash, dz.n)
+        if st is not None:
+            state, done, wall_before, marks = st, meta["chunks_done"], meta["wall_s"], meta["marks"]
+            p_goal = np.asarray(meta["p_goal"]) if meta.get("p_goal") is not None else None
+            print(f"resuming from {ck}: {done} of {n_chunks} chunks done", flush=True)
+        else:
+            print(f"no checkpoint at {ck}: starting from the beginning", flush=True)
+    elif ck.exists():
+        shutil.rmtree(ck)
+    if spec.zero_noise:
+        print("warning: all perturbations are zero: repetitions are identical (deterministic runs)", flush=True)
+    print(f"campaign {spec.campaign['name']!r} ({spec.path}): {dz.n} runs = {dz.n // spec.reps} cells x {spec.reps} "
+          f"reps, {seconds:.2f} s simulated in {n_chunks} chunks of {chunk_s:.2f} s, scene {spec.campaign['scene']}, "
+          f"device {jax.devices()[0].device_kind}", flush=True)
+    fn = _chunk_fn(sim, b.in_axes, logs_per_chunk)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=round(seconds, 3), initial=round(done * chunk_s, 3), unit="sim-s", file=sys.stderr,
+                   bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim-s [{elapsed}<{remaining}{postfix}]")
+    t_run = time.perf_counter()
+    first_in_process = True  # that chunk's wall time includes compilation
+    try:
+        while done < n_chunks:
+            t0 = time.perf_counter()
+            state, logs = fn(b.model, state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+            state = jax.block_until_ready(state)
+            dt_wall = time.perf_counter() - t0
+            done += 1
+            marks.append(dict(chunk=done, wall_s=dt_wall, fresh_process=first_in_process))
+            first_in_process = False
+            p_goal = np.asarray(logs.p_obj_ref[:, -1])
+            _save_ckpt(ck, state, dict(spec_hash=spec.hash, n_runs=dz.n, chunks_done=done, n_chunks=n_chunks,
+                                       wall_s=wall_before + time.perf_counter() - t_run, marks=marks,
+                                       p_goal=p_goal.tolist()))
+            if bar is not None:
+                bar.update(chunk_s)
+                bar.set_postfix_str(f"{dz.n} runs, {dz.n * chunk_s / sim.dt_control / dt_wall:,.0f} env-steps/s")
+            if _interrupt_after is not None and done >= _interrupt_after and done < n_chunks:
+                raise KeyboardInterrupt
+    except KeyboardInterrupt:
+        if bar is not None:
+            bar.close()
+        print(f"interrupted after {done} of {n_chunks} chunks; finished chunks kept in {ck}; "
+              f"continue with --resume", file=sys.stderr, flush=True)
+        raise
+    if bar is not None:
+        bar.close()
+    wall_sim = wall_before + time.perf_counter() - t_run
+
+    acc = jax.device_get(state.acc)
+    p_obj = np.asarray(state.d.xpos[:, sim.robot.ids.obj_body])
+    final_err = np.linalg.norm(p_obj - p_goal, axis=1)
+    res = metrics.finalize(acc, sim.dt_control, dz.mu, course=spec.campaign["scene"] != "flat", final_err=final_err)
+    df = results_table(spec, dz, res)
+    # env-steps/s from chunks that did not compile (the first chunk of each process does)
+    steady = [mk["wall_s"] for mk in marks if not mk["fresh_process"]]
+    per_chunk = float(np.median(steady)) if steady else None
+    first = [mk["wall_s"] for mk in marks if mk["fresh_process"]]
+    compile_s = (first[0] - per_chunk) if (first and per_chunk) else None
+    eps = dz.n * chunk_s / sim.dt_control / per_chunk if per_chunk else dz.n * seconds / sim.dt_control / wall_sim
+    cells = df.groupby(["m", "mu", "d"])["success"].agg(["size", "sum"]).reset_index()
+    failures = [dict(m=r.m, mu=r.mu, d=r.d, failed=int(r.size - r.sum), runs=int(r.size))
+                for r in cells.itertuples() if r.size != r.sum]
+    warnings = []
+    if spec.zero_noise:
+        warnings.append("all perturbations are zero: repetitions are identical, within-cell variance is zero and "
+                        "the F tests are meaningless")
+    if failures:
+        warnings.append(f"{int((~df.success).sum())} of {dz.n} runs failed (cells: see failures_per_cell)")
+    manifest = dict(
+        command="wbc-jax campaign", spec_path=str(spec.path), spec_hash=spec.hash, spec_file_sha256=spec.text_sha256,
+        spec=spec.canonical(), versions=_versions(), git_commit=_git_commit(),
+        device=dict(backend=jax.default_backend(), kind=jax.devices()[0].device_kind, count=jax.device_count(),
+                    host=platform.node(), cpu_count=os.cpu_count()),
+        n_runs=dz.n, n_cells=int(len(cells)), reps=spec.reps, seeds=[int(s) for s in dz.seed],
+        simulated_s=seconds, planned_s=T_plan, chunk_s=chunk_s, n_chunks=n_chunks, control_dt_s=sim.dt_control,
+        wall_s_total=time.perf_counter() - t_start + wall_before, wall_s_rollout=wall_sim,
+        compile_s_estimate=compile_s, first_chunk_s=first[0] if first else None, env_steps_per_s=eps,
+        resumed=bool(resume and wall_before > 0), n_success=int(df.success.sum()), failures_per_cell=failures,
+        warnings=warnings, metric_means={k: float(df.loc[df.success, k].mean()) if df.success.any() else None
+                                         for k in ("R", "T", "S", "max_slip_mm")})
+    with atomic_dir(out_p) as tmp:
+        df.to_csv(tmp / "results.csv", index=False)
+        if report:
+            from wbc_jax.report import run_report
+
+            try:
+                run_report(str(tmp / "results.csv"), str(tmp / "report"), metrics=["R", "T", "S"])
+                if warnings:
+                    md = tmp / "report" / "report.md"
+                    md.write_text("".join(f"> **Campaign warning:** {w}\n\n" for w in warnings) + md.read_text())
+            except WbcJaxError as e:  # keep the results; say why there is no report
+                manifest["warnings"].append(f"no report: {e}")
+                (tmp / "report_error.txt").write_text(str(e) + "\n")
+        manifest["wall_s_total"] = time.perf_counter() - t_start + wall_before
+        write_json_atomic(tmp / "manifest.json", manifest)
+    shutil.rmtree(ck, ignore_errors=True)
+    for w in manifest["warnings"]:
+        print(f"warning: {w}", flush=True)
+    print(f"{int(df.success.sum())}/{dz.n} runs succeeded; wall {manifest['wall_s_total']:.1f} s, "
+          f"{eps:,.0f} env-steps/s; written to {out}", flush=True)
+    return manifest
