@@ -10,39 +10,13 @@ from wbc_jax import cli
 from wbc_jax.errors import SpecError
 from wbc_jax.spec import SWEEPS, design, load_spec, parse_spec
 
-TINY = """
-[campaign]
-name = "tiny"
-reps = 1
-seed = 3
-scene = "flat"
-distance = 0.1
-extra_seconds = 0.0
-max_seconds = 0.12
-chunk_seconds = 0.04
-qp_iters = 20
-
-[factors]
-m = [0.2, 0.4]
-mu = [0.4, 1.0]
-d = [0.06, 0.10]
-
-[perturbations]
-object_xy_mm = 2.0
-object_yaw_deg = 2.0
-base_speed_std = 0.01
-push_max_N = 20.0
-push_duration_s = 0.05
-push_window = [0.0, 0.04]
-"""
+BASELINE = SWEEPS.parent / "reports" / "baseline"  # its spec.toml is the tiny campaign of these tests
 NUMERIC = ["m", "mu", "d", "rep", "seed", "R", "T", "S", "max_slip_mm", "boundary_fraction", "final_err_mm"]
 
 
 @pytest.fixture(scope="session")
-def tiny_spec(tmp_path_factory):
-    p = tmp_path_factory.mktemp("spec") / "tiny.toml"
-    p.write_text(TINY)
-    return p
+def tiny_spec():
+    return BASELINE / "spec.toml"
 
 
 @pytest.fixture(scope="session")
@@ -154,3 +128,38 @@ def test_interrupt_and_resume_equal_uninterrupted(full_run, tiny_spec, tmp_path)
     assert man["resumed"]
     pd.testing.assert_frame_equal(got, ref, check_exact=True)
     assert not ck.exists()
+
+
+# ---------------------------------------------------------------- CI regression
+
+
+def test_regress_passes_on_baseline_and_fails_on_gain_change(full_run, tmp_path, capsys):
+    """The committed baseline passes; a deliberate controller-gain change (object position gain 250 -> 50)
+    fails with a table of what moved; restoring the gain passes again (the first call)."""
+    from wbc_jax.campaign import run_regress
+    from wbc_jax.control.transport import default_gains
+
+    code, moved = run_regress(str(BASELINE))
+    assert code == 0 and moved == [], capsys.readouterr().out
+    bad = default_gains()._replace(kp_obj=default_gains().kp_obj * 0.2)
+    code, moved = run_regress(str(BASELINE), gains=bad)
+    out = capsys.readouterr().out
+    assert code == 1 and moved and "REGRESSION" in out and any(r["metric"] == "T" for r in moved)
+
+
+def test_regress_update_and_cli(tmp_path, full_run, capsys):
+    import shutil
+
+    from wbc_jax.campaign import cell_means, compare
+
+    b = tmp_path / "base"
+    b.mkdir()
+    shutil.copy(BASELINE / "spec.toml", b / "spec.toml")
+    assert cli.main(["regress", "--baseline", str(b)]) == 2  # no baseline.json yet: one-line error
+    assert "--update" in capsys.readouterr().err
+    # compare() on the tiny campaign's own results: identical -> nothing moved; a shifted mean -> moved
+    cells = cell_means(pd.read_csv(full_run[0] / "results.csv"))
+    base = json.loads((BASELINE / "baseline.json").read_text())
+    assert compare(dict(base, cells=cells), cells) == []
+    shifted = [dict(c, R=c["R"] * 1.5) for c in cells]
+    assert len(compare(dict(base, cells=cells), shifted)) == len(cells)

@@ -89,8 +89,9 @@ def initial_configuration(robot, dz: Design):
     return qpos, qvel
 
 
-def build(spec: Spec):
-    """Spec -> (sim, design, Batch with perturbed initial states and pushes, simulated seconds, chunk plan)."""
+def build(spec: Spec, gains=None):
+    """Spec -> (sim, design, Batch with perturbed initial states and pushes, simulated seconds, chunk plan).
+    ``gains``: controller gains (TransportGains, unbatched) instead of the defaults."""
     from wbc_jax.batch import prepare_batch
     from wbc_jax.planner.transport import plan_duration
     from wbc_jax.rollout import Push, init_state
@@ -98,7 +99,8 @@ def build(spec: Spec):
     c = spec.campaign
     sim = _sim(c["scene"], c["qp_iters"])
     dz = design(spec)
-    b = prepare_batch(sim, dz.m, dz.mu, dz.d, plan_kwargs=dict(distance=c["distance"], speed=c["speed"]))
+    b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=gains,
+                      plan_kwargs=dict(distance=c["distance"], speed=c["speed"]))
     T_plan = plan_duration(b.plan)
     qpos0, qvel0 = initial_configuration(sim.robot, dz)
     state = jax.jit(jax.vmap(functools.partial(init_state, sim), in_axes=(b.in_axes, 0, 0)))(
@@ -180,7 +182,7 @@ def results_table(spec: Spec, dz: Design, res: dict):
 
 
 def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: bool = True,
-                 progress: bool = True, _interrupt_after: int | None = None) -> dict:
+                 progress: bool = True, gains=None, _interrupt_after: int | None = None) -> dict:
     """Run a campaign and write DIR (see module docstring). Returns the manifest.
 
     Args:
@@ -188,13 +190,14 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         out: output directory (replaced atomically on success).
         resume: continue from the checkpoint next to DIR if there is one.
         report: also write the ANOVA report (``report/``).
+        gains: controller gains (unbatched TransportGains) instead of the defaults (Python API only).
         _interrupt_after: testing hook: raise KeyboardInterrupt after this many chunks (checkpoint kept).
     """
     t_start = time.perf_counter()
     spec = load_spec(spec_path if spec_path is not None else default_spec_path(has_accelerator()))
     out_p = Path(out).absolute()
     ck = _ckpt_dir(out_p)
-    sim, dz, b, T_plan, logs_per_chunk, n_chunks = build(spec)
+    sim, dz, b, T_plan, logs_per_chunk, n_chunks = build(spec, gains)
     chunk_s = logs_per_chunk * LOG_EVERY * sim.dt_control
     seconds = n_chunks * chunk_s
     state, done, wall_before, marks, p_goal = b.state, 0, 0.0, [], None
@@ -272,7 +275,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         warnings.append(f"{int((~df.success).sum())} of {dz.n} runs failed (cells: see failures_per_cell)")
     manifest = dict(
         command="wbc-jax campaign", spec_path=str(spec.path), spec_hash=spec.hash, spec_file_sha256=spec.text_sha256,
-        spec=spec.canonical(), versions=_versions(), git_commit=_git_commit(),
+        spec=spec.canonical(), default_gains=gains is None, versions=_versions(), git_commit=_git_commit(),
         device=dict(backend=jax.default_backend(), kind=jax.devices()[0].device_kind, count=jax.device_count(),
                     host=platform.node(), cpu_count=os.cpu_count()),
         n_runs=dz.n, n_cells=int(len(cells)), reps=spec.reps, seeds=[int(s) for s in dz.seed],
@@ -303,3 +306,92 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     print(f"{int(df.success.sum())}/{dz.n} runs succeeded; wall {manifest['wall_s_total']:.1f} s, "
           f"{eps:,.0f} env-steps/s; written to {out}", flush=True)
     return manifest
+
+
+# ---------------------------------------------------------------- CI regression of metric means
+
+REGRESS_METRICS = ("R", "T", "S", "max_slip_mm")
+DEFAULT_TOL = {"R": (0.02, 1e-3), "T": (0.05, 2e-5), "S": (0.05, 1e-3), "max_slip_mm": (0.10, 0.05)}  # (rel, abs)
+
+
+def cell_means(df) -> list[dict]:
+    """Per-cell means of the regression metrics over successful runs, and success counts."""
+    rows = []
+    for (m, mu, d), g in df.groupby(["m", "mu", "d"]):
+        ok = g[g.success.astype(bool)]
+        rows.append(dict(m=float(m), mu=float(mu), d=float(d), runs=int(len(g)), n_success=int(len(ok)),
+                         **{k: (float(ok[k].mean()) if len(ok) else None) for k in REGRESS_METRICS}))
+    return rows
+
+
+def compare(baseline: dict, cells: list[dict]) -> list[dict]:
+    """Rows that moved: a metric mean outside |new - old| <= rel |old| + abs, a success count change or a
+    missing cell."""
+    tol = baseline["tolerance"]
+    new = {(c["m"], c["mu"], c["d"]): c for c in cells}
+    moved = []
+    for old in baseline["cells"]:
+        key = (old["m"], old["mu"], old["d"])
+        c = new.get(key)
+        if c is None:
+            moved.append(dict(cell=key, metric="(cell)", baseline="present", now="missing", band=""))
+            continue
+        if c["n_success"] != old["n_success"]:
+            moved.append(dict(cell=key, metric="n_success", baseline=old["n_success"], now=c["n_success"], band="exact"))
+        for k in REGRESS_METRICS:
+            a, b = old.get(k), c.get(k)
+            rel, ab = tol[k]["rel"], tol[k]["abs"]
+            if a is None or b is None:
+                if (a is None) != (b is None):
+                    moved.append(dict(cell=key, metric=k, baseline=a, now=b, band="defined"))
+                continue
+            if not abs(b - a) <= rel * abs(a) + ab:
+                moved.append(dict(cell=key, metric=k, baseline=a, now=b, band=f"+-{rel * abs(a) + ab:.3g}"))
+    return moved
+
+
+def run_regress(baseline_dir: str, update: bool = False, gains=None, out: str | None = None) -> tuple[int, list]:
+    """Rerun the baseline's stored spec (``DIR/spec.toml``) and compare per-cell metric means with
+    ``DIR/baseline.json`` (means + tolerance band). Returns (exit code: 0 pass / 1 moved, moved rows).
+    ``update``: rewrite baseline.json from this run (tolerances kept) and return 0."""
+    bdir = Path(baseline_dir)
+    spec_p = bdir / "spec.toml"
+    if not spec_p.exists():
+        raise SpecError(f"{bdir}: no spec.toml in the baseline directory")
+    base_p = bdir / "baseline.json"
+    baseline = None
+    if base_p.exists():
+        try:
+            baseline = json.loads(base_p.read_text())
+            baseline["tolerance"], baseline["cells"]  # noqa: B018
+        except (ValueError, KeyError, TypeError):
+            raise WbcJaxError(f"{base_p}: not a baseline file (expected keys tolerance, cells)") from None
+    elif not update:
+        raise WbcJaxError(f"{base_p}: missing; create it with wbc-jax regress --baseline {bdir} --update")
+    spec = load_spec(spec_p)
+    with tempfile.TemporaryDirectory() as td:
+        run_dir = Path(out) if out else Path(td) / "run"
+        run_campaign(str(spec_p), str(run_dir), report=False, progress=False, gains=gains)
+        import pandas as pd
+
+        cells = cell_means(pd.read_csv(run_dir / "results.csv"))
+    if update:
+        tol = baseline["tolerance"] if baseline else {k: dict(rel=r, abs=a) for k, (r, a) in DEFAULT_TOL.items()}
+        write_json_atomic(base_p, dict(spec_hash=spec.hash, tolerance=tol, cells=cells,
+                                       note="per-cell means over successful runs; a metric moved when "
+                                            "|now - baseline| > rel |baseline| + abs"))
+        print(f"baseline written to {base_p} ({len(cells)} cells)")
+        return 0, []
+    if baseline.get("spec_hash") != spec.hash:
+        raise WbcJaxError(f"{spec_p}: spec changed since the baseline was stored; rerun with --update")
+    moved = compare(baseline, cells)
+    if moved:
+        print(f"REGRESSION: {len(moved)} metric mean(s) left the tolerance band of {base_p}:")
+        print(f"{'m':>5} {'mu':>5} {'d':>5}  {'metric':<12} {'baseline':>12} {'now':>12}  band")
+        for r in moved:
+            fmt = lambda v: f"{v:12.6g}" if isinstance(v, float) else f"{v!s:>12}"  # noqa: E731
+            print(f"{r['cell'][0]:5.2f} {r['cell'][1]:5.2f} {r['cell'][2]:5.2f}  {r['metric']:<12} "
+                  f"{fmt(r['baseline'])} {fmt(r['now'])}  {r['band']}")
+        return 1, moved
+    print(f"regress: all {len(cells)} cells within the tolerance band of {base_p}")
+    return 0, []

@@ -73,6 +73,13 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_regress(args: argparse.Namespace) -> int:
+    from wbc_jax.campaign import run_regress
+
+    code, _ = run_regress(args.baseline, update=args.update)
+    return code
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="wbc-jax", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -118,6 +125,13 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--resume", action="store_true", help="continue from the checkpoint of an interrupted run")
     c.add_argument("--no-report", action="store_true", help="skip the ANOVA report")
     c.set_defaults(func=_cmd_campaign)
+
+    g = sub.add_parser("regress", help="CI regression: rerun a stored baseline's spec, compare per-cell metric means "
+                                       "with its tolerance band; exit 1 with a table of what moved")
+    g.add_argument("--baseline", default="reports/baseline", help="baseline directory with spec.toml and "
+                                                                  "baseline.json (default reports/baseline)")
+    g.add_argument("--update", action="store_true", help="rewrite baseline.json from this run")
+    g.set_defaults(func=_cmd_regress)
 
     t = sub.add_parser("trot", help="centroidal WBC trot study on flat ground (one batch over controller mass "
                                     "errors); summary.json and the paper's figures")
