@@ -122,7 +122,8 @@ def test_interrupt_and_resume_equal_uninterrupted(full_run, tiny_spec, tmp_path)
         run_campaign(str(tiny_spec), str(out), report=False, progress=False, _interrupt_after=1)
     assert not out.exists()  # nothing partial in DIR
     ck = tmp_path / ".resumed.campaign-ckpt"
-    assert json.loads((ck / "meta.json").read_text())["chunks_done"] == 1
+    meta = json.loads((ck / "meta.json").read_text())
+    assert meta["chunks_done"] == 1 and [f.name for f in ck.glob("state_*.npz")] == [meta["state_file"]]
     man = run_campaign(str(tiny_spec), str(out), resume=True, report=False, progress=False)
     got = pd.read_csv(out / "results.csv")
     assert man["resumed"]
@@ -163,3 +164,10 @@ def test_regress_update_and_cli(tmp_path, full_run, capsys):
     assert compare(dict(base, cells=cells), cells) == []
     shifted = [dict(c, R=c["R"] * 1.5) for c in cells]
     assert len(compare(dict(base, cells=cells), shifted)) == len(cells)
+
+
+def test_default_spec_follows_the_device():
+    from wbc_jax.spec import default_spec_path
+
+    assert default_spec_path(accelerator=False).name == "quick.toml"
+    assert default_spec_path(accelerator=True).name == "paper_campaign.toml"

@@ -6,7 +6,7 @@ checkpointed after every chunk) -> per-run metrics and flags (``wbc_jax.metrics`
 the ANOVA report (``wbc_jax.report``) in ``report/`` and ``manifest.json``, all in DIR, written atomically.
 
 Checkpoint: ``.<DIR name>.campaign-ckpt/`` next to DIR holds the state after the last finished chunk
-(``state.npz``: every leaf of the batched RunState) and ``meta.json`` (spec hash, chunks done, wall time so
+(``state_K.npz``: every leaf of the batched RunState after chunk K) and ``meta.json`` (spec hash, chunks done, wall time so
 far). Ctrl-C keeps it; ``--resume`` continues from it (the chunks are the same, so the results equal an
 uninterrupted run's); it is deleted once DIR is written. A run that goes non-finite is frozen by the
 rollout and reported failed; the others continue.
@@ -103,8 +103,13 @@ def build(spec: Spec, gains=None):
                       plan_kwargs=dict(distance=c["distance"], speed=c["speed"]))
     T_plan = plan_duration(b.plan)
     qpos0, qvel0 = initial_configuration(sim.robot, dz)
-    state = jax.jit(jax.vmap(functools.partial(init_state, sim), in_axes=(b.in_axes, 0, 0)))(
-        b.model, jnp.asarray(qpos0), jnp.asarray(qvel0))
+    key = ("init", id(sim))
+    if key not in _FNS:
+        _FNS[key] = jax.jit(jax.vmap(functools.partial(init_state, sim), in_axes=(b.in_axes, 0, 0)))
+    state = _FNS[key](b.model, jnp.asarray(qpos0), jnp.asarray(qvel0))
+    # strong-typed accumulators (init_state's -inf is weak-typed; the scan returns strong types, and a
+    # mismatch would compile the chunk function a second time for the carried state)
+    state = state._replace(acc=jax.tree_util.tree_map(lambda x: jnp.asarray(x, x.dtype), state.acc))
     push = Push(force=jnp.asarray(dz.push_force), t0=jnp.asarray(dz.push_frac * T_plan),
                 duration=jnp.asarray(dz.push_duration))
     b = b._replace(state=state, push=push)
@@ -122,13 +127,19 @@ def _ckpt_dir(out: Path) -> Path:
 
 
 def _save_ckpt(ck: Path, state, meta: dict) -> None:
+    """State of chunk k to ``state_k.npz`` first, then ``meta.json`` (naming that file) atomically, then the
+    older state files go: an interruption at any point leaves a consistent (meta, state) pair."""
     ck.mkdir(parents=True, exist_ok=True)
     leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(jax.device_get(state))]
+    name = f"state_{meta['chunks_done']}.npz"
     fd, tmp = tempfile.mkstemp(prefix=".state.", suffix=".npz", dir=ck)
     with os.fdopen(fd, "wb") as f:
         np.savez(f, *leaves)
-    os.replace(tmp, ck / "state.npz")
-    write_json_atomic(ck / "meta.json", meta)
+    os.replace(tmp, ck / name)
+    write_json_atomic(ck / "meta.json", dict(meta, state_file=name))
+    for old in ck.glob("state_*.npz"):
+        if old.name != name:
+            old.unlink(missing_ok=True)
 
 
 def _load_ckpt(ck: Path, state_like, spec_hash: str, n_runs: int):
@@ -139,7 +150,7 @@ def _load_ckpt(ck: Path, state_like, spec_hash: str, n_runs: int):
     if meta.get("spec_hash") != spec_hash or meta.get("n_runs") != n_runs:
         raise SpecError(f"{ck}: checkpoint belongs to another spec (hash {meta.get('spec_hash', '?')[:12]}); "
                         "delete it or run without --resume")
-    with np.load(ck / "state.npz") as z:
+    with np.load(ck / meta["state_file"]) as z:
         leaves = [z[f"arr_{i}"] for i in range(len(z.files))]
     treedef = jax.tree_util.tree_structure(state_like)
     if treedef.num_leaves != len(leaves):
