@@ -55,14 +55,14 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
     f = scenario.validate_factors(robot.ids, m, mu, d)
     B = f.m.shape[0]
     bm, in_axes = scenario.batch_model(robot.mjx_model, robot.mj_model, robot.ids, f)
-    qpos0 = np.stack([robot.home_qpos(di) for di in f.d])
-    geo = scene_geometry(robot)
     kw = plan_kwargs or {}
-    course = bool(geo.obstacles.shape[0] or geo.terrain.shape[0])
-    # a plan depends on the run only through d (start pose and carried height): plan each level once
+    course = scene_geometry(robot).is_course
+    # start pose and plan depend on the run only through d (carried height): compute each level once
     levels, inverse = np.unique(f.d, return_inverse=True)
-    unique = [course_plan(robot, robot.home_qpos(di), side=float(di), **kw) if course
-              else straight_plan(robot, robot.home_qpos(di), **kw) for di in levels]
+    q_levels = [robot.home_qpos(di) for di in levels]
+    qpos0 = np.stack(q_levels)[inverse]
+    unique = [course_plan(robot, q, side=float(di), **kw) if course else straight_plan(robot, q, **kw)
+              for q, di in zip(q_levels, levels)]
     plans = jax.tree_util.tree_map(lambda x: x[jnp.asarray(inverse)], stack(unique))
     state = jax.jit(jax.vmap(functools.partial(init_state, sim), in_axes=(in_axes, 0)))(bm, jnp.asarray(qpos0))
     om = ObjectModel(mass=jnp.asarray(f.m), side=jnp.asarray(f.d), mu=jnp.asarray(f.mu),

@@ -33,6 +33,7 @@ import numpy as np
 from wbc_jax import metrics
 from wbc_jax.errors import SpecError, WbcJaxError
 from wbc_jax.io_utils import atomic_dir, write_json_atomic
+from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.spec import Design, Spec, default_spec_path, design, load_spec
 
 LOG_EVERY = 20  # control steps per logged sample (the rollout's outer scan)
@@ -107,9 +108,6 @@ def build(spec: Spec, gains=None):
     if key not in _FNS:
         _FNS[key] = jax.jit(jax.vmap(functools.partial(init_state, sim), in_axes=(b.in_axes, 0, 0)))
     state = _FNS[key](b.model, jnp.asarray(qpos0), jnp.asarray(qvel0))
-    # strong-typed accumulators (init_state's -inf is weak-typed; the scan returns strong types, and a
-    # mismatch would compile the chunk function a second time for the carried state)
-    state = state._replace(acc=jax.tree_util.tree_map(lambda x: jnp.asarray(x, x.dtype), state.acc))
     push = Push(force=jnp.asarray(dz.push_force), t0=jnp.asarray(dz.push_frac * T_plan),
                 duration=jnp.asarray(dz.push_duration))
     b = b._replace(state=state, push=push)
@@ -267,7 +265,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     acc = jax.device_get(state.acc)
     p_obj = np.asarray(state.d.xpos[:, sim.robot.ids.obj_body])
     final_err = np.linalg.norm(p_obj - p_goal, axis=1)
-    res = metrics.finalize(acc, sim.dt_control, dz.mu, course=spec.campaign["scene"] != "flat", final_err=final_err)
+    res = metrics.finalize(acc, sim.dt_control, dz.mu, course=scene_geometry(sim.robot).is_course, final_err=final_err)
     df = results_table(spec, dz, res)
     # env-steps/s from chunks that did not compile (the first chunk of each process does)
     steady = [mk["wall_s"] for mk in marks if not mk["fresh_process"]]

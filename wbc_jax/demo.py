@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wbc_jax import metrics
 from wbc_jax.batch import broadcast, prepare_batch
 from wbc_jax.control.transport import TransportConfig, control_qp_settings, default_gains
 from wbc_jax.io_utils import atomic_dir
@@ -29,11 +30,6 @@ from wbc_jax.video import render_gif
 
 LEVELS = dict(m=(0.2, 0.3, 0.4), mu=(0.4, 0.7, 1.0), d=(0.06, 0.08, 0.10))
 DEFAULT = dict(m=0.3, mu=0.7, d=0.08)
-FALL_Z_FLAT = 0.3  # [m] trunk height below which a run counts as fallen on flat ground
-FALL_Z_COURSE = 0.15  # [m] the same on the course (the robot crouches under the wall)
-DROP_LIFT = 0.01  # [m] object lifted this far off the tray counts as dropped
-DONE_TOL = 0.05  # [m] final object error for a completed transport
-MAX_OFF_S = 0.05  # [s] the object may touch nothing on the tray for at most this long
 
 
 def run_demo(out: str, scene: str = "transport", seconds: float | None = None, all_cells: bool = False,
@@ -42,8 +38,6 @@ def run_demo(out: str, scene: str = "transport", seconds: float | None = None, a
     """Run the demo and write DIR. ``push_at``: push start as a fraction of the planned duration (0.35 is
     mid-course, before the wall)."""
     robot = Robot(scene)
-    course = bool(scene_geometry(robot).obstacles.shape[0] or scene_geometry(robot).terrain.shape[0])
-    fall_z = FALL_Z_COURSE if course else FALL_Z_FLAT
     sim = make_sim(robot, TransportConfig(qp=control_qp_settings(iters)), log_every=20)
     cells = list(itertools.product(*LEVELS.values())) if all_cells else [tuple(DEFAULT.values())]
     m, mu, d = (np.array(c) for c in zip(*cells))
@@ -72,15 +66,15 @@ def run_demo(out: str, scene: str = "transport", seconds: float | None = None, a
     n_steps = int(acc.n_steps[0])
     p_obj = np.asarray(st.d.xpos[:, robot.ids.obj_body])
     p_goal = np.asarray(logs.p_obj_ref[:, -1])
+    err = np.linalg.norm(p_obj - p_goal, axis=1)
+    res = metrics.finalize(acc, sim.dt_control, mu, course=scene_geometry(robot).is_course, final_err=err)
     runs = []
     for i, (mi, mui, di) in enumerate(cells):
-        fell = bool(acc.min_trunk_z[i] < fall_z or acc.nonfoot_floor[i] or acc.nonfinite[i])
-        dropped = bool(acc.max_lift[i] > DROP_LIFT or acc.max_off_s[i] > MAX_OFF_S)
-        err = float(np.linalg.norm(p_obj[i] - p_goal[i]))
         runs.append(dict(
-            m=float(mi), mu=float(mui), d=float(di), completed=bool(not fell and not dropped and err < DONE_TOL),
-            fell=fell, dropped=dropped, hit_wall=bool(acc.wall_contact[i]), max_slip_mm=float(acc.max_slip[i] * 1e3),
-            max_off_tray_ms=float(acc.max_off_s[i] * 1e3), final_object_error_m=err, T_mean_tracking_m=float(acc.sum_track[i] / (n_steps * sim.dt_control)),
+            m=float(mi), mu=float(mui), d=float(di), completed=bool(res["success"][i]), fell=bool(res["fell"][i]),
+            dropped=bool(res["dropped"][i]), hit_wall=bool(res["hit_wall"][i]), max_slip_mm=float(res["max_slip_mm"][i]),
+            max_off_tray_ms=float(acc.max_off_s[i] * 1e3), final_object_error_m=float(err[i]),
+            T_mean_tracking_m=float(res["T"][i]),
             min_trunk_z_m=float(acc.min_trunk_z[i]), max_tau_ratio=float(acc.max_tau_ratio[i]),
             max_qp_tau_excess_Nm=float(acc.max_tau_excess[i]),
             qp_prim_res_median=float(np.median(logs.prim_res[i])), qp_flag_fraction=float(acc.n_flag[i] / n_steps)))

@@ -141,7 +141,7 @@ def init_state(sim: Sim, m, qpos0, qvel0=None) -> RunState:
     dyn = dyn_terms(m, d, ids)
     z = jnp.zeros(())
     acc = Accum(min_trunk_z=dyn.p_base[2], max_slip=z, max_lift=z, nonfoot_floor=jnp.bool_(False),
-                wall_contact=jnp.bool_(False), max_tau_ratio=z, max_tau_excess=jnp.asarray(-jnp.inf), sum_prim_res=z,
+                wall_contact=jnp.bool_(False), max_tau_ratio=z, max_tau_excess=jnp.full((), -jnp.inf, z.dtype), sum_prim_res=z,
                 n_flag=jnp.zeros((), jnp.int32), n_steps=jnp.zeros((), jnp.int32), sum_track=z,
                 nonfinite=jnp.bool_(False), off_steps=jnp.zeros((), jnp.int32), max_off_s=z,
                 sum_invH=z, sum_acc=z, n_boundary=jnp.zeros((), jnp.int32))
@@ -155,7 +155,8 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     d = physics.sense(m, rs.d)
     t = d.time
     dyn = dyn_terms(m, d, ids)
-    contact = jnp.any(d._impl.contact.dist[sim.foot_slots] < CONTACT_DIST, axis=1)  # (4,)
+    dist = d._impl.contact.dist
+    contact = jnp.any(dist[sim.foot_slots] < CONTACT_DIST, axis=1)  # (4,)
     ref = reference(plan, t, rs.p_lift, contact, dyn.p_foot)
     tau, cs, qd = transport_control(m, d, dyn, ref, om, gains, rs.cs, ids, sim.cfg, mu_ground)
     on = (t >= push.t0) & (t < push.t0 + push.duration)
@@ -167,7 +168,6 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     rel = _tray_rel(d, ids)
     slip = jnp.linalg.norm(rel[:2] - rs.rel0[:2])
     lift = rel[2] - rs.rel0[2]
-    dist = d._impl.contact.dist
     p_obj = d.xpos[ids.obj_body]
     a = rs.acc
     off = jnp.all(dist[sim.obj_slots] > CONTACT_DIST) if sim.obj_slots.size else jnp.bool_(False)
@@ -175,8 +175,8 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     finite = jnp.all(jnp.isfinite(d_next.qpos)) & jnp.all(jnp.isfinite(tau))
     if sim.obj_slots.size:  # paper metrics: forces of this step's constraint solve, object acceleration
         oa = ids.obj_dof_adr
-        inv_h, _, acc_norm = metrics.step_integrands(m, d_next, sim.obj_slots, om.mu, ref.p_obj, p_obj,
-                                                     d.qvel[oa:oa + 3], d_next.qvel[oa:oa + 3], sim.dt_control)
+        inv_h, acc_norm = metrics.step_integrands(m, d_next, sim.obj_slots, om.mu, d.qvel[oa:oa + 3],
+                                                  d_next.qvel[oa:oa + 3], sim.dt_control)
         inv_h, acc_norm = jnp.where(finite, inv_h, 0.0), jnp.where(finite, acc_norm, 0.0)
     else:
         inv_h = acc_norm = jnp.zeros(())

@@ -45,7 +45,7 @@ def shard_runs(tree, mesh: Mesh, in_axes=0):
     Returns:
         The padded, sharded pytree (batched leaves have ``padded_size(B, mesh.size)`` runs).
     """
-    axes = jax.tree_util.tree_map(lambda _: in_axes, tree) if not isinstance(in_axes, type(tree)) else in_axes
+    axes = jax.tree_util.tree_map(lambda _: in_axes, tree) if isinstance(in_axes, int) else in_axes
     leaves, treedef = jax.tree_util.tree_flatten(tree)
     ax_leaves = treedef.flatten_up_to(axes)
     sizes = {jnp.shape(x)[0] for x, a in zip(leaves, ax_leaves) if a == 0}

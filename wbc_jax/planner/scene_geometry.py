@@ -30,6 +30,11 @@ class SceneGeometry(NamedTuple):
     terrain: np.ndarray
     obstacles: np.ndarray
 
+    @property
+    def is_course(self) -> bool:
+        """The scene has terrain or obstacles (planned with ``course_plan``, crouch allowed)."""
+        return bool(self.terrain.shape[0] or self.obstacles.shape[0])
+
 
 def _aabb(m: mujoco.MjModel, d: mujoco.MjData, g: int) -> np.ndarray:
     """(2, 3) world AABB of box geom g (rotated boxes get their enclosing box)."""
