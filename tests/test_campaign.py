@@ -131,6 +131,60 @@ def test_interrupt_and_resume_equal_uninterrupted(full_run, tiny_spec, tmp_path)
     assert not ck.exists()
 
 
+def test_nan_run_does_not_poison_the_batch(full_run, tiny_spec):
+    """A run whose state goes NaN is frozen and marked failed; every other run's metrics equal the clean batch's."""
+    import jax
+    import jax.numpy as jnp
+
+    from wbc_jax import campaign as C
+    from wbc_jax import metrics
+
+    sim, dz, b, _, logs_per_chunk, n_chunks = C.build(load_spec(tiny_spec))
+    bad = 3
+    d = b.state.d
+    state = b.state._replace(d=d.replace(qvel=d.qvel.at[bad].set(jnp.nan)))
+    fn = C._chunk_fn(sim, b.in_axes, logs_per_chunk)  # the compiled function of the clean run (same shapes)
+    for _ in range(n_chunks):
+        state, logs = fn(b.model, state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+    acc = jax.device_get(state.acc)
+    p_obj = np.asarray(state.d.xpos[:, sim.robot.ids.obj_body])
+    final_err = np.linalg.norm(p_obj - np.asarray(logs.p_obj_ref[:, -1]), axis=1)
+    res = metrics.finalize(acc, sim.dt_control, dz.mu, course=False, final_err=final_err)
+    ref = pd.read_csv(full_run[0] / "results.csv")
+    assert res["nonfinite"][bad] and not res["success"][bad]
+    ok = np.arange(dz.n) != bad
+    assert np.all(res["success"][ok]) and not np.any(res["nonfinite"][ok])
+    for k, atol in (("R", 0), ("T", 0), ("S", 0), ("max_slip_mm", 5e-7)):  # the table rounds slip to 1 nm
+        np.testing.assert_allclose(np.asarray(res[k])[ok], ref[k].to_numpy()[ok], rtol=1e-9, atol=atol, err_msg=k)
+
+
+def test_sensor_noise_is_seeded_and_velocity_only(tiny_spec):
+    """The controller's view: positions exact, velocities noisy with the spec's std, reproducible per (seed, step)."""
+    import jax
+    import jax.numpy as jnp
+
+    from wbc_jax import campaign as C
+    from wbc_jax.rollout import controller_view
+
+    spec = load_spec(tiny_spec)
+    sim, dz, b, *_ = C.build(spec)
+    assert sim.sensor_noise and np.all(dz.qvel_noise_std == spec.perturbations["qvel_noise_std"])
+    m0 = jax.tree_util.tree_map(lambda a, x: x if a is None else x[0], b.in_axes, b.model, is_leaf=lambda v: v is None)
+    d0 = jax.tree_util.tree_map(lambda x: x[0], b.state.d)
+    p0 = jax.tree_util.tree_map(lambda x: x[0], b.push)
+    view = jax.jit(lambda d, p, k: controller_view(sim, m0, d, p, k))
+    a, a2, c = view(d0, p0, 5), view(d0, p0, 5), view(d0, p0, 6)
+    np.testing.assert_array_equal(a.qvel, a2.qvel)  # same seed and step: same draw
+    assert not np.allclose(a.qvel, c.qvel)  # next step: a new draw
+    np.testing.assert_array_equal(a.xpos, d0.xpos)  # kinematics untouched
+    noise = np.asarray(a.qvel - d0.qvel)
+    assert 0.3 * 0.02 < noise.std() < 3 * 0.02  # 30 draws of std 0.02
+    assert not np.allclose(a.qfrc_bias, d0.qfrc_bias)  # velocity terms recomputed from the noisy view
+    p1 = jax.tree_util.tree_map(lambda x: x[1], b.push)
+    assert not np.allclose(view(d0, p1, 5).qvel, a.qvel)  # another run's seed: another draw
+    assert jnp.all(b.push.qvel_noise_std == 0.02)
+
+
 # ---------------------------------------------------------------- CI regression
 
 

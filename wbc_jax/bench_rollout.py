@@ -70,3 +70,64 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         with open(json_path, "w") as fh:
             json.dump(rows, fh, indent=2)
     return rows
+
+
+PROFILE_VARIANTS = ("wbc_1", "wbc_n", "wbc_n_norefactor", "wbc_n_inv")
+
+
+def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: str = "flat",
+                json_path: str | None = None, variants=None):
+    """Where the time of one control step goes, from timings of variants compiled in one process.
+
+    Times (per env-step, excluding compile) physics only; physics + WBC with 1 ADMM iteration; with ``iters``
+    iterations (the default rho adaptation, i.e. a refactor every ``adapt_every``); with ``iters`` iterations and
+    no refactor; with the explicit-inverse linear solve (``variants`` picks others, e.g. the unrolled solver
+    ``wbc_n_unroll``). Differences give the controller's fixed cost (sensing,
+    QP assembly, equilibration, one factorization), the cost of one ADMM iteration and of one refactor.
+    """
+    robot = Robot(scene)
+    device = jax.devices()[0].device_kind
+    rng = np.random.default_rng(0)
+    base = control_qp_settings(iters)
+    known = dict(wbc_1=base._replace(iters=1), wbc_n=base, wbc_n_norefactor=base._replace(adapt_every=0),
+                 wbc_n_inv=base._replace(linsolve="inv"), wbc_n_unroll=base._replace(unroll=True),
+                 wbc_n_unroll_norefactor=base._replace(unroll=True, adapt_every=0))
+    variants = [(k, known[k]) for k in (variants or PROFILE_VARIANTS)]
+    out = dict(device=device, scene=robot.path.name, batch=batch, steps=steps, iters=iters)
+    b = None
+    for label, qs in [("physics", None)] + variants:
+        sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=qs or base), log_every=steps)
+        if b is None:
+            b = prepare_batch(sim, rng.choice([0.2, 0.3, 0.4], batch), rng.choice([0.4, 0.7, 1.0], batch),
+                              rng.choice([0.06, 0.08, 0.10], batch))
+        if qs is None:
+            def phys(m, d):
+                return jax.lax.scan(lambda d, _: (mjx.step(m, d), None), d, None, length=steps)[0]
+
+            f = jax.jit(jax.vmap(phys, in_axes=(b.in_axes, 0)))
+            args = (b.model, b.state.d)
+        else:
+            f = jax.jit(jax.vmap(make_chunk_fn(sim, 1), in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0)))
+            args = (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+        _, c = _timed(f, *args)
+        _, t = _timed(f, *args)
+        out[label + "_us"] = 1e6 * t / (batch * steps)
+        out[label + "_compile_s"] = c - t
+        print(f"{device} batch {batch}: {label:18s} {out[label + '_us']:8.3f} us/env-step "
+              f"({batch * steps / t:10.0f} env-steps/s), compile {c - t:.1f} s", flush=True)
+    if all(k in out for k in ("wbc_1_us", "wbc_n_us", "wbc_n_norefactor_us")):
+        _split(out, iters, base)
+    if json_path:
+        with open(json_path, "w") as fh:
+            json.dump(out, fh, indent=2)
+    return out
+
+
+def _split(out: dict, iters: int, base) -> None:
+    """Controller fixed cost, per-iteration and per-refactor cost from the variants' timings (in place)."""
+    n_ref = max(0, (iters - 1) // base.adapt_every) if base.adapt_every else 0
+    out["controller_fixed_us"] = out["wbc_1_us"] - out["physics_us"]
+    out["per_iteration_us"] = (out["wbc_n_norefactor_us"] - out["wbc_1_us"]) / max(iters - 1, 1)
+    out["per_refactor_us"] = (out["wbc_n_us"] - out["wbc_n_norefactor_us"]) / max(n_ref, 1)
+    print(f"controller fixed cost {out['controller_fixed_us']:.3f} us, one ADMM iteration {out['per_iteration_us']:.4f} us, "
+          f"one refactor {out['per_refactor_us']:.3f} us (per env-step; physics {out['physics_us']:.3f} us)", flush=True)

@@ -46,14 +46,15 @@ def has_accelerator() -> bool:
     return jax.default_backend() != "cpu"
 
 
-def _sim(scene: str, iters: int):
+def _sim(scene: str, iters: int, sensor_noise: bool = False):
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
     from wbc_jax.model import Robot
     from wbc_jax.rollout import make_sim
 
-    key = (scene, iters)
+    key = (scene, iters, sensor_noise)
     if key not in _SIMS:
-        _SIMS[key] = make_sim(Robot(scene), TransportConfig(qp=control_qp_settings(iters)), log_every=LOG_EVERY)
+        _SIMS[key] = make_sim(Robot(scene), TransportConfig(qp=control_qp_settings(iters)), log_every=LOG_EVERY,
+                              sensor_noise=sensor_noise)
     return _SIMS[key]
 
 
@@ -95,10 +96,10 @@ def build(spec: Spec, gains=None):
     ``gains``: controller gains (TransportGains, unbatched) instead of the defaults."""
     from wbc_jax.batch import prepare_batch
     from wbc_jax.planner.transport import plan_duration
-    from wbc_jax.rollout import Push, init_state
+    from wbc_jax.rollout import init_state, make_push
 
     c = spec.campaign
-    sim = _sim(c["scene"], c["qp_iters"])
+    sim = _sim(c["scene"], c["qp_iters"], spec.perturbations["qvel_noise_std"] > 0)
     dz = design(spec)
     b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=gains,
                       plan_kwargs=dict(distance=c["distance"], speed=c["speed"]))
@@ -108,8 +109,7 @@ def build(spec: Spec, gains=None):
     if key not in _FNS:
         _FNS[key] = jax.jit(jax.vmap(functools.partial(init_state, sim), in_axes=(b.in_axes, 0, 0)))
     state = _FNS[key](b.model, jnp.asarray(qpos0), jnp.asarray(qvel0))
-    push = Push(force=jnp.asarray(dz.push_force), t0=jnp.asarray(dz.push_frac * T_plan),
-                duration=jnp.asarray(dz.push_duration))
+    push = make_push(dz.push_force, dz.push_frac * T_plan, dz.push_duration, dz.qvel_noise_std, dz.seed)
     b = b._replace(state=state, push=push)
     log_dt = sim.dt_control * LOG_EVERY
     logs_per_chunk = max(1, int(round(c["chunk_seconds"] / log_dt)))
@@ -167,10 +167,17 @@ def _versions() -> dict:
 
 
 def _git_commit() -> str | None:
+    """HEAD of the checkout this package runs from, with ``-dirty`` when tracked files differ from it (a copied
+    working tree whose ``.git`` is stale then says so); None outside a git checkout."""
+    here = Path(__file__).resolve().parent
     try:
-        r = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent, capture_output=True,
-                           text=True, timeout=5)
-        return r.stdout.strip() or None
+        r = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5)
+        head = r.stdout.strip()
+        if r.returncode != 0 or not head:
+            return None
+        st = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here, capture_output=True,
+                            text=True, timeout=10)
+        return head + ("-dirty" if st.returncode != 0 or st.stdout.strip() else "")
     except (OSError, subprocess.SubprocessError):
         return None
 

@@ -24,7 +24,7 @@ from wbc_jax.io_utils import atomic_dir
 from wbc_jax.model import Robot
 from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.planner.transport import plan_duration
-from wbc_jax.rollout import Push, make_sim, simulate
+from wbc_jax.rollout import make_push, make_sim, simulate
 from wbc_jax.scenario import single_run_mj_model
 from wbc_jax.video import render_gif
 
@@ -48,7 +48,7 @@ def run_demo(out: str, scene: str = "transport", seconds: float | None = None, a
     b = prepare_batch(sim, m, mu, d, gains=gains, plan_kwargs=dict(distance=distance, speed=speed))
     T = plan_duration(b.plan)
     seconds = T + 0.5 if seconds is None else float(seconds)
-    p = Push(jnp.array([40.0, 0.0, 0.0]), jnp.asarray(push_at * T), jnp.asarray(0.2)) if push else None
+    p = make_push([40.0, 0.0, 0.0], push_at * T, 0.2) if push else None
     if p is not None:
         b = b._replace(push=broadcast(p, len(cells)))
     print(f"{len(cells)} run(s), {seconds:.1f} s simulated, scene {robot.path.name}", flush=True)

@@ -25,15 +25,35 @@ from wbc_jax.planner.transport import TransportPlan, reference
 
 
 class Push(NamedTuple):
-    """External force on the trunk (world frame): force (3,) [N] applied for t in [t0, t0 + duration)."""
+    """Per-run disturbances: an external force on the trunk and noise on the state the controller sees.
+
+    Attributes:
+        force: (3,) world-frame force on the trunk [N], applied for t in [t0, t0 + duration).
+        t0, duration: () [s].
+        qvel_noise_std: () std of white Gaussian noise added, every control step, to every generalized velocity
+            the controller reads (robot and object; [m/s] for translations, [rad/s] for rotations). The physics
+            integrates the true state; only the controller's view (its Jacobian-dot terms, CoM and foot
+            velocities, observer momentum, object velocity) is noisy. Used only when ``Sim.sensor_noise``.
+        key: (2,) uint32 raw PRNG key of the run's noise; step k draws from ``fold_in(key, k)``.
+    """
 
     force: jax.Array
     t0: jax.Array
     duration: jax.Array
+    qvel_noise_std: jax.Array
+    key: jax.Array
+
+
+def make_push(force, t0, duration, qvel_noise_std=0.0, seed=0) -> Push:
+    """A Push from plain values (one run; or arrays with a leading run axis: ``seed`` (B,) then gives (B, 2) keys)."""
+    seed = np.asarray(seed, dtype=np.uint64)
+    key = np.stack([np.zeros_like(seed), seed], axis=-1).astype(np.uint32)
+    return Push(jnp.asarray(force, dtype=float), jnp.asarray(t0, dtype=float), jnp.asarray(duration, dtype=float),
+                jnp.asarray(qvel_noise_std, dtype=float), jnp.asarray(key))
 
 
 def no_push() -> Push:
-    return Push(jnp.zeros(3), jnp.asarray(0.0), jnp.asarray(0.0))
+    return make_push(np.zeros(3), 0.0, 0.0)
 
 
 class Accum(NamedTuple):
@@ -99,6 +119,7 @@ class Sim:
     wall_slots: np.ndarray
     foot_slots: np.ndarray
     obj_slots: np.ndarray
+    sensor_noise: bool = False  # the controller sees qvel + noise (Push.qvel_noise_std); costs a velocity pass
 
     @property
     def dt_control(self) -> float:
@@ -119,11 +140,22 @@ def contact_slots(robot: Robot):
             np.where(np.isin(slot_pair, robot.ids.obj_pair))[0])
 
 
-def make_sim(robot: Robot, cfg: TransportConfig | None = None, n_substeps: int = 1, log_every: int = 20) -> Sim:
+def make_sim(robot: Robot, cfg: TransportConfig | None = None, n_substeps: int = 1, log_every: int = 20,
+             sensor_noise: bool = False) -> Sim:
     cfg = cfg or TransportConfig(dt=float(robot.mj_model.opt.timestep) * n_substeps)
     nf, wl, ft, ob = contact_slots(robot)
     return Sim(robot=robot, cfg=cfg, n_substeps=n_substeps, log_every=log_every, nonfoot_slots=nf, wall_slots=wl,
-               foot_slots=ft, obj_slots=ob)
+               foot_slots=ft, obj_slots=ob, sensor_noise=sensor_noise)
+
+
+def controller_view(sim: Sim, m, d, push: Push, step):
+    """The data the controller reads: ``d`` itself, or (``sim.sensor_noise``) ``d`` with noisy generalized
+    velocities and its velocity-dependent terms recomputed (positions, hence kinematics and contacts, are exact)."""
+    if not sim.sensor_noise:
+        return d
+    key = jax.random.fold_in(push.key, step)
+    noise = push.qvel_noise_std * jax.random.normal(key, d.qvel.shape, d.qvel.dtype)
+    return mjx.fwd_velocity(m, d.replace(qvel=d.qvel + noise))
 
 
 def _tray_rel(d, ids):
@@ -154,11 +186,12 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     ids = sim.robot.ids
     d = physics.sense(m, rs.d)
     t = d.time
-    dyn = dyn_terms(m, d, ids)
+    d_ctl = controller_view(sim, m, d, push, rs.acc.n_steps)
+    dyn = dyn_terms(m, d_ctl, ids)
     dist = d._impl.contact.dist
     contact = jnp.any(dist[sim.foot_slots] < CONTACT_DIST, axis=1)  # (4,)
     ref = reference(plan, t, rs.p_lift, contact, dyn.p_foot)
-    tau, cs, qd = transport_control(m, d, dyn, ref, om, gains, rs.cs, ids, sim.cfg, mu_ground)
+    tau, cs, qd = transport_control(m, d_ctl, dyn, ref, om, gains, rs.cs, ids, sim.cfg, mu_ground)
     on = (t >= push.t0) & (t < push.t0 + push.duration)
     xfrc = jnp.zeros_like(d.xfrc_applied).at[ids.trunk_body, 0:3].set(jnp.where(on, push.force, 0.0))
     d_next = physics.advance(m, d.replace(xfrc_applied=xfrc), tau, sim.n_substeps)

@@ -26,6 +26,9 @@ A spec has three tables (every key optional except ``factors``; defaults below):
     push_max_N = 20.0          # trunk push: magnitude uniform in [0, value] [N], random horizontal direction, 0..200
     push_duration_s = 0.2      # push duration [s], 0..2
     push_window = [0.2, 0.7]   # push start: uniform in this fraction of the planned duration, 0 <= a <= b < 1
+    qvel_noise_std = 0.01      # noise on the state the controller sees: white Gaussian std added every control step
+                               # to each generalized velocity it reads [m/s, rad/s], 0..1 (the physics stays exact;
+                               # drawn from the run's seed, see wbc_jax.rollout.Push)
 
 Run i (cells in the order m, mu, d of the product of the levels, then reps) has seed
 ``SeedSequence([seed, i]).generate_state(1)[0]``; its perturbations are drawn from
@@ -69,6 +72,7 @@ _PERTURB = {
     "push_max_N": (float, 0.0, 0.0, 200.0, False, "[N]"),
     "push_duration_s": (float, 0.2, 0.0, 2.0, False, "[s]"),
     "push_window": (list, [0.2, 0.7], 0.0, 1.0, False, "fractions of the planned duration, 0 <= a <= b < 1"),
+    "qvel_noise_std": (float, 0.0, 0.0, 1.0, False, "[m/s, rad/s]"),
 }
 SCENES = ("transport", "flat")
 
@@ -99,7 +103,7 @@ class Spec:
     def zero_noise(self) -> bool:
         p = self.perturbations
         return not (p["object_xy_mm"] > 0 or p["object_yaw_deg"] > 0 or p["base_speed_std"] > 0
-                    or (p["push_max_N"] > 0 and p["push_duration_s"] > 0))
+                    or (p["push_max_N"] > 0 and p["push_duration_s"] > 0) or p["qvel_noise_std"] > 0)
 
 
 def _err(path, key, msg):
@@ -204,7 +208,8 @@ class Design:
     Attributes (each (B,)): m, mu, d, rep, seed; obj_dx, obj_dy [m] and obj_yaw [rad] (placement on the
     tray, tray-aligned world x/y), v0 (B, 2) [m/s] initial horizontal velocity, push_force (B, 3) [N],
     push_t0 [s] (fraction of the planned duration until the plan is known: see :func:`design`),
-    push_duration [s].
+    push_duration [s]; qvel_noise_std [m/s, rad/s] (controller-view velocity noise, drawn during the rollout from
+    the run's seed).
     """
 
     m: np.ndarray
@@ -219,6 +224,7 @@ class Design:
     push_force: np.ndarray
     push_frac: np.ndarray
     push_duration: np.ndarray
+    qvel_noise_std: np.ndarray
 
     @property
     def n(self) -> int:
@@ -253,4 +259,5 @@ def design(spec: Spec) -> Design:
         obj_dx=draws[:, 0] * p["object_xy_mm"] * 1e-3, obj_dy=draws[:, 1] * p["object_xy_mm"] * 1e-3,
         obj_yaw=np.deg2rad(draws[:, 2] * p["object_yaw_deg"]), v0=draws[:, 3:5] * p["base_speed_std"],
         push_force=push, push_frac=a + (b - a) * draws[:, 7],
-        push_duration=np.full(B, p["push_duration_s"] if p["push_max_N"] > 0 else 0.0))
+        push_duration=np.full(B, p["push_duration_s"] if p["push_max_N"] > 0 else 0.0),
+        qvel_noise_std=np.full(B, p["qvel_noise_std"]))
