@@ -87,6 +87,12 @@ def test_finalize_failures():
     acc = _accum(min_trunk_z=np.array([0.2, 0.45]), nonfinite=np.array([False, True]), sum_acc=np.array([1.0, 1.0]))
     r = metrics.finalize(acc, 1e-3, np.array([0.7, 0.7]), course=True, final_err=np.array([0.0, np.nan]))
     assert r["fell"].tolist() == [False, True] and r["success"].tolist() == [True, False]
+    assert r["fail_reason"].tolist() == ["", "non-finite state; object not delivered"]
+    # a knee or shin touching the ground with the trunk up is a fall, named as body contact
+    acc = _accum(min_trunk_z=np.array([0.4, 0.1]), nonfoot_floor=np.array([True, False]), sum_acc=np.array([1.0, 1.0]))
+    r = metrics.finalize(acc, 1e-3, np.array([0.7, 0.7]), course=True, final_err=np.array([0.0, 0.0]))
+    assert r["fell"].tolist() == [True, True] and r["body_contact"].tolist() == [True, False]
+    assert r["fail_reason"].tolist() == ["body contact with floor/terrain", "trunk below the fall height"]
 
 
 CUBE = """

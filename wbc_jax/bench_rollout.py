@@ -11,6 +11,7 @@ import json
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.batch import prepare_batch
@@ -72,7 +73,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
     return rows
 
 
-PROFILE_VARIANTS = ("wbc_1", "wbc_n", "wbc_n_norefactor", "wbc_n_inv")
+PROFILE_VARIANTS = ("wbc_1", "wbc_n", "wbc_n_norefactor", "wbc_n_chol", "wbc_n_pallas")
 
 
 def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: str = "flat",
@@ -81,8 +82,8 @@ def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: st
 
     Times (per env-step, excluding compile) physics only; physics + WBC with 1 ADMM iteration; with ``iters``
     iterations (the default rho adaptation, i.e. a refactor every ``adapt_every``); with ``iters`` iterations and
-    no refactor; with the explicit-inverse linear solve (``variants`` picks others, e.g. the unrolled solver
-    ``wbc_n_unroll``). Differences give the controller's fixed cost (sensing,
+    no refactor; with the Cholesky solve; with the Pallas iteration kernel (``variants`` picks others, e.g. the
+    unrolled solver ``wbc_n_unroll``; the default linear solve is the backend's, see ``control_qp_settings``). Differences give the controller's fixed cost (sensing,
     QP assembly, equilibration, one factorization), the cost of one ADMM iteration and of one refactor.
     """
     robot = Robot(scene)
@@ -90,7 +91,10 @@ def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: st
     rng = np.random.default_rng(0)
     base = control_qp_settings(iters)
     known = dict(wbc_1=base._replace(iters=1), wbc_n=base, wbc_n_norefactor=base._replace(adapt_every=0),
-                 wbc_n_inv=base._replace(linsolve="inv"), wbc_n_unroll=base._replace(unroll=True),
+                 wbc_n_inv=base._replace(linsolve="inv"), wbc_n_chol=base._replace(linsolve="chol"),
+                 wbc_n_pallas=base._replace(linsolve="inv", kernel="pallas"),
+                 wbc_n_pallas_norefactor=base._replace(linsolve="inv", kernel="pallas", adapt_every=0),
+                 wbc_n_unroll=base._replace(unroll=True),
                  wbc_n_unroll_norefactor=base._replace(unroll=True, adapt_every=0))
     variants = [(k, known[k]) for k in (variants or PROFILE_VARIANTS)]
     out = dict(device=device, scene=robot.path.name, batch=batch, steps=steps, iters=iters)
@@ -131,3 +135,74 @@ def _split(out: dict, iters: int, base) -> None:
     out["per_refactor_us"] = (out["wbc_n_us"] - out["wbc_n_norefactor_us"]) / max(n_ref, 1)
     print(f"controller fixed cost {out['controller_fixed_us']:.3f} us, one ADMM iteration {out['per_iteration_us']:.4f} us, "
           f"one refactor {out['per_refactor_us']:.3f} us (per env-step; physics {out['physics_us']:.3f} us)", flush=True)
+
+
+def run_components(batch: int = 256, iters: int = 50, scene: str = "transport", warm_steps: int = 100,
+                   reps: int = 20, json_path: str | None = None):
+    """Latency of each stage of one control step, each stage its own jit(vmap) call on a state ``warm_steps`` into
+    the run (median of ``reps`` calls; includes one dispatch per call, so the stages sum to more than the fused step).
+    """
+    from wbc_jax import metrics, physics
+    from wbc_jax.control.dynamics import dyn_terms
+    from wbc_jax.control.transport import assemble
+    from wbc_jax.planner.transport import reference
+    from wbc_jax.qp import solve_qp
+    from wbc_jax.rollout import CONTACT_DIST, control_step
+
+    robot = Robot(scene)
+    ids = robot.ids
+    cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=control_qp_settings(iters))
+    sim = make_sim(robot, cfg, log_every=warm_steps)
+    rng = np.random.default_rng(0)
+    b = prepare_batch(sim, rng.choice([0.2, 0.3, 0.4], batch), rng.choice([0.4, 0.7, 1.0], batch),
+                      rng.choice([0.06, 0.08, 0.10], batch))
+    ax = b.in_axes
+    chunk = jax.jit(jax.vmap(make_chunk_fn(sim, 1), in_axes=(ax, 0, 0, 0, 0, 0, 0)))
+    rs, _ = chunk(b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+    V = lambda f, n_run: jax.jit(jax.vmap(f, in_axes=(ax,) + (0,) * n_run))  # noqa: E731
+    f_sense = V(physics.sense, 1)
+    ds = f_sense(b.model, rs.d)
+    f_dyn = V(lambda m, d: dyn_terms(m, d, ids), 1)
+    dyn = f_dyn(b.model, ds)
+
+    def ref_fn(m, d, dyn, plan, p_lift):
+        contact = jnp.any(d._impl.contact.dist[sim.foot_slots] < CONTACT_DIST, axis=1)
+        return reference(plan, d.time, p_lift, contact, dyn.p_foot)
+
+    f_ref = V(ref_fn, 4)
+    ref = f_ref(b.model, ds, dyn, b.plan, rs.p_lift)
+    f_asm = V(lambda m, d, dyn, ref, om, g, cs, mg: assemble(m, d, dyn, ref, om, g, cs, ids, cfg, mg), 7)
+    _, (P, q, A, l, u, A_tau, h_a, _) = f_asm(b.model, ds, dyn, ref, b.om, b.gains, rs.cs, b.mu_ground)
+    f_qp = jax.jit(jax.vmap(lambda P, q, A, l, u, w: solve_qp(P, q, A, l, u, warm=w, settings=cfg.qp)))
+    res = f_qp(P, q, A, l, u, rs.cs.warm)
+    tau = jnp.clip(jnp.einsum("bij,bj->bi", A_tau, res.x) + h_a, -ids.tau_max, ids.tau_max)
+    f_adv = V(lambda m, d, tau: physics.advance(m, d, tau), 2)
+    d_next = f_adv(b.model, ds, tau)
+    oa = ids.obj_dof_adr
+    f_met = V(lambda m, d0, d1, mu: metrics.step_integrands(m, d1, sim.obj_slots, mu, d0.qvel[oa:oa + 3],
+                                                            d1.qvel[oa:oa + 3], sim.dt_control), 3)
+    f_step = V(lambda m, rs, plan, om, g, push, mg: control_step(sim, m, rs, plan, om, g, push, mg), 6)
+    f_phys = V(mjx.step, 1)
+    stages = [("sense (fwd_position + fwd_velocity)", f_sense, (b.model, rs.d)),
+              ("dyn_terms", f_dyn, (b.model, ds)),
+              ("reference", f_ref, (b.model, ds, dyn, b.plan, rs.p_lift)),
+              ("assemble (observer, jacobians, build_qp)", f_asm, (b.model, ds, dyn, ref, b.om, b.gains, rs.cs,
+                                                                   b.mu_ground)),
+              (f"solve_qp ({iters} iterations)", f_qp, (P, q, A, l, u, rs.cs.warm)),
+              ("advance (actuation, constraint solve, integrate)", f_adv, (b.model, ds, tau)),
+              ("metrics.step_integrands", f_met, (b.model, ds, d_next, b.om.mu)),
+              ("whole control step", f_step, (b.model, rs, b.plan, b.om, b.gains, b.push, b.mu_ground)),
+              ("physics only (mjx.step)", f_phys, (b.model, rs.d))]
+    device = jax.devices()[0].device_kind
+    out = dict(device=device, scene=robot.path.name, batch=batch, iters=iters, stages_ms={})
+    for name, f, args in stages:
+        jax.block_until_ready(f(*args))
+        ts = []
+        for _ in range(reps):
+            ts.append(_timed(f, *args)[1])
+        out["stages_ms"][name] = 1e3 * float(np.median(ts))
+        print(f"{device} batch {batch}: {name:50s} {out['stages_ms'][name]:8.3f} ms per call", flush=True)
+    if json_path:
+        with open(json_path, "w") as fh:
+            json.dump(out, fh, indent=2)
+    return out

@@ -187,8 +187,8 @@ def results_table(spec: Spec, dz: Design, res: dict):
 
     df = pd.DataFrame(dict(run=np.arange(dz.n), m=dz.m, mu=dz.mu, d=dz.d, rep=dz.rep, seed=dz.seed,
                            success=res["success"]))
-    for k in ("R", "T", "S", "max_slip_mm", "fell", "dropped", "slid", "hit_wall", "qp_flagged", "nonfinite",
-              "boundary_fraction", "final_err_mm"):
+    for k in ("R", "T", "S", "max_slip_mm", "fell", "trunk_low", "body_contact", "dropped", "slid", "hit_wall",
+              "qp_flagged", "nonfinite", "boundary_fraction", "final_err_mm", "fail_reason"):
         df[k] = res[k]
     df["obj_dx_mm"] = dz.obj_dx * 1e3
     df["obj_dy_mm"] = dz.obj_dy * 1e3
@@ -283,12 +283,16 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     cells = df.groupby(["m", "mu", "d"])["success"].agg(["size", "sum"]).reset_index()
     failures = [dict(m=r.m, mu=r.mu, d=r.d, failed=int(r.size - r.sum), runs=int(r.size))
                 for r in cells.itertuples() if r.size != r.sum]
+    failed_runs = [dict(run=int(r.run), m=r.m, mu=r.mu, d=r.d, rep=int(r.rep), seed=int(r.seed), reason=r.fail_reason,
+                        push_N=float(r.push_N)) for r in df[~df.success].itertuples()]
     warnings = []
     if spec.zero_noise:
         warnings.append("all perturbations are zero: repetitions are identical, within-cell variance is zero and "
                         "the F tests are meaningless")
     if failures:
-        warnings.append(f"{int((~df.success).sum())} of {dz.n} runs failed (cells: see failures_per_cell)")
+        warnings.append(f"{int((~df.success).sum())} of {dz.n} runs failed: " + "; ".join(
+            f"run {f['run']} (m {f['m']}, mu {f['mu']}, d {f['d']}, rep {f['rep']}): {f['reason']}"
+            for f in failed_runs[:10]) + (" ..." if len(failed_runs) > 10 else "") + " (all: manifest failed_runs)")
     manifest = dict(
         command="wbc-jax campaign", spec_path=str(spec.path), spec_hash=spec.hash, spec_file_sha256=spec.text_sha256,
         spec=spec.canonical(), default_gains=gains is None, versions=_versions(), git_commit=_git_commit(),
@@ -298,7 +302,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         simulated_s=seconds, planned_s=T_plan, chunk_s=chunk_s, n_chunks=n_chunks, control_dt_s=sim.dt_control,
         wall_s_total=time.perf_counter() - t_start + wall_before, wall_s_rollout=wall_sim,
         compile_s_estimate=compile_s, first_chunk_s=first[0] if first else None, env_steps_per_s=eps,
-        resumed=bool(resume and wall_before > 0), n_success=int(df.success.sum()), failures_per_cell=failures,
+        resumed=bool(resume and wall_before > 0), n_success=int(df.success.sum()), failures_per_cell=failures, failed_runs=failed_runs,
         warnings=warnings, metric_means={k: float(df.loc[df.success, k].mean()) if df.success.any() else None
                                          for k in ("R", "T", "S", "max_slip_mm")})
     with atomic_dir(out_p) as tmp:

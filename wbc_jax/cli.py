@@ -34,6 +34,19 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         batches = [int(x) for x in args.batches.split(",")] if args.batches else ((1, 4) if args.quick else (1, 1024, 4096, 16384))
         run_rollout_bench(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json, scene=args.scene)
         return 0
+    if args.what == "profile":
+        from wbc_jax.bench_rollout import run_profile
+
+        batch = int(args.batches.split(",")[-1]) if args.batches else (4 if args.quick else 16384)
+        run_profile(batch=batch, steps=args.steps, iters=args.iters, scene=args.scene, json_path=args.json,
+                    variants=args.variants.split(",") if args.variants else None)
+        return 0
+    if args.what == "components":
+        from wbc_jax.bench_rollout import run_components
+
+        batch = int(args.batches.split(",")[-1]) if args.batches else (4 if args.quick else 256)
+        run_components(batch=batch, iters=args.iters, scene=args.scene, json_path=args.json)
+        return 0
     raise WbcJaxError(f"bench: unknown target {args.what!r}")
 
 
@@ -69,7 +82,20 @@ def _cmd_trot(args: argparse.Namespace) -> int:
 def _cmd_campaign(args: argparse.Namespace) -> int:
     from wbc_jax.campaign import run_campaign
 
-    run_campaign(args.spec, args.out, resume=args.resume, report=not args.no_report)
+    gains = None
+    if args.gains is not None:
+        from wbc_jax.gains_io import load_gains
+
+        gains = load_gains(args.gains)  # validated before anything runs or is written
+        print(f"gains from {args.gains}", flush=True)
+    run_campaign(args.spec, args.out, resume=args.resume, report=not args.no_report, gains=gains)
+    return 0
+
+
+def _cmd_tune(args: argparse.Namespace) -> int:
+    from wbc_jax.tune import run_tune
+
+    run_tune(args.spec, args.out, candidates=args.candidates, rounds=args.rounds, progress=not args.no_progress)
     return 0
 
 
@@ -93,11 +119,16 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_cmd_report)
 
     b = sub.add_parser("bench", help="benchmarks on the current device")
-    b.add_argument("what", choices=["qp", "rollout"], help="what to benchmark")
+    b.add_argument("what", choices=["qp", "rollout", "profile", "components"],
+                   help="what to benchmark (profile: where a control step's time goes, at the last --batches size, "
+                        "from variants; components: latency of each stage of a control step)")
     b.add_argument("--batches", default=None, help="rollout: comma-separated batch sizes")
     b.add_argument("--steps", type=int, default=200, help="rollout: control steps per timed call")
     b.add_argument("--iters", type=int, default=30, help="rollout: ADMM iterations per control step")
     b.add_argument("--scene", default="flat", help="rollout: 'flat' (default), 'transport' or a scene XML path")
+    b.add_argument("--variants", default=None, help="profile: comma-separated variants (default wbc_1,wbc_n,"
+                                                    "wbc_n_norefactor,wbc_n_chol,wbc_n_pallas; also wbc_n_inv, "
+                                                    "wbc_n_pallas_norefactor, wbc_n_unroll, wbc_n_unroll_norefactor)")
     b.add_argument("--quick", action="store_true", help="small sizes (CPU smoke run)")
     b.add_argument("--json", default=None, help="also write the results as JSON here")
     b.set_defaults(func=_cmd_bench)
@@ -124,7 +155,18 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", default="out/campaign", help="output directory (default out/campaign)")
     c.add_argument("--resume", action="store_true", help="continue from the checkpoint of an interrupted run")
     c.add_argument("--no-report", action="store_true", help="skip the ANOVA report")
+    c.add_argument("--gains", default=None, help="controller gains TOML (e.g. best_gains.toml of wbc-jax tune) "
+                                                 "instead of the defaults")
     c.set_defaults(func=_cmd_campaign)
+
+    u = sub.add_parser("tune", help="batched gain search (grid, random, cross-entropy method) over factor cells; "
+                                    "leaderboard.csv, best_gains.toml, figures, manifest.json")
+    u.add_argument("--spec", default=None, help="tuning spec (default sweeps/gain_tuning.toml)")
+    u.add_argument("--out", default="out/tune", help="output directory (default out/tune)")
+    u.add_argument("--candidates", type=int, default=None, help="candidates per round (overrides tune.candidates)")
+    u.add_argument("--rounds", type=int, default=None, help="rounds (overrides tune.rounds; not used by grid)")
+    u.add_argument("--no-progress", action="store_true", help="no progress bar")
+    u.set_defaults(func=_cmd_tune)
 
     g = sub.add_parser("regress", help="CI regression: rerun a stored baseline's spec, compare per-cell metric means "
                                        "with its tolerance band; exit 1 with a table of what moved")

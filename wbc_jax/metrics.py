@@ -89,12 +89,15 @@ def finalize(acc, dt: float, mu, course: bool, final_err) -> dict[str, np.ndarra
         course: the scene has obstacles (fall threshold); final_err: (B,) final object error [m].
 
     Returns:
-        dict of (B,) arrays: R [rad^2], T [m], S [s^2/m], max_slip_mm, flags fell, dropped, slid, hit_wall,
-        qp_flagged, nonfinite, and success (no fall, no drop, finite, final object error <= DONE_TOL).
+        dict of (B,) arrays: R [rad^2], T [m], S [s^2/m], max_slip_mm, flags fell (= trunk_low or body_contact),
+        trunk_low, body_contact, dropped, slid, hit_wall, qp_flagged, nonfinite, success (no fall, no drop, finite,
+        final object error <= DONE_TOL) and fail_reason (text, "" for a success).
     """
     n = np.asarray(acc.n_steps, float)
     dur = np.maximum(n * dt, 1e-12)
-    fell = (np.asarray(acc.min_trunk_z) < (FALL_Z_COURSE if course else FALL_Z_FLAT)) | np.asarray(acc.nonfoot_floor)
+    trunk_low = np.asarray(acc.min_trunk_z) < (FALL_Z_COURSE if course else FALL_Z_FLAT)
+    body_contact = np.asarray(acc.nonfoot_floor)
+    fell = trunk_low | body_contact
     nonfinite = np.asarray(acc.nonfinite)
     dropped = (np.asarray(acc.max_lift) > DROP_LIFT) | (np.asarray(acc.max_off_s) > MAX_OFF_S)
     final_err = np.asarray(final_err, float)
@@ -107,6 +110,8 @@ def finalize(acc, dt: float, mu, course: bool, final_err) -> dict[str, np.ndarra
         max_slip_mm=np.asarray(acc.max_slip) * 1e3,
         boundary_fraction=np.asarray(acc.n_boundary) / np.maximum(n, 1),
         fell=fell | nonfinite,
+        trunk_low=trunk_low,
+        body_contact=body_contact,
         dropped=dropped,
         slid=np.asarray(acc.max_slip) > SLIP_LIMIT,
         hit_wall=np.asarray(acc.wall_contact),
@@ -118,4 +123,22 @@ def finalize(acc, dt: float, mu, course: bool, final_err) -> dict[str, np.ndarra
     for k in ("R", "T", "S"):
         bad |= ~np.isfinite(out[k])
     out["success"] = ~bad
+    out["fail_reason"] = fail_reasons(out, final_err)
     return out
+
+
+def fail_reasons(out: dict, final_err) -> np.ndarray:
+    """(B,) text per run: why it failed ("" for a success), e.g. "body contact" for a non-foot robot part (knee,
+    shin, trunk, arm) touching the floor or terrain with the trunk still up."""
+    parts = [("nonfinite", "non-finite state"), ("trunk_low", "trunk below the fall height"),
+             ("body_contact", "body contact with floor/terrain"), ("dropped", "object dropped")]
+    reasons = []
+    for i in range(len(out["success"])):
+        r = [text for k, text in parts if out[k][i]]
+        e = final_err[i]
+        if not np.isfinite(e) or e > DONE_TOL:
+            r.append("object not delivered")
+        if not r and not out["success"][i]:
+            r.append("non-finite metric")
+        reasons.append("; ".join(r) if not out["success"][i] else "")
+    return np.array(reasons, dtype=object)

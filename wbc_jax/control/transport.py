@@ -169,10 +169,12 @@ class ControlState(NamedTuple):
     q_post: jax.Array
 
 
-def control_qp_settings(iters: int = 30) -> QPSettings:
+def control_qp_settings(iters: int = 30, **kw) -> QPSettings:
     """ADMM settings for the control loop: ``iters`` warm-started iterations; the flag tolerance is
-    1e-3 (abs and rel), what float32 residuals at WBC scales (forces up to hundreds of N) can show."""
-    return QPSettings(iters=iters, eps_abs=1e-3, eps_rel=1e-3)
+    1e-3 (abs and rel), what float32 residuals at WBC scales (forces up to hundreds of N) can show; the linear
+    solve picked per backend (``linsolve="auto"``: Cholesky on the CPU, explicit inverse on a GPU). ``kw``:
+    other :class:`~wbc_jax.qp.QPSettings` fields."""
+    return QPSettings(**{**dict(iters=iters, eps_abs=1e-3, eps_rel=1e-3, linsolve="auto"), **kw})
 
 
 @dataclass(frozen=True)
@@ -346,6 +348,17 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     return P, q, A, l, u, A_tau, h_a, H[0:6]
 
 
+def assemble(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gains: TransportGains, cs: ControlState,
+             ids: RobotIds, cfg: TransportConfig, mu_ground=1.0):
+    """Observer step and the QP of this control step: (new ObserverState, :func:`build_qp`'s outputs)."""
+    obs = observer_update(cs.obs, dyn, gains.k_obs, cfg.dt)
+    obj = object_state(d, ids)
+    Jp, Jr, Jdp, Jdr = point_jacobians(m, d, ids, obj.p[None], [ids.tray_body])
+    J_o = jnp.concatenate([Jp[0], Jr[0]])  # (6, nv)
+    Jdv_o = jnp.concatenate([Jdp[0], Jdr[0]])
+    return obs, build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, obs.r, ids, cfg, mu_ground, cs.q_post)
+
+
 def transport_control(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gains: TransportGains,
                       cs: ControlState, ids: RobotIds, cfg: TransportConfig, mu_ground=1.0):
     """One control step: observer, QP, torques.
@@ -353,13 +366,7 @@ def transport_control(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gain
     Returns:
         (tau (18,) actuator torques [N m], new ControlState, QPDiag).
     """
-    obs = observer_update(cs.obs, dyn, gains.k_obs, cfg.dt)
-    obj = object_state(d, ids)
-    Jp, Jr, Jdp, Jdr = point_jacobians(m, d, ids, obj.p[None], [ids.tray_body])
-    J_o = jnp.concatenate([Jp[0], Jr[0]])  # (6, nv)
-    Jdv_o = jnp.concatenate([Jdp[0], Jdr[0]])
-    P, q, A, l, u, A_tau, h_a, H_com = build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, obs.r, ids, cfg, mu_ground,
-                                                      cs.q_post)
+    obs, (P, q, A, l, u, A_tau, h_a, H_com) = assemble(m, d, dyn, ref, om, gains, cs, ids, cfg, mu_ground)
     res = solve_qp(P, q, A, l, u, warm=cs.warm, settings=cfg.qp)
     tau_raw = A_tau @ res.x + h_a
     tmax = jnp.asarray(ids.tau_max)

@@ -168,7 +168,9 @@ class QPSettings(NamedTuple):
         linsolve: ``"chol"`` (two triangular solves per iteration) or ``"inv"`` (the
             explicit inverse from the Cholesky factor: matrix-vector products only,
             which may be faster on GPU for small n; as accurate thanks to the residual
-            form).
+            form), or ``"auto"``: ``"chol"`` on the CPU, ``"inv"`` on an accelerator
+            (H100, WBC-sized problems, 50 iterations: 2.8x faster at batch 256 and 1.3x
+            at 16384 than ``"chol"``; on the CPU the inverse is several times slower).
         residual_form: x-update as ``x - K^-1 (Px + q + A'(y + rho (Ax - z)))``, whose
             fixed point does not depend on the linear solve's rounding (False:
             OSQP's right-hand-side form, which stalls in float32).
@@ -177,6 +179,14 @@ class QPSettings(NamedTuple):
         aa_reg: Tikhonov weight (relative to the trace) in the Anderson least squares.
         aa_safeguard: an extrapolated point whose fixed-point residual grew by more
             than this factor is rejected (the plain step is taken instead).
+        unroll: unroll factor of the iteration and equilibration loops (``lax.scan``'s
+            ``unroll``; True: fully). Same arithmetic; on GPU fewer loop trips (each costs
+            a device-host round trip) and more fusion, at a longer compile.
+        kernel: ``"xla"`` (iterations as XLA ops in ``lax.scan``) or ``"pallas"`` (each
+            segment's iterations in one Pallas kernel that keeps the matrices on chip,
+            :mod:`wbc_jax.qp.fused`; needs ``linsolve="inv"``, ``residual_form`` and no
+            Anderson; interpreted, hence slow, on the CPU).
+        num_warps: warps per problem of the Pallas kernel (GPU).
     """
 
     iters: int = 100
@@ -202,6 +212,12 @@ class QPSettings(NamedTuple):
     anderson: int = 0
     aa_reg: float = 1e-8
     aa_safeguard: float = 1.0
+    unroll: int | bool = 1
+    kernel: str = "xla"
+    num_warps: int = 8
+    polish: bool = False
+    polish_delta: float = 1e-6
+    polish_refine: int = 3
 
 
 class QPResult(NamedTuple):
@@ -287,7 +303,7 @@ def _equilibrate(P, q, A, l, u, s: QPSettings) -> _Scaled:
 
     init = (P, q, A, jnp.ones(n, dt), jnp.ones(m, dt), jnp.ones((), dt))
     if s.ruiz_iters > 0:
-        init, _ = lax.scan(one_pass, init, None, length=s.ruiz_iters)
+        init, _ = lax.scan(one_pass, init, None, length=s.ruiz_iters, unroll=s.unroll)
     P, q, A, D, E, c = init
     P = 0.5 * (P + P.T)
     return _Scaled(P, q, A, E * l, E * u, D, E, c)
@@ -386,11 +402,17 @@ def _run(sp, st, rho, w, free, s: QPSettings, iters: int):
             st, rho = carry
             rho_v = _rho_vec(rho, w, free, s)
             fac = _factor(K0, G, rho, s)
-            if s.anderson > 0:
+            if s.kernel == "pallas":
+                from wbc_jax.qp.fused import fused_segment
+
+                x, z, y, dx, dy, bad = fused_segment(sp.P, sp.A, fac, sp.q, sp.l, sp.u, rho_v, st.x, st.z, st.y,
+                                                     iters=length, alpha=s.alpha, num_warps=s.num_warps)
+                st = _State(x, z, y, dx, dy, st.bad | bad)
+            elif s.anderson > 0:
                 st = _anderson_scan(sp, fac, rho_v, s, st, length)
             else:
                 st, _ = lax.scan(lambda c, _: (_step(sp, fac, rho_v, s, c), None), st, None,
-                                 length=length)
+                                 length=length, unroll=s.unroll)
             if s.adapt_every > 0:
                 rho = _adapt(sp, st, rho, s)
             return (st, rho), None
@@ -399,7 +421,7 @@ def _run(sp, st, rho, w, free, s: QPSettings, iters: int):
     carry = (st, rho)
     n_full, rem = divmod(iters, k) if k > 0 else (0, 0)
     if n_full > 0:
-        carry, _ = lax.scan(segment(k), carry, None, length=n_full)
+        carry, _ = lax.scan(segment(k), carry, None, length=n_full, unroll=s.unroll)
     if rem > 0:
         carry, _ = segment(rem)(carry, None)
     return carry
@@ -481,6 +503,94 @@ def _anderson_scan(sp: _Scaled, fac, rho_v, s: QPSettings, st: _State, length: i
     return a.st._replace(x=x, z=z, y=y)
 
 
+POLISH_GUESS = "osqp"
+POLISH_SOLVE = "lu"
+POLISH_PASSES = 1
+POLISH_C = 1.0
+POLISH_USE_AX = False
+POLISH_DEBUG = False
+
+
+def _kkt_error(sp: _Scaled, x, z, y):
+    """Relative KKT error of ``(x, z, y)`` in the scaled problem (``z`` in ``[l, u]``, ``y``
+    in its normal cone): ``max(||Ax - z|| / (1 + ||Ax||, ||z||), ||Px + q + A'y|| / (1 +
+    ||Px||, ||A'y||, ||q||))``, inf-norms."""
+    ax, px, aty = _mv(sp.A, x), _mv(sp.P, x), _mv(sp.A.T, y)
+    prim = _inf_norm(ax - z) / (1.0 + jnp.maximum(_inf_norm(ax), _inf_norm(z)))
+    dual = _inf_norm(px + sp.q + aty) / (
+        1.0 + jnp.maximum(jnp.maximum(_inf_norm(px), _inf_norm(aty)), _inf_norm(sp.q)))
+    return jnp.maximum(prim, dual)
+
+
+def _polish_once(sp: _Scaled, ax, z, y, eq, free, s: QPSettings):
+    """One equality-constrained solve on the active set guessed from ``(Ax or z, y)``.
+
+    Returns ``(x, z, y, y_raw)``."""
+    n, m = sp.P.shape[0], sp.A.shape[0]
+    dt = sp.P.dtype
+    lo_fin = sp.l > -BIG
+    up_fin = sp.u < BIG
+    wv = ax + POLISH_C * y
+    lo = (wv < sp.l) & lo_fin
+    up = (wv > sp.u) & up_fin & ~lo
+    act = (lo | up | eq) & ~free
+    b = jnp.where(lo, sp.l, jnp.where(up, sp.u, jnp.clip(z, sp.l, sp.u)))
+    a = act.astype(dt)
+    Aa = a[:, None] * sp.A
+    d = s.polish_delta
+    rhs = jnp.concatenate([-sp.q, a * b])
+    eye_n = jnp.eye(n, dtype=dt)
+    bot0 = -(1.0 - a)
+    K0 = jnp.block([[sp.P, Aa.T], [Aa, jnp.diag(bot0)]])
+    if POLISH_SOLVE == "lu":
+        Kd = jnp.block([[sp.P + d * eye_n, Aa.T], [Aa, jnp.diag(bot0 - d * a)]])
+        lu = jax.scipy.linalg.lu_factor(Kd)
+        solve = lambda r: jax.scipy.linalg.lu_solve(lu, r)  # noqa: E731
+    else:  # reduced: eliminate the rows' multipliers, n x n Cholesky
+        Dinv = a / d + (1.0 - a)
+        M = sp.P + d * eye_n + jnp.matmul(Aa.T * Dinv[None, :], Aa, precision=_HI)
+        L = jnp.linalg.cholesky(M)
+
+        def solve(r):
+            r1, r2 = r[:n], r[n:]
+            xx = jax.scipy.linalg.cho_solve((L, True), r1 + _mv(Aa.T, Dinv * r2))
+            yy = Dinv * (_mv(Aa, xx) - r2)
+            return jnp.concatenate([xx, yy])
+    v = solve(rhs)
+    for _ in range(s.polish_refine):
+        v = v + solve(rhs - _mv(K0, v))
+    xp, yr = v[:n], jnp.where(act, v[n:], 0.0)
+    # Duals of the wrong sign are dropped (the polished y stays in the normal cone).
+    yp = jnp.where(eq, yr, jnp.where(lo, jnp.minimum(yr, 0.0), jnp.where(up, jnp.maximum(yr, 0.0), 0.0)))
+    zp = jnp.clip(_mv(sp.A, xp), sp.l, sp.u)
+    if POLISH_DEBUG:
+        jax.debug.callback(_dbg, lo, up, act, sp.q / (sp.c * sp.D))
+    return xp, zp, yp, yr
+
+
+DBG = []
+
+
+def _dbg(lo, up, act, qo):
+    DBG.append((lo, up, act, qo))
+
+
+def _polish(sp: _Scaled, st: _State, eq, free, s: QPSettings) -> _State:
+    """OSQP's solution polishing with fixed shapes (see module docstring)."""
+    x, z, y = st.x, st.z, st.y
+    e0 = _kkt_error(sp, x, z, y)
+    ax, yg = (_mv(sp.A, x) if POLISH_USE_AX else z), y
+    for _ in range(POLISH_PASSES):
+        xp, zp, yp, yr = _polish_once(sp, ax, z, yg, eq, free, s)
+        e1 = _kkt_error(sp, xp, zp, yp)
+        ok = _all_finite(xp, zp, yp, e1) & (e1 <= e0)
+        x, z, y = (jnp.where(ok, a, b) for a, b in ((xp, x), (zp, z), (yp, y)))
+        e0 = jnp.where(ok, e1, e0)
+        ax, yg = _mv(sp.A, xp), yr
+        ax, yg = (jnp.nan_to_num(v) for v in (ax, yg))
+    return st._replace(x=x, z=z, y=y)
+
+
 def _certificates(P, q, A, l, u, dx, dy, s: QPSettings):
     """OSQP's primal/dual infeasibility tests on the last steps (unscaled)."""
     lo_inf = l <= -BIG
@@ -534,6 +644,8 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     if warm is not None and s.warm_rho == "estimate" and s.adapt_every > 0:
         rho = _adapt(sp, st, rho, s)
     st, rho = _run(sp, st, rho, w, free, s, iters)
+    if s.polish:
+        st = _polish(sp, st, eq, free, s)
     # Unscale and evaluate in the user's units.
     x = sp.D * st.x
     z = st.z / sp.E
@@ -604,10 +716,14 @@ def solve_qp(P, q, A, l, u, *, iters: int | None = None, warm: Any = None,
         QPResult with fields of shape (..., n), (..., m) or (...,).
     """
     s = QPSettings() if settings is None else settings
+    if s.linsolve == "auto":
+        s = s._replace(linsolve="chol" if jax.default_backend() == "cpu" else "inv")
     for name, allowed in (("linsolve", ("chol", "inv")), ("warm_rho", ("reset", "keep", "estimate")),
-                          ("cost_scaling", ("P", "osqp", "none"))):
+                          ("cost_scaling", ("P", "osqp", "none")), ("kernel", ("xla", "pallas"))):
         if getattr(s, name) not in allowed:
             raise ValueError(f"QPSettings.{name} must be one of {allowed}, not {getattr(s, name)!r}")
+    if s.kernel == "pallas" and (s.linsolve != "inv" or not s.residual_form or s.anderson > 0):
+        raise ValueError('QPSettings.kernel="pallas" needs linsolve="inv", residual_form=True and anderson=0')
     it = int(s.iters if iters is None else iters)
     if it < 1:
         raise ValueError(f"iters must be >= 1, got {it}")

@@ -1,0 +1,262 @@
+"""`wbc-jax tune`: spec and gains-file validation, search bookkeeping, one tiny end-to-end tuning run from
+deliberately poor gains (every Kp x 0.2), and the best gains replayed by `wbc-jax campaign --gains`.
+
+The tiny run uses the CI baseline campaign (reports/baseline/spec.toml: flat ground, 0.12 s, 20 ADMM iterations)
+on 2 of its cells with 4 candidates per round, so its batch (8 runs) has the shape of tests/test_campaign.py's
+campaign and reuses that compiled chunk function when both files run in one session.
+"""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from wbc_jax import cli
+from wbc_jax.errors import SpecError
+from wbc_jax.gains_io import gains_toml, load_gains
+from wbc_jax.spec import SWEEPS
+from wbc_jax.tune import (CEMSearch, GridSearch, Space, load_tune_spec, pareto_mask, rank_key, score)
+
+BASELINE_SPEC = SWEEPS.parent / "reports" / "baseline" / "spec.toml"
+CELLS = [[0.2, 0.4, 0.06], [0.4, 1.0, 0.10]]
+C, ROUNDS = 4, 3
+TINY = f"""
+[tune]
+name = "tiny"
+campaign = "{BASELINE_SPEC}"
+method = "cem"
+candidates = {C}
+rounds = {ROUNDS}
+seed = 5
+cells = {CELLS}
+[start]
+kp = 0.2
+[leaves]
+kp_com = [0.1, 4.0]
+kp_obj = [0.1, 4.0]
+kd_obj = [0.2, 4.0]
+[objective]
+t_max_mm = 1.6
+[cem]
+init_std = 0.6
+"""
+METRIC_RTOL = 1e-4  # same runs in another batch position / batch: float32 rounding at most
+
+
+def _write(tmp_path, text, name="tune.toml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    from wbc_jax.tune import run_tune
+
+    d = tmp_path_factory.mktemp("tune")
+    spec = _write(d, TINY)
+    man = run_tune(str(spec), str(d / "out"), progress=False)
+    return d / "out", man, load_tune_spec(spec)
+
+
+# ---------------------------------------------------------------- specs
+
+
+def test_shipped_spec_loads():
+    s = load_tune_spec(SWEEPS / "gain_tuning.toml")
+    assert s.tune["method"] == "cem" and s.cells is None and s.campaign.campaign["reps"] == 1
+    assert s.campaign.factors == dict(m=[0.2, 0.3, 0.4], mu=[0.4, 0.7, 1.0], d=[0.06, 0.08, 0.10])
+    assert all(s.start[k] == 0.2 for k in s.start if k.startswith("kp_"))
+    assert all(s.start[k] == 1.0 for k in s.start if not k.startswith("kp_"))
+    assert s.with_overrides(candidates=1024).tune["candidates"] == 1024  # the GPU run's size
+
+
+@pytest.mark.parametrize("edit, key, expect", [
+    (("[tune]\n", "[tune]\nmethd = 'cem'\n"), "tune.methd", "unknown key"),
+    (("candidates = 4", "candidates = 'four'"), "tune.candidates", "integer"),
+    (("candidates = 4", "candidates = 1"), "tune.candidates", "needs >= 2"),
+    (("method = \"cem\"", "method = \"anneal\""), "tune.method", "grid, random, cem"),
+    (("kp_com = [0.1, 4.0]", "kp_cmo = [0.1, 4.0]"), "leaves.kp_cmo", "unknown leaf"),
+    (("kp_com = [0.1, 4.0]", "kp_com = [4.0, 0.1]"), "leaves.kp_com", "lo < hi"),
+    (("kp_obj = [0.1, 4.0]", "kp_obj = [0.5, 4.0]"), "leaves.kp_obj", "start scale 0.2"),
+    (("kp = 0.2", "kp = -1"), "start.kp", "0.0 < value"),
+    (("cells = [[0.2, 0.4, 0.06]", "cells = [[0.25, 0.4, 0.06]"), "tune.cells[0]", "not a level"),
+    (("t_max_mm = 1.6", "t_max_mm = -1"), "objective.t_max_mm", "0.0 <= value <= 1000.0"),
+    (("[cem]\n", "[cem]\nelite = 3\n"), "cem.elite", "unknown key"),
+    (("[tune]\n", "[tunes]\n"), "tunes", "unknown table"),
+])
+def test_bad_tune_spec_names_file_and_key(tmp_path, edit, key, expect):
+    text = TINY.replace(*edit)
+    assert text != TINY
+    p = _write(tmp_path, text)
+    with pytest.raises(SpecError) as e:
+        load_tune_spec(p)
+    msg = str(e.value)
+    assert str(p) in msg and key in msg and expect in msg and "\n" not in msg
+
+
+def test_bad_tune_spec_cli_exit_2_nothing_written(tmp_path, capsys):
+    p = _write(tmp_path, TINY.replace("rounds = 3", "rounds = 0"))
+    out = tmp_path / "out"
+    assert cli.main(["tune", "--spec", str(p), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("wbc-jax tune: error:") and str(p) in err[0] and "tune.rounds" in err[0]
+    # a bad campaign reference names the campaign file
+    q = _write(tmp_path, TINY.replace(str(BASELINE_SPEC), "nowhere.toml"), "ref.toml")
+    assert cli.main(["tune", "--spec", str(q), "--out", str(out), "--candidates", "8"]) == 2
+    assert "nowhere.toml" in capsys.readouterr().err
+    assert cli.main(["tune", "--spec", str(_write(tmp_path, TINY, "ok.toml")), "--out", str(out),
+                     "--candidates", "0"]) == 2
+    assert "--candidates" in capsys.readouterr().err
+    assert not out.exists() and sorted(f.name for f in tmp_path.iterdir()) == ["ok.toml", "ref.toml", "tune.toml"]
+
+
+@pytest.mark.parametrize("text, key, expect", [
+    ("[gains]\nkp_cmo = 1.0\n", "gains.kp_cmo", "unknown leaf"),
+    ("[gains]\nkp_com = [1.0, 2.0]\n", "gains.kp_com", "list of 3 numbers"),
+    ("[gains]\nkp_obj = -5.0\n", "gains.kp_obj", "0.0 <= value"),
+    ("[gains]\ntau_margin = 1.5\n", "gains.tau_margin", "0.0 < value <= 1.0"),
+    ("[gains]\nkp_obj = 'high'\n", "gains.kp_obj", "expected a number"),
+    ("[gain]\nkp_obj = 1.0\n", "gain", "unknown table"),
+    ("kp_obj = 1.0\n", "kp_obj", "unknown table"),
+])
+def test_bad_gains_file_names_file_and_key(tmp_path, text, key, expect):
+    p = _write(tmp_path, text, "g.toml")
+    with pytest.raises(SpecError) as e:
+        load_gains(p)
+    msg = str(e.value)
+    assert str(p) in msg and key in msg and expect in msg and "\n" not in msg
+
+
+def test_gains_file_round_trip_and_defaults(tmp_path, capsys):
+    from wbc_jax.control.transport import default_gains
+
+    g0 = default_gains()
+    g = g0._replace(kp_com=g0.kp_com * np.float32(0.3137), r_vdot=g0.r_vdot * np.float32(7.1), k_obs=g0.k_obs * 0)
+    back = load_gains(_write(tmp_path, gains_toml(g, "header\nline 2", dict(note="x", n=3, R=0.5)), "g.toml"))
+    for name, a, b in zip(g._fields, g, back):
+        assert np.asarray(a).dtype == np.asarray(b).dtype and np.array_equal(np.asarray(a), np.asarray(b)), name
+    part = load_gains(_write(tmp_path, "[gains]\nkp_com = 100.0\n", "p.toml"))  # scalar for a vector leaf
+    assert np.array_equal(np.asarray(part.kp_com), [100.0] * 3) and np.array_equal(part.kd_com, g0.kd_com)
+    bad = _write(tmp_path, "[gains]\nkp_obj = -1.0\n", "bad.toml")
+    out = tmp_path / "camp"
+    assert cli.main(["campaign", "--spec", str(BASELINE_SPEC), "--gains", str(bad), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(bad) in err[0] and "gains.kp_obj" in err[0] and not out.exists()
+
+
+# ---------------------------------------------------------------- search pieces
+
+
+def test_rank_pareto_and_score():
+    keys = [rank_key(False, 0.5, 9.0), rank_key(True, 0.0, 1.0), rank_key(True, 0.0, 2.0), rank_key(False, 0.1, 0.0),
+            rank_key(True, 0.0, np.nan)]
+    assert sorted(range(5), key=lambda i: keys[i], reverse=True) == [2, 1, 4, 3, 0]
+    pts = np.array([[1, 1, -1], [2, 2, -1], [3, 0, -1], [2, 2, -2], [np.nan, 5, 0]])
+    assert pareto_mask(pts).tolist() == [False, True, True, False, False]
+    mu = np.array([0.5, 1.0])
+    res = dict(success=np.array([[True, True], [True, False], [False, False]]), R=np.full((3, 2), 0.2),
+               S=np.full((3, 2), 3.0), T=np.array([[1e-3, 3e-3], [1e-3, 1e-3], [1e-3, 1e-3]]))
+    obj = dict(w_R=1.0, w_S=2.0, w_T=0.0, s_ref=3.0, min_success=1.0, t_max_mm=2.5)
+    sc = score(res, mu, obj)
+    want_r = np.mean(0.2 / np.arctan(mu) ** 2)
+    np.testing.assert_allclose(sc["objective"][0], want_r + 2.0)
+    np.testing.assert_allclose(sc["T_mm"][:2], [2.0, 1.0])
+    assert sc["feasible"].tolist() == [True, False, False]
+    np.testing.assert_allclose(sc["violation"][1], 0.5)  # half the runs failed
+    assert sc["violation"][2] >= 1.0 and np.isnan(sc["objective"][2])
+    sc = score(res, mu, dict(obj, t_max_mm=1.5))
+    np.testing.assert_allclose(sc["violation"][0], (2.0 - 1.5) / 1.5)
+
+
+def test_cem_carries_the_best_and_grid_covers_the_box(tmp_path):
+    spec = load_tune_spec(_write(tmp_path, TINY))
+    space = Space(spec)
+    cem = CEMSearch(space, 6, 3, np.random.default_rng(0), **spec.cem)
+    x, kinds = cem.ask(0)
+    assert kinds[0] == "start" and np.allclose(np.exp(x[0]), [0.2, 0.2, 1.0])
+    assert np.all(x >= space.lo) and np.all(x <= space.hi)
+    keys = [rank_key(True, 0.0, float(v)) for v in [1, 5, 2, 0, 3, 4]]
+    cem.tell(x, keys)
+    x2, kinds2 = cem.ask(1)
+    assert kinds2[0] == "elite" and np.array_equal(x2[0], x[1])
+    assert np.allclose(cem.mean, 0.7 * x[[1, 5]].mean(0) + 0.3 * space.x0)
+    grid = GridSearch(space, 4, 0, None, points=2)
+    xs = np.concatenate([grid.ask(r)[0] for r in range(grid.rounds)])
+    assert grid.rounds == 3 and grid.ask(2)[1] == ["grid"] * 1 + ["padding"] * 3  # 1 start + 8 corners
+    assert {tuple(np.round(np.exp(v), 6)) for v in xs[1:9]} == {(a, b, c) for a in (0.1, 4.0) for b in (0.1, 4.0)
+                                                                for c in (0.2, 4.0)}
+    g = space.gains(x[:2])
+    assert g.kp_com.shape == (2, 3) and np.allclose(g.kp_rot, 600.0 * 0.2)  # untuned Kp stays at the start scale
+
+
+# ---------------------------------------------------------------- one tiny tuning run
+
+
+def test_tune_end_to_end_from_poor_gains(tiny_run):
+    out, man, spec = tiny_run
+    df = pd.read_csv(out / "leaderboard.csv")
+    assert len(df) == C * ROUNDS and sorted(df["rank"]) == list(range(1, C * ROUNDS + 1))
+    for col in ("round", "kind", "kp_com_x", "kp_com", "kd_obj_x", "R", "S", "T_mm", "success_rate", "objective",
+                "feasible", "pareto"):
+        assert col in df.columns
+    start = df.iloc[0]
+    assert start.kind == "start" and np.isclose(start.kp_com_x, 0.2) and np.isclose(start.kp_com, 400.0)
+    key = lambda r: rank_key(r.feasible, r.violation, r.objective)  # noqa: E731
+    best = df.sort_values("rank").iloc[0]
+    # improvement where it is certain: the start is a candidate, so the best ranks at least as high
+    assert key(best) >= key(start)
+    if start.feasible:
+        assert best.feasible and best.objective >= start.objective
+    # CEM carries the best so far in slot 0: the round best never ranks lower, and the carried elite's second
+    # evaluation equals its first (same compiled function, state reset each round)
+    round_best = [max(key(r) for r in df[df["round"] == k].itertuples()) for k in range(1, ROUNDS + 1)]
+    assert all(b >= a for a, b in zip(round_best, round_best[1:])), round_best
+    for k in range(2, ROUNDS + 1):
+        elite = df[(df["round"] == k) & (df.slot == 0)].iloc[0]
+        assert elite.kind == "elite"
+        prev = df[(df["round"] < k) & np.isclose(df.kp_com_x, elite.kp_com_x) & np.isclose(df.kp_obj_x, elite.kp_obj_x)]
+        assert len(prev) >= 1
+        np.testing.assert_allclose(prev[["R", "S", "T_mm"]].to_numpy()[0], elite[["R", "S", "T_mm"]].to_numpy(float),
+                                   rtol=METRIC_RTOL)
+    # the gain leaves do change the rollout (candidates differ) and every run is scored
+    assert df.T_mm.nunique() > 1 and np.isfinite(df.objective).all()
+    assert man["new_compilations_after_round_1"] in (0, None) and man["candidates_per_s"] > 0
+    assert man["candidates_evaluated"] == C * ROUNDS and man["batch_runs"] == C * len(CELLS)
+    m = json.loads((out / "manifest.json").read_text())
+    for k in ("versions", "device", "spec_hash", "wall_s_total", "candidates_per_s", "round_wall_s", "best", "start"):
+        assert k in m
+    assert m["spec_hash"] == spec.hash and len(m["round_wall_s"]) == ROUNDS
+    for f in ("objective_per_round.png", "pareto.png"):
+        assert (out / f).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    if df.feasible.any():
+        assert df.pareto.any() and not (df.pareto & ~df.feasible).any()
+
+
+def test_best_gains_replayed_by_campaign(tiny_run, tmp_path):
+    """best_gains.toml holds the best candidate's gains; `wbc-jax campaign --gains` with them on the same campaign
+    reproduces that candidate's per-run metrics on the tuned cells."""
+    from wbc_jax.control.transport import default_gains
+
+    out, _, spec = tiny_run
+    df = pd.read_csv(out / "leaderboard.csv")
+    best = df.sort_values("rank").iloc[0]
+    g = load_gains(out / "best_gains.toml")
+    g0 = default_gains()
+    np.testing.assert_allclose(np.asarray(g.kp_com), np.asarray(g0.kp_com) * best.kp_com_x, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(g.kd_obj), np.asarray(g0.kd_obj) * best.kd_obj_x, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(g.kp_rot), np.asarray(g0.kp_rot) * 0.2, rtol=1e-6)  # untuned: start
+    np.testing.assert_array_equal(np.asarray(g.w_com), np.asarray(g0.w_com))
+    camp = tmp_path / "camp"
+    assert cli.main(["campaign", "--spec", str(BASELINE_SPEC), "--gains", str(out / "best_gains.toml"),
+                     "--out", str(camp), "--no-report"]) == 0
+    res = pd.read_csv(camp / "results.csv")
+    runs = pd.read_csv(out / "best_runs.csv")
+    runs = runs[runs.candidate == "best"]
+    got = res.merge(runs, on=["m", "mu", "d", "rep"], suffixes=("", "_tune"))
+    assert len(got) == len(CELLS) and (got.seed == got.seed_tune).all()
+    np.testing.assert_allclose(got.R, got.R_tune, rtol=METRIC_RTOL)
+    np.testing.assert_allclose(got["T"] * 1e3, got.T_mm, rtol=METRIC_RTOL)
+    np.testing.assert_allclose(got.S, got.S_tune, rtol=METRIC_RTOL)
+    assert json.loads((camp / "manifest.json").read_text())["default_gains"] is False
