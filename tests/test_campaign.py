@@ -225,3 +225,19 @@ def test_default_spec_follows_the_device():
 
     assert default_spec_path(accelerator=False).name == "quick.toml"
     assert default_spec_path(accelerator=True).name == "paper_campaign.toml"
+
+
+def test_chunk_function_state_types_are_stable(tiny_spec):
+    """The chunk function returns the state with the avals it takes (shape, dtype and weak type of every leaf), so
+    chunk 2 reuses chunk 1's compilation (a weak-typed initial leaf once made every campaign compile twice)."""
+    import jax
+
+    from wbc_jax import campaign as C
+
+    sim, _, b, _, logs_per_chunk, _ = C.build(load_spec(tiny_spec))
+    fn = C._chunk_fn(sim, b.in_axes, logs_per_chunk)
+    out, _ = jax.eval_shape(fn, b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+    ins = jax.tree_util.tree_leaves_with_path(b.state)
+    for (path, a), o in zip(ins, jax.tree_util.tree_leaves(out), strict=True):
+        a = jax.typeof(a)
+        assert (a.shape, a.dtype, a.weak_type) == (o.shape, o.dtype, o.weak_type), jax.tree_util.keystr(path)

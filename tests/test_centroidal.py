@@ -10,10 +10,10 @@ import pytest
 import scipy.sparse as sp
 
 from wbc_jax import physics
-from wbc_jax.control.centroidal import (CentroidalConfig, CentroidalRef, build_qp, default_gains, scaled_model)
+from wbc_jax.control.centroidal import (CentroidalConfig, CentroidalRef, build_qp, centroidal_qp_settings,
+                                        default_gains, scaled_model)
 from wbc_jax.control.centroidal_dynamics import centroidal_terms
 from wbc_jax.control.dynamics import dyn_terms
-from wbc_jax.control.transport import control_qp_settings
 from wbc_jax.model import Robot, mjx
 from wbc_jax.planner import capture_point as cpm
 from wbc_jax.planner.gait import GaitParams
@@ -166,7 +166,7 @@ def test_cp_recursion_matches_closed_form_and_pattern_starts_at_rest():
 
 @pytest.fixture(scope="module")
 def trot_sim(robot):
-    return TrotSim(robot=robot, cfg=CentroidalConfig(qp=control_qp_settings(40)), log_every=10,
+    return TrotSim(robot=robot, cfg=CentroidalConfig(qp=centroidal_qp_settings(40)), log_every=10,
                    nonfoot_slots=contact_slots(robot)[0])
 
 

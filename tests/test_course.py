@@ -91,7 +91,7 @@ def test_dip_moves_with_the_wall(tmp_path):
 @pytest.fixture(scope="module")
 def wall_segment(tmp_path_factory):
     robot = Robot(_moved_scene(tmp_path_factory.mktemp("scene"), SEG_WALL_Y))
-    sim = make_sim(robot, TransportConfig(qp=control_qp_settings(50)), log_every=50)
+    sim = make_sim(robot, TransportConfig(qp=control_qp_settings()), log_every=50)
     b = prepare_batch(sim, [0.4], [0.4], [0.10], plan_kwargs=dict(distance=SEG_DISTANCE))
     from wbc_jax.planner.transport import plan_duration
 

@@ -27,11 +27,26 @@ def _timed(f, *args):
     return out, time.perf_counter() - t0
 
 
+def _peak_bytes() -> int | None:
+    """Peak device memory in use so far [bytes] (None where the backend does not report it, e.g. the CPU)."""
+    stats = jax.devices()[0].memory_stats() or {}
+    return stats.get("peak_bytes_in_use")
+
+
 def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30, json_path: str | None = None,
-              scene: str = "flat"):
+              scene: str = "flat", qp: str | None = None):
+    """Physics-only and physics + WBC env-steps/s per batch size (see module docstring).
+
+    Args:
+        qp: control-loop ADMM variant name (``wbc_jax.qp_audit.variants``, e.g. ``"it20_a0"``); None: ``iters``
+            iterations with the control loop's default settings.
+    """
+    from wbc_jax.qp_audit import variants
+
     robot = Robot(scene)
-    sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=control_qp_settings(iters)),
-                   log_every=steps)
+    qs = variants([qp])[qp] if qp else control_qp_settings(iters)
+    iters = qs.iters
+    sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=qs), log_every=steps)
     device = jax.devices()[0].device_kind
     rows = []
     for B in batches:
@@ -50,12 +65,14 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         args = (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
         _, c_wbc = _timed(f_wbc, *args)
         _, t_wbc = _timed(f_wbc, *args)
-        row = dict(device=device, scene=robot.path.name, batch=B, steps=steps, qp_iters=iters,
+        row = dict(device=device, scene=robot.path.name, batch=B, steps=steps, qp_iters=iters, qp=qp or f"it{iters}",
+                   adapt_every=qs.adapt_every, ruiz_iters=qs.ruiz_iters, peak_device_bytes=_peak_bytes(),
                    physics_steps_per_s=B * steps / t_phys, wbc_steps_per_s=B * steps / t_wbc,
                    ratio=(B * steps / t_wbc) / (B * steps / t_phys), compile_physics_s=c_phys - t_phys,
                    compile_wbc_s=c_wbc - t_wbc)
         print(f"{device} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   physics+WBC "
-              f"{row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   compile {row['compile_wbc_s']:.1f} s",
+              f"{row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   compile {row['compile_wbc_s']:.1f} s"
+              + (f"   peak memory {row['peak_device_bytes'] / 2**30:.2f} GiB" if row["peak_device_bytes"] else ""),
               flush=True)
         n_dev = len(jax.devices())
         if n_dev > 1:  # the same batch with the run axis sharded over every local device
@@ -96,7 +113,9 @@ def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: st
                  wbc_n_pallas_norefactor=base._replace(linsolve="inv", kernel="pallas", adapt_every=0),
                  wbc_n_unroll=base._replace(unroll=True),
                  wbc_n_unroll_norefactor=base._replace(unroll=True, adapt_every=0))
-    variants = [(k, known[k]) for k in (variants or PROFILE_VARIANTS)]
+    from wbc_jax.qp_audit import variants as named
+
+    variants = [(k, known[k] if k in known else named([k])[k]) for k in (variants or PROFILE_VARIANTS)]
     out = dict(device=device, scene=robot.path.name, batch=batch, steps=steps, iters=iters)
     b = None
     for label, qs in [("physics", None)] + variants:

@@ -32,7 +32,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from wbc_jax.bench_rollout import run_bench as run_rollout_bench
 
         batches = [int(x) for x in args.batches.split(",")] if args.batches else ((1, 4) if args.quick else (1, 1024, 4096, 16384))
-        run_rollout_bench(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json, scene=args.scene)
+        run_rollout_bench(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json, scene=args.scene,
+                          qp=args.qp)
         return 0
     if args.what == "profile":
         from wbc_jax.bench_rollout import run_profile
@@ -46,6 +47,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
         batch = int(args.batches.split(",")[-1]) if args.batches else (4 if args.quick else 256)
         run_components(batch=batch, iters=args.iters, scene=args.scene, json_path=args.json)
+        return 0
+    if args.what == "qp-rollout":
+        from wbc_jax.qp_audit import audit
+
+        audit(args.variants.split(",") if args.variants else None, scene=args.scene,
+              seconds=0.4 if args.quick else 1.2, json_path=args.json)
         return 0
     raise WbcJaxError(f"bench: unknown target {args.what!r}")
 
@@ -119,12 +126,16 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_cmd_report)
 
     b = sub.add_parser("bench", help="benchmarks on the current device")
-    b.add_argument("what", choices=["qp", "rollout", "profile", "components"],
+    b.add_argument("what", choices=["qp", "rollout", "profile", "components", "qp-rollout"],
                    help="what to benchmark (profile: where a control step's time goes, at the last --batches size, "
-                        "from variants; components: latency of each stage of a control step)")
+                        "from variants; components: latency of each stage of a control step; qp-rollout: control-loop "
+                        "ADMM variants (--variants it50,it20_a0,...) against OSQP on QPs sampled from their own "
+                        "closed-loop rollouts, CPU)")
     b.add_argument("--batches", default=None, help="rollout: comma-separated batch sizes")
     b.add_argument("--steps", type=int, default=200, help="rollout: control steps per timed call")
     b.add_argument("--iters", type=int, default=30, help="rollout: ADMM iterations per control step")
+    b.add_argument("--qp", default=None, help="rollout: control-loop ADMM variant it<N>[_a<K>][_r<R>] (N iterations, "
+                                          "rho adapted every K (0: never), R Ruiz passes); overrides --iters")
     b.add_argument("--scene", default="flat", help="rollout: 'flat' (default), 'transport' or a scene XML path")
     b.add_argument("--variants", default=None, help="profile: comma-separated variants (default wbc_1,wbc_n,"
                                                     "wbc_n_norefactor,wbc_n_chol,wbc_n_pallas; also wbc_n_inv, "
@@ -144,7 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="push start as a fraction of the planned duration (default 0.35: before the wall)")
     d.add_argument("--no-video", action="store_true", help="skip video.gif")
     d.add_argument("--no-observer", action="store_true", help="disable the momentum observer")
-    d.add_argument("--iters", type=int, default=50, help="ADMM iterations per control step")
+    d.add_argument("--iters", type=int, default=20, help="ADMM iterations per control step")
     d.add_argument("--distance", type=float, default=3.4, help="transport distance [m]")
     d.set_defaults(func=_cmd_demo)
 

@@ -33,7 +33,7 @@ DEFAULT = dict(m=0.3, mu=0.7, d=0.08)
 
 
 def run_demo(out: str, scene: str = "transport", seconds: float | None = None, all_cells: bool = False,
-             push: bool = False, observer: bool = True, iters: int = 50, distance: float = 3.4,
+             push: bool = False, observer: bool = True, iters: int = 20, distance: float = 3.4,
              speed: float = 0.13, push_at: float = 0.35, video: bool = True) -> dict:
     """Run the demo and write DIR. ``push_at``: push start as a fraction of the planned duration (0.35 is
     mid-course, before the wall)."""

@@ -11,7 +11,7 @@ A spec has three tables (every key optional except ``factors``; defaults below):
     speed = 0.13               # cruise speed [m/s], 0.01..0.5
     extra_seconds = 0.5        # simulated time after the planned path ends [s], 0..10
     max_seconds = 0.0          # cap on the simulated time [s] (0: no cap; a capped run stops mid-path), 0..600
-    qp_iters = 50              # ADMM iterations per control step, 1..1000
+    qp_iters = 20              # ADMM iterations per control step, 1..1000
     chunk_seconds = 2.0        # simulated seconds per jit call / checkpoint, 0.02..60
 
     [factors]                  # levels of the 3 x 3 x 3 design (at least 2 levels each)
@@ -61,7 +61,7 @@ _CAMPAIGN = {
     "speed": (float, 0.13, 0.01, 0.5, False, "[m/s]"),
     "extra_seconds": (float, 0.5, 0.0, 10.0, False, "[s]"),
     "max_seconds": (float, 0.0, 0.0, 600.0, False, "[s], 0 = no cap"),
-    "qp_iters": (int, 50, 1, 1000, False, "ADMM iterations"),
+    "qp_iters": (int, 20, 1, 1000, False, "ADMM iterations"),
     "chunk_seconds": (float, 2.0, 0.02, 60.0, False, "[s]"),
 }
 _FACTORS = {"m": (0.0, 20.0, "[kg]"), "mu": (0.0, 5.0, "[-]"), "d": (0.008, 0.2, "[m]")}

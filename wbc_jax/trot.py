@@ -27,9 +27,8 @@ import numpy as np
 
 from wbc_jax import physics
 from wbc_jax.control.centroidal import (CentroidalConfig, CentroidalGains, CentroidalRef, CentroidalState,
-                                        centroidal_control, default_gains, init_state)
+                                        centroidal_control, centroidal_qp_settings, default_gains, init_state)
 from wbc_jax.control.dynamics import dyn_terms
-from wbc_jax.control.transport import control_qp_settings
 from wbc_jax.errors import WbcJaxError
 from wbc_jax.io_utils import atomic_dir
 from wbc_jax.model import Robot, mjx
@@ -226,7 +225,7 @@ def run_trot(out: str, seconds: float = 10.0, stride: float = 0.10, step_time: f
     t_wall = time.perf_counter()
     robot = Robot("flat")
     ids = robot.ids
-    sim = TrotSim(robot=robot, cfg=CentroidalConfig(qp=control_qp_settings(iters), dt=float(robot.mj_model.opt.timestep)),
+    sim = TrotSim(robot=robot, cfg=CentroidalConfig(qp=centroidal_qp_settings(iters), dt=float(robot.mj_model.opt.timestep)),
                   log_every=log_every, nonfoot_slots=contact_slots(robot)[0])
     qpos0 = robot.home_qpos()
     obj_mass = float(robot.mj_model.body_mass[ids.obj_body])

@@ -1,0 +1,143 @@
+"""``wbc-jax bench qp-rollout``: the control loop's ADMM settings audited on QPs from real rollouts.
+
+The QP benchmark (:mod:`wbc_jax.qp.bench`) uses synthetic problems; the control loop's settings (iteration
+count, rho adaptation) are chosen here instead, on the QPs the transport controller actually builds. For each
+variant of :class:`~wbc_jax.qp.QPSettings`:
+
+1. a closed-loop rollout of the flat-ground walk (batch of factor cells) runs **with that variant** in the
+   control loop, so each sampled QP carries the warm start the variant itself produced;
+2. every ``sample_every_s`` simulated seconds the QP of the next control step is rebuilt from the state
+   (same code path as :func:`wbc_jax.rollout.control_step`: sense, controller view, dynamics terms, reference,
+   observer and assembly) and solved once more by the variant from its warm start;
+3. each sampled QP is solved by OSQP at eps 1e-9 (polished) in float64, the reference.
+
+Reported per variant: the joint-torque error ``|tau - tau_ref|`` [N m] (``tau = A_tau x + h_a``, what drives
+the motors), the relative objective error and the max constraint violation (relative to ``max(1, |Ax|)``),
+median / p95 / max over the samples, and the rollout's own closed-loop metrics (max slip, tracking T, trunk
+minimum, QP flag fraction) so an accuracy loss can be read against its effect on the task.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wbc_jax import physics
+from wbc_jax.batch import prepare_batch
+from wbc_jax.control.dynamics import dyn_terms
+from wbc_jax.control.transport import TransportConfig, assemble, control_qp_settings
+from wbc_jax.model import Robot
+from wbc_jax.planner.transport import reference
+from wbc_jax.qp import problems as pr
+from wbc_jax.qp import solve_qp
+from wbc_jax.rollout import CONTACT_DIST, controller_view, make_sim, simulate
+
+REF_EPS = 1e-9
+CELLS = ((0.2, 0.4, 0.06), (0.4, 1.0, 0.10), (0.3, 0.7, 0.08), (0.4, 0.4, 0.10))
+
+
+def variants(names=None) -> dict:
+    """Named control-loop settings: ``it<N>`` (N warm-started iterations, rho adapted every 10) and
+    ``it<N>_a0`` (no adaptation: one factorization per step), ``it<N>_a<K>`` (adapt every K), ``..._r<R>`` (R Ruiz
+    equilibration passes instead of 5)."""
+    out = {}
+    for name in names or ("it50", "it50_a0", "it30_a0", "it20_a0", "it15_a0"):
+        parts = name.split("_")
+        if not (parts[0].startswith("it") and parts[0][2:].isdigit()):
+            raise ValueError(f"variant {name!r}: expected it<N>[_a<K>][_r<R>]")
+        iters = int(parts[0][2:])
+        kw = {}
+        for p in parts[1:]:
+            key = {"a": "adapt_every", "r": "ruiz_iters"}.get(p[:1])
+            if key is None or not p[1:].isdigit():
+                raise ValueError(f"variant {name!r}: unknown part {p!r} (expected a<K> or r<R>)")
+            kw[key] = int(p[1:])
+        out[name] = control_qp_settings(iters, **kw)
+    return out
+
+
+def _sample_fn(sim):
+    """jit(vmap) of: state -> (P, q, A, l, u, A_tau, h_a, warm) of the next control step."""
+    ids = sim.robot.ids
+    cfg = sim.cfg
+
+    def one(m, rs, plan, om, gains, push, mu_ground):
+        d = physics.sense(m, rs.d)
+        d_ctl = controller_view(sim, m, d, push, rs.acc.n_steps)
+        dyn = dyn_terms(m, d_ctl, ids)
+        contact = jnp.any(d._impl.contact.dist[sim.foot_slots] < CONTACT_DIST, axis=1)
+        ref = reference(plan, d.time, rs.p_lift, contact, dyn.p_foot)
+        _, (P, q, A, l, u, A_tau, h_a, _) = assemble(m, d_ctl, dyn, ref, om, gains, rs.cs, ids, cfg, mu_ground)
+        return P, q, A, l, u, A_tau, h_a
+
+    return one
+
+
+def _osqp(P, q, A, l, u):
+    import osqp
+    import scipy.sparse as sp
+
+    s = osqp.OSQP()
+    s.setup(sp.csc_matrix(np.triu(P)), q, sp.csc_matrix(A), np.maximum(l, -1e30), np.minimum(u, 1e30),
+            eps_abs=REF_EPS, eps_rel=REF_EPS, max_iter=400_000, polishing=True, verbose=False)
+    r = s.solve(raise_error=False)
+    return r.x
+
+
+def audit(names=None, scene: str = "flat", seconds: float = 1.2, sample_every_s: float = 0.1,
+          json_path: str | None = None) -> dict:
+    """Run the audit (see module docstring); prints one table row per variant and returns the figures."""
+    robot = Robot(scene)
+    cells = np.array(CELLS)
+    rows = {}
+    for name, qs in variants(names).items():
+        t0 = time.perf_counter()
+        cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=qs)
+        sim = make_sim(robot, cfg, log_every=10)
+        b = prepare_batch(sim, cells[:, 0], cells[:, 1], cells[:, 2])
+        ax = b.in_axes
+        f_sample = jax.jit(jax.vmap(_sample_fn(sim), in_axes=(ax, 0, 0, 0, 0, 0, 0)))
+        f_solve = jax.jit(jax.vmap(lambda P, q, A, l, u, w: solve_qp(P, q, A, l, u, warm=w, settings=qs)))
+        state = b.state
+        samples = []
+        n_chunks = int(round(seconds / sample_every_s))
+        for _ in range(n_chunks):
+            state, _ = simulate(sim, b.model, ax, state, b.plan, b.om, b.gains, b.push, b.mu_ground,
+                                sample_every_s, chunk_seconds=sample_every_s)
+            P, q, A, l, u, A_tau, h_a = f_sample(b.model, state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+            res = f_solve(P, q, A, l, u, state.cs.warm)
+            samples.append([np.asarray(v, np.float64) for v in (P, q, A, l, u, A_tau, h_a, res.x)])
+        tau_err, obj_err, viol = [], [], []
+        for P, q, A, l, u, A_tau, h_a, x in samples:
+            for k in range(P.shape[0]):
+                xr = _osqp(P[k], q[k], A[k], l[k], u[k])
+                tau_err.append(np.max(np.abs(A_tau[k] @ (x[k] - xr))))
+                f_ref = pr.objective(P[k][None], q[k][None], xr[None])
+                obj_err.append(float(pr.rel_objective_error(P[k][None], q[k][None], x[k][None], f_ref)[0]))
+                viol.append(float(pr.max_violation(A[k][None], l[k][None], u[k][None], x[k][None])[0]))
+        acc = state.acc
+        q3 = lambda a: [float(np.median(a)), float(np.quantile(a, 0.95)), float(np.max(a))]  # noqa: E731
+        row = dict(iters=qs.iters, adapt_every=qs.adapt_every, n_qps=len(tau_err), tau_err_Nm=q3(tau_err),
+                   rel_obj_err=q3(obj_err), violation=q3(viol),
+                   max_slip_mm=float(np.max(np.asarray(acc.max_slip)) * 1e3),
+                   T_mm=float(np.mean(np.asarray(acc.sum_track) / (np.asarray(acc.n_steps) * sim.dt_control)) * 1e3),
+                   trunk_min_m=float(np.min(np.asarray(acc.min_trunk_z))),
+                   flag_frac=float(np.sum(np.asarray(acc.n_flag)) / np.sum(np.asarray(acc.n_steps))),
+                   wall_s=time.perf_counter() - t0)
+        rows[name] = row
+        print(f"{name:10s} tau err [N m] med/p95/max {row['tau_err_Nm'][0]:.3g}/{row['tau_err_Nm'][1]:.3g}/"
+              f"{row['tau_err_Nm'][2]:.3g}  rel obj p95 {row['rel_obj_err'][1]:.2g}  viol p95 "
+              f"{row['violation'][1]:.2g}  | loop: slip {row['max_slip_mm']:.2f} mm, T {row['T_mm']:.2f} mm, "
+              f"trunk min {row['trunk_min_m']:.3f} m, flagged {row['flag_frac']:.1%} ({row['wall_s']:.0f} s)",
+              flush=True)
+    out = dict(device=jax.devices()[0].device_kind, scene=robot.path.name, seconds=seconds,
+               sample_every_s=sample_every_s, cells=cells.tolist(), reference=f"OSQP eps {REF_EPS:g}, polished",
+               variants=rows)
+    if json_path:
+        with open(json_path, "w") as fh:
+            json.dump(out, fh, indent=2)
+    return out
