@@ -30,10 +30,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax import metrics
 from wbc_jax.errors import SpecError, WbcJaxError
 from wbc_jax.io_utils import atomic_dir, write_json_atomic
-from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.spec import Design, Spec, default_spec_path, design, load_spec
 
 LOG_EVERY = 20  # control steps per logged sample (the rollout's outer scan)
@@ -269,10 +267,9 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         bar.close()
     wall_sim = wall_before + time.perf_counter() - t_run
 
-    acc = jax.device_get(state.acc)
-    p_obj = np.asarray(state.d.xpos[:, sim.robot.ids.obj_body])
-    final_err = np.linalg.norm(p_obj - p_goal, axis=1)
-    res = metrics.finalize(acc, sim.dt_control, dz.mu, course=scene_geometry(sim.robot).is_course, final_err=final_err)
+    from wbc_jax.rollout import final_results
+
+    res = final_results(sim, state, p_goal, dz.mu)
     df = results_table(spec, dz, res)
     # env-steps/s from chunks that did not compile (the first chunk of each process does)
     steady = [mk["wall_s"] for mk in marks if not mk["fresh_process"]]

@@ -23,20 +23,16 @@ import json
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax import physics
 from wbc_jax.batch import prepare_batch
-from wbc_jax.control.dynamics import dyn_terms
 from wbc_jax.control.transport import TransportConfig, assemble, control_qp_settings
 from wbc_jax.model import Robot
-from wbc_jax.planner.transport import reference
 from wbc_jax.qp import problems as pr
 from wbc_jax.qp import solve_qp
-from wbc_jax.rollout import CONTACT_DIST, controller_view, make_sim, simulate
+from wbc_jax.qp.bench import REF_EPS, osqp_solve
+from wbc_jax.rollout import controller_inputs, make_sim, simulate
 
-REF_EPS = 1e-9
 CELLS = ((0.2, 0.4, 0.06), (0.4, 1.0, 0.10), (0.3, 0.7, 0.08), (0.4, 0.4, 0.10))
 
 
@@ -61,31 +57,16 @@ def variants(names=None) -> dict:
 
 
 def _sample_fn(sim):
-    """jit(vmap) of: state -> (P, q, A, l, u, A_tau, h_a, warm) of the next control step."""
+    """One run's state -> (P, q, A, l, u, A_tau, h_a) of its next control step (``rollout.control_step``'s path)."""
     ids = sim.robot.ids
     cfg = sim.cfg
 
     def one(m, rs, plan, om, gains, push, mu_ground):
-        d = physics.sense(m, rs.d)
-        d_ctl = controller_view(sim, m, d, push, rs.acc.n_steps)
-        dyn = dyn_terms(m, d_ctl, ids)
-        contact = jnp.any(d._impl.contact.dist[sim.foot_slots] < CONTACT_DIST, axis=1)
-        ref = reference(plan, d.time, rs.p_lift, contact, dyn.p_foot)
+        _, d_ctl, dyn, ref = controller_inputs(sim, m, rs, plan, push)
         _, (P, q, A, l, u, A_tau, h_a, _) = assemble(m, d_ctl, dyn, ref, om, gains, rs.cs, ids, cfg, mu_ground)
         return P, q, A, l, u, A_tau, h_a
 
     return one
-
-
-def _osqp(P, q, A, l, u):
-    import osqp
-    import scipy.sparse as sp
-
-    s = osqp.OSQP()
-    s.setup(sp.csc_matrix(np.triu(P)), q, sp.csc_matrix(A), np.maximum(l, -1e30), np.minimum(u, 1e30),
-            eps_abs=REF_EPS, eps_rel=REF_EPS, max_iter=400_000, polishing=True, verbose=False)
-    r = s.solve(raise_error=False)
-    return r.x
 
 
 def audit(names=None, scene: str = "flat", seconds: float = 1.2, sample_every_s: float = 0.1,
@@ -114,7 +95,7 @@ def audit(names=None, scene: str = "flat", seconds: float = 1.2, sample_every_s:
         tau_err, obj_err, viol = [], [], []
         for P, q, A, l, u, A_tau, h_a, x in samples:
             for k in range(P.shape[0]):
-                xr = _osqp(P[k], q[k], A[k], l[k], u[k])
+                xr, _ = osqp_solve(P[k], q[k], A[k], l[k], u[k], max_iter=400_000)
                 tau_err.append(np.max(np.abs(A_tau[k] @ (x[k] - xr))))
                 f_ref = pr.objective(P[k][None], q[k][None], xr[None])
                 obj_err.append(float(pr.rel_objective_error(P[k][None], q[k][None], x[k][None], f_ref)[0]))

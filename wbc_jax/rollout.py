@@ -180,17 +180,28 @@ def init_state(sim: Sim, m, qpos0, qvel0=None) -> RunState:
     return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids), acc=acc)
 
 
+def controller_inputs(sim: Sim, m, rs: RunState, plan: TransportPlan, push: Push):
+    """What one control step computes before the controller: the sensed state, the controller's view of it, its
+    dynamics terms and the reference (with foot contacts from MJX).
+
+    Returns:
+        (d sensed mjx.Data, d_ctl the controller's view, DynTerms of d_ctl, Reference).
+    """
+    d = physics.sense(m, rs.d)
+    d_ctl = controller_view(sim, m, d, push, rs.acc.n_steps)
+    dyn = dyn_terms(m, d_ctl, sim.robot.ids)
+    contact = jnp.any(d._impl.contact.dist[sim.foot_slots] < CONTACT_DIST, axis=1)  # (4,)
+    ref = reference(plan, d.time, rs.p_lift, contact, dyn.p_foot)
+    return d, d_ctl, dyn, ref
+
+
 def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel, gains: TransportGains,
                  push: Push, mu_ground):
     """One control period of one run. Returns (new RunState, per-step values for the log)."""
     ids = sim.robot.ids
-    d = physics.sense(m, rs.d)
+    d, d_ctl, dyn, ref = controller_inputs(sim, m, rs, plan, push)
     t = d.time
-    d_ctl = controller_view(sim, m, d, push, rs.acc.n_steps)
-    dyn = dyn_terms(m, d_ctl, ids)
     dist = d._impl.contact.dist
-    contact = jnp.any(dist[sim.foot_slots] < CONTACT_DIST, axis=1)  # (4,)
-    ref = reference(plan, t, rs.p_lift, contact, dyn.p_foot)
     tau, cs, qd = transport_control(m, d_ctl, dyn, ref, om, gains, rs.cs, ids, sim.cfg, mu_ground)
     on = (t >= push.t0) & (t < push.t0 + push.duration)
     xfrc = jnp.zeros_like(d.xfrc_applied).at[ids.trunk_body, 0:3].set(jnp.where(on, push.force, 0.0))
@@ -237,6 +248,26 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     log = Log(t=t, p_obj=p_obj, p_obj_ref=ref.p_obj, com=dyn.com, com_ref=ref.p_com, slip=slip,
               trunk_z=dyn.p_base[2], prim_res=qd.prim_res, tau=tau, qpos=d.qpos)
     return RunState(d=d_next, cs=cs, p_lift=p_lift, rel0=rs.rel0, acc=acc), log
+
+
+def final_results(sim: Sim, state: RunState, p_goal, mu, n: int | None = None) -> dict[str, np.ndarray]:
+    """:func:`wbc_jax.metrics.finalize` of a batch's final state.
+
+    Args:
+        state: batched RunState at the end of the runs; p_goal: (B, 3) the object's goal position [m] (the
+            reference's last point); mu: (n or B,) tray friction of each run.
+        n: keep the first n runs (drops the padding of a sharded batch); None: all.
+    """
+    from wbc_jax.planner.scene_geometry import scene_geometry
+
+    acc = jax.device_get(state.acc)
+    p_obj = np.asarray(state.d.xpos[:, sim.robot.ids.obj_body])
+    p_goal = np.asarray(p_goal)
+    if n is not None:
+        acc = jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], acc)
+        p_obj, p_goal = p_obj[:n], p_goal[:n]
+    return metrics.finalize(acc, sim.dt_control, mu, course=scene_geometry(sim.robot).is_course,
+                            final_err=np.linalg.norm(p_obj - p_goal, axis=1))
 
 
 def make_chunk_fn(sim: Sim, n_logs: int):

@@ -428,7 +428,6 @@ class Evaluator:
         import jax.numpy as jnp
 
         from wbc_jax import campaign
-        from wbc_jax.planner.scene_geometry import scene_geometry
 
         sim, dz, b, _, logs_per_chunk, n_chunks = campaign.build(spec.campaign)
         if spec.cells is None:
@@ -441,7 +440,6 @@ class Evaluator:
         self.m, self.mu, self.d, self.rep = dz.m[sel], dz.mu[sel], dz.d[sel], dz.rep[sel]
         self.seeds = dz.seed[sel]
         self.seconds = n_chunks * logs_per_chunk * campaign.LOG_EVERY * sim.dt_control
-        self.course = scene_geometry(sim.robot).is_course
         idx = jnp.asarray(np.tile(sel, C))  # (B,) run i of the batch = run sel[i % n] of the campaign's design
         self.batch = b._replace(model=_take(b.model, idx, b.in_axes), state=_take(b.state, idx),
                                 plan=_take(b.plan, idx), om=_take(b.om, idx), gains=_take(b.gains, idx),
@@ -482,7 +480,7 @@ class Evaluator:
         """
         import jax
 
-        from wbc_jax import metrics
+        from wbc_jax.rollout import final_results
 
         b, B = self.batch, self.B
         g = self.per_run(gains)
@@ -492,11 +490,7 @@ class Evaluator:
             if bar is not None:
                 jax.block_until_ready(state)
                 bar.update(1)
-        acc = jax.tree_util.tree_map(lambda x: np.asarray(x)[:B], jax.device_get(state.acc))
-        p_goal = np.asarray(logs.p_obj_ref[:, -1])[:B]
-        p_obj = np.asarray(state.d.xpos[:, self.sim.robot.ids.obj_body])[:B]
-        res = metrics.finalize(acc, self.sim.dt_control, np.tile(self.mu, self.C), course=self.course,
-                               final_err=np.linalg.norm(p_obj - p_goal, axis=1))
+        res = final_results(self.sim, state, logs.p_obj_ref[:, -1], np.tile(self.mu, self.C), n=B)
         return {k: np.asarray(v).reshape(self.C, self.n) for k, v in res.items()}
 
 

@@ -73,24 +73,37 @@ def _throughput(pool: pr.QPProblem, batches, dtype, settings: QPSettings) -> lis
     return rows
 
 
+def osqp_solve(P, q, A, l, u, max_iter: int = 200_000) -> tuple[np.ndarray, float]:
+    """One QP by OSQP at eps ``REF_EPS``, polished (the reference solver; needs the ``osqp`` package).
+
+    Args:
+        P: (n, n), q: (n,), A: (m, n), l, u: (m,) with +-inf for absent bounds (passed as OSQP's +-1e30).
+    Returns:
+        (x (n,), seconds spent in OSQP's solve).
+    """
+    import osqp
+    import scipy.sparse as sp
+
+    s = osqp.OSQP()
+    s.setup(sp.csc_matrix(np.triu(P)), q, sp.csc_matrix(A), np.maximum(l, -1e30), np.minimum(u, 1e30),
+            eps_abs=REF_EPS, eps_rel=REF_EPS, max_iter=max_iter, polishing=True, verbose=False)
+    t0 = time.perf_counter()
+    r = s.solve(raise_error=False)
+    return r.x, time.perf_counter() - t0
+
+
 def _reference(batch: pr.QPProblem) -> tuple[np.ndarray, dict]:
     """Reference solutions (B, n) and a description with CPU time per QP."""
     try:
         import osqp
-        import scipy.sparse as sp
     except ImportError:
         osqp = None
     if osqp is not None:
         xs, times = [], []
         for k in range(batch.P.shape[0]):
-            s = osqp.OSQP()
-            s.setup(sp.csc_matrix(np.triu(batch.P[k])), batch.q[k], sp.csc_matrix(batch.A[k]),
-                    batch.l[k], batch.u[k], eps_abs=REF_EPS, eps_rel=REF_EPS, max_iter=200_000,
-                    polishing=True, verbose=False)
-            t0 = time.perf_counter()
-            r = s.solve(raise_error=False)
-            times.append(time.perf_counter() - t0)
-            xs.append(r.x)
+            x, t = osqp_solve(batch.P[k], batch.q[k], batch.A[k], batch.l[k], batch.u[k])
+            xs.append(x)
+            times.append(t)
         desc = dict(name=f"OSQP {osqp.__version__} (eps {REF_EPS:g}, polished)",
                     cpu_s_per_qp_median=float(np.median(times)),
                     cpu_s_per_qp_p95=float(np.quantile(times, 0.95)))
