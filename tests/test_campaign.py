@@ -149,7 +149,7 @@ def test_nan_run_does_not_poison_the_batch(full_run, tiny_spec):
     acc = jax.device_get(state.acc)
     p_obj = np.asarray(state.d.xpos[:, sim.robot.ids.obj_body])
     final_err = np.linalg.norm(p_obj - np.asarray(logs.p_obj_ref[:, -1]), axis=1)
-    res = metrics.finalize(acc, sim.dt_control, dz.mu, course=False, final_err=final_err)
+    res = metrics.finalize(acc, sim.dt_control, dz.mu, course=False, final_err=final_err, substeps=sim.n_substeps)
     ref = pd.read_csv(full_run[0] / "results.csv")
     assert res["nonfinite"][bad] and not res["success"][bad]
     ok = np.arange(dz.n) != bad

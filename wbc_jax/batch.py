@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax import scenario
+from wbc_jax import aot, scenario
 from wbc_jax.control.transport import ObjectModel, TransportGains, default_gains
 from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.planner.transport import TransportPlan, course_plan, straight_plan
@@ -40,8 +40,20 @@ def broadcast(tree, B: int):
     return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(jnp.asarray(x), (B,) + jnp.shape(x)), tree)
 
 
+_INIT_FNS: dict = {}
+
+
+def _init_fn(sim: Sim, in_axes):
+    """jit(vmap(init_state)) over (model, qpos0, qvel0), one per Sim and batched-model layout (one compile)."""
+    key = (id(sim), str(in_axes))
+    if key not in _INIT_FNS:
+        _INIT_FNS[key] = aot.cached_jit("init", jax.vmap(functools.partial(init_state, sim), in_axes=(in_axes, 0, 0)),
+                                        aot.describe(sim, in_axes))
+    return _INIT_FNS[key]
+
+
 def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push: Push | None = None,
-                  plan_kwargs: dict | None = None) -> Batch:
+                  plan_kwargs: dict | None = None, qpos0=None, qvel0=None) -> Batch:
     """Validated factors (each (B,) or scalar) -> a ready Batch.
 
     Args:
@@ -50,6 +62,8 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
         push: per-run or unbatched Push (none if None).
         plan_kwargs: keyword arguments of the planner: :func:`wbc_jax.planner.transport.course_plan` when
             the scene has obstacles or terrain (blocks, a wall), else :func:`~wbc_jax.planner.transport.straight_plan`.
+        qpos0, qvel0: (B, nq), (B, nv) initial configurations and velocities; None: the home pose of each run's
+            object side, at rest.
     """
     robot = sim.robot
     f = scenario.validate_factors(robot.ids, m, mu, d)
@@ -60,11 +74,14 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
     # start pose and plan depend on the run only through d (carried height): compute each level once
     levels, inverse = np.unique(f.d, return_inverse=True)
     q_levels = [robot.home_qpos(di) for di in levels]
-    qpos0 = np.stack(q_levels)[inverse]
+    if qpos0 is None:
+        qpos0 = np.stack(q_levels)[inverse]
+    if qvel0 is None:
+        qvel0 = np.zeros((B, robot.mj_model.nv))
     unique = [course_plan(robot, q, side=float(di), **kw) if course else straight_plan(robot, q, **kw)
               for q, di in zip(q_levels, levels)]
     plans = jax.tree_util.tree_map(lambda x: x[jnp.asarray(inverse)], stack(unique))
-    state = jax.jit(jax.vmap(functools.partial(init_state, sim), in_axes=(in_axes, 0)))(bm, jnp.asarray(qpos0))
+    state = _init_fn(sim, in_axes)(bm, jnp.asarray(qpos0, float), jnp.asarray(qvel0, float))
     om = ObjectModel(mass=jnp.asarray(f.m), side=jnp.asarray(f.d), mu=jnp.asarray(f.mu),
                      inset=jnp.full(B, robot.ids.obj_sphere_radius))
     gains = default_gains() if gains is None else gains

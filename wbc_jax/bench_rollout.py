@@ -34,8 +34,11 @@ def _peak_bytes() -> int | None:
 
 
 def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30, json_path: str | None = None,
-              scene: str = "flat", qp: str | None = None):
+              scene: str = "flat", qp: str | None = None, substeps: int = 1):
     """Physics-only and physics + WBC env-steps/s per batch size (see module docstring).
+
+    An env-step is one physics step (``robot``'s timestep); with ``substeps`` > 1 the controller runs once per
+    ``substeps`` physics steps (zero-order hold), so ``steps`` control steps are ``steps * substeps`` env-steps.
 
     Args:
         qp: control-loop ADMM variant name (``wbc_jax.qp_audit.variants``, e.g. ``"it20_a0"``); None: ``iters``
@@ -46,8 +49,10 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
     robot = Robot(scene)
     qs = variants([qp])[qp] if qp else control_qp_settings(iters)
     iters = qs.iters
-    sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=qs), log_every=steps)
+    sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=qs),
+                   n_substeps=substeps, log_every=steps)
     device = jax.devices()[0].device_kind
+    n_env = steps * substeps  # env-steps per run per timed call
     rows = []
     for B in batches:
         rng = np.random.default_rng(0)
@@ -55,7 +60,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
                           rng.choice([0.06, 0.08, 0.10], B))
 
         def phys(m, d):
-            return jax.lax.scan(lambda d, _: (mjx.step(m, d), None), d, None, length=steps)[0]
+            return jax.lax.scan(lambda d, _: (mjx.step(m, d), None), d, None, length=n_env)[0]
 
         f_phys = jax.jit(jax.vmap(phys, in_axes=(b.in_axes, 0)))
         d0 = b.state.d
@@ -65,10 +70,10 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         args = (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
         _, c_wbc = _timed(f_wbc, *args)
         _, t_wbc = _timed(f_wbc, *args)
-        row = dict(device=device, scene=robot.path.name, batch=B, steps=steps, qp_iters=iters, qp=qp or f"it{iters}",
-                   adapt_every=qs.adapt_every, ruiz_iters=qs.ruiz_iters, peak_device_bytes=_peak_bytes(),
-                   physics_steps_per_s=B * steps / t_phys, wbc_steps_per_s=B * steps / t_wbc,
-                   ratio=(B * steps / t_wbc) / (B * steps / t_phys), compile_physics_s=c_phys - t_phys,
+        row = dict(device=device, scene=robot.path.name, batch=B, steps=steps, substeps=substeps, qp_iters=iters,
+                   qp=qp or f"it{iters}", adapt_every=qs.adapt_every, ruiz_iters=qs.ruiz_iters,
+                   peak_device_bytes=_peak_bytes(), physics_steps_per_s=B * n_env / t_phys,
+                   wbc_steps_per_s=B * n_env / t_wbc, ratio=t_phys / t_wbc, compile_physics_s=c_phys - t_phys,
                    compile_wbc_s=c_wbc - t_wbc)
         print(f"{device} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   physics+WBC "
               f"{row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   compile {row['compile_wbc_s']:.1f} s"
@@ -80,8 +85,8 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
             sargs = (bs.model, bs.state, bs.plan, bs.om, bs.gains, bs.push, bs.mu_ground)
             _timed(f_wbc, *sargs)
             _, t_sh = _timed(f_wbc, *sargs)
-            row.update(n_devices=n_dev, wbc_steps_per_s_sharded=B * steps / t_sh, sharded_speedup=t_wbc / t_sh)
-            print(f"{'':>{len(device)}} batch {B:6d}: physics+WBC on {n_dev} devices {B * steps / t_sh:12.0f} "
+            row.update(n_devices=n_dev, wbc_steps_per_s_sharded=B * n_env / t_sh, sharded_speedup=t_wbc / t_sh)
+            print(f"{'':>{len(device)}} batch {B:6d}: physics+WBC on {n_dev} devices {B * n_env / t_sh:12.0f} "
                   f"steps/s   speed-up {t_wbc / t_sh:.2f}x", flush=True)
         rows.append(row)
     if json_path:

@@ -14,7 +14,6 @@ rollout and reported failed; the others continue.
 
 from __future__ import annotations
 
-import functools
 import json
 import os
 import platform
@@ -30,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wbc_jax import aot
 from wbc_jax.errors import SpecError, WbcJaxError
 from wbc_jax.io_utils import atomic_dir, write_json_atomic
 from wbc_jax.spec import Design, Spec, default_spec_path, design, load_spec
@@ -44,15 +44,17 @@ def has_accelerator() -> bool:
     return jax.default_backend() != "cpu"
 
 
-def _sim(scene: str, iters: int, sensor_noise: bool = False):
+def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1):
+    """The (cached) Sim of a scene: ``iters`` ADMM iterations, control period ``substeps`` x the scene's timestep."""
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
     from wbc_jax.model import Robot
     from wbc_jax.rollout import make_sim
 
-    key = (scene, iters, sensor_noise)
+    key = (scene, iters, sensor_noise, substeps)
     if key not in _SIMS:
-        _SIMS[key] = make_sim(Robot(scene), TransportConfig(qp=control_qp_settings(iters)), log_every=LOG_EVERY,
-                              sensor_noise=sensor_noise)
+        robot = Robot(scene)
+        cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=control_qp_settings(iters))
+        _SIMS[key] = make_sim(robot, cfg, n_substeps=substeps, log_every=LOG_EVERY, sensor_noise=sensor_noise)
     return _SIMS[key]
 
 
@@ -60,8 +62,9 @@ def _chunk_fn(sim, in_axes, n_logs: int):
     from wbc_jax.rollout import make_chunk_fn
 
     key = (id(sim), n_logs)
-    if key not in _FNS:
-        _FNS[key] = jax.jit(jax.vmap(make_chunk_fn(sim, n_logs), in_axes=(in_axes, 0, 0, 0, 0, 0, 0)))
+    if key not in _FNS:  # jit, with the lowered program kept on disk for the next process (wbc_jax.aot)
+        _FNS[key] = aot.cached_jit("chunk", jax.vmap(make_chunk_fn(sim, n_logs), in_axes=(in_axes, 0, 0, 0, 0, 0, 0)),
+                                   aot.describe(sim, in_axes, n_logs))
     return _FNS[key]
 
 
@@ -94,21 +97,17 @@ def build(spec: Spec, gains=None):
     ``gains``: controller gains (TransportGains, unbatched) instead of the defaults."""
     from wbc_jax.batch import prepare_batch
     from wbc_jax.planner.transport import plan_duration
-    from wbc_jax.rollout import init_state, make_push
+    from wbc_jax.rollout import make_push
 
     c = spec.campaign
-    sim = _sim(c["scene"], c["qp_iters"], spec.perturbations["qvel_noise_std"] > 0)
+    sim = _sim(c["scene"], c["qp_iters"], spec.perturbations["qvel_noise_std"] > 0, c["control_substeps"])
     dz = design(spec)
-    b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=gains,
-                      plan_kwargs=dict(distance=c["distance"], speed=c["speed"]))
-    T_plan = plan_duration(b.plan)
     qpos0, qvel0 = initial_configuration(sim.robot, dz)
-    key = ("init", id(sim))
-    if key not in _FNS:
-        _FNS[key] = jax.jit(jax.vmap(functools.partial(init_state, sim), in_axes=(b.in_axes, 0, 0)))
-    state = _FNS[key](b.model, jnp.asarray(qpos0), jnp.asarray(qvel0))
+    b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=gains,
+                      plan_kwargs=dict(distance=c["distance"], speed=c["speed"]), qpos0=qpos0, qvel0=qvel0)
+    T_plan = plan_duration(b.plan)
     push = make_push(dz.push_force, dz.push_frac * T_plan, dz.push_duration, dz.qvel_noise_std, dz.seed)
-    b = b._replace(state=state, push=push)
+    b = b._replace(push=push)
     log_dt = sim.dt_control * LOG_EVERY
     logs_per_chunk = max(1, int(round(c["chunk_seconds"] / log_dt)))
     horizon = T_plan + c["extra_seconds"]
@@ -254,7 +253,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
                                        p_goal=p_goal.tolist()))
             if bar is not None:
                 bar.update(chunk_s)
-                bar.set_postfix_str(f"{dz.n} runs, {dz.n * chunk_s / sim.dt_control / dt_wall:,.0f} env-steps/s")
+                bar.set_postfix_str(f"{dz.n} runs, {dz.n * chunk_s / sim.dt_physics / dt_wall:,.0f} env-steps/s")
             if _interrupt_after is not None and done >= _interrupt_after and done < n_chunks:
                 raise KeyboardInterrupt
     except KeyboardInterrupt:
@@ -276,7 +275,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     per_chunk = float(np.median(steady)) if steady else None
     first = [mk["wall_s"] for mk in marks if mk["fresh_process"]]
     compile_s = (first[0] - per_chunk) if (first and per_chunk) else None
-    eps = dz.n * chunk_s / sim.dt_control / per_chunk if per_chunk else dz.n * seconds / sim.dt_control / wall_sim
+    eps = dz.n * chunk_s / sim.dt_physics / per_chunk if per_chunk else dz.n * seconds / sim.dt_physics / wall_sim
     cells = df.groupby(["m", "mu", "d"])["success"].agg(["size", "sum"]).reset_index()
     failures = [dict(m=r.m, mu=r.mu, d=r.d, failed=int(r.size - r.sum), runs=int(r.size))
                 for r in cells.itertuples() if r.size != r.sum]
@@ -298,7 +297,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         n_runs=dz.n, n_cells=int(len(cells)), reps=spec.reps, seeds=[int(s) for s in dz.seed],
         simulated_s=seconds, planned_s=T_plan, chunk_s=chunk_s, n_chunks=n_chunks, control_dt_s=sim.dt_control,
         wall_s_total=time.perf_counter() - t_start + wall_before, wall_s_rollout=wall_sim,
-        compile_s_estimate=compile_s, first_chunk_s=first[0] if first else None, env_steps_per_s=eps,
+        setup_s=t_run - t_start, compile_s_estimate=compile_s, first_chunk_s=first[0] if first else None, env_steps_per_s=eps,
         resumed=bool(resume and wall_before > 0), n_success=int(df.success.sum()), failures_per_cell=failures, failed_runs=failed_runs,
         warnings=warnings, metric_means={k: float(df.loc[df.success, k].mean()) if df.success.any() else None
                                          for k in ("R", "T", "S", "max_slip_mm")})

@@ -33,7 +33,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
         batches = [int(x) for x in args.batches.split(",")] if args.batches else ((1, 4) if args.quick else (1, 1024, 4096, 16384))
         run_rollout_bench(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json, scene=args.scene,
-                          qp=args.qp)
+                          qp=args.qp, substeps=args.substeps)
         return 0
     if args.what == "profile":
         from wbc_jax.bench_rollout import run_profile
@@ -136,6 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--iters", type=int, default=30, help="rollout: ADMM iterations per control step")
     b.add_argument("--qp", default=None, help="rollout: control-loop ADMM variant it<N>[_a<K>][_r<R>] (N iterations, "
                                           "rho adapted every K (0: never), R Ruiz passes); overrides --iters")
+    b.add_argument("--substeps", type=int, default=1, help="rollout: physics steps per control step (default 1)")
     b.add_argument("--scene", default="flat", help="rollout: 'flat' (default), 'transport' or a scene XML path")
     b.add_argument("--variants", default=None, help="profile: comma-separated variants (default wbc_1,wbc_n,"
                                                     "wbc_n_norefactor,wbc_n_chol,wbc_n_pallas; also wbc_n_inv, "

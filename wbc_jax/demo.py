@@ -67,7 +67,8 @@ def run_demo(out: str, scene: str = "transport", seconds: float | None = None, a
     p_obj = np.asarray(st.d.xpos[:, robot.ids.obj_body])
     p_goal = np.asarray(logs.p_obj_ref[:, -1])
     err = np.linalg.norm(p_obj - p_goal, axis=1)
-    res = metrics.finalize(acc, sim.dt_control, mu, course=scene_geometry(robot).is_course, final_err=err)
+    res = metrics.finalize(acc, sim.dt_control, mu, course=scene_geometry(robot).is_course, final_err=err,
+                           substeps=sim.n_substeps)
     runs = []
     for i, (mi, mui, di) in enumerate(cells):
         runs.append(dict(

@@ -1,6 +1,7 @@
 """The transport paper's metrics (Sec. V-B), computed online inside the rollout, plus safety flags.
 
-Per control step (inside the jitted scan, cheap: four contact forces and a few norms):
+Per physics step (inside the jitted scan, after every ``mjx.step`` of a control period, ``wbc_jax.rollout``;
+cheap: four contact forces and a few norms):
 
 * **Robustness** integrand 1/H(t), with
   H = (1/lambda) sum_i 1 / ((theta_i - alpha_i)(alpha_i + theta_i)), lambda = 4,
@@ -14,10 +15,12 @@ Per control step (inside the jitted scan, cheap: four contact forces and a few n
   1/H is therefore in [0, lambda / (n_c / theta^2)] = [0, theta^2] for n_c = 4 = lambda: a cube resting
   still on a level tray scores theta^2 = atan(mu)^2.
 * **Tracking** integrand ||p_b,ref(t) - p_b(t)|| (object CoM vs the planned object path).
-* **Smoothness** integrand ||vdot_b(t)||: the object CoM's linear acceleration over the control period,
-  (v(t + dt) - v(t)) / dt from the free joint's linear velocity (world frame).
+* **Smoothness** integrand ||vdot_b(t)||: the object CoM's linear acceleration over the physics step,
+  (v(t + dt) - v(t)) / dt with dt the physics timestep, from the free joint's linear velocity (world frame).
 
-Over a run of duration T_run (all simulated control steps):
+The integrals sum these over physics steps times the physics timestep (the tracking integrand, a planner
+quantity, is sampled once per control step times the control period). Over a run of duration T_run (all
+simulated control steps x the control period):
 R = (1/T_run) int 1/H dt [rad^2]; T = (1/T_run) int ||p_ref - p|| dt [m]; S = T_run / int ||vdot_b|| dt
 [s^2/m] (the paper's S uses the duration T, not the tracking metric T).
 """
@@ -81,15 +84,17 @@ def step_integrands(m, d_after, slots, mu, v_obj_before, v_obj_after, dt):
     return inv_H(alpha, loaded, mu), a
 
 
-def finalize(acc, dt: float, mu, course: bool, final_err) -> dict[str, np.ndarray]:
+def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> dict[str, np.ndarray]:
     """Per-run metrics and flags from a (batched, host) rollout ``Accum``.
 
     Args:
         acc: rollout.Accum with leading run axis; dt: control period [s]; mu: (B,) tray friction;
-        course: the scene has obstacles (fall threshold); final_err: (B,) final object error [m].
+        course: the scene has obstacles (fall threshold); final_err: (B,) final object error [m];
+        substeps: physics steps per control step (``Sim.n_substeps``): ``acc.n_boundary`` counts physics steps.
 
     Returns:
-        dict of (B,) arrays: R [rad^2], T [m], S [s^2/m], max_slip_mm, flags fell (= trunk_low or body_contact),
+        dict of (B,) arrays: R [rad^2], T [m], S [s^2/m] (time averages over acc.n_steps x dt), max_slip_mm,
+        boundary_fraction (of the physics steps), flags fell (= trunk_low or body_contact),
         trunk_low, body_contact, dropped, slid, hit_wall, qp_flagged, nonfinite, success (no fall, no drop, finite,
         final object error <= DONE_TOL) and fail_reason (text, "" for a success).
     """
@@ -108,7 +113,7 @@ def finalize(acc, dt: float, mu, course: bool, final_err) -> dict[str, np.ndarra
         T=np.asarray(acc.sum_track) / dur,
         S=S,
         max_slip_mm=np.asarray(acc.max_slip) * 1e3,
-        boundary_fraction=np.asarray(acc.n_boundary) / np.maximum(n, 1),
+        boundary_fraction=np.asarray(acc.n_boundary) / np.maximum(n * substeps, 1),
         fell=fell | nonfinite,
         trunk_low=trunk_low,
         body_contact=body_contact,

@@ -1,10 +1,18 @@
 """Batched closed-loop rollout: MJX physics + transport WBC, lax.scan over time, vmap over runs.
 
-One control step: :func:`wbc_jax.physics.sense` (kinematics, M, bias) -> planner reference ->
-QP build -> ADMM (warm-started) -> torques -> :func:`wbc_jax.physics.advance` (rest of the forward
-pass + integration). Long runs are executed in chunks (one jit call per chunk) so progress can be
-shown and finished chunks kept. Per-step quantities are reduced online (max, min, sums) and logged
-once every ``log_every`` steps.
+One control step (period ``Sim.dt_control`` = ``Sim.n_substeps`` physics steps of ``Sim.dt_physics``):
+:func:`wbc_jax.physics.sense` (kinematics, M, bias) -> planner reference -> QP build -> ADMM (warm-started) ->
+torques -> :func:`physics_period`: :func:`wbc_jax.physics.finish` (rest of the forward pass + integration), then
+``n_substeps - 1`` further ``mjx.step`` calls with the torques (and any push force) held, as a ``lax.scan``.
+
+Monitors run at two rates. *Physics rate* (after every physics step, :func:`substep_monitors`): the paper's
+integrands 1/H and ||object acceleration|| (``wbc_jax.metrics``, dt = the physics step), non-foot/floor and wall
+contact, object off the tray; so a contact or an acceleration spike inside a control period is not missed and
+the integrals do not depend on the control period. *Control rate* (from the sensed state, once per control
+step): trunk height, slip and lift on the tray, tracking error, torque ratios, QP residuals and flags, and the
+log. Long runs are executed in chunks (one jit call per chunk) so progress can be shown and finished chunks
+kept. Per-step quantities are reduced online (max, min, sums; :class:`Accum`) and logged once every
+``log_every`` control steps.
 """
 
 from __future__ import annotations
@@ -16,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax import metrics, physics
+from wbc_jax import aot, metrics, physics
 from wbc_jax.control.dynamics import dyn_terms
 from wbc_jax.control.transport import (ControlState, ObjectModel, TransportConfig, TransportGains,
                                        init_control_state, transport_control)
@@ -57,25 +65,26 @@ def no_push() -> Push:
 
 
 class Accum(NamedTuple):
-    """Online reductions since the start of the run (per run)."""
+    """Online reductions since the start of the run (per run). Fields marked (physics rate) are updated after
+    every physics step (:func:`substep_monitors`), the others once per control step."""
 
     min_trunk_z: jax.Array  # [m]
     max_slip: jax.Array  # [m] object displacement on the tray, tray frame, xy
     max_lift: jax.Array  # [m] object bottom above the tray surface
-    nonfoot_floor: jax.Array  # bool, a non-foot robot part touched the floor
-    wall_contact: jax.Array  # bool
+    nonfoot_floor: jax.Array  # bool, a non-foot robot part touched the floor (physics rate)
+    wall_contact: jax.Array  # bool (physics rate)
     max_tau_ratio: jax.Array  # max |tau| / limit of the applied torques
     max_tau_excess: jax.Array  # [N m] largest unclipped-torque excess over the limit
     sum_prim_res: jax.Array
     n_flag: jax.Array  # steps whose QP was flagged
-    n_steps: jax.Array
+    n_steps: jax.Array  # int32, control steps
     sum_track: jax.Array  # integral of ||p_obj,ref - p_obj|| [m s]
-    nonfinite: jax.Array  # bool
-    off_steps: jax.Array  # int32, consecutive steps (up to now) with the object touching nothing on the tray
-    max_off_s: jax.Array  # [s] longest such spell
-    sum_invH: jax.Array  # integral of 1/H (transport paper's robustness integrand, wbc_jax.metrics) [rad^2 s]
-    sum_acc: jax.Array  # integral of ||object CoM linear acceleration|| [m/s]
-    n_boundary: jax.Array  # int32, steps with 1/H = 0 (a contact unloaded or on/outside its cone)
+    nonfinite: jax.Array  # bool (physics rate)
+    off_steps: jax.Array  # int32, consecutive physics steps (up to now) with the object touching nothing on the tray
+    max_off_s: jax.Array  # [s] longest such spell (physics steps x dt_physics)
+    sum_invH: jax.Array  # integral of 1/H (the paper's robustness integrand, wbc_jax.metrics) [rad^2 s] (physics rate)
+    sum_acc: jax.Array  # integral of ||object CoM linear acceleration|| [m/s] (physics rate)
+    n_boundary: jax.Array  # int32, physics steps with 1/H = 0 (a contact unloaded or on/outside its cone)
 
 
 class RunState(NamedTuple):
@@ -123,12 +132,23 @@ class Sim:
 
     @property
     def dt_control(self) -> float:
+        """Control period [s] (= n_substeps x dt_physics)."""
         return self.cfg.dt
+
+    @property
+    def dt_physics(self) -> float:
+        """Physics timestep [s] (the model's ``opt.timestep``)."""
+        return float(self.robot.mj_model.opt.timestep)
 
 
 def contact_slots(robot: Robot):
     """Indices of MJX contact slots: non-foot parts vs floor or terrain, anything vs a wall, (4, K) each
-    foot vs floor and terrain, and the object's contact spheres vs the tray."""
+    foot vs floor and terrain, and the object's contact spheres vs the tray (MJX's layout, computed once per
+    model and kept on disk: :func:`wbc_jax.aot.cached_value`)."""
+    return aot.cached_value("slots", aot.describe(robot), lambda: _contact_slots(robot))
+
+
+def _contact_slots(robot: Robot):
     m = robot.mj_model
     d = jax.jit(physics.sense)(robot.mjx_model, mjx.make_data(robot.mjx_model))
     geom = np.asarray(d._impl.contact.geom)
@@ -142,7 +162,16 @@ def contact_slots(robot: Robot):
 
 def make_sim(robot: Robot, cfg: TransportConfig | None = None, n_substeps: int = 1, log_every: int = 20,
              sensor_noise: bool = False) -> Sim:
-    cfg = cfg or TransportConfig(dt=float(robot.mj_model.opt.timestep) * n_substeps)
+    """The Sim of ``robot``. ``cfg.dt`` (the controller's period) must equal ``n_substeps`` x the model's
+    timestep; ``cfg`` None: default controller settings with that period."""
+    h = float(robot.mj_model.opt.timestep)
+    n_substeps = int(n_substeps)
+    if n_substeps < 1:
+        raise ValueError(f"n_substeps = {n_substeps}: expected >= 1")
+    cfg = cfg or TransportConfig(dt=h * n_substeps)
+    if abs(cfg.dt - h * n_substeps) > 1e-9 * h:
+        raise ValueError(f"control period cfg.dt = {cfg.dt} s != n_substeps ({n_substeps}) x the model's timestep "
+                         f"({h} s)")
     nf, wl, ft, ob = contact_slots(robot)
     return Sim(robot=robot, cfg=cfg, n_substeps=n_substeps, log_every=log_every, nonfoot_slots=nf, wall_slots=wl,
                foot_slots=ft, obj_slots=ob, sensor_noise=sensor_noise)
@@ -195,53 +224,113 @@ def controller_inputs(sim: Sim, m, rs: RunState, plan: TransportPlan, push: Push
     return d, d_ctl, dyn, ref
 
 
+class SubstepMonitors(NamedTuple):
+    """Physics-rate monitor values of one physics step of one run (each a scalar), from the data before and after
+    the step. Contacts and constraint forces are those of the step's start (``wbc_jax.physics`` docstring)."""
+
+    inv_h: jax.Array  # 1/H of the simulator's forces on the object's contact slots [rad^2]; 0 if not finite
+    acc: jax.Array  # ||object CoM linear acceleration|| over the step, (v_after - v_before) / dt_physics [m/s^2]
+    nonfoot_floor: jax.Array  # bool, a non-foot robot part penetrates the floor or terrain (dist < 0)
+    wall: jax.Array  # bool, anything penetrates a wall (dist < 0)
+    off: jax.Array  # bool, every object contact sphere farther than CONTACT_DIST from the tray
+    finite: jax.Array  # bool, positions after the step and the held torques are finite
+
+
+def substep_monitors(sim: Sim, m, om: ObjectModel, tau, d, d_after) -> SubstepMonitors:
+    """Monitor values of the physics step ``d`` -> ``d_after`` taken with torques ``tau`` (nu,) [N m]."""
+    dist = d_after._impl.contact.dist
+    finite = jnp.all(jnp.isfinite(d_after.qpos)) & jnp.all(jnp.isfinite(tau))
+    if sim.obj_slots.size:  # paper metrics: forces of this step's constraint solve, object acceleration
+        oa = sim.robot.ids.obj_dof_adr
+        inv_h, acc_norm = metrics.step_integrands(m, d_after, sim.obj_slots, om.mu, d.qvel[oa:oa + 3],
+                                                  d_after.qvel[oa:oa + 3], sim.dt_physics)
+        inv_h, acc_norm = jnp.where(finite, inv_h, 0.0), jnp.where(finite, acc_norm, 0.0)
+        off = jnp.all(dist[sim.obj_slots] > CONTACT_DIST)
+    else:
+        inv_h = acc_norm = jnp.zeros(())
+        off = jnp.bool_(False)
+    wall = jnp.any(dist[sim.wall_slots] < 0.0) if sim.wall_slots.size else jnp.bool_(False)
+    return SubstepMonitors(inv_h=inv_h, acc=acc_norm, nonfoot_floor=jnp.any(dist[sim.nonfoot_slots] < 0.0),
+                           wall=wall, off=off, finite=finite)
+
+
+def physics_substep(sim: Sim, m, om: ObjectModel, tau, d):
+    """One held-torque physics step (``mjx.step``, ``d.ctrl`` = ``tau``) -> (data after, its SubstepMonitors)."""
+    d_after = mjx.step(m, d)
+    return d_after, substep_monitors(sim, m, om, tau, d, d_after)
+
+
+def _fold(sim: Sim, a: Accum, s: SubstepMonitors) -> Accum:
+    """Accum with one physics step's monitors added (integrals: value x dt_physics; flags OR'ed)."""
+    h = sim.dt_physics
+    off_steps = jnp.where(s.off, a.off_steps + 1, 0)
+    return a._replace(
+        nonfoot_floor=a.nonfoot_floor | s.nonfoot_floor,
+        wall_contact=a.wall_contact | s.wall,
+        nonfinite=a.nonfinite | ~s.finite,
+        off_steps=off_steps,
+        max_off_s=jnp.maximum(a.max_off_s, off_steps * h),
+        sum_invH=a.sum_invH + s.inv_h * h,
+        sum_acc=a.sum_acc + s.acc * h,
+        n_boundary=a.n_boundary + (s.inv_h <= 0.0).astype(jnp.int32),
+    )
+
+
+def physics_period(sim: Sim, m, om: ObjectModel, d, tau, acc: Accum):
+    """The physics of one control period with its physics-rate monitors.
+
+    :func:`wbc_jax.physics.finish` on the sensed ``d``, then ``sim.n_substeps - 1`` :func:`physics_substep`
+    calls in a ``lax.scan`` (torques and ``d.xfrc_applied`` held); :func:`substep_monitors` of every step folded
+    into ``acc``.
+
+    Args:
+        d: sensed mjx.Data (``wbc_jax.physics.sense``) with the period's ``xfrc_applied``; tau: (nu,) [N m];
+        acc: the run's Accum before the period.
+
+    Returns:
+        (mjx.Data n_substeps physics steps later, Accum with the physics-rate fields updated, () bool: every step
+        of the period finite).
+    """
+    d1 = physics.finish(m, d, tau)
+    s = substep_monitors(sim, m, om, tau, d, d1)
+    carry = (d1, _fold(sim, acc, s), s.finite)
+    if sim.n_substeps > 1:
+        def body(carry, _):
+            d, a, finite = carry
+            d, s = physics_substep(sim, m, om, tau, d)
+            return (d, _fold(sim, a, s), finite & s.finite), None
+
+        carry = jax.lax.scan(body, carry, None, length=sim.n_substeps - 1)[0]
+    return carry
+
+
 def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel, gains: TransportGains,
                  push: Push, mu_ground):
     """One control period of one run. Returns (new RunState, per-step values for the log)."""
     ids = sim.robot.ids
     d, d_ctl, dyn, ref = controller_inputs(sim, m, rs, plan, push)
     t = d.time
-    dist = d._impl.contact.dist
     tau, cs, qd = transport_control(m, d_ctl, dyn, ref, om, gains, rs.cs, ids, sim.cfg, mu_ground)
     on = (t >= push.t0) & (t < push.t0 + push.duration)
     xfrc = jnp.zeros_like(d.xfrc_applied).at[ids.trunk_body, 0:3].set(jnp.where(on, push.force, 0.0))
-    d_next = physics.advance(m, d.replace(xfrc_applied=xfrc), tau, sim.n_substeps)
+    d_next, a, finite = physics_period(sim, m, om, d.replace(xfrc_applied=xfrc), tau, rs.acc)
     p_lift = jnp.where(ref.swing[:, None], rs.p_lift, dyn.p_foot)
 
-    # online metrics (from the sensed state d at time t)
+    # control-rate metrics (from the sensed state d at time t)
     rel = _tray_rel(d, ids)
     slip = jnp.linalg.norm(rel[:2] - rs.rel0[:2])
     lift = rel[2] - rs.rel0[2]
     p_obj = d.xpos[ids.obj_body]
-    a = rs.acc
-    off = jnp.all(dist[sim.obj_slots] > CONTACT_DIST) if sim.obj_slots.size else jnp.bool_(False)
-    off_steps = jnp.where(off, a.off_steps + 1, 0)
-    finite = jnp.all(jnp.isfinite(d_next.qpos)) & jnp.all(jnp.isfinite(tau))
-    if sim.obj_slots.size:  # paper metrics: forces of this step's constraint solve, object acceleration
-        oa = ids.obj_dof_adr
-        inv_h, acc_norm = metrics.step_integrands(m, d_next, sim.obj_slots, om.mu, d.qvel[oa:oa + 3],
-                                                  d_next.qvel[oa:oa + 3], sim.dt_control)
-        inv_h, acc_norm = jnp.where(finite, inv_h, 0.0), jnp.where(finite, acc_norm, 0.0)
-    else:
-        inv_h = acc_norm = jnp.zeros(())
-    acc = Accum(
+    acc = a._replace(
         min_trunk_z=jnp.minimum(a.min_trunk_z, dyn.p_base[2]),
         max_slip=jnp.maximum(a.max_slip, slip),
         max_lift=jnp.maximum(a.max_lift, lift),
-        nonfoot_floor=a.nonfoot_floor | jnp.any(dist[sim.nonfoot_slots] < 0.0),
-        wall_contact=a.wall_contact | (jnp.any(dist[sim.wall_slots] < 0.0) if sim.wall_slots.size else False),
         max_tau_ratio=jnp.maximum(a.max_tau_ratio, jnp.max(jnp.abs(tau) / jnp.asarray(ids.tau_max))),
         max_tau_excess=jnp.maximum(a.max_tau_excess, qd.tau_excess),
         sum_prim_res=a.sum_prim_res + qd.prim_res,
         n_flag=a.n_flag + (qd.flag != 0).astype(jnp.int32),
         n_steps=a.n_steps + 1,
         sum_track=a.sum_track + jnp.linalg.norm(ref.p_obj - p_obj) * sim.dt_control,
-        nonfinite=a.nonfinite | ~finite,
-        off_steps=off_steps,
-        max_off_s=jnp.maximum(a.max_off_s, off_steps * sim.dt_control),
-        sum_invH=a.sum_invH + inv_h * sim.dt_control,
-        sum_acc=a.sum_acc + acc_norm * sim.dt_control,
-        n_boundary=a.n_boundary + (inv_h <= 0.0).astype(jnp.int32),
     )
     # a run that went non-finite is frozen (its state no longer advances) so it cannot poison others
     d_next = jax.tree_util.tree_map(lambda new, old: jnp.where(finite, new, old), d_next, rs.d)
@@ -267,7 +356,7 @@ def final_results(sim: Sim, state: RunState, p_goal, mu, n: int | None = None) -
         acc = jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], acc)
         p_obj, p_goal = p_obj[:n], p_goal[:n]
     return metrics.finalize(acc, sim.dt_control, mu, course=scene_geometry(sim.robot).is_course,
-                            final_err=np.linalg.norm(p_obj - p_goal, axis=1))
+                            final_err=np.linalg.norm(p_obj - p_goal, axis=1), substeps=sim.n_substeps)
 
 
 def make_chunk_fn(sim: Sim, n_logs: int):

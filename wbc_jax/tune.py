@@ -153,8 +153,9 @@ class TuneSpec:
 
     @property
     def hash(self) -> str:
-        """sha256 of the validated content (defaults filled in, the campaign spec included)."""
-        return hashlib.sha256(json.dumps(self.canonical(), sort_keys=True).encode()).hexdigest()
+        """sha256 of the validated content (defaults filled in, the campaign spec included as in its own hash)."""
+        return hashlib.sha256(json.dumps(dict(self.canonical(), campaign=self.campaign.hashed()),
+                                         sort_keys=True).encode()).hexdigest()
 
     def with_overrides(self, candidates: int | None = None, rounds: int | None = None) -> TuneSpec:
         t = dict(self.tune)
@@ -663,7 +664,7 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
     search = make_search(spec, space)
     C, R, t = search.C, search.rounds, spec.tune
     ev = Evaluator(spec, C)
-    steps = int(round(ev.seconds / ev.sim.dt_control))  # control steps per run and round
+    steps = int(round(ev.seconds / ev.sim.dt_control)) * ev.sim.n_substeps  # physics (env-)steps per run and round
     print(f"tune {t['name']!r} ({spec.path}): {t['method']}, {R} rounds x {C} candidates, {space.k} tuned leaves; "
           f"each candidate on {ev.n} runs ({ev.n // t['reps']} cells x {t['reps']} reps of {spec.campaign.path}), "
           f"batch {ev.B} runs x {ev.seconds:.2f} s simulated, {spec.campaign.campaign['qp_iters']} ADMM iterations, "

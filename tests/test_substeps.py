@@ -1,0 +1,149 @@
+"""Control period longer than the physics step (``n_substeps`` > 1, zero-order hold): the physics-rate monitors
+(1/H, ||object acceleration||, contact flags, boundary count) are sampled after every physics step, not once per
+control period; ``campaign.control_substeps`` is validated like the other spec keys.
+
+One compile of a 2-run control step with n_substeps = 2 (and one of the hand reference): about a minute on a
+2-core CPU.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from wbc_jax import cli, metrics
+from wbc_jax.batch import prepare_batch
+from wbc_jax.control.transport import TransportConfig, control_qp_settings
+from wbc_jax.errors import SpecError, WbcJaxError
+from wbc_jax.model import Robot, mjx
+from wbc_jax.planner.gait import GaitParams
+from wbc_jax.rollout import CONTACT_DIST, control_step, make_sim
+from wbc_jax.spec import load_spec, parse_spec
+
+N_SUB = 2
+PERIODS = 3  # control periods checked (6 physics steps)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    robot = Robot("flat")
+    h = float(robot.mj_model.opt.timestep)
+    sim = make_sim(robot, TransportConfig(dt=h * N_SUB, qp=control_qp_settings(20)), n_substeps=N_SUB, log_every=1)
+    # standing, loaded (the gait starts after the horizon); the first periods settle the object: non-zero acceleration
+    b = prepare_batch(sim, [0.2, 0.4], [0.4, 1.0], [0.10, 0.06], plan_kwargs=dict(gait=GaitParams(t_start=10.0),
+                                                                                 distance=0.1))
+    return robot, sim, b
+
+
+def _reference(sim, b):
+    """Hand reference, independent of the rollout's substep code: one jitted ``mjx.step`` and one jitted
+    ``metrics.step_integrands`` (physics timestep), both vmapped over the runs and called per physics step.
+
+    Returns f(d0, tau) -> (qpos after the period, per-step arrays (B, N_SUB): 1/H, ||a||, non-foot contact, object
+    off the tray, and the object's velocity change over the whole period (B, 3))."""
+    ids = sim.robot.ids
+    oa = ids.obj_dof_adr
+    h = float(sim.robot.mj_model.opt.timestep)
+    step = jax.jit(jax.vmap(mjx.step, in_axes=(b.in_axes, 0)))
+    integrands = jax.jit(jax.vmap(
+        lambda m, d, d1, mu: metrics.step_integrands(m, d1, sim.obj_slots, mu, d.qvel[oa:oa + 3], d1.qvel[oa:oa + 3],
+                                                     h),
+        in_axes=(b.in_axes, 0, 0, 0)))
+
+    def period(d0, tau):
+        d = d0.replace(ctrl=tau, xfrc_applied=jnp.zeros_like(d0.xfrc_applied))
+        out = []
+        for _ in range(N_SUB):
+            d1 = step(b.model, d)
+            inv_h, a = integrands(b.model, d, d1, b.om.mu)
+            dist = np.asarray(d1._impl.contact.dist)  # contacts of the step's start positions
+            out.append((inv_h, a, np.any(dist[:, sim.nonfoot_slots] < 0.0, axis=1),
+                        np.all(dist[:, sim.obj_slots] > CONTACT_DIST, axis=1)))
+            d = d1
+        inv_h, a, nonfoot, off = (np.stack([np.asarray(x) for x in xs], axis=1) for xs in zip(*out))
+        dv = np.asarray(d.qvel[:, oa:oa + 3] - d0.qvel[:, oa:oa + 3])
+        return np.asarray(d.qpos), inv_h, a, nonfoot, off, dv
+
+    return period
+
+
+def test_substep_monitors_equal_hand_stepping(setup):
+    robot, sim, b = setup
+    h = sim.dt_physics
+    assert sim.dt_control == pytest.approx(N_SUB * h)
+    step = jax.jit(jax.vmap(lambda m, rs, p, om, g, pu, mg: control_step(sim, m, rs, p, om, g, pu, mg),
+                            in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0)))
+    ref = _reference(sim, b)
+    rs = b.state
+    total_acc, coarse_gap = 0.0, 0.0
+    for _ in range(PERIODS):
+        rs_next, log = step(b.model, rs, b.plan, b.om, b.gains, b.push, b.mu_ground)
+        qpos, inv_h, a, nonfoot, off, dv = ref(rs.d, log.tau)
+        a0, a1 = jax.device_get(rs.acc), jax.device_get(rs_next.acc)
+        # the state after the period is two physics steps with the held torques
+        np.testing.assert_allclose(np.asarray(rs_next.d.qpos), qpos, rtol=0, atol=1e-6)
+        # integrals: sum over the physics steps x the physics timestep (not one sample x the control period)
+        d_acc = np.asarray(a1.sum_acc - a0.sum_acc)
+        np.testing.assert_allclose(d_acc, (a * h).sum(axis=1), rtol=1e-4, atol=1e-9)
+        np.testing.assert_allclose(a1.sum_invH - a0.sum_invH, (inv_h * h).sum(axis=1), rtol=1e-4, atol=1e-10)
+        np.testing.assert_array_equal(a1.n_boundary - a0.n_boundary, (inv_h <= 0).sum(axis=1))
+        np.testing.assert_array_equal(a1.nonfoot_floor, a0.nonfoot_floor | nonfoot.any(axis=1))
+        expect_off = np.asarray(a0.off_steps)
+        for k in range(N_SUB):
+            expect_off = np.where(off[:, k], expect_off + 1, 0)
+        np.testing.assert_array_equal(a1.off_steps, expect_off)
+        np.testing.assert_array_equal(a1.n_steps, np.asarray(a0.n_steps) + 1)  # control steps
+        total_acc += (a * h).sum()
+        # one sample per control period, ||v(t + 2h) - v(t)|| / (2h) x 2h, would have given this instead
+        coarse_gap = max(coarse_gap, float(np.max(np.abs(d_acc - np.linalg.norm(dv, axis=1)) / d_acc)))
+        rs = rs_next
+    assert total_acc > 0 and coarse_gap > 1e-2  # the check is not vacuous: per-period sampling differs here
+    # finalize: time averages over the control steps, boundary fraction over the physics steps
+    res = metrics.finalize(jax.device_get(rs.acc), sim.dt_control, np.asarray(b.om.mu), course=False,
+                           final_err=np.zeros(2), substeps=N_SUB)
+    acc = jax.device_get(rs.acc)
+    np.testing.assert_allclose(res["R"], np.asarray(acc.sum_invH) / (PERIODS * sim.dt_control), rtol=1e-6)
+    np.testing.assert_allclose(res["boundary_fraction"], np.asarray(acc.n_boundary) / (PERIODS * N_SUB))
+
+
+def test_make_sim_rejects_inconsistent_period():
+    robot = Robot("flat")
+    with pytest.raises(ValueError, match="n_substeps"):
+        make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep)), n_substeps=2)
+
+
+# ---------------------------------------------------------------- spec key
+
+FACTORS = "[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n"
+
+
+@pytest.mark.parametrize("value", [0, 11, 2.5])
+def test_control_substeps_out_of_range(tmp_path, value):
+    p = tmp_path / "bad.toml"
+    p.write_text(f"[campaign]\ncontrol_substeps = {value}\n" + FACTORS)
+    with pytest.raises(SpecError) as e:
+        load_spec(p)
+    msg = str(e.value)
+    assert isinstance(e.value, WbcJaxError) and "\n" not in msg
+    assert str(p) in msg and "campaign.control_substeps" in msg
+    assert ("1 <= value <= 10" if isinstance(value, int) else "integer 1..10") in msg
+
+
+def test_control_substeps_cli_exit_2(tmp_path, capsys):
+    p = tmp_path / "bad.toml"
+    p.write_text("[campaign]\ncontrol_substeps = 11\n" + FACTORS)
+    out = tmp_path / "out"
+    assert cli.main(["campaign", "--spec", str(p), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "campaign.control_substeps" in err[0] and "1 <= value <= 10" in err[0]
+    assert not out.exists()
+
+
+def test_control_substeps_default_and_hash():
+    base = dict(factors=dict(m=[0.2, 0.3], mu=[0.4, 1.0], d=[0.06, 0.1]))
+    s0 = parse_spec(base)
+    s1 = parse_spec(dict(base, campaign=dict(control_substeps=1)))
+    s2 = parse_spec(dict(base, campaign=dict(control_substeps=2)))
+    assert s0.campaign["control_substeps"] == 1 and s2.campaign["control_substeps"] == 2
+    assert s0.canonical()["campaign"]["control_substeps"] == 1  # recorded in the manifest's spec
+    assert s0.hash == s1.hash != s2.hash  # the default keeps the hashes of specs written before the key existed
