@@ -32,12 +32,27 @@ class Batch(NamedTuple):
     factors: scenario.Factors
 
 
-def stack(trees):
-    return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *trees)
+# Setup arithmetic is done in numpy and each leaf is placed on the device once: eager jnp operations would each
+# compile a small program (hundreds per campaign, seconds of a warm start).
+
+
+def _device(x):
+    """One host -> device transfer of a numpy leaf (dtype as jnp.asarray gives it)."""
+    return jnp.asarray(np.asarray(x))
+
+
+def stack(trees, index=None):
+    """Leafwise stack of pytrees along a new leading axis, optionally gathered with ``index`` (host arithmetic)."""
+    def one(*xs):
+        x = np.stack([np.asarray(v) for v in xs])
+        return _device(x if index is None else x[index])
+
+    return jax.tree_util.tree_map(one, *trees)
 
 
 def broadcast(tree, B: int):
-    return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(jnp.asarray(x), (B,) + jnp.shape(x)), tree)
+    """Every leaf repeated along a new leading axis of size B (host arithmetic, one transfer per leaf)."""
+    return jax.tree_util.tree_map(lambda x: _device(np.broadcast_to(np.asarray(x), (B,) + np.shape(x))), tree)
 
 
 _INIT_FNS: dict = {}
@@ -80,7 +95,7 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
         qvel0 = np.zeros((B, robot.mj_model.nv))
     unique = [course_plan(robot, q, side=float(di), **kw) if course else straight_plan(robot, q, **kw)
               for q, di in zip(q_levels, levels)]
-    plans = jax.tree_util.tree_map(lambda x: x[jnp.asarray(inverse)], stack(unique))
+    plans = stack(unique, index=inverse)
     state = _init_fn(sim, in_axes)(bm, jnp.asarray(qpos0, float), jnp.asarray(qvel0, float))
     om = ObjectModel(mass=jnp.asarray(f.m), side=jnp.asarray(f.d), mu=jnp.asarray(f.mu),
                      inset=jnp.full(B, robot.ids.obj_sphere_radius))

@@ -123,19 +123,21 @@ def batch_model(mjx_model, mj_model: mujoco.MjModel, ids: RobotIds, f: Factors):
     v = object_fields(ids, f, mj_model.geom_pos)
     ob, dof = ids.obj_body, ids.obj_dof_adr
 
-    def tile(x):
-        x = jnp.asarray(x)
-        return jnp.broadcast_to(x, (B,) + x.shape)
+    def field(name, cols, value):
+        """(B, ...) copy of mjx_model's field with [:, cols] = value, built on the host, placed once."""
+        x = np.asarray(getattr(mjx_model, name))
+        out = np.array(np.broadcast_to(x, (B,) + x.shape))
+        out[:, cols] = np.asarray(value, x.dtype)
+        return jnp.asarray(out)
 
-    dt = mjx_model.body_mass.dtype
     fields = {
-        "body_mass": tile(mjx_model.body_mass).at[:, ob].set(jnp.asarray(v["body_mass"], dt)),
-        "body_inertia": tile(mjx_model.body_inertia).at[:, ob].set(jnp.asarray(v["body_inertia"], dt)),
-        "body_invweight0": tile(mjx_model.body_invweight0).at[:, ob].set(jnp.asarray(v["body_invweight0"], dt)),
-        "dof_invweight0": tile(mjx_model.dof_invweight0).at[:, dof : dof + 6].set(jnp.asarray(v["dof_invweight0"], dt)),
-        "geom_size": tile(mjx_model.geom_size).at[:, ids.obj_box_geom].set(jnp.asarray(v["box_size"], dt)),
-        "geom_pos": tile(mjx_model.geom_pos).at[:, ids.obj_contact_geom].set(jnp.asarray(v["sphere_pos"], dt)),
-        "pair_friction": tile(mjx_model.pair_friction).at[:, ids.obj_pair].set(jnp.asarray(v["pair_friction"], dt)),
+        "body_mass": field("body_mass", ob, v["body_mass"]),
+        "body_inertia": field("body_inertia", ob, v["body_inertia"]),
+        "body_invweight0": field("body_invweight0", ob, v["body_invweight0"]),
+        "dof_invweight0": field("dof_invweight0", slice(dof, dof + 6), v["dof_invweight0"]),
+        "geom_size": field("geom_size", ids.obj_box_geom, v["box_size"]),
+        "geom_pos": field("geom_pos", ids.obj_contact_geom, v["sphere_pos"]),
+        "pair_friction": field("pair_friction", ids.obj_pair, v["pair_friction"]),
     }
     batched = mjx_model.tree_replace(fields)
     in_axes = jax.tree_util.tree_map(lambda _: None, mjx_model)
