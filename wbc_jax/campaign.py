@@ -150,7 +150,12 @@ def _load_ckpt(ck: Path, state_like, spec_hash: str, n_runs: int):
     treedef = jax.tree_util.tree_structure(state_like)
     if treedef.num_leaves != len(leaves):
         raise WbcJaxError(f"{ck}: checkpoint does not match this version's rollout state; delete it")
-    return jax.tree_util.tree_unflatten(treedef, [jnp.asarray(x) for x in leaves]), meta
+    # placed like the fresh state (committed to its device where that is): an uncommitted leaf changes the lowered
+    # program's input shardings, so the chunk function would compile a second time and miss the compilation cache
+    like = jax.tree_util.tree_leaves(state_like)
+    out = [jax.device_put(x, a.sharding) if getattr(a, "committed", False) else jnp.asarray(x)
+           for x, a in zip(leaves, like)]
+    return jax.tree_util.tree_unflatten(treedef, out), meta
 
 
 def _versions() -> dict:

@@ -1,8 +1,8 @@
 """Spread the run axis of a batch over all local devices (JAX sharding, no code change in the rollout).
 
 Every batched leaf (leading run axis) is padded to a multiple of the device count by repeating the last
-run and placed with ``NamedSharding(mesh, P("runs"))``; unbatched leaves (``in_axes`` None, e.g. the
-shared fields of the batched ``mjx.Model``) are replicated. ``jax.jit`` then partitions the vmapped
+run and placed with ``NamedSharding(mesh, P("runs"))`` (empty ones replicated); unbatched leaves (``in_axes``
+None, e.g. the shared fields of the batched ``mjx.Model``) are replicated. ``jax.jit`` then partitions the vmapped
 rollout along the run axis by itself (GSPMD): each device steps its own runs, with no communication.
 Trim outputs with ``[:n_runs]``.
 
@@ -53,7 +53,9 @@ def shard_runs(tree, mesh: Mesh, in_axes=0):
         raise ValueError(f"batched leaves disagree on the run count: {sorted(sizes)}")
     n = padded_size(sizes.pop(), mesh.size) if sizes else 0
     runs, rep = NamedSharding(mesh, P("runs")), NamedSharding(mesh, P())
-    out = [jax.device_put(_pad(x, n), runs) if a == 0 else jax.device_put(x, rep)
+    # an empty batched leaf (MJX's unused fields, e.g. (B, 0)) is replicated: jit returns empty outputs replicated,
+    # and a state leaf placed otherwise would make the next chunk's call compile the whole program a second time
+    out = [jax.device_put(_pad(x, n), runs if np.size(x) else rep) if a == 0 else jax.device_put(x, rep)
            for x, a in zip(leaves, ax_leaves)]
     return jax.tree_util.tree_unflatten(treedef, out)
 
