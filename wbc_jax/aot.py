@@ -21,6 +21,7 @@ import hashlib
 import os
 import pickle
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Any, Callable
 
@@ -28,6 +29,10 @@ import jax
 import numpy as np
 
 from wbc_jax import jaxcfg
+
+# custom-call targets without jax.export's compatibility guarantee that the exported programs may hold: Pallas'
+# Triton kernels on a GPU (wbc_jax.qp.fused)
+_UNGUARANTEED_CALLS = ("__gpu$xla.gpu.triton",)
 
 _SRC_DIGEST: str | None = None
 _LOADED: dict[str, Callable] = {}
@@ -218,7 +223,20 @@ def _export(store: Path, name: str, key: str, fn: Callable, in_tree, leaves) -> 
         return o
 
     specs = [jax.ShapeDtypeStruct(np.shape(x), _dtype(x)) for x in leaves]
-    exp = jax.export.export(jax.jit(flat))(*specs)
+    try:
+        # Pallas' Triton kernels (the fused QP segment on a GPU) are custom calls without jax.export's cross-version
+        # guarantee; the key already pins the jax/jaxlib versions and the backend, so that guarantee is not needed.
+        exp = jax.export.export(jax.jit(flat), disabled_checks=[
+            jax.export.DisabledSafetyCheck.custom_call(t) for t in _UNGUARANTEED_CALLS])(*specs)
+    except Exception as e:  # a program export cannot hold: run it with plain jit (only warm starts are lost)
+        warnings.warn(f"wbc_jax.aot: {name} not exported ({type(e).__name__}: {str(e)[:200]}); using plain jit")
+        run = jax.jit(lambda *xs: fn(*jax.tree_util.tree_unflatten(in_tree, xs)))
+
+        def f(*xs):
+            return run(*xs)
+
+        f.run = run
+        return f
     try:
         store.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{name}.", dir=store)

@@ -134,8 +134,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--batches", default=None, help="rollout: comma-separated batch sizes")
     b.add_argument("--steps", type=int, default=200, help="rollout: control steps per timed call")
     b.add_argument("--iters", type=int, default=30, help="rollout: ADMM iterations per control step")
-    b.add_argument("--qp", default=None, help="rollout: control-loop ADMM variant it<N>[_a<K>][_r<R>] (N iterations, "
-                                          "rho adapted every K (0: never), R Ruiz passes); overrides --iters")
+    b.add_argument("--qp", default=None, help="rollout: control-loop ADMM variant it<N>[_a<K>][_r<R>][_p<W>] (N "
+                                          "iterations, rho adapted every K (0: never), R Ruiz passes, the fused Pallas "
+                                          "kernel with W warps); overrides --iters")
     b.add_argument("--substeps", type=int, default=1, help="rollout: physics steps per control step (default 1)")
     b.add_argument("--scene", default="flat", help="rollout: 'flat' (default), 'transport' or a scene XML path")
     b.add_argument("--variants", default=None, help="profile: comma-separated variants (default wbc_1,wbc_n,"

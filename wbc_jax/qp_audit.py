@@ -39,19 +39,22 @@ CELLS = ((0.2, 0.4, 0.06), (0.4, 1.0, 0.10), (0.3, 0.7, 0.08), (0.4, 0.4, 0.10))
 def variants(names=None) -> dict:
     """Named control-loop settings: ``it<N>`` (N warm-started iterations, rho adapted every 10) and
     ``it<N>_a0`` (no adaptation: one factorization per step), ``it<N>_a<K>`` (adapt every K), ``..._r<R>`` (R Ruiz
-    equilibration passes instead of 5)."""
+    equilibration passes instead of 5), ``..._p<W>`` (the fused Pallas iteration kernel with W warps per problem;
+    explicit inverse; a GPU kernel, interpreted on the CPU)."""
     out = {}
     for name in names or ("it50", "it50_a0", "it30_a0", "it20_a0", "it15_a0"):
         parts = name.split("_")
         if not (parts[0].startswith("it") and parts[0][2:].isdigit()):
-            raise ValueError(f"variant {name!r}: expected it<N>[_a<K>][_r<R>]")
+            raise ValueError(f"variant {name!r}: expected it<N>[_a<K>][_r<R>][_p<W>]")
         iters = int(parts[0][2:])
         kw = {}
         for p in parts[1:]:
-            key = {"a": "adapt_every", "r": "ruiz_iters"}.get(p[:1])
+            key = {"a": "adapt_every", "r": "ruiz_iters", "p": "num_warps"}.get(p[:1])
             if key is None or not p[1:].isdigit():
-                raise ValueError(f"variant {name!r}: unknown part {p!r} (expected a<K> or r<R>)")
+                raise ValueError(f"variant {name!r}: unknown part {p!r} (expected a<K>, r<R> or p<W>)")
             kw[key] = int(p[1:])
+            if key == "num_warps":
+                kw.update(kernel="pallas", linsolve="inv")
         out[name] = control_qp_settings(iters, **kw)
     return out
 

@@ -186,9 +186,17 @@ def control_qp_settings(iters: int = 20, **kw) -> QPSettings:
     metrics are unchanged (max slip 0.04 vs 0.06 mm, T 0.69 vs 0.69 mm, trunk minimum 0.447 m). On the quick
     campaign (54 runs, H100) the means of R, T, S and max slip move by less than 2 % (R 0.3502 -> 0.3495, T 1.25 ->
     1.27 mm, S 0.601 -> 0.596, slip 0.145 -> 0.143 mm).
+
+    The fused Pallas iteration kernel (``kernel="pallas"``, :mod:`wbc_jax.qp.fused`; ``_p4`` in the
+    ``wbc_jax.qp_audit`` variant names) is not the default. Measured 2026-11-23 on an H100, closed loop, same inputs,
+    one process: flat scene, batch 16384, 350,914 -> 393,790 env-steps/s (+12 %) with 4 warps per problem (4 beat 8
+    and 16 on WBC-sized QPs alone: 0.46 vs 0.57 and 0.56 ms per iteration at 16384 problems; XLA's iterations 0.75
+    ms); course scene, batch 270, 3.63 -> 3.45 ms per control step (-5 %). But the paper campaign with it took
+    192.6 s cold (chunk compile 58.5 s) against 175.0 s (39.7 s) with the XLA iterations, and 268/270 runs succeeded
+    (a second run at the 1 kHz baseline's margin, body contact on a block), so the campaign does not gain from it.
     """
     return QPSettings(**{**dict(iters=iters, eps_abs=1e-3, eps_rel=1e-3, linsolve="auto", adapt_every=0,
-                                ruiz_iters=2), **kw})
+                                ruiz_iters=2, num_warps=4), **kw})
 
 
 @dataclass(frozen=True)
