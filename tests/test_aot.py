@@ -113,3 +113,22 @@ def test_damaged_entry_is_recomputed(store):
     np.testing.assert_array_equal(aot.cached_jit("d", lambda x: 2 * x, "v1")(jnp.ones(2)), 2 * np.ones(2))
     value = aot.cached_value("v", "s1", lambda: {"a": np.arange(3)})
     np.testing.assert_array_equal(aot.cached_value("v", "s1", lambda: None)["a"], np.arange(3))  # read back
+
+
+def test_failed_export_falls_back_to_plain_jit(store, monkeypatch):
+    """A program jax.export cannot hold (e.g. a custom call it refuses) still runs, with plain jit, and leaves no
+    entry; the custom calls the key makes safe (Pallas' Triton kernels) are passed as disabled checks."""
+    seen = {}
+
+    def refuse(fn, disabled_checks=()):
+        seen["checks"] = [str(c) for c in disabled_checks]
+        raise ValueError("Cannot serialize code with custom calls whose targets have no compatibility guarantees")
+
+    monkeypatch.setattr(jax.export, "export", refuse)
+    f = aot.cached_jit("r", lambda t: {"y": t["x"] * 2.0}, "v1")
+    with pytest.warns(UserWarning, match="r not exported"):
+        out = f({"x": jnp.arange(3.0)})
+    np.testing.assert_array_equal(out["y"], [0.0, 2.0, 4.0])
+    assert f._cache_size() == 1
+    assert seen["checks"] == ["custom_call:__gpu$xla.gpu.triton"]
+    assert not store.exists() or not list(store.glob("r-*.bin"))
