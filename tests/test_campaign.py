@@ -241,3 +241,27 @@ def test_chunk_function_state_types_are_stable(tiny_spec):
     for (path, a), o in zip(ins, jax.tree_util.tree_leaves(out), strict=True):
         a = jax.typeof(a)
         assert (a.shape, a.dtype, a.weak_type) == (o.shape, o.dtype, o.weak_type), jax.tree_util.keystr(path)
+
+
+def test_regress_noise_band_from_rounding_probes():
+    """``regress --update``'s noise floor: means over the run and its rounding probes, noise = the largest deviation
+    from that mean; compare() widens only that cell's and metric's band, by NOISE_FACTOR x noise (hand numbers)."""
+    from wbc_jax.campaign import NOISE_FACTOR, _with_noise, compare
+
+    def cell(R, S, ok=1):
+        return dict(m=0.2, mu=0.4, d=0.06, runs=1, n_success=ok, R=R, T=1e-3, S=S, max_slip_mm=None if R is None
+                    else 0.01)
+
+    cells = _with_noise([cell(0.10, 0.50)], [[cell(0.12, 0.50)], [cell(0.11, 0.50)]])
+    c = cells[0]
+    assert c["R"] == pytest.approx(0.11) and c["noise"]["R"] == pytest.approx(0.01)
+    assert c["S"] == pytest.approx(0.50) and c["noise"]["S"] == pytest.approx(0.0)
+    assert c["noise"]["T"] == 0.0 and c["n_success"] == 1
+    base = dict(tolerance={k: dict(rel=0.02, abs=1e-3) for k in ("R", "T", "S", "max_slip_mm")}, cells=cells)
+    band_R = 0.02 * 0.11 + 1e-3 + NOISE_FACTOR * 0.01
+    assert compare(base, [dict(cell(0.11 + 0.99 * band_R, 0.50))]) == []
+    moved = compare(base, [dict(cell(0.11 + 1.01 * band_R, 0.50))])
+    assert [r["metric"] for r in moved] == ["R"]
+    moved = compare(base, [dict(cell(0.11, 0.50 * 1.03))])  # S has no noise: the plain band (2 % + 1e-3)
+    assert [r["metric"] for r in moved] == ["S"]
+    assert _with_noise([cell(None, None, 0)], [[cell(0.1, 0.5)]])[0]["noise"]["R"] is None

@@ -56,7 +56,8 @@ def _accum(**kw):
     base = dict(min_trunk_z=np.array([0.45, 0.45]), max_slip=z, max_lift=z, nonfoot_floor=np.zeros(2, bool),
                 wall_contact=np.zeros(2, bool), max_tau_ratio=z, max_tau_excess=z, sum_prim_res=z,
                 n_flag=np.zeros(2, int), n_steps=np.array([1000, 1000]), sum_track=z, nonfinite=np.zeros(2, bool),
-                off_steps=np.zeros(2, int), max_off_s=z, sum_invH=z, sum_acc=z, n_boundary=np.zeros(2, int))
+                off_steps=np.zeros(2, int), max_off_s=z, sum_invH=z, sum_acc=z, n_boundary=np.zeros(2, int),
+                first_contact_t=np.full(2, np.nan), first_contact_k=np.full(2, -1))
     base.update(kw)
     return Accum(**base)
 

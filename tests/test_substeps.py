@@ -8,6 +8,7 @@ One compile of a 2-run control step with n_substeps = 2 (and one of the hand ref
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import pytest
 
@@ -17,7 +18,7 @@ from wbc_jax.control.transport import TransportConfig, control_qp_settings
 from wbc_jax.errors import SpecError, WbcJaxError
 from wbc_jax.model import Robot, mjx
 from wbc_jax.planner.gait import GaitParams
-from wbc_jax.rollout import CONTACT_DIST, control_step, make_sim
+from wbc_jax.rollout import CONTACT_DIST, contact_name, control_step, make_sim
 from wbc_jax.spec import load_spec, parse_spec
 
 N_SUB = 2
@@ -67,12 +68,18 @@ def _reference(sim, b):
     return period
 
 
-def test_substep_monitors_equal_hand_stepping(setup):
+@pytest.fixture(scope="module")
+def step(setup):
+    """The jitted, vmapped control step (one control period of N_SUB physics steps) of the module's batch."""
+    robot, sim, b = setup
+    return jax.jit(jax.vmap(lambda m, rs, p, om, g, pu, mg: control_step(sim, m, rs, p, om, g, pu, mg),
+                            in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0)))
+
+
+def test_substep_monitors_equal_hand_stepping(setup, step):
     robot, sim, b = setup
     h = sim.dt_physics
     assert sim.dt_control == pytest.approx(N_SUB * h)
-    step = jax.jit(jax.vmap(lambda m, rs, p, om, g, pu, mg: control_step(sim, m, rs, p, om, g, pu, mg),
-                            in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0)))
     ref = _reference(sim, b)
     rs = b.state
     total_acc, coarse_gap = 0.0, 0.0
@@ -147,3 +154,39 @@ def test_control_substeps_default_and_hash():
     assert s0.campaign["control_substeps"] == 1 and s2.campaign["control_substeps"] == 2
     assert s0.canonical()["campaign"]["control_substeps"] == 1  # recorded in the manifest's spec
     assert s0.hash == s1.hash != s2.hash  # the default keeps the hashes of specs written before the key existed
+
+
+SINK = 0.35  # [m] run 0's trunk is lowered by this: knees and shins go below the floor
+
+
+def test_first_body_contact_time_and_pair(setup, step):
+    """The first non-foot contact is recorded with the time of its step and the deepest pair, as MuJoCo C finds it
+    at the same positions; a run without such contact records none; a later period keeps the first record."""
+    robot, sim, b = setup
+    qpos = np.asarray(b.state.d.qpos).copy()
+    qpos[0, 2] -= SINK
+    rs = b.state._replace(d=b.state.d.replace(qpos=jnp.asarray(qpos)))
+    args = (b.plan, b.om, b.gains, b.push, b.mu_ground)
+    rs1, _ = step(b.model, rs, *args)
+    rs2, _ = step(b.model, rs1, *args)
+    a1, a2 = jax.device_get(rs1.acc), jax.device_get(rs2.acc)
+    # reference: MuJoCo C collision at run 0's start positions, restricted to the non-foot pairs
+    m = robot.mj_model
+    d = mujoco.MjData(m)
+    d.qpos[:] = qpos[0]
+    mujoco.mj_forward(m, d)
+    nonfoot = {frozenset(map(int, g)) for g in sim.nonfoot_geoms}
+    hits = [(c.dist, frozenset((int(c.geom1), int(c.geom2)))) for c in d.contact[:d.ncon]]
+    hits = [h for h in hits if h[1] in nonfoot and h[0] < 0]
+    assert hits, "the sunk run has no non-foot penetration: the test is vacuous"
+    deepest = min(hits, key=lambda h: h[0])[1]
+    assert bool(a1.nonfoot_floor[0]) and not bool(a1.nonfoot_floor[1])
+    assert float(a1.first_contact_t[0]) == pytest.approx(float(b.state.d.time[0]), abs=1e-9)
+    assert frozenset(map(int, sim.nonfoot_geoms[int(a1.first_contact_k[0])])) == deepest
+    assert np.isnan(a1.first_contact_t[1]) and int(a1.first_contact_k[1]) == -1
+    assert float(a2.first_contact_t[0]) == float(a1.first_contact_t[0])
+    assert int(a2.first_contact_k[0]) == int(a1.first_contact_k[0])
+    name = contact_name(sim, int(a1.first_contact_k[0]))
+    geom_names = {m.geom(g).name for g in deepest}
+    assert "(body " in name and all(n in name for n in geom_names if n)
+    assert contact_name(sim, -1) == ""

@@ -85,6 +85,9 @@ class Accum(NamedTuple):
     sum_invH: jax.Array  # integral of 1/H (the paper's robustness integrand, wbc_jax.metrics) [rad^2 s] (physics rate)
     sum_acc: jax.Array  # integral of ||object CoM linear acceleration|| [m/s] (physics rate)
     n_boundary: jax.Array  # int32, physics steps with 1/H = 0 (a contact unloaded or on/outside its cone)
+    first_contact_t: jax.Array  # [s] start of the physics step whose contacts first had a non-foot robot part
+    #                             penetrating the floor or terrain; NaN if none yet (physics rate)
+    first_contact_k: jax.Array  # int32, index into Sim.nonfoot_slots of that step's deepest such contact; -1 if none
 
 
 class RunState(NamedTuple):
@@ -125,6 +128,7 @@ class Sim:
     n_substeps: int
     log_every: int
     nonfoot_slots: np.ndarray
+    nonfoot_geoms: np.ndarray  # (len(nonfoot_slots), 2) geom ids of each non-foot slot's pair (robot part, ground)
     wall_slots: np.ndarray
     foot_slots: np.ndarray
     obj_slots: np.ndarray
@@ -143,8 +147,8 @@ class Sim:
 
 def contact_slots(robot: Robot):
     """Indices of MJX contact slots: non-foot parts vs floor or terrain, anything vs a wall, (4, K) each
-    foot vs floor and terrain, and the object's contact spheres vs the tray (MJX's layout, computed once per
-    model and kept on disk: :func:`wbc_jax.aot.cached_value`)."""
+    foot vs floor and terrain, and the object's contact spheres vs the tray; then the (k, 2) geom ids of the
+    non-foot slots (MJX's layout, computed once per model and kept on disk: :func:`wbc_jax.aot.cached_value`)."""
     return aot.cached_value("slots", aot.describe(robot), lambda: _contact_slots(robot))
 
 
@@ -155,9 +159,9 @@ def _contact_slots(robot: Robot):
     pairs = {(int(m.pair_geom1[i]), int(m.pair_geom2[i])): i for i in range(m.npair)}
     slot_pair = np.array([pairs.get((int(a), int(b)), pairs.get((int(b), int(a)), -1)) for a, b in geom])
     foot = np.array([np.where(np.isin(slot_pair, fp))[0] for fp in robot.ids.foot_pair])
-    return (np.where(np.isin(slot_pair, robot.ids.nonfoot_floor_pair))[0],
-            np.where(np.isin(slot_pair, robot.ids.wall_pair))[0], foot,
-            np.where(np.isin(slot_pair, robot.ids.obj_pair))[0])
+    nonfoot = np.where(np.isin(slot_pair, robot.ids.nonfoot_floor_pair))[0]
+    return (nonfoot, np.where(np.isin(slot_pair, robot.ids.wall_pair))[0], foot,
+            np.where(np.isin(slot_pair, robot.ids.obj_pair))[0], geom[nonfoot].reshape(-1, 2).astype(np.int64))
 
 
 def make_sim(robot: Robot, cfg: TransportConfig | None = None, n_substeps: int = 1, log_every: int = 20,
@@ -172,9 +176,9 @@ def make_sim(robot: Robot, cfg: TransportConfig | None = None, n_substeps: int =
     if abs(cfg.dt - h * n_substeps) > 1e-9 * h:
         raise ValueError(f"control period cfg.dt = {cfg.dt} s != n_substeps ({n_substeps}) x the model's timestep "
                          f"({h} s)")
-    nf, wl, ft, ob = contact_slots(robot)
-    return Sim(robot=robot, cfg=cfg, n_substeps=n_substeps, log_every=log_every, nonfoot_slots=nf, wall_slots=wl,
-               foot_slots=ft, obj_slots=ob, sensor_noise=sensor_noise)
+    nf, wl, ft, ob, nfg = contact_slots(robot)
+    return Sim(robot=robot, cfg=cfg, n_substeps=n_substeps, log_every=log_every, nonfoot_slots=nf, nonfoot_geoms=nfg,
+               wall_slots=wl, foot_slots=ft, obj_slots=ob, sensor_noise=sensor_noise)
 
 
 def controller_view(sim: Sim, m, d, push: Push, step):
@@ -205,7 +209,8 @@ def init_state(sim: Sim, m, qpos0, qvel0=None) -> RunState:
                 wall_contact=jnp.bool_(False), max_tau_ratio=z, max_tau_excess=jnp.full((), -jnp.inf, z.dtype), sum_prim_res=z,
                 n_flag=jnp.zeros((), jnp.int32), n_steps=jnp.zeros((), jnp.int32), sum_track=z,
                 nonfinite=jnp.bool_(False), off_steps=jnp.zeros((), jnp.int32), max_off_s=z,
-                sum_invH=z, sum_acc=z, n_boundary=jnp.zeros((), jnp.int32))
+                sum_invH=z, sum_acc=z, n_boundary=jnp.zeros((), jnp.int32), first_contact_t=jnp.full((), jnp.nan, z.dtype),
+                first_contact_k=jnp.full((), -1, jnp.int32))
     return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids), acc=acc)
 
 
@@ -231,6 +236,8 @@ class SubstepMonitors(NamedTuple):
     inv_h: jax.Array  # 1/H of the simulator's forces on the object's contact slots [rad^2]; 0 if not finite
     acc: jax.Array  # ||object CoM linear acceleration|| over the step, (v_after - v_before) / dt_physics [m/s^2]
     nonfoot_floor: jax.Array  # bool, a non-foot robot part penetrates the floor or terrain (dist < 0)
+    nonfoot_k: jax.Array  # int32, index into Sim.nonfoot_slots of the deepest such contact (-1: none)
+    t: jax.Array  # [s] time at the step's start (the contacts' time)
     wall: jax.Array  # bool, anything penetrates a wall (dist < 0)
     off: jax.Array  # bool, every object contact sphere farther than CONTACT_DIST from the tray
     finite: jax.Array  # bool, positions after the step and the held torques are finite
@@ -250,7 +257,13 @@ def substep_monitors(sim: Sim, m, om: ObjectModel, tau, d, d_after) -> SubstepMo
         inv_h = acc_norm = jnp.zeros(())
         off = jnp.bool_(False)
     wall = jnp.any(dist[sim.wall_slots] < 0.0) if sim.wall_slots.size else jnp.bool_(False)
-    return SubstepMonitors(inv_h=inv_h, acc=acc_norm, nonfoot_floor=jnp.any(dist[sim.nonfoot_slots] < 0.0),
+    if sim.nonfoot_slots.size:
+        nf_dist = dist[sim.nonfoot_slots]
+        nonfoot = jnp.any(nf_dist < 0.0)
+        nonfoot_k = jnp.where(nonfoot, jnp.argmin(nf_dist), -1).astype(jnp.int32)
+    else:
+        nonfoot, nonfoot_k = jnp.bool_(False), jnp.full((), -1, jnp.int32)
+    return SubstepMonitors(inv_h=inv_h, acc=acc_norm, nonfoot_floor=nonfoot, nonfoot_k=nonfoot_k, t=d.time,
                            wall=wall, off=off, finite=finite)
 
 
@@ -264,8 +277,11 @@ def _fold(sim: Sim, a: Accum, s: SubstepMonitors) -> Accum:
     """Accum with one physics step's monitors added (integrals: value x dt_physics; flags OR'ed)."""
     h = sim.dt_physics
     off_steps = jnp.where(s.off, a.off_steps + 1, 0)
+    first = s.nonfoot_floor & ~a.nonfoot_floor
     return a._replace(
         nonfoot_floor=a.nonfoot_floor | s.nonfoot_floor,
+        first_contact_t=jnp.where(first, s.t, a.first_contact_t),
+        first_contact_k=jnp.where(first, s.nonfoot_k, a.first_contact_k),
         wall_contact=a.wall_contact | s.wall,
         nonfinite=a.nonfinite | ~s.finite,
         off_steps=off_steps,
@@ -355,8 +371,26 @@ def final_results(sim: Sim, state: RunState, p_goal, mu, n: int | None = None) -
     if n is not None:
         acc = jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], acc)
         p_obj, p_goal = p_obj[:n], p_goal[:n]
-    return metrics.finalize(acc, sim.dt_control, mu, course=scene_geometry(sim.robot).is_course,
-                            final_err=np.linalg.norm(p_obj - p_goal, axis=1), substeps=sim.n_substeps)
+    out = metrics.finalize(acc, sim.dt_control, mu, course=scene_geometry(sim.robot).is_course,
+                           final_err=np.linalg.norm(p_obj - p_goal, axis=1), substeps=sim.n_substeps)
+    out["first_contact_s"] = np.asarray(acc.first_contact_t, float)
+    out["first_contact"] = np.array([contact_name(sim, k) for k in np.asarray(acc.first_contact_k)], dtype=object)
+    return out
+
+
+def contact_name(sim: Sim, k: int) -> str:
+    """Readable pair of non-foot slot ``k`` (index into ``sim.nonfoot_slots``; -1: "" ), e.g.
+    ``"BR_shank (body BR_calf) / block3"``: the robot geom with its body, then the floor or terrain geom."""
+    if k < 0:
+        return ""
+    m = sim.robot.mj_model
+
+    def name(g):
+        return m.geom(int(g)).name or f"geom{int(g)}"
+
+    g1, g2 = sim.nonfoot_geoms[int(k)]
+    robot_g, ground_g = (g1, g2) if int(m.geom_bodyid[g1]) != 0 else (g2, g1)
+    return f"{name(robot_g)} (body {m.body(int(m.geom_bodyid[robot_g])).name}) / {name(ground_g)}"
 
 
 def make_chunk_fn(sim: Sim, n_logs: int):

@@ -39,7 +39,7 @@ from wbc_jax.errors import InputError
 
 DEFAULT_FACTORS = ("m", "mu", "d")
 PREFERRED_METRICS = ("R", "T", "S")
-BOOKKEEPING = frozenset({"rep", "seed", "success", "run", "run_id", "id", "index"})
+BOOKKEEPING = frozenset({"rep", "seed", "success", "run", "run_id", "id", "index", "first_contact_s"})
 SS_NAMES = {1: "I", 2: "II", 3: "III"}
 PERFECT_FIT_RTOL = 1e-10  # R's summary.lm rule: residual SS < 1e-10 x model SS
 ZERO_SD_RTOL = 1e-10  # a cell SD below this x max|y| counts as zero variance

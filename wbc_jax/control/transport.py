@@ -193,7 +193,8 @@ def control_qp_settings(iters: int = 20, **kw) -> QPSettings:
     and 16 on WBC-sized QPs alone: 0.46 vs 0.57 and 0.56 ms per iteration at 16384 problems; XLA's iterations 0.75
     ms); course scene, batch 270, 3.63 -> 3.45 ms per control step (-5 %). But the paper campaign with it took
     192.6 s cold (chunk compile 58.5 s) against 175.0 s (39.7 s) with the XLA iterations, and 268/270 runs succeeded
-    (a second run at the 1 kHz baseline's margin, body contact on a block), so the campaign does not gain from it.
+    (269 before; GPU runs are not bit-reproducible, so one run cannot pin that on the kernel): the campaign does not
+    gain from it.
     """
     return QPSettings(**{**dict(iters=iters, eps_abs=1e-3, eps_rel=1e-3, linsolve="auto", adapt_every=0,
                                 ruiz_iters=2, num_warps=4), **kw})

@@ -387,9 +387,9 @@ def _gram(sp: _Scaled, w, free, s: QPSettings):
 
 
 def _factor(K0, G, rho, s: QPSettings):
-    """Linear solver for ``(K0 + rho G) x = b`` (``G`` None: ``K0 x = b``): Cholesky factor or explicit inverse."""
+    """Linear solver for ``(K0 + rho G) x = b``: Cholesky factor or explicit inverse."""
     n = K0.shape[0]
-    L = jnp.linalg.cholesky(K0 if G is None else K0 + rho * G)
+    L = jnp.linalg.cholesky(K0 + rho * G)
     if s.linsolve == "inv":
         Li = jax.scipy.linalg.solve_triangular(L, jnp.eye(n, dtype=K0.dtype), lower=True)
         return jnp.matmul(Li.T, Li, precision=_HI)
@@ -461,12 +461,7 @@ def _adapt(sp: _Scaled, st: _State, rho, s: QPSettings):
 def _run(sp, st, rho, w, free, s: QPSettings, iters: int):
     """``iters`` iterations in segments of ``adapt_every`` with refactor in between."""
     k = s.adapt_every if 0 < s.adapt_every < iters else iters
-    if s.adapt_every > 0:
-        K0, G = _gram(sp, w, free, s)
-    else:  # one factorization at a fixed rho: a single Gram product (half the O(m n^2) work)
-        K0 = sp.P + s.sigma * jnp.eye(sp.P.shape[0], dtype=sp.P.dtype) + jnp.matmul(
-            sp.A.T * _rho_vec(rho, w, free, s)[None, :], sp.A, precision=_HI)
-        G = None
+    K0, G = _gram(sp, w, free, s)
 
     def segment(length):
         def seg(carry, _):
