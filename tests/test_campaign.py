@@ -265,3 +265,16 @@ def test_regress_noise_band_from_rounding_probes():
     moved = compare(base, [dict(cell(0.11, 0.50 * 1.03))])  # S has no noise: the plain band (2 % + 1e-3)
     assert [r["metric"] for r in moved] == ["S"]
     assert _with_noise([cell(None, None, 0)], [[cell(0.1, 0.5)]])[0]["noise"]["R"] is None
+
+
+def test_bench_rollout_rejects_a_bad_campaign_spec_before_timing(tmp_path, capsys):
+    """``bench rollout --campaign SPEC`` validates the spec first: a bad key is one message naming the file and the
+    key, exit 2, and no JSON written."""
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[campaign]\nreps = 0\n")
+    js = tmp_path / "bench.json"
+    assert cli.main(["bench", "rollout", "--batches", "1", "--steps", "2", "--campaign", str(bad),
+                     "--json", str(js)]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "campaign.reps" in err
+    assert not js.exists()

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.batch import prepare_batch
+from wbc_jax.errors import WbcJaxError
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
 from wbc_jax.model import Robot, mjx
 from wbc_jax.rollout import make_chunk_fn, make_sim
@@ -34,7 +35,7 @@ def _peak_bytes() -> int | None:
 
 
 def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30, json_path: str | None = None,
-              scene: str = "flat", qp: str | None = None, substeps: int = 1):
+              scene: str = "flat", qp: str | None = None, substeps: int = 1, campaign: str | None = None):
     """Physics-only and physics + WBC env-steps/s per batch size (see module docstring).
 
     An env-step is one physics step (``robot``'s timestep); with ``substeps`` > 1 the controller runs once per
@@ -43,7 +44,18 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
     Args:
         qp: control-loop ADMM variant name (``wbc_jax.qp_audit.variants``, e.g. ``"it20_a0"``); None: ``iters``
             iterations with the control loop's default settings.
+        campaign: a campaign spec (e.g. ``sweeps/paper_campaign.toml``) also run end to end, twice, in fresh
+            processes sharing a new compilation cache (:func:`campaign_cold_warm`): wall time, compile and setup
+            times cold and warm.
+
+    Returns:
+        dict: device, ``batches`` (one row per batch size) and ``campaign`` (None without ``campaign``); also written
+        to ``json_path``.
     """
+    if campaign is not None:
+        from wbc_jax.spec import load_spec
+
+        load_spec(campaign)  # a bad spec fails here (file, key, range), before any timing
     from wbc_jax.qp_audit import variants
 
     robot = Robot(scene)
@@ -89,10 +101,43 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
             print(f"{'':>{len(device)}} batch {B:6d}: physics+WBC on {n_dev} devices {B * n_env / t_sh:12.0f} "
                   f"steps/s   speed-up {t_wbc / t_sh:.2f}x", flush=True)
         rows.append(row)
+    out = dict(device=device, batches=rows, campaign=campaign_cold_warm(campaign) if campaign else None)
     if json_path:
         with open(json_path, "w") as fh:
-            json.dump(rows, fh, indent=2)
-    return rows
+            json.dump(out, fh, indent=2)
+    return out
+
+
+def campaign_cold_warm(spec: str) -> dict:
+    """Run ``wbc-jax campaign --spec SPEC --no-report`` twice, each in a fresh process, with a new (empty)
+    compilation cache shared by both: the first run compiles everything, the second loads it (``wbc_jax.aot`` and
+    the persistent cache). Prints and returns, per run, the manifest's wall time, import / setup / compile estimate
+    [s], rollout env-steps/s and successes."""
+    import os
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    keys = ("wall_s_total", "wall_s_rollout", "import_s", "setup_s", "compile_s_estimate", "env_steps_per_s",
+            "n_success", "n_runs")
+    out = dict(spec=str(spec))
+    with tempfile.TemporaryDirectory() as td:
+        env = dict(os.environ, WBC_JAX_CACHE=str(Path(td) / "cache"))
+        for label in ("cold", "warm"):
+            run_dir = Path(td) / label
+            r = subprocess.run([sys.executable, "-m", "wbc_jax", "campaign", "--spec", str(spec), "--out",
+                                str(run_dir), "--no-report"], env=env, capture_output=True, text=True)
+            if r.returncode != 0:
+                raise WbcJaxError(f"campaign {spec} ({label} run) failed: {r.stderr.strip()[-800:]}")
+            man = json.loads((run_dir / "manifest.json").read_text())
+            out[label] = {k: man.get(k) for k in keys}
+            m = out[label]
+            print(f"campaign {spec}, {label} compilation cache: wall {m['wall_s_total']:.1f} s (import "
+                  f"{m['import_s']:.1f} s, setup {m['setup_s']:.1f} s, compile about {m['compile_s_estimate'] or 0:.1f} "
+                  f"s, rollout {m['wall_s_rollout']:.1f} s, {m['env_steps_per_s']:,.0f} env-steps/s), "
+                  f"{m['n_success']}/{m['n_runs']} runs succeed", flush=True)
+    return out
 
 
 PROFILE_VARIANTS = ("wbc_1", "wbc_n", "wbc_n_norefactor", "wbc_n_chol", "wbc_n_pallas")

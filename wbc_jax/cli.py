@@ -33,7 +33,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
         batches = [int(x) for x in args.batches.split(",")] if args.batches else ((1, 4) if args.quick else (1, 1024, 4096, 16384))
         run_rollout_bench(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json, scene=args.scene,
-                          qp=args.qp, substeps=args.substeps)
+                          qp=args.qp, substeps=args.substeps, campaign=args.campaign)
         return 0
     if args.what == "profile":
         from wbc_jax.bench_rollout import run_profile
@@ -142,6 +142,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--variants", default=None, help="profile: comma-separated variants (default wbc_1,wbc_n,"
                                                     "wbc_n_norefactor,wbc_n_chol,wbc_n_pallas; also wbc_n_inv, "
                                                     "wbc_n_pallas_norefactor, wbc_n_unroll, wbc_n_unroll_norefactor)")
+    b.add_argument("--campaign", default=None, help="rollout: also run this campaign spec end to end twice in fresh "
+                                                    "processes with a new compilation cache (wall time, compile "
+                                                    "cold and warm), e.g. sweeps/paper_campaign.toml")
     b.add_argument("--quick", action="store_true", help="small sizes (CPU smoke run)")
     b.add_argument("--json", default=None, help="also write the results as JSON here")
     b.set_defaults(func=_cmd_bench)
