@@ -36,6 +36,7 @@ _UNGUARANTEED_CALLS = ("__gpu$xla.gpu.triton",)
 
 _SRC_DIGEST: str | None = None
 _LOADED: dict[str, Callable] = {}
+_PLAIN = object()  # _LOADED marker of a key whose program could not be exported
 
 
 def source_digest() -> str:
@@ -178,7 +179,12 @@ def cached_jit(name: str, fn: Callable, static: str) -> Callable:
         f = used.get(key) or _LOADED.get(key)
         if f is None:
             f = _load(store, name, key) or _export(store, name, key, fn, in_tree, leaves)
+            if f is None:  # not exportable: plain jit for this key from now on
+                _LOADED[key] = _PLAIN
+                return jitted(*args)
             _LOADED[key] = f
+        if f is _PLAIN:
+            return jitted(*args)
         used[key] = f
         return f(*leaves)
 
@@ -213,7 +219,9 @@ def _load(store: Path, name: str, key: str) -> Callable | None:
         return None
 
 
-def _export(store: Path, name: str, key: str, fn: Callable, in_tree, leaves) -> Callable:
+def _export(store: Path, name: str, key: str, fn: Callable, in_tree, leaves) -> Callable | None:
+    """Export ``fn`` for ``leaves``' shapes, store it and return the loaded callable; None (with a warning) when
+    jax.export cannot hold the program (the caller then runs plain jit)."""
     out_tree: list[Any] = []
 
     def flat(*xs):
@@ -228,15 +236,9 @@ def _export(store: Path, name: str, key: str, fn: Callable, in_tree, leaves) -> 
         # guarantee; the key already pins the jax/jaxlib versions and the backend, so that guarantee is not needed.
         exp = jax.export.export(jax.jit(flat), disabled_checks=[
             jax.export.DisabledSafetyCheck.custom_call(t) for t in _UNGUARANTEED_CALLS])(*specs)
-    except Exception as e:  # a program export cannot hold: run it with plain jit (only warm starts are lost)
+    except Exception as e:  # a program export cannot hold: plain jit (only warm starts are lost)
         warnings.warn(f"wbc_jax.aot: {name} not exported ({type(e).__name__}: {str(e)[:200]}); using plain jit")
-        run = jax.jit(lambda *xs: fn(*jax.tree_util.tree_unflatten(in_tree, xs)))
-
-        def f(*xs):
-            return run(*xs)
-
-        f.run = run
-        return f
+        return None
     try:
         store.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{name}.", dir=store)

@@ -15,7 +15,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.batch import prepare_batch
-from wbc_jax.errors import WbcJaxError
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
 from wbc_jax.model import Robot, mjx
 from wbc_jax.rollout import make_chunk_fn, make_sim
@@ -113,24 +112,18 @@ def campaign_cold_warm(spec: str) -> dict:
     compilation cache shared by both: the first run compiles everything, the second loads it (``wbc_jax.aot`` and
     the persistent cache). Prints and returns, per run, the manifest's wall time, import / setup / compile estimate
     [s], rollout env-steps/s and successes."""
-    import os
-    import subprocess
-    import sys
     import tempfile
     from pathlib import Path
+
+    from wbc_jax.campaign import run_in_fresh_process
 
     keys = ("wall_s_total", "wall_s_rollout", "import_s", "setup_s", "compile_s_estimate", "env_steps_per_s",
             "n_success", "n_runs")
     out = dict(spec=str(spec))
     with tempfile.TemporaryDirectory() as td:
-        env = dict(os.environ, WBC_JAX_CACHE=str(Path(td) / "cache"))
         for label in ("cold", "warm"):
-            run_dir = Path(td) / label
-            r = subprocess.run([sys.executable, "-m", "wbc_jax", "campaign", "--spec", str(spec), "--out",
-                                str(run_dir), "--no-report"], env=env, capture_output=True, text=True)
-            if r.returncode != 0:
-                raise WbcJaxError(f"campaign {spec} ({label} run) failed: {r.stderr.strip()[-800:]}")
-            man = json.loads((run_dir / "manifest.json").read_text())
+            run = run_in_fresh_process(spec, Path(td) / label, WBC_JAX_CACHE=str(Path(td) / "cache"))
+            man = json.loads((run / "manifest.json").read_text())
             out[label] = {k: man.get(k) for k in keys}
             m = out[label]
             print(f"campaign {spec}, {label} compilation cache: wall {m['wall_s_total']:.1f} s (import "

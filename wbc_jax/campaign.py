@@ -340,23 +340,40 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
 
 # ---------------------------------------------------------------- CI regression of metric means
 
+REGRESS_METRICS = ("R", "T", "S", "max_slip_mm")
+DEFAULT_TOL = {"R": (0.02, 1e-3), "T": (0.05, 2e-5), "S": (0.05, 1e-3), "max_slip_mm": (0.10, 0.05)}  # (rel, abs)
+# Rounding probes of `regress --update` on the CPU: the baseline spec rerun with XLA's CPU code generation capped at
+# these instruction sets. Another machine's CPU (vector width, FMA contraction) rounds float32 differently; in short
+# runs with sliding contacts that moves some cell means by more than the tolerance (measured 2026-11-23: S -12 %,
+# R +8 % in the mu = 0.4 cells on an AVX-512 machine against a baseline stored on another machine), while T and the
+# high-friction cells stay within it. The probes' spread is stored per cell and metric and widens that cell's band.
+ROUNDING_PROBE_ISAS = ("SSE4_2", "AVX", "AVX2")
+NOISE_FACTOR = 2.0  # band = rel |baseline| + abs + NOISE_FACTOR x the probes' largest deviation from their mean
+
+
+def run_in_fresh_process(spec_path, out: Path, **env) -> Path:
+    """``wbc-jax campaign --spec SPEC --out OUT --no-report`` in a new Python process (environment variables
+    ``env`` set on top of this one's); returns OUT. A failed run raises WbcJaxError with the end of its stderr."""
+    r = subprocess.run([sys.executable, "-m", "wbc_jax", "campaign", "--spec", str(spec_path), "--out", str(out),
+                        "--no-report"], env=dict(os.environ, **env), capture_output=True, text=True)
+    if r.returncode != 0:
+        extra = " ".join(f"{k}={v}" for k, v in env.items())
+        raise WbcJaxError(f"campaign {spec_path} ({extra}) failed: {r.stderr.strip()[-800:]}")
+    return Path(out)
+
 
 def _rounding_probes(spec_p: Path) -> list[list[dict]]:
     """Cell means of the spec rerun in fresh processes with XLA's CPU codegen capped at each ROUNDING_PROBE_ISAS
     entry (one compile each, no persistent cache). A probe that fails is an error: the noise floor would be unknown."""
+    import pandas as pd
+
     out = []
     for isa in ROUNDING_PROBE_ISAS:
         with tempfile.TemporaryDirectory() as td:
-            env = dict(os.environ, XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + f" --xla_cpu_max_isa={isa}").strip(),
-                       JAX_PLATFORMS="cpu", WBC_JAX_CACHE="off")
             print(f"rounding probe: {spec_p} with --xla_cpu_max_isa={isa}", flush=True)
-            r = subprocess.run([sys.executable, "-m", "wbc_jax", "campaign", "--spec", str(spec_p), "--out",
-                                str(Path(td) / "run"), "--no-report"], env=env, capture_output=True, text=True)
-            if r.returncode != 0:
-                raise WbcJaxError(f"rounding probe with --xla_cpu_max_isa={isa} failed: {r.stderr.strip()[-500:]}")
-            import pandas as pd
-
-            out.append(cell_means(pd.read_csv(Path(td) / "run" / "results.csv")))
+            run = run_in_fresh_process(spec_p, Path(td) / "run", JAX_PLATFORMS="cpu", WBC_JAX_CACHE="off",
+                                       XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + f" --xla_cpu_max_isa={isa}").strip())
+            out.append(cell_means(pd.read_csv(run / "results.csv")))
     return out
 
 
@@ -380,15 +397,6 @@ def _with_noise(cells: list[dict], probes: list[list[dict]]) -> list[dict]:
         out.append(c)
     return out
 
-REGRESS_METRICS = ("R", "T", "S", "max_slip_mm")
-DEFAULT_TOL = {"R": (0.02, 1e-3), "T": (0.05, 2e-5), "S": (0.05, 1e-3), "max_slip_mm": (0.10, 0.05)}  # (rel, abs)
-# Rounding probes of `regress --update` on the CPU: the baseline spec rerun with XLA's CPU code generation capped at
-# these instruction sets. Another machine's CPU (vector width, FMA contraction) rounds float32 differently; in short
-# runs with sliding contacts that moves some cell means by more than the tolerance (measured 2026-11-23: S -12 %,
-# R +8 % in the mu = 0.4 cells on an AVX-512 machine against a baseline stored on another machine), while T and the
-# high-friction cells stay within it. The probes' spread is stored per cell and metric and widens that cell's band.
-ROUNDING_PROBE_ISAS = ("SSE4_2", "AVX", "AVX2")
-NOISE_FACTOR = 2.0  # band = rel |baseline| + abs + NOISE_FACTOR x the probes' largest deviation from their mean
 
 
 def cell_means(df) -> list[dict]:
