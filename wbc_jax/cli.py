@@ -48,6 +48,13 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         batch = int(args.batches.split(",")[-1]) if args.batches else (4 if args.quick else 256)
         run_components(batch=batch, iters=args.iters, scene=args.scene, json_path=args.json)
         return 0
+    if args.what == "trace":
+        from wbc_jax.kernel_trace import run_trace
+
+        batch = int(args.batches.split(",")[-1]) if args.batches else (4 if args.quick else 270)
+        run_trace(batch=batch, steps=args.steps, scene=args.scene, qp=args.qp or "it20_a0_r2",
+                  substeps=args.substeps, json_path=args.json)
+        return 0
     if args.what == "qp-rollout":
         from wbc_jax.qp_audit import audit
 
@@ -126,9 +133,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=_cmd_report)
 
     b = sub.add_parser("bench", help="benchmarks on the current device")
-    b.add_argument("what", choices=["qp", "rollout", "profile", "components", "qp-rollout"],
+    b.add_argument("what", choices=["qp", "rollout", "profile", "components", "trace", "qp-rollout"],
                    help="what to benchmark (profile: where a control step's time goes, at the last --batches size, "
-                        "from variants; components: latency of each stage of a control step; qp-rollout: control-loop "
+                        "from variants; components: latency of each stage of a control step; trace: a device trace "
+                        "of --steps control steps at the last --batches size (default 270, the paper campaign's), "
+                        "kernels and device time per stage; qp-rollout: control-loop "
                         "ADMM variants (--variants it50,it20_a0,...) against OSQP on QPs sampled from their own "
                         "closed-loop rollouts, CPU)")
     b.add_argument("--batches", default=None, help="rollout: comma-separated batch sizes")

@@ -221,11 +221,13 @@ def controller_inputs(sim: Sim, m, rs: RunState, plan: TransportPlan, push: Push
     Returns:
         (d sensed mjx.Data, d_ctl the controller's view, DynTerms of d_ctl, Reference).
     """
-    d = physics.sense(m, rs.d)
-    d_ctl = controller_view(sim, m, d, push, rs.acc.n_steps)
-    dyn = dyn_terms(m, d_ctl, sim.robot.ids)
-    contact = jnp.any(d._impl.contact.dist[sim.foot_slots] < CONTACT_DIST, axis=1)  # (4,)
-    ref = reference(plan, d.time, rs.p_lift, contact, dyn.p_foot)
+    with jax.named_scope("sense"):
+        d = physics.sense(m, rs.d)
+    with jax.named_scope("dynamics_reference"):
+        d_ctl = controller_view(sim, m, d, push, rs.acc.n_steps)
+        dyn = dyn_terms(m, d_ctl, sim.robot.ids)
+        contact = jnp.any(d._impl.contact.dist[sim.foot_slots] < CONTACT_DIST, axis=1)  # (4,)
+        ref = reference(plan, d.time, rs.p_lift, contact, dyn.p_foot)
     return d, d_ctl, dyn, ref
 
 
@@ -329,7 +331,8 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     tau, cs, qd = transport_control(m, d_ctl, dyn, ref, om, gains, rs.cs, ids, sim.cfg, mu_ground)
     on = (t >= push.t0) & (t < push.t0 + push.duration)
     xfrc = jnp.zeros_like(d.xfrc_applied).at[ids.trunk_body, 0:3].set(jnp.where(on, push.force, 0.0))
-    d_next, a, finite = physics_period(sim, m, om, d.replace(xfrc_applied=xfrc), tau, rs.acc)
+    with jax.named_scope("physics"):
+        d_next, a, finite = physics_period(sim, m, om, d.replace(xfrc_applied=xfrc), tau, rs.acc)
     p_lift = jnp.where(ref.swing[:, None], rs.p_lift, dyn.p_foot)
 
     # control-rate metrics (from the sensed state d at time t)

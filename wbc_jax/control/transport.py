@@ -391,7 +391,8 @@ def transport_control(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gain
     Returns:
         (tau (18,) actuator torques [N m], new ControlState, QPDiag).
     """
-    obs, (P, q, A, l, u, A_tau, h_a, H_com) = assemble(m, d, dyn, ref, om, gains, cs, ids, cfg, mu_ground)
+    with jax.named_scope("qp_assemble"):
+        obs, (P, q, A, l, u, A_tau, h_a, H_com) = assemble(m, d, dyn, ref, om, gains, cs, ids, cfg, mu_ground)
     res = solve_qp(P, q, A, l, u, warm=cs.warm, settings=cfg.qp)
     tau_raw = A_tau @ res.x + h_a
     tmax = jnp.asarray(ids.tau_max)

@@ -461,13 +461,15 @@ def _adapt(sp: _Scaled, st: _State, rho, s: QPSettings):
 def _run(sp, st, rho, w, free, s: QPSettings, iters: int):
     """``iters`` iterations in segments of ``adapt_every`` with refactor in between."""
     k = s.adapt_every if 0 < s.adapt_every < iters else iters
-    K0, G = _gram(sp, w, free, s)
+    with jax.named_scope("qp_factor"):
+        K0, G = _gram(sp, w, free, s)
 
     def segment(length):
         def seg(carry, _):
             st, rho = carry
             rho_v = _rho_vec(rho, w, free, s)
-            fac = _factor(K0, G, rho, s)
+            with jax.named_scope("qp_factor"):
+                fac = _factor(K0, G, rho, s)
             if s.kernel == "pallas":
                 from wbc_jax.qp.fused import fused_segment
 
@@ -486,6 +488,12 @@ def _run(sp, st, rho, w, free, s: QPSettings, iters: int):
 
     carry = (st, rho)
     n_full, rem = divmod(iters, k) if k > 0 else (0, 0)
+    with jax.named_scope("qp_iterations"):
+        return _segments(segment, carry, n_full, rem, k, s)
+
+
+def _segments(segment, carry, n_full: int, rem: int, k: int, s: QPSettings):
+    """``n_full`` segments of ``k`` iterations in ``lax.scan``, then one of ``rem``."""
     if n_full > 0:
         carry, _ = lax.scan(segment(k), carry, None, length=n_full, unroll=s.unroll)
     if rem > 0:
@@ -704,7 +712,8 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     l = jnp.clip(jnp.nan_to_num(l, nan=-BIG, neginf=-BIG), -big, big)
     u = jnp.clip(jnp.nan_to_num(u, nan=BIG, posinf=BIG), -big, big)
     empty = jnp.any(l > u)
-    sp = _equilibrate(P, q, A, l, u, s)
+    with jax.named_scope("qp_equilibrate"):
+        sp = _equilibrate(P, q, A, l, u, s)
     free = (l <= -BIG) & (u >= BIG)
     eq = jnp.abs(sp.u - sp.l) < _EQ_TOL
     # Scaled start: x = D xb, z = zb / E, y = E yb / c.
@@ -731,6 +740,13 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     st, rho = _run(sp, st, rho, w, free, s, iters)
     if s.polish:
         st = _polish(sp, st, eq, free, s)
+    with jax.named_scope("qp_residuals"):
+        return _finish(P, q, A, l, u, sp, st, rho, empty, s, iters)
+
+
+def _finish(P, q, A, l, u, sp: _Scaled, st: _State, rho, empty, s: QPSettings, iters: int) -> QPResult:
+    """Unscale the last iterate; residuals, infeasibility certificates and the flag in the user's units."""
+    dt = sp.P.dtype
     # Unscale and evaluate in the user's units.
     x = sp.D * st.x
     z = st.z / sp.E

@@ -1,0 +1,75 @@
+"""wbc_jax.kernel_trace: scope attribution of device ops, against hand-built traces and a real CPU trace."""
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+from wbc_jax import kernel_trace as kt
+
+
+def test_stage_of_innermost_and_transformed_scopes():
+    assert kt.stage_of("jit(f)/vmap(physics)/while/body/step") == "physics"
+    assert kt.stage_of("jit(f)/vmap()/while/body/qp_iterations/while/body/dot_general") == "qp_iterations"
+    # the QP's scopes sit inside the controller's; the innermost known one wins
+    assert kt.stage_of("jit(f)/qp_assemble/jit(_solve_jit)/qp_factor/cholesky") == "qp_factor"
+    assert kt.stage_of("jit(f)/vmap()/while/body/add") == kt.OTHER
+    assert kt.stage_of("jit(_solve_jit)/select_n") == kt.OTHER  # jit(name) is a transform, not a stage
+
+
+def _x(name, ts, dur, pid=1, **args):
+    return dict(ph="X", name=name, pid=pid, tid=0, ts=ts, dur=dur, args=dict(hlo_op=name, hlo_module="m", **args))
+
+
+def test_summarize_hand_trace():
+    """Two control steps; an op without metadata takes the stage of the op before it; a loop op is not counted."""
+    paths = {"fusion_1": "jit(f)/vmap()/sense/add", "fusion_2": "jit(f)/physics/mul",
+             "dot_3": "jit(f)/qp_iterations/dot_general"}
+    events = [dict(ph="M", name="process_name", pid=7, args=dict(name="/host:CPU"))]
+    t = 0.0
+    for _ in range(2):
+        events += [_x("fusion.1", t, 2.0), _x("dot.3", t + 3, 4.0), _x("copy.9", t + 8, 1.0),
+                   _x("fusion.2", t + 10, 5.0), _x("while.4", t, 15.0)]
+        t += 20.0
+    ops = kt.device_ops(dict(traceEvents=events))
+    assert len(ops) == 8  # the two while ops are dropped
+    s = kt.summarize(ops, paths, wall_s=40e-6, n_steps=2)
+    st = s["stages"]
+    assert st["sense"]["ops_per_step"] == 1 and st["sense"]["device_us_per_step"] == pytest.approx(2.0)
+    # copy.9 has no metadata: it follows dot.3 and is counted with the QP iterations
+    assert st["qp_iterations"]["ops_per_step"] == 2
+    assert st["qp_iterations"]["device_us_per_step"] == pytest.approx(5.0)
+    assert st["physics"]["device_us_per_step"] == pytest.approx(5.0)
+    assert s["ops_per_step"] == 4 and s["inferred_share"] == pytest.approx(0.25)
+    assert s["wall_us_per_step"] == pytest.approx(20.0)
+    # busy 12 us of every 20 (ops never overlap here): 40 % idle
+    assert s["device_busy_us_per_step"] == pytest.approx(12.0)
+    assert s["device_idle_share"] == pytest.approx(0.4)
+    assert st["sense"]["share_of_wall"] == pytest.approx(0.1)
+
+
+def test_device_ops_prefers_gpu_process():
+    events = [dict(ph="M", name="process_name", pid=2, args=dict(name="/device:GPU:0")),
+              _x("fusion.1", 0.0, 1.0, pid=1), _x("fusion.2", 0.0, 3.0, pid=2)]
+    assert [o[0] for o in kt.device_ops(dict(traceEvents=events))] == ["fusion.2"]
+
+
+def test_real_cpu_trace_attributes_both_scopes():
+    """A jitted function with two independent scoped parts, traced by jax.profiler on the CPU: each part's ops
+    (a wrapped elementwise op and a dot fusion on XLA CPU) land in its own stage, none in 'other'."""
+
+    def f(x, z):
+        with jax.named_scope("qp_iterations"):
+            y = jnp.sin(x) @ x
+        with jax.named_scope("physics"):
+            w = jnp.tanh(z) @ z
+        return y, w
+
+    s = kt.trace_call(jax.jit(f), (jnp.ones((32, 32)), 2 * jnp.ones((32, 32))), n_steps=1)
+    st = s["stages"]
+    assert st["qp_iterations"]["ops_per_step"] >= 1
+    assert st["physics"]["ops_per_step"] >= 1
+    assert st[kt.OTHER]["ops_per_step"] == 0
+    assert {t["stage"] for t in s["top_ops"] if "tanh" in t["path"]} == {"physics"}
+    assert st["qp_iterations"]["ops_per_step"] + st["physics"]["ops_per_step"] + st[kt.OTHER]["ops_per_step"] \
+        == s["ops_per_step"]
+    assert st["qp_iterations"]["device_us_per_step"] > 0

@@ -1,0 +1,208 @@
+"""``wbc-jax bench trace``: a device trace of the batched rollout, its kernels grouped by control-step stage.
+
+The rollout's stages carry ``jax.named_scope`` names (``STAGES``: sensing, dynamics and reference, QP assembly,
+the QP's equilibration / factorization / iterations / residuals, physics). This module runs one compiled chunk
+under ``jax.profiler``, reads the Perfetto trace it writes, and maps every device op (a GPU kernel, or an XLA CPU
+thunk) to its stage through the op's HLO metadata (``op_name`` holds the scope path). The result is, per control
+step and stage: how many ops ran, their summed device time, and the share of the wall time, plus the device's
+idle share (wall time not covered by any op: launch and loop overhead, host synchronisation).
+
+Why: at small batch (the paper campaign's 270 runs) a control step is latency-bound, so timing stages in separate
+jit calls (``bench components``) adds a dispatch per stage and hides how many kernels each stage launches. The
+kernel count times the per-kernel floor is what bounds a latency-bound loop.
+"""
+
+from __future__ import annotations
+
+import glob
+import gzip
+import json
+import os
+import re
+import tempfile
+import time
+
+import jax
+import numpy as np
+
+# Scope names, innermost wins when a path holds several (the QP's scopes sit inside the controller's).
+STAGES = ("sense", "dynamics_reference", "qp_assemble", "qp_equilibrate", "qp_factor", "qp_iterations",
+          "qp_residuals", "physics")
+OTHER = "other"  # metrics accumulation, logging, the rollout's loop bookkeeping
+TOP_OPS = 25  # heaviest ops listed per trace
+
+# XLA CPU reports loops and calls as ops spanning their bodies' ops: not counted (their bodies are)
+_CONTAINERS = ("while", "conditional", "call")
+_META = re.compile(r'^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=.*?metadata=\{[^}]*op_name="([^"]*)"')
+
+
+def op_paths(hlo_text: str) -> dict[str, str]:
+    """Map from HLO instruction name (``.`` and ``-`` folded to ``_``; also with XLA CPU's ``wrapped_`` prefix) to
+    its ``op_name`` scope path, from compiled HLO text. Instructions without that metadata are left out."""
+    out = {}
+    for line in hlo_text.splitlines():
+        mt = _META.match(line)
+        if mt:
+            out[_norm(mt.group(1))] = out["wrapped_" + _norm(mt.group(1))] = mt.group(2)
+    return out
+
+
+def _norm(name: str) -> str:
+    return name.replace(".", "_").replace("-", "_")
+
+
+def stage_of(op_name: str) -> str:
+    """The innermost known stage in a scope path like ``jit(f)/vmap(while)/body/physics/...``."""
+    best = OTHER
+    for p in op_name.split("/"):
+        if p.endswith(")") and "(" in p:  # a scope opened under a transformation: vmap(physics)
+            p = p[p.index("(") + 1:-1]
+        if p in STAGES:
+            best = p
+    return best
+
+
+def device_ops(trace: dict, module_prefix: str | None = None) -> list[tuple[str, float, float, str]]:
+    """Device op events of a Perfetto/Chrome trace: (hlo_op, start [us], duration [us], scope path or '').
+
+    GPU kernels when the trace has a GPU device process, else the XLA CPU thunks; ``module_prefix`` keeps only ops
+    of HLO modules whose name starts with it.
+    """
+    events = trace["traceEvents"] if isinstance(trace, dict) else trace
+    gpu_pids = {e["pid"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"
+                and "/device:GPU" in str(e.get("args", {}).get("name", ""))}
+    out = []
+    for e in events:
+        if e.get("ph") != "X":
+            continue
+        a = e.get("args") or {}
+        op = a.get("hlo_op")
+        if not op or (gpu_pids and e.get("pid") not in gpu_pids) or str(op).startswith(_CONTAINERS):
+            continue
+        if module_prefix and not str(a.get("hlo_module", "")).startswith(module_prefix):
+            continue
+        out.append((str(op), float(e.get("ts", 0.0)), float(e.get("dur", 0.0)), str(a.get("tf_op", ""))))
+    return out
+
+
+def summarize(ops, paths: dict[str, str], wall_s: float, n_steps: int) -> dict:
+    """Per stage: ops per control step, device time per control step [us], share of the wall time.
+
+    Args:
+        ops: :func:`device_ops` output for ``n_steps`` control steps; paths: :func:`op_paths` map (a trace's own
+            scope path, where present, wins); wall_s: wall time of those steps [s].
+    """
+    per = {k: [0, 0.0] for k in STAGES + (OTHER,)}
+    top: dict[tuple[str, str], list] = {}
+    n_inferred = 0
+    last = OTHER
+    for op, _, dur, path in sorted(ops, key=lambda o: o[1]):
+        path = path or paths.get(_norm(op))
+        if path is None:  # an op XLA created without metadata (copies, some dots): the stage of the op before it
+            st, n_inferred = last, n_inferred + 1
+        else:
+            st = stage_of(path)
+        last = st
+        per[st][0] += 1
+        per[st][1] += dur
+        t = top.setdefault((st, op), [0, 0.0, path or ""])
+        t[0] += 1
+        t[1] += dur
+    busy_us = sum(v[1] for v in per.values())
+    wall_us = 1e6 * wall_s
+    # device time covered by at least one op (ops on several streams may overlap)
+    iv = sorted((ts, ts + dur) for _, ts, dur, _ in ops)
+    covered, end = 0.0, -np.inf
+    for a, b in iv:
+        if b > end:
+            covered += b - max(a, end)
+            end = b
+    stages = {k: dict(ops_per_step=v[0] / n_steps, device_us_per_step=v[1] / n_steps,
+                      share_of_wall=v[1] / wall_us if wall_us > 0 else float("nan")) for k, v in per.items()}
+    heavy = sorted(top.items(), key=lambda kv: -kv[1][1])[:TOP_OPS]
+    return dict(n_steps=n_steps, wall_us_per_step=wall_us / n_steps, ops_per_step=len(ops) / n_steps,
+                inferred_share=n_inferred / max(len(ops), 1),
+                top_ops=[dict(stage=k[0], op=k[1], calls_per_step=v[0] / n_steps, device_us_per_step=v[1] / n_steps,
+                              path=v[2]) for k, v in heavy],
+                device_busy_us_per_step=busy_us / n_steps, device_idle_share=max(0.0, 1.0 - covered / wall_us)
+                if wall_us > 0 else float("nan"), stages=stages)
+
+
+def trace_call(f, args, n_steps: int, log_dir: str | None = None) -> dict:
+    """Trace one call ``f(*args)`` (already compiled and warm) covering ``n_steps`` control steps; summarize it."""
+    compiled = f.lower(*args).compile()
+    paths = op_paths(compiled.as_text())
+    jax.block_until_ready(compiled(*args))
+    with tempfile.TemporaryDirectory() as td:
+        d = log_dir or td
+        jax.profiler.start_trace(d, create_perfetto_trace=True)
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(*args))
+        wall = time.perf_counter() - t0
+        jax.profiler.stop_trace()
+        files = sorted(glob.glob(os.path.join(d, "**", "*.trace.json.gz"), recursive=True), key=os.path.getmtime)
+        if not files:
+            raise RuntimeError(f"jax.profiler wrote no Perfetto trace under {d}")
+        with gzip.open(files[-1], "rt") as fh:
+            trace = json.load(fh)
+    ops = device_ops(trace)
+    return summarize(ops, paths, wall, n_steps)
+
+
+def print_summary(label: str, s: dict) -> None:
+    print(f"{label}: {s['wall_us_per_step']:.1f} us wall per control step, {s['ops_per_step']:.0f} device ops per "
+          f"step, device busy {s['device_busy_us_per_step']:.1f} us, idle {100 * s['device_idle_share']:.0f} % of "
+          f"the wall time", flush=True)
+    for k, v in sorted(s["stages"].items(), key=lambda kv: -kv[1]["device_us_per_step"]):
+        print(f"    {k:20s} {v['ops_per_step']:7.1f} ops  {v['device_us_per_step']:9.1f} us  "
+              f"{100 * v['share_of_wall']:5.1f} % of wall", flush=True)
+    print(f"    ({100 * s['inferred_share']:.0f} % of the ops had no scope metadata and took the stage of the op "
+          f"before them; heaviest ops:)", flush=True)
+    for t in s["top_ops"][:12]:
+        print(f"      {t['stage']:20s} {t['op'][:40]:40s} {t['calls_per_step']:5.1f} x  {t['device_us_per_step']:8.1f} us",
+              flush=True)
+    if any(t["op"].startswith("command_buffer") for t in s["top_ops"]):
+        print("    (kernels ran inside CUDA graphs, which the trace names by graph, not by kernel: set "
+              "XLA_FLAGS=--xla_gpu_enable_command_buffer= for a per-kernel attribution)", flush=True)
+
+
+def run_trace(batch: int = 270, steps: int = 50, scene: str = "transport", qp: str | None = "it20_a0_r2",
+              substeps: int = 1, json_path: str | None = None) -> dict:
+    """Trace ``steps`` control steps of the transport rollout at ``batch`` runs (random factor cells) and of
+    physics only (``mjx.step``) on the same batch; print and return both summaries."""
+    from wbc_jax.batch import prepare_batch
+    from wbc_jax.control.transport import TransportConfig, control_qp_settings
+    from wbc_jax.model import Robot, mjx
+    from wbc_jax.qp_audit import variants
+    from wbc_jax.rollout import make_chunk_fn, make_sim
+
+    # The persistent cache's key leaves out op metadata: an executable cached from an edit with other scopes would
+    # carry stale scope names. Compile afresh.
+    jax.config.update("jax_enable_compilation_cache", False)
+    robot = Robot(scene)
+    qs = variants([qp])[qp] if qp else control_qp_settings(20)
+    sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=qs),
+                   n_substeps=substeps, log_every=steps)
+    rng = np.random.default_rng(0)
+    b = prepare_batch(sim, rng.choice([0.2, 0.3, 0.4], batch), rng.choice([0.4, 0.7, 1.0], batch),
+                      rng.choice([0.06, 0.08, 0.10], batch))
+    chunk = jax.jit(jax.vmap(make_chunk_fn(sim, 1), in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0)))
+    args = (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+
+    def phys(m, d):
+        with jax.named_scope("physics"):
+            return jax.lax.scan(lambda d, _: (mjx.step(m, d), None), d, None, length=steps * substeps)[0]
+
+    f_phys = jax.jit(jax.vmap(phys, in_axes=(b.in_axes, 0)))
+    device = jax.devices()[0].device_kind
+    out = dict(device=device, scene=robot.path.name, batch=batch, steps=steps, qp=qp, substeps=substeps)
+    out["wbc"] = trace_call(chunk, args, steps)
+    print_summary(f"{device}, {robot.path.name}, batch {batch}, physics + WBC ({qp}, substeps {substeps})",
+                  out["wbc"])
+    out["physics_only"] = trace_call(f_phys, (b.model, b.state.d), steps)
+    print_summary(f"{device}, {robot.path.name}, batch {batch}, physics only ({substeps} mjx.step per control step)",
+                  out["physics_only"])
+    if json_path:
+        with open(json_path, "w") as fh:
+            json.dump(out, fh, indent=2)
+    return out
