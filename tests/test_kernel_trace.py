@@ -73,3 +73,19 @@ def test_real_cpu_trace_attributes_both_scopes():
     assert st["qp_iterations"]["ops_per_step"] + st["physics"]["ops_per_step"] + st[kt.OTHER]["ops_per_step"] \
         == s["ops_per_step"]
     assert st["qp_iterations"]["device_us_per_step"] > 0
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--qp", "bogus"], "--qp"),
+    (["--batches", "0"], "--batches"),
+    (["--batches", "4,x"], "--batches"),
+    (["--steps", "0"], "--steps"),
+    (["--substeps", "0"], "--substeps"),
+])
+def test_bench_rejects_bad_arguments(argv, needle, capsys):
+    """Bad bench arguments: one line naming the flag and the expected range, exit 2, before any compile."""
+    from wbc_jax import cli
+
+    assert cli.main(["bench", "trace", *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("wbc-jax bench: error: ") and needle in err[0]

@@ -22,7 +22,31 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_bench_args(args: argparse.Namespace) -> None:
+    """Bad ``bench`` arguments as user errors (flag, value, expected range) before anything is compiled."""
+    from wbc_jax.errors import InputError
+
+    if args.batches is not None:
+        try:
+            sizes = [int(x) for x in args.batches.split(",")]
+        except ValueError:
+            sizes = []
+        if not sizes or min(sizes) < 1:
+            raise InputError(f"--batches {args.batches!r}: expected comma-separated integers >= 1, e.g. 1,1024")
+    for flag in ("steps", "iters", "substeps"):
+        if getattr(args, flag) < 1:
+            raise InputError(f"--{flag} {getattr(args, flag)}: expected an integer >= 1")
+    if args.qp is not None:
+        from wbc_jax.qp_audit import variants
+
+        try:
+            variants([args.qp])
+        except ValueError as e:
+            raise InputError(f"--qp: {e}") from None
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
+    _check_bench_args(args)
     if args.what == "qp":
         from wbc_jax.qp.bench import run_bench
 

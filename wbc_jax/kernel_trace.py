@@ -62,11 +62,10 @@ def stage_of(op_name: str) -> str:
     return best
 
 
-def device_ops(trace: dict, module_prefix: str | None = None) -> list[tuple[str, float, float, str]]:
+def device_ops(trace: dict) -> list[tuple[str, float, float, str]]:
     """Device op events of a Perfetto/Chrome trace: (hlo_op, start [us], duration [us], scope path or '').
 
-    GPU kernels when the trace has a GPU device process, else the XLA CPU thunks; ``module_prefix`` keeps only ops
-    of HLO modules whose name starts with it.
+    GPU kernels when the trace has a GPU device process, else the XLA CPU thunks (loop and call ops left out).
     """
     events = trace["traceEvents"] if isinstance(trace, dict) else trace
     gpu_pids = {e["pid"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"
@@ -78,8 +77,6 @@ def device_ops(trace: dict, module_prefix: str | None = None) -> list[tuple[str,
         a = e.get("args") or {}
         op = a.get("hlo_op")
         if not op or (gpu_pids and e.get("pid") not in gpu_pids) or str(op).startswith(_CONTAINERS):
-            continue
-        if module_prefix and not str(a.get("hlo_module", "")).startswith(module_prefix):
             continue
         out.append((str(op), float(e.get("ts", 0.0)), float(e.get("dur", 0.0)), str(a.get("tf_op", ""))))
     return out
@@ -129,7 +126,8 @@ def summarize(ops, paths: dict[str, str], wall_s: float, n_steps: int) -> dict:
 
 
 def trace_call(f, args, n_steps: int, log_dir: str | None = None) -> dict:
-    """Trace one call ``f(*args)`` (already compiled and warm) covering ``n_steps`` control steps; summarize it."""
+    """Compile ``f`` (a ``jax.jit`` function) for ``args``, run it once untimed, then trace one call covering
+    ``n_steps`` control steps and summarize it (:func:`summarize`); ``log_dir`` keeps the raw trace there."""
     compiled = f.lower(*args).compile()
     paths = op_paths(compiled.as_text())
     jax.block_until_ready(compiled(*args))
