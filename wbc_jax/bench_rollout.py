@@ -27,6 +27,29 @@ def _timed(f, *args):
     return out, time.perf_counter() - t0
 
 
+def random_batch(sim, batch: int, seed: int = 0):
+    """``batch`` runs in random (m, mu, d) cells of the paper's factor levels (seeded), prepared for ``sim``."""
+    rng = np.random.default_rng(seed)
+    return prepare_batch(sim, rng.choice([0.2, 0.3, 0.4], batch), rng.choice([0.4, 0.7, 1.0], batch),
+                         rng.choice([0.06, 0.08, 0.10], batch))
+
+
+def physics_only_fn(b, n_steps: int):
+    """jit(vmap) of ``n_steps`` plain ``mjx.step`` calls per run (scope ``physics``), called as f(b.model, b.state.d)."""
+
+    def phys(m, d):
+        with jax.named_scope("physics"):
+            return jax.lax.scan(lambda d, _: (mjx.step(m, d), None), d, None, length=n_steps)[0]
+
+    return jax.jit(jax.vmap(phys, in_axes=(b.in_axes, 0)))
+
+
+def wbc_chunk_fn(sim, b):
+    """(f, args): jit(vmap) of one chunk of ``sim.log_every`` control steps per run, and its arguments from ``b``."""
+    f = jax.jit(jax.vmap(make_chunk_fn(sim, 1), in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0)))
+    return f, (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+
+
 def _peak_bytes() -> int | None:
     """Peak device memory in use so far [bytes] (None where the backend does not report it, e.g. the CPU)."""
     stats = jax.devices()[0].memory_stats() or {}
@@ -66,19 +89,12 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
     n_env = steps * substeps  # env-steps per run per timed call
     rows = []
     for B in batches:
-        rng = np.random.default_rng(0)
-        b = prepare_batch(sim, rng.choice([0.2, 0.3, 0.4], B), rng.choice([0.4, 0.7, 1.0], B),
-                          rng.choice([0.06, 0.08, 0.10], B))
-
-        def phys(m, d):
-            return jax.lax.scan(lambda d, _: (mjx.step(m, d), None), d, None, length=n_env)[0]
-
-        f_phys = jax.jit(jax.vmap(phys, in_axes=(b.in_axes, 0)))
+        b = random_batch(sim, B)
+        f_phys = physics_only_fn(b, n_env)
         d0 = b.state.d
         _, c_phys = _timed(f_phys, b.model, d0)
         _, t_phys = _timed(f_phys, b.model, d0)
-        f_wbc = jax.jit(jax.vmap(make_chunk_fn(sim, 1), in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0)))
-        args = (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+        f_wbc, args = wbc_chunk_fn(sim, b)
         _, c_wbc = _timed(f_wbc, *args)
         _, t_wbc = _timed(f_wbc, *args)
         row = dict(device=device, scene=robot.path.name, batch=B, steps=steps, substeps=substeps, qp_iters=iters,
@@ -148,7 +164,6 @@ def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: st
     """
     robot = Robot(scene)
     device = jax.devices()[0].device_kind
-    rng = np.random.default_rng(0)
     base = control_qp_settings(iters)
     known = dict(wbc_1=base._replace(iters=1), wbc_n=base, wbc_n_norefactor=base._replace(adapt_every=0),
                  wbc_n_inv=base._replace(linsolve="inv"), wbc_n_chol=base._replace(linsolve="chol"),
@@ -164,17 +179,11 @@ def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: st
     for label, qs in [("physics", None)] + variants:
         sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=qs or base), log_every=steps)
         if b is None:
-            b = prepare_batch(sim, rng.choice([0.2, 0.3, 0.4], batch), rng.choice([0.4, 0.7, 1.0], batch),
-                              rng.choice([0.06, 0.08, 0.10], batch))
+            b = random_batch(sim, batch)
         if qs is None:
-            def phys(m, d):
-                return jax.lax.scan(lambda d, _: (mjx.step(m, d), None), d, None, length=steps)[0]
-
-            f = jax.jit(jax.vmap(phys, in_axes=(b.in_axes, 0)))
-            args = (b.model, b.state.d)
+            f, args = physics_only_fn(b, steps), (b.model, b.state.d)
         else:
-            f = jax.jit(jax.vmap(make_chunk_fn(sim, 1), in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0)))
-            args = (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+            f, args = wbc_chunk_fn(sim, b)
         _, c = _timed(f, *args)
         _, t = _timed(f, *args)
         out[label + "_us"] = 1e6 * t / (batch * steps)
@@ -215,12 +224,10 @@ def run_components(batch: int = 256, iters: int = 50, scene: str = "transport", 
     ids = robot.ids
     cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=control_qp_settings(iters))
     sim = make_sim(robot, cfg, log_every=warm_steps)
-    rng = np.random.default_rng(0)
-    b = prepare_batch(sim, rng.choice([0.2, 0.3, 0.4], batch), rng.choice([0.4, 0.7, 1.0], batch),
-                      rng.choice([0.06, 0.08, 0.10], batch))
+    b = random_batch(sim, batch)
     ax = b.in_axes
-    chunk = jax.jit(jax.vmap(make_chunk_fn(sim, 1), in_axes=(ax, 0, 0, 0, 0, 0, 0)))
-    rs, _ = chunk(b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+    chunk, args = wbc_chunk_fn(sim, b)
+    rs, _ = chunk(*args)
     V = lambda f, n_run: jax.jit(jax.vmap(f, in_axes=(ax,) + (0,) * n_run))  # noqa: E731
     f_sense = V(physics.sense, 1)
     ds = f_sense(b.model, rs.d)

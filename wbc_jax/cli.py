@@ -22,10 +22,12 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_bench_args(args: argparse.Namespace) -> None:
-    """Bad ``bench`` arguments as user errors (flag, value, expected range) before anything is compiled."""
+def _check_bench_args(args: argparse.Namespace) -> list[int] | None:
+    """The ``--batches`` sizes (None when not given); bad ``bench`` arguments as user errors (flag, value, expected
+    range) before anything is compiled."""
     from wbc_jax.errors import InputError
 
+    sizes = None
     if args.batches is not None:
         try:
             sizes = [int(x) for x in args.batches.split(",")]
@@ -43,10 +45,11 @@ def _check_bench_args(args: argparse.Namespace) -> None:
             variants([args.qp])
         except ValueError as e:
             raise InputError(f"--qp: {e}") from None
+    return sizes
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    _check_bench_args(args)
+    sizes = _check_bench_args(args)
     if args.what == "qp":
         from wbc_jax.qp.bench import run_bench
 
@@ -55,27 +58,27 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "rollout":
         from wbc_jax.bench_rollout import run_bench as run_rollout_bench
 
-        batches = [int(x) for x in args.batches.split(",")] if args.batches else ((1, 4) if args.quick else (1, 1024, 4096, 16384))
+        batches = sizes or ((1, 4) if args.quick else (1, 1024, 4096, 16384))
         run_rollout_bench(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json, scene=args.scene,
                           qp=args.qp, substeps=args.substeps, campaign=args.campaign)
         return 0
     if args.what == "profile":
         from wbc_jax.bench_rollout import run_profile
 
-        batch = int(args.batches.split(",")[-1]) if args.batches else (4 if args.quick else 16384)
+        batch = sizes[-1] if sizes else (4 if args.quick else 16384)
         run_profile(batch=batch, steps=args.steps, iters=args.iters, scene=args.scene, json_path=args.json,
                     variants=args.variants.split(",") if args.variants else None)
         return 0
     if args.what == "components":
         from wbc_jax.bench_rollout import run_components
 
-        batch = int(args.batches.split(",")[-1]) if args.batches else (4 if args.quick else 256)
+        batch = sizes[-1] if sizes else (4 if args.quick else 256)
         run_components(batch=batch, iters=args.iters, scene=args.scene, json_path=args.json)
         return 0
     if args.what == "trace":
         from wbc_jax.kernel_trace import run_trace
 
-        batch = int(args.batches.split(",")[-1]) if args.batches else (4 if args.quick else 270)
+        batch = sizes[-1] if sizes else (4 if args.quick else 270)
         run_trace(batch=batch, steps=args.steps, scene=args.scene, qp=args.qp or "it20_a0_r2",
                   substeps=args.substeps, json_path=args.json)
         return 0

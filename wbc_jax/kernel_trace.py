@@ -168,11 +168,11 @@ def run_trace(batch: int = 270, steps: int = 50, scene: str = "transport", qp: s
               substeps: int = 1, json_path: str | None = None) -> dict:
     """Trace ``steps`` control steps of the transport rollout at ``batch`` runs (random factor cells) and of
     physics only (``mjx.step``) on the same batch; print and return both summaries."""
-    from wbc_jax.batch import prepare_batch
+    from wbc_jax.bench_rollout import physics_only_fn, random_batch, wbc_chunk_fn
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
-    from wbc_jax.model import Robot, mjx
+    from wbc_jax.model import Robot
     from wbc_jax.qp_audit import variants
-    from wbc_jax.rollout import make_chunk_fn, make_sim
+    from wbc_jax.rollout import make_sim
 
     # The persistent cache's key leaves out op metadata: an executable cached from an edit with other scopes would
     # carry stale scope names. Compile afresh.
@@ -181,17 +181,9 @@ def run_trace(batch: int = 270, steps: int = 50, scene: str = "transport", qp: s
     qs = variants([qp])[qp] if qp else control_qp_settings(20)
     sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=qs),
                    n_substeps=substeps, log_every=steps)
-    rng = np.random.default_rng(0)
-    b = prepare_batch(sim, rng.choice([0.2, 0.3, 0.4], batch), rng.choice([0.4, 0.7, 1.0], batch),
-                      rng.choice([0.06, 0.08, 0.10], batch))
-    chunk = jax.jit(jax.vmap(make_chunk_fn(sim, 1), in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0)))
-    args = (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
-
-    def phys(m, d):
-        with jax.named_scope("physics"):
-            return jax.lax.scan(lambda d, _: (mjx.step(m, d), None), d, None, length=steps * substeps)[0]
-
-    f_phys = jax.jit(jax.vmap(phys, in_axes=(b.in_axes, 0)))
+    b = random_batch(sim, batch)
+    chunk, args = wbc_chunk_fn(sim, b)
+    f_phys = physics_only_fn(b, steps * substeps)
     device = jax.devices()[0].device_kind
     out = dict(device=device, scene=robot.path.name, batch=batch, steps=steps, qp=qp, substeps=substeps)
     out["wbc"] = trace_call(chunk, args, steps)

@@ -489,15 +489,10 @@ def _run(sp, st, rho, w, free, s: QPSettings, iters: int):
     carry = (st, rho)
     n_full, rem = divmod(iters, k) if k > 0 else (0, 0)
     with jax.named_scope("qp_iterations"):
-        return _segments(segment, carry, n_full, rem, k, s)
-
-
-def _segments(segment, carry, n_full: int, rem: int, k: int, s: QPSettings):
-    """``n_full`` segments of ``k`` iterations in ``lax.scan``, then one of ``rem``."""
-    if n_full > 0:
-        carry, _ = lax.scan(segment(k), carry, None, length=n_full, unroll=s.unroll)
-    if rem > 0:
-        carry, _ = segment(rem)(carry, None)
+        if n_full > 0:
+            carry, _ = lax.scan(segment(k), carry, None, length=n_full, unroll=s.unroll)
+        if rem > 0:
+            carry, _ = segment(rem)(carry, None)
     return carry
 
 
@@ -741,39 +736,33 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     if s.polish:
         st = _polish(sp, st, eq, free, s)
     with jax.named_scope("qp_residuals"):
-        return _finish(P, q, A, l, u, sp, st, rho, empty, s, iters)
-
-
-def _finish(P, q, A, l, u, sp: _Scaled, st: _State, rho, empty, s: QPSettings, iters: int) -> QPResult:
-    """Unscale the last iterate; residuals, infeasibility certificates and the flag in the user's units."""
-    dt = sp.P.dtype
-    # Unscale and evaluate in the user's units.
-    x = sp.D * st.x
-    z = st.z / sp.E
-    y = sp.E * st.y / sp.c
-    dx = sp.D * st.dx
-    dy = sp.E * st.dy / sp.c
-    ax, px, aty = _mv(A, x), _mv(P, x), _mv(A.T, y)
-    prim = _inf_norm(ax - z)
-    dual = _inf_norm(px + q + aty)
-    prim_tol = s.eps_abs + s.eps_rel * jnp.maximum(_inf_norm(ax), _inf_norm(z))
-    dual_tol = s.eps_abs + s.eps_rel * jnp.maximum(jnp.maximum(_inf_norm(px), _inf_norm(aty)),
-                                                   _inf_norm(q))
-    pinf, dinf = _certificates(P, q, A, l, u, dx, dy, s)
-    finite = _all_finite(x, y, z, prim, dual) & ~st.bad
-    converged = (prim <= prim_tol) & (dual <= dual_tol)
-    flag = jnp.where(~finite, FLAG_NONFINITE,
-                     jnp.where(empty | pinf, FLAG_PRIMAL_INFEASIBLE,
-                               jnp.where(dinf, FLAG_DUAL_INFEASIBLE,
-                                         jnp.where(converged, FLAG_SOLVED, FLAG_MAX_ITER))))
-    fmax = jnp.finfo(dt).max
-    clean = lambda v: jnp.nan_to_num(v, nan=0.0, posinf=fmax, neginf=-fmax)  # noqa: E731
-    res_clean = lambda v: jnp.nan_to_num(v, nan=fmax, posinf=fmax)  # noqa: E731
-    return QPResult(
-        x=clean(x), y=clean(y), z=clean(z),
-        prim_res=res_clean(prim), dual_res=res_clean(dual),
-        flag=flag.astype(jnp.int32), iters=jnp.asarray(iters, jnp.int32),
-        rho=jnp.nan_to_num(rho, nan=s.rho).astype(dt))
+        # Unscale and evaluate in the user's units.
+        x = sp.D * st.x
+        z = st.z / sp.E
+        y = sp.E * st.y / sp.c
+        dx = sp.D * st.dx
+        dy = sp.E * st.dy / sp.c
+        ax, px, aty = _mv(A, x), _mv(P, x), _mv(A.T, y)
+        prim = _inf_norm(ax - z)
+        dual = _inf_norm(px + q + aty)
+        prim_tol = s.eps_abs + s.eps_rel * jnp.maximum(_inf_norm(ax), _inf_norm(z))
+        dual_tol = s.eps_abs + s.eps_rel * jnp.maximum(jnp.maximum(_inf_norm(px), _inf_norm(aty)),
+                                                       _inf_norm(q))
+        pinf, dinf = _certificates(P, q, A, l, u, dx, dy, s)
+        finite = _all_finite(x, y, z, prim, dual) & ~st.bad
+        converged = (prim <= prim_tol) & (dual <= dual_tol)
+        flag = jnp.where(~finite, FLAG_NONFINITE,
+                         jnp.where(empty | pinf, FLAG_PRIMAL_INFEASIBLE,
+                                   jnp.where(dinf, FLAG_DUAL_INFEASIBLE,
+                                             jnp.where(converged, FLAG_SOLVED, FLAG_MAX_ITER))))
+        fmax = jnp.finfo(dt).max
+        clean = lambda v: jnp.nan_to_num(v, nan=0.0, posinf=fmax, neginf=-fmax)  # noqa: E731
+        res_clean = lambda v: jnp.nan_to_num(v, nan=fmax, posinf=fmax)  # noqa: E731
+        return QPResult(
+            x=clean(x), y=clean(y), z=clean(z),
+            prim_res=res_clean(prim), dual_res=res_clean(dual),
+            flag=flag.astype(jnp.int32), iters=jnp.asarray(iters, jnp.int32),
+            rho=jnp.nan_to_num(rho, nan=s.rho).astype(dt))
 
 
 def _warm_tuple(warm: Any):
