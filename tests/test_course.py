@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
-from wbc_jax.model import Robot, mjcf_dir
+from wbc_jax.sim.model import Robot, mjcf_dir
 from wbc_jax.planner.apf import overhead, plan_dip
 from wbc_jax.planner.scene_geometry import SHIN_SLOPE, clear_of_edges, scene_geometry, terrain_height
 from wbc_jax.planner.spline import eval_path, max_abs_accel_z
 from wbc_jax.planner.transport import course_plan
-from wbc_jax.batch import prepare_batch
-from wbc_jax.rollout import make_sim, simulate
+from wbc_jax.sim.batch import prepare_batch
+from wbc_jax.sim.rollout import make_sim, simulate
 
 LINTEL_UNDERSIDE = 0.65  # [m] scene_transport.xml: lintel box centre 0.925, half-height 0.275
 WALL_Y = -2.45  # [m]

@@ -1,10 +1,10 @@
-"""wbc_jax.kernel_trace: scope attribution of device ops, against hand-built traces and a real CPU trace."""
+"""wbc_jax.bench.trace: scope attribution of device ops, against hand-built traces and a real CPU trace."""
 
 import jax
 import jax.numpy as jnp
 import pytest
 
-from wbc_jax import kernel_trace as kt
+from wbc_jax.bench import trace as kt
 
 
 def test_stage_of_innermost_and_transformed_scopes():

@@ -1,4 +1,4 @@
-"""The transport paper's metrics (wbc_jax.metrics) against hand computations."""
+"""The transport paper's metrics (wbc_jax.sim.metrics) against hand computations."""
 
 import jax
 import jax.numpy as jnp
@@ -6,9 +6,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from wbc_jax import metrics
-from wbc_jax.model import mjx
-from wbc_jax.rollout import Accum
+from wbc_jax.sim import metrics
+from wbc_jax.sim.model import mjx
+from wbc_jax.sim.rollout import Accum
 
 TOL = 1e-6
 

@@ -9,9 +9,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-from wbc_jax import scenario
+from wbc_jax.sim import scenario
 from wbc_jax.errors import FactorError, SceneError
-from wbc_jax.model import Robot, mjx, resolve_ids
+from wbc_jax.sim.model import Robot, mjx, resolve_ids
 
 MASS_TARGET = 24.26  # [kg] public code's total robot mass
 MASS_TOL = 0.02  # relative

@@ -1,7 +1,7 @@
 """Fixed-iteration ADMM QP solver (issue 3) against known optima and OSQP.
 
 The 200 problems (half generic, half with WBC structure and scales; see
-``wbc_jax.qp.problems``) are built from a known KKT point, solved as one vmapped batch,
+``wbc_jax.bench.qp_problems``) are built from a known KKT point, solved as one vmapped batch,
 and checked against that optimum and against OSQP at eps 1e-9. Float64 tests use the
 ``jax.enable_x64`` context manager so other test modules keep float32.
 """
@@ -21,7 +21,7 @@ from wbc_jax.qp import (
     QPSettings,
     solve_qp,
 )
-from wbc_jax.qp import problems as pr
+from wbc_jax.bench import qp_problems as pr
 
 SEED = 20240603
 N_PROBLEMS = 200

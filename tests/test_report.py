@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from test_stats import FACTORS, PLANTED, planted
 
-from wbc_jax import report
+from wbc_jax.analysis import report
 from wbc_jax.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]

@@ -1,4 +1,4 @@
-"""wbc_jax.stats against planted effects, hand-built sums of squares and hand-built EMMs.
+"""wbc_jax.analysis.stats against planted effects, hand-built sums of squares and hand-built EMMs.
 
 Synthetic campaign (``planted``): the transport paper's 3x3x3 design (m, mu, d), REPS runs
 per cell, y = EFFECT * (m main + mu main + mu:d interaction pattern) + N(0, SIGMA^2).
@@ -16,7 +16,7 @@ import pandas as pd
 import pytest
 from scipy import stats as sps
 
-from wbc_jax import stats
+from wbc_jax.analysis import stats
 from wbc_jax.errors import InputError
 
 LEVELS = {"m": [0.2, 0.3, 0.4], "mu": [0.4, 0.7, 1.0], "d": [0.06, 0.08, 0.10]}

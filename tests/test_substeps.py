@@ -12,14 +12,15 @@ import mujoco
 import numpy as np
 import pytest
 
-from wbc_jax import cli, metrics
-from wbc_jax.batch import prepare_batch
+from wbc_jax import cli
+from wbc_jax.sim import metrics
+from wbc_jax.sim.batch import prepare_batch
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
 from wbc_jax.errors import SpecError, WbcJaxError
-from wbc_jax.model import Robot, mjx
+from wbc_jax.sim.model import Robot, mjx
 from wbc_jax.planner.gait import GaitParams
-from wbc_jax.rollout import CONTACT_DIST, contact_name, control_step, make_sim
-from wbc_jax.spec import load_spec, parse_spec
+from wbc_jax.sim.rollout import CONTACT_DIST, contact_name, control_step, make_sim
+from wbc_jax.study.spec import load_spec, parse_spec
 
 N_SUB = 2
 PERIODS = 3  # control periods checked (6 physics steps)

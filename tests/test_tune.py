@@ -14,9 +14,9 @@ import pytest
 
 from wbc_jax import cli
 from wbc_jax.errors import SpecError
-from wbc_jax.gains_io import gains_toml, load_gains
-from wbc_jax.spec import SWEEPS
-from wbc_jax.tune import (CEMSearch, GridSearch, Space, load_tune_spec, pareto_mask, rank_key, score)
+from wbc_jax.study.gains import gains_toml, load_gains
+from wbc_jax.study.spec import SWEEPS
+from wbc_jax.study.tune import (CEMSearch, GridSearch, Space, load_tune_spec, pareto_mask, rank_key, score)
 
 BASELINE_SPEC = SWEEPS.parent / "reports" / "baseline" / "spec.toml"
 CELLS = [[0.2, 0.4, 0.06], [0.4, 1.0, 0.10]]
@@ -52,7 +52,7 @@ def _write(tmp_path, text, name="tune.toml"):
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
-    from wbc_jax.tune import run_tune
+    from wbc_jax.study.tune import run_tune
 
     d = tmp_path_factory.mktemp("tune")
     spec = _write(d, TINY)

@@ -13,7 +13,7 @@ from wbc_jax.errors import WbcJaxError
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from wbc_jax.report import run_report
+    from wbc_jax.analysis.report import run_report
 
     factors = args.factors.split(",") if args.factors else None
     metrics = args.metrics.split(",") if args.metrics else None
@@ -39,7 +39,7 @@ def _check_bench_args(args: argparse.Namespace) -> list[int] | None:
         if getattr(args, flag) < 1:
             raise InputError(f"--{flag} {getattr(args, flag)}: expected an integer >= 1")
     if args.qp is not None:
-        from wbc_jax.qp_audit import variants
+        from wbc_jax.bench.qp_audit import variants
 
         try:
             variants([args.qp])
@@ -51,39 +51,39 @@ def _check_bench_args(args: argparse.Namespace) -> list[int] | None:
 def _cmd_bench(args: argparse.Namespace) -> int:
     sizes = _check_bench_args(args)
     if args.what == "qp":
-        from wbc_jax.qp.bench import run_bench
+        from wbc_jax.bench.qp import run_bench
 
         run_bench(quick=args.quick, json_path=args.json)
         return 0
     if args.what == "rollout":
-        from wbc_jax.bench_rollout import run_bench as run_rollout_bench
+        from wbc_jax.bench.rollout import run_bench as run_rollout_bench
 
         batches = sizes or ((1, 4) if args.quick else (1, 1024, 4096, 16384))
         run_rollout_bench(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json, scene=args.scene,
                           qp=args.qp, substeps=args.substeps, campaign=args.campaign)
         return 0
     if args.what == "profile":
-        from wbc_jax.bench_rollout import run_profile
+        from wbc_jax.bench.rollout import run_profile
 
         batch = sizes[-1] if sizes else (4 if args.quick else 16384)
         run_profile(batch=batch, steps=args.steps, iters=args.iters, scene=args.scene, json_path=args.json,
                     variants=args.variants.split(",") if args.variants else None)
         return 0
     if args.what == "components":
-        from wbc_jax.bench_rollout import run_components
+        from wbc_jax.bench.rollout import run_components
 
         batch = sizes[-1] if sizes else (4 if args.quick else 256)
         run_components(batch=batch, iters=args.iters, scene=args.scene, json_path=args.json)
         return 0
     if args.what == "trace":
-        from wbc_jax.kernel_trace import run_trace
+        from wbc_jax.bench.trace import run_trace
 
         batch = sizes[-1] if sizes else (4 if args.quick else 270)
         run_trace(batch=batch, steps=args.steps, scene=args.scene, qp=args.qp or "it20_a0_r2",
                   substeps=args.substeps, json_path=args.json)
         return 0
     if args.what == "qp-rollout":
-        from wbc_jax.qp_audit import audit
+        from wbc_jax.bench.qp_audit import audit
 
         audit(args.variants.split(",") if args.variants else None, scene=args.scene,
               seconds=0.4 if args.quick else 1.2, json_path=args.json)
@@ -92,7 +92,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from wbc_jax.demo import run_demo
+    from wbc_jax.study.demo import run_demo
 
     for name in ("seconds", "distance", "push_at"):
         v = getattr(args, name)
@@ -108,7 +108,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_trot(args: argparse.Namespace) -> int:
-    from wbc_jax.trot import run_trot
+    from wbc_jax.study.trot import run_trot
 
     try:
         errors = [float(x) for x in args.mass_errors.split(",")]
@@ -121,11 +121,11 @@ def _cmd_trot(args: argparse.Namespace) -> int:
 
 
 def _cmd_campaign(args: argparse.Namespace) -> int:
-    from wbc_jax.campaign import run_campaign
+    from wbc_jax.study.campaign import run_campaign
 
     gains = None
     if args.gains is not None:
-        from wbc_jax.gains_io import load_gains
+        from wbc_jax.study.gains import load_gains
 
         gains = load_gains(args.gains)  # validated before anything runs or is written
         print(f"gains from {args.gains}", flush=True)
@@ -134,14 +134,14 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
 
 
 def _cmd_tune(args: argparse.Namespace) -> int:
-    from wbc_jax.tune import run_tune
+    from wbc_jax.study.tune import run_tune
 
     run_tune(args.spec, args.out, candidates=args.candidates, rounds=args.rounds, progress=not args.no_progress)
     return 0
 
 
 def _cmd_regress(args: argparse.Namespace) -> int:
-    from wbc_jax.campaign import run_regress
+    from wbc_jax.study.regress import run_regress
 
     code, _ = run_regress(args.baseline, update=args.update)
     return code
@@ -245,7 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    from wbc_jax import jaxcfg
+    from wbc_jax.sim import jaxcfg
 
     if args.command != "report":
         jaxcfg.configure()

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 from wbc_jax.control.centroidal_dynamics import centroidal_terms
 from wbc_jax.control.dynamics import GRAVITY, DynTerms, rot_error
 from wbc_jax.control.transport import control_qp_settings
-from wbc_jax.model import RobotIds, mjx
+from wbc_jax.sim.model import RobotIds, mjx
 from wbc_jax.qp import QPResult, QPSettings, solve_qp
 
 N_FEET = 4

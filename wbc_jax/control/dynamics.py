@@ -1,7 +1,7 @@
 """Dynamics terms shared by the transport and centroidal controllers.
 
 All quantities come from one MJX ``fwd_position`` + ``fwd_velocity`` pass (see
-:func:`wbc_jax.physics.sense`) and are restricted to the robot's ``nv_r = 24`` dofs (the object
+:func:`wbc_jax.sim.physics.sense`) and are restricted to the robot's ``nv_r = 24`` dofs (the object
 is a separate kinematic tree, so its dofs never couple into the robot's mass matrix or Jacobians).
 Frames: forces, positions and Jacobians are in the world frame; ``qvel[3:6]`` is MuJoCo's
 body-frame angular velocity of the trunk, which the Jacobians already account for.
@@ -14,7 +14,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from wbc_jax.model import RobotIds, mjx
+from wbc_jax.sim.model import RobotIds, mjx
 
 from mujoco.mjx._src.support import jac_dot as _jac_dot  # noqa: E402  (not re-exported by mjx)
 

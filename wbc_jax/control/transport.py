@@ -30,9 +30,9 @@ import jax
 import jax.numpy as jnp
 
 from wbc_jax.control.dynamics import GRAVITY, DynTerms, cone_edges, point_jacobians, rot_error, wrench_map
-from wbc_jax.model import RobotIds
+from wbc_jax.sim.model import RobotIds
 from wbc_jax.qp import QPResult, QPSettings, solve_qp
-from wbc_jax.scenario import cube_inertia
+from wbc_jax.sim.scenario import cube_inertia
 
 N_FEET = 4
 N_OBJ = 4
@@ -188,7 +188,7 @@ def control_qp_settings(iters: int = 20, **kw) -> QPSettings:
     1.27 mm, S 0.601 -> 0.596, slip 0.145 -> 0.143 mm).
 
     The fused Pallas iteration kernel (``kernel="pallas"``, :mod:`wbc_jax.qp.fused`; ``_p4`` in the
-    ``wbc_jax.qp_audit`` variant names) is not the default. Measured 2026-11-23 on an H100, closed loop, same inputs,
+    ``wbc_jax.bench.qp_audit`` variant names) is not the default. Measured 2026-11-23 on an H100, closed loop, same inputs,
     one process: flat scene, batch 16384, 350,914 -> 393,790 env-steps/s (+12 %) with 4 warps per problem (4 beat 8
     and 16 on WBC-sized QPs alone: 0.46 vs 0.57 and 0.56 ms per iteration at 16384 problems; XLA's iterations 0.75
     ms); course scene, batch 270, 3.63 -> 3.45 ms per control step (-5 %). But the paper campaign with it took

@@ -46,7 +46,7 @@ def _aabb(m: mujoco.MjModel, d: mujoco.MjData, g: int) -> np.ndarray:
 
 
 def scene_geometry(robot) -> SceneGeometry:
-    """Terrain and obstacle boxes of a :class:`wbc_jax.model.Robot`'s scene."""
+    """Terrain and obstacle boxes of a :class:`wbc_jax.sim.model.Robot`'s scene."""
     m, ids = robot.mj_model, robot.ids
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)

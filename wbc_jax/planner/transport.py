@@ -107,7 +107,7 @@ def straight_plan(robot, qpos0: np.ndarray, distance: float = 3.4, speed: float 
     """Plan a straight transport of ``distance`` metres along ``direction`` at ``speed`` (flat ground).
 
     Args:
-        robot: wbc_jax.model.Robot; qpos0: (nq,) initial configuration (object on the tray).
+        robot: wbc_jax.sim.model.Robot; qpos0: (nq,) initial configuration (object on the tray).
     """
     p_obj = _start_state(robot, qpos0)[0]
     u = np.asarray(direction, float) / np.linalg.norm(direction)

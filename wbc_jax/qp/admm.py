@@ -36,7 +36,7 @@ Flags (``QPResult.flag``, int32):
 
 Defaults and the evidence for them
 ----------------------------------
-Measured on 200 problems from ``wbc_jax.qp.problems.make_batch(0, 200)`` (100 generic,
+Measured on 200 problems from ``wbc_jax.bench.qp_problems.make_batch(0, 200)`` (100 generic,
 100 with WBC structure and scales, entries spanning 6+ orders of magnitude; n = 68,
 24 equality + 70 inequality rows), cold start, CPU. Each cell: fraction of generic /
 WBC problems with rel. objective error <= 1e-4 and max violation (relative to

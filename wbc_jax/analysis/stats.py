@@ -1,7 +1,7 @@
 """Statistics of a factorial campaign: design, descriptives, ANOVA, assumptions, EMMs.
 
 Pure functions on pandas DataFrames that return DataFrames and dicts: no files, no plots
-(``wbc_jax.report`` does those). scipy and statsmodels are imported where used, so that
+(``wbc_jax.analysis.report`` does those). scipy and statsmodels are imported where used, so that
 checking a table (and the CLI's error path) stays fast. The input is a tidy results table, one row per run:
 factor columns (``m``, ``mu``, ``d`` in the transport campaign; any others by name), a
 boolean ``success`` and numeric metric columns (``R``, ``T``, ``S``, ...).

@@ -38,7 +38,7 @@ SCENES = {"flat": "scene_flat.xml", "transport": "scene_transport.xml"}
 def mjcf_dir() -> Path:
     """Folder holding the MJCF files (``$WBC_JAX_MJCF`` overrides the repository's ``mjcf/``)."""
     env = os.environ.get("WBC_JAX_MJCF")
-    return Path(env) if env else Path(__file__).resolve().parent.parent / "mjcf"
+    return Path(env) if env else Path(__file__).resolve().parents[2] / "mjcf"
 
 
 def scene_path(scene: str | os.PathLike) -> Path:

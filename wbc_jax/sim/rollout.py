@@ -1,12 +1,12 @@
 """Batched closed-loop rollout: MJX physics + transport WBC, lax.scan over time, vmap over runs.
 
 One control step (period ``Sim.dt_control`` = ``Sim.n_substeps`` physics steps of ``Sim.dt_physics``):
-:func:`wbc_jax.physics.sense` (kinematics, M, bias) -> planner reference -> QP build -> ADMM (warm-started) ->
-torques -> :func:`physics_period`: :func:`wbc_jax.physics.finish` (rest of the forward pass + integration), then
+:func:`wbc_jax.sim.physics.sense` (kinematics, M, bias) -> planner reference -> QP build -> ADMM (warm-started) ->
+torques -> :func:`physics_period`: :func:`wbc_jax.sim.physics.finish` (rest of the forward pass + integration), then
 ``n_substeps - 1`` further ``mjx.step`` calls with the torques (and any push force) held, as a ``lax.scan``.
 
 Monitors run at two rates. *Physics rate* (after every physics step, :func:`substep_monitors`): the paper's
-integrands 1/H and ||object acceleration|| (``wbc_jax.metrics``, dt = the physics step), non-foot/floor and wall
+integrands 1/H and ||object acceleration|| (``wbc_jax.sim.metrics``, dt = the physics step), non-foot/floor and wall
 contact, object off the tray; so a contact or an acceleration spike inside a control period is not missed and
 the integrals do not depend on the control period. *Control rate* (from the sensed state, once per control
 step): trunk height, slip and lift on the tray, tracking error, torque ratios, QP residuals and flags, and the
@@ -24,11 +24,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax import aot, metrics, physics
+from wbc_jax.sim import aot, metrics, physics
 from wbc_jax.control.dynamics import dyn_terms
 from wbc_jax.control.transport import (ControlState, ObjectModel, TransportConfig, TransportGains,
                                        init_control_state, transport_control)
-from wbc_jax.model import Robot, mjx
+from wbc_jax.sim.model import Robot, mjx
 from wbc_jax.planner.transport import TransportPlan, reference
 
 
@@ -82,7 +82,7 @@ class Accum(NamedTuple):
     nonfinite: jax.Array  # bool (physics rate)
     off_steps: jax.Array  # int32, consecutive physics steps (up to now) with the object touching nothing on the tray
     max_off_s: jax.Array  # [s] longest such spell (physics steps x dt_physics)
-    sum_invH: jax.Array  # integral of 1/H (the paper's robustness integrand, wbc_jax.metrics) [rad^2 s] (physics rate)
+    sum_invH: jax.Array  # integral of 1/H (the paper's robustness integrand, wbc_jax.sim.metrics) [rad^2 s] (physics rate)
     sum_acc: jax.Array  # integral of ||object CoM linear acceleration|| [m/s] (physics rate)
     n_boundary: jax.Array  # int32, physics steps with 1/H = 0 (a contact unloaded or on/outside its cone)
     first_contact_t: jax.Array  # [s] start of the physics step whose contacts first had a non-foot robot part
@@ -148,7 +148,7 @@ class Sim:
 def contact_slots(robot: Robot):
     """Indices of MJX contact slots: non-foot parts vs floor or terrain, anything vs a wall, (4, K) each
     foot vs floor and terrain, and the object's contact spheres vs the tray; then the (k, 2) geom ids of the
-    non-foot slots (MJX's layout, computed once per model and kept on disk: :func:`wbc_jax.aot.cached_value`)."""
+    non-foot slots (MJX's layout, computed once per model and kept on disk: :func:`wbc_jax.sim.aot.cached_value`)."""
     return aot.cached_value("slots", aot.describe(robot), lambda: _contact_slots(robot))
 
 
@@ -233,7 +233,7 @@ def controller_inputs(sim: Sim, m, rs: RunState, plan: TransportPlan, push: Push
 
 class SubstepMonitors(NamedTuple):
     """Physics-rate monitor values of one physics step of one run (each a scalar), from the data before and after
-    the step. Contacts and constraint forces are those of the step's start (``wbc_jax.physics`` docstring)."""
+    the step. Contacts and constraint forces are those of the step's start (``wbc_jax.sim.physics`` docstring)."""
 
     inv_h: jax.Array  # 1/H of the simulator's forces on the object's contact slots [rad^2]; 0 if not finite
     acc: jax.Array  # ||object CoM linear acceleration|| over the step, (v_after - v_before) / dt_physics [m/s^2]
@@ -297,12 +297,12 @@ def _fold(sim: Sim, a: Accum, s: SubstepMonitors) -> Accum:
 def physics_period(sim: Sim, m, om: ObjectModel, d, tau, acc: Accum):
     """The physics of one control period with its physics-rate monitors.
 
-    :func:`wbc_jax.physics.finish` on the sensed ``d``, then ``sim.n_substeps - 1`` :func:`physics_substep`
+    :func:`wbc_jax.sim.physics.finish` on the sensed ``d``, then ``sim.n_substeps - 1`` :func:`physics_substep`
     calls in a ``lax.scan`` (torques and ``d.xfrc_applied`` held); :func:`substep_monitors` of every step folded
     into ``acc``.
 
     Args:
-        d: sensed mjx.Data (``wbc_jax.physics.sense``) with the period's ``xfrc_applied``; tau: (nu,) [N m];
+        d: sensed mjx.Data (``wbc_jax.sim.physics.sense``) with the period's ``xfrc_applied``; tau: (nu,) [N m];
         acc: the run's Accum before the period.
 
     Returns:
@@ -359,7 +359,7 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
 
 
 def final_results(sim: Sim, state: RunState, p_goal, mu, n: int | None = None) -> dict[str, np.ndarray]:
-    """:func:`wbc_jax.metrics.finalize` of a batch's final state.
+    """:func:`wbc_jax.sim.metrics.finalize` of a batch's final state.
 
     Args:
         state: batched RunState at the end of the runs; p_goal: (B, 3) the object's goal position [m] (the

@@ -168,11 +168,11 @@ def run_trace(batch: int = 270, steps: int = 50, scene: str = "transport", qp: s
               substeps: int = 1, json_path: str | None = None) -> dict:
     """Trace ``steps`` control steps of the transport rollout at ``batch`` runs (random factor cells) and of
     physics only (``mjx.step``) on the same batch; print and return both summaries."""
-    from wbc_jax.bench_rollout import physics_only_fn, random_batch, wbc_chunk_fn
+    from wbc_jax.bench.rollout import physics_only_fn, random_batch, wbc_chunk_fn
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
-    from wbc_jax.model import Robot
-    from wbc_jax.qp_audit import variants
-    from wbc_jax.rollout import make_sim
+    from wbc_jax.sim.model import Robot
+    from wbc_jax.bench.qp_audit import variants
+    from wbc_jax.sim.rollout import make_sim
 
     # The persistent cache's key leaves out op metadata: an executable cached from an edit with other scopes would
     # carry stale scope names. Compile afresh.

@@ -1,6 +1,6 @@
 """The ANOVA report of a results table (``wbc-jax report RESULTS.csv --out DIR``).
 
-Reads the CSV, checks it, runs :func:`wbc_jax.stats.analyze`, and writes into DIR:
+Reads the CSV, checks it, runs :func:`wbc_jax.analysis.stats.analyze`, and writes into DIR:
 
 - ``report.md``: warnings first, design, summary of significant terms, per metric the ANOVA
   table, assumption tests, simple main effects and descriptives, cell means, figures, method.
@@ -27,7 +27,6 @@ import html
 import io
 import json
 import math
-import os
 import platform
 import re
 import time
@@ -36,11 +35,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from wbc_jax import stats
+from wbc_jax.analysis import stats
 from wbc_jax.io_utils import atomic_dir
 from wbc_jax.errors import InputError, WbcJaxError
 
-SCHEMA = "wbc_jax.report/1"
+SCHEMA = "wbc_jax.analysis.report/1"
 
 
 def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: list[str] | None = None,
@@ -52,7 +51,7 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
         out_dir: output directory; replaced as a whole on success, untouched on error.
         alpha: significance level (0 < alpha < 1).
         factors: factor columns (default: those of m, mu, d present).
-        metrics: metric columns (default: see :mod:`wbc_jax.stats`).
+        metrics: metric columns (default: see :mod:`wbc_jax.analysis.stats`).
         figures: render the PNG figures (tests switch them off for speed).
         ss_type: sums-of-squares type, 1, 2 or 3.
         order: highest interaction order of the model (2: main effects + two-way).
@@ -75,7 +74,7 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
 
     images = {}
     if figures:
-        from wbc_jax import figures as fg
+        from wbc_jax.analysis import figures as fg
 
         images["means.png"] = fg.means_grid(res["level_means"], factors, metrics)
         fits = {m: r["fit"] for m, r in res["metrics"].items()}

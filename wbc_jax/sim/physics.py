@@ -6,7 +6,7 @@ Jacobians and contacts from its output; :func:`finish` completes that same forwa
 controller's torques and integrates: one physics step. A control period of ``n_substeps`` physics steps
 (zero-order hold: ``ctrl`` and ``xfrc_applied`` stay as set) is :func:`finish` followed by
 ``n_substeps - 1`` plain ``mjx.step`` calls in a ``lax.scan`` (:func:`advance`; the rollout runs its own scan
-that also samples its physics-rate monitors after every step, ``wbc_jax.rollout.physics_period``).
+that also samples its physics-rate monitors after every step, ``wbc_jax.sim.rollout.physics_period``).
 
 After any of these steps, ``d.contact`` (and ``efc_force``) belong to the positions at the *start* of that
 step (collision runs before integration): after :func:`finish` they are the sensed ``d``'s contacts.
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import jax
 
-from wbc_jax.model import mjx
+from wbc_jax.sim.model import mjx
 
 
 def sense(m, d):

@@ -39,7 +39,7 @@ def means_grid(level_means: pd.DataFrame, factors: Sequence[str], metrics: Seque
     """Mean +- SD of each metric (rows) against each factor's levels (columns); the paper's Fig. 3.
 
     Args:
-        level_means: :func:`wbc_jax.stats.level_means` output.
+        level_means: :func:`wbc_jax.analysis.stats.level_means` output.
     """
     fig, ax = _axes(len(metrics), len(factors))
     for i, m in enumerate(metrics):
@@ -62,7 +62,7 @@ def interaction_grid(emms: dict[str, dict[str, pd.DataFrame]], metrics: Sequence
     """EMM +- 95 % CI interaction plots: rows metrics, columns two-way interactions; the paper's Fig. 4.
 
     Args:
-        emms: metric -> {"A:B": :func:`wbc_jax.stats.emmeans` table over (A, B)}.
+        emms: metric -> {"A:B": :func:`wbc_jax.analysis.stats.emmeans` table over (A, B)}.
         unreliable: metrics whose F tests are unreliable (marked in the panel titles).
 
     Returns:

@@ -17,16 +17,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax import metrics
-from wbc_jax.batch import broadcast, prepare_batch
+from wbc_jax.sim import metrics
+from wbc_jax.sim.batch import broadcast, prepare_batch
 from wbc_jax.control.transport import TransportConfig, control_qp_settings, default_gains
 from wbc_jax.io_utils import atomic_dir
-from wbc_jax.model import Robot
+from wbc_jax.sim.model import Robot
 from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.planner.transport import plan_duration
-from wbc_jax.rollout import make_push, make_sim, simulate
-from wbc_jax.scenario import single_run_mj_model
-from wbc_jax.video import render_gif
+from wbc_jax.sim.rollout import make_push, make_sim, simulate
+from wbc_jax.sim.scenario import single_run_mj_model
+from wbc_jax.analysis.video import render_gif
 
 LEVELS = dict(m=(0.2, 0.3, 0.4), mu=(0.4, 0.7, 1.0), d=(0.06, 0.08, 0.10))
 DEFAULT = dict(m=0.3, mu=0.7, d=0.08)

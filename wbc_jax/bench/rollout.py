@@ -14,11 +14,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.batch import prepare_batch
+from wbc_jax.sim.batch import prepare_batch
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
-from wbc_jax.model import Robot, mjx
-from wbc_jax.rollout import make_chunk_fn, make_sim
-from wbc_jax.sharding import shard_batch
+from wbc_jax.sim.model import Robot, mjx
+from wbc_jax.sim.rollout import make_chunk_fn, make_sim
+from wbc_jax.sim.sharding import shard_batch
 
 
 def _timed(f, *args):
@@ -64,7 +64,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
     ``substeps`` physics steps (zero-order hold), so ``steps`` control steps are ``steps * substeps`` env-steps.
 
     Args:
-        qp: control-loop ADMM variant name (``wbc_jax.qp_audit.variants``, e.g. ``"it20_a0"``); None: ``iters``
+        qp: control-loop ADMM variant name (``wbc_jax.bench.qp_audit.variants``, e.g. ``"it20_a0"``); None: ``iters``
             iterations with the control loop's default settings.
         campaign: a campaign spec (e.g. ``sweeps/paper_campaign.toml``) also run end to end, twice, in fresh
             processes sharing a new compilation cache (:func:`campaign_cold_warm`): wall time, compile and setup
@@ -75,10 +75,10 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         to ``json_path``.
     """
     if campaign is not None:
-        from wbc_jax.spec import load_spec
+        from wbc_jax.study.spec import load_spec
 
         load_spec(campaign)  # a bad spec fails here (file, key, range), before any timing
-    from wbc_jax.qp_audit import variants
+    from wbc_jax.bench.qp_audit import variants
 
     robot = Robot(scene)
     qs = variants([qp])[qp] if qp else control_qp_settings(iters)
@@ -125,13 +125,13 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
 
 def campaign_cold_warm(spec: str) -> dict:
     """Run ``wbc-jax campaign --spec SPEC --no-report`` twice, each in a fresh process, with a new (empty)
-    compilation cache shared by both: the first run compiles everything, the second loads it (``wbc_jax.aot`` and
+    compilation cache shared by both: the first run compiles everything, the second loads it (``wbc_jax.sim.aot`` and
     the persistent cache). Prints and returns, per run, the manifest's wall time, import / setup / compile estimate
     [s], rollout env-steps/s and successes."""
     import tempfile
     from pathlib import Path
 
-    from wbc_jax.campaign import run_in_fresh_process
+    from wbc_jax.study.campaign import run_in_fresh_process
 
     keys = ("wall_s_total", "wall_s_rollout", "import_s", "setup_s", "compile_s_estimate", "env_steps_per_s",
             "n_success", "n_runs")
@@ -171,7 +171,7 @@ def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: st
                  wbc_n_pallas_norefactor=base._replace(linsolve="inv", kernel="pallas", adapt_every=0),
                  wbc_n_unroll=base._replace(unroll=True),
                  wbc_n_unroll_norefactor=base._replace(unroll=True, adapt_every=0))
-    from wbc_jax.qp_audit import variants as named
+    from wbc_jax.bench.qp_audit import variants as named
 
     variants = [(k, known[k] if k in known else named([k])[k]) for k in (variants or PROFILE_VARIANTS)]
     out = dict(device=device, scene=robot.path.name, batch=batch, steps=steps, iters=iters)
@@ -213,12 +213,12 @@ def run_components(batch: int = 256, iters: int = 50, scene: str = "transport", 
     """Latency of each stage of one control step, each stage its own jit(vmap) call on a state ``warm_steps`` into
     the run (median of ``reps`` calls; includes one dispatch per call, so the stages sum to more than the fused step).
     """
-    from wbc_jax import metrics, physics
+    from wbc_jax.sim import metrics, physics
     from wbc_jax.control.dynamics import dyn_terms
     from wbc_jax.control.transport import assemble
     from wbc_jax.planner.transport import reference
     from wbc_jax.qp import solve_qp
-    from wbc_jax.rollout import CONTACT_DIST, control_step
+    from wbc_jax.sim.rollout import CONTACT_DIST, control_step
 
     robot = Robot(scene)
     ids = robot.ids

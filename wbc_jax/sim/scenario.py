@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 
 from wbc_jax.errors import FactorError
-from wbc_jax.model import RobotIds
+from wbc_jax.sim.model import RobotIds
 
 MU_RANGE = (0.0, 5.0)  # exclusive lower bound, inclusive upper [-]
 M_RANGE = (0.0, 20.0)  # object mass [kg]

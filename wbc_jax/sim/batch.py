@@ -13,11 +13,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax import aot, scenario
+from wbc_jax.sim import aot, scenario
 from wbc_jax.control.transport import ObjectModel, TransportGains, default_gains
 from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.planner.transport import TransportPlan, course_plan, straight_plan
-from wbc_jax.rollout import Push, RunState, Sim, init_state, no_push
+from wbc_jax.sim.rollout import Push, RunState, Sim, init_state, no_push
 
 
 class Batch(NamedTuple):

@@ -2,7 +2,7 @@
 
 One run on the current device (``jax.devices()[0]``), in the device's default dtype
 (float32 unless x64 is enabled), on WBC-sized problems from
-:mod:`wbc_jax.qp.problems` (n = 68, 24 equality + 70 inequality rows; half generic,
+:mod:`wbc_jax.bench.qp_problems` (n = 68, 24 equality + 70 inequality rows; half generic,
 half with WBC structure and scales):
 
 * batched QPs per second at batch 1, 1024, 4096, 16384 (quick: 1, 64, 256), default
@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.qp import problems as pr
+from wbc_jax.bench import qp_problems as pr
 from wbc_jax.qp.admm import QPSettings, solve_qp
 
 SEED = 7

@@ -2,9 +2,9 @@
 
 One batched rollout (``lax.scan`` over control steps, ``vmap`` over runs): the runs share the robot and
 the capture-point walking pattern and differ in the controller's model mass error (Fig. 12); the run
-with error 0 is the nominal one of Figs. 6-11. Each control step: :func:`wbc_jax.physics.sense` ->
+with error 0 is the nominal one of Figs. 6-11. Each control step: :func:`wbc_jax.sim.physics.sense` ->
 walking pattern (:func:`wbc_jax.planner.capture_point.cp_walk_reference`) -> centroidal WBC
-(:func:`wbc_jax.control.centroidal.centroidal_control`) -> :func:`wbc_jax.physics.advance`.
+(:func:`wbc_jax.control.centroidal.centroidal_control`) -> :func:`wbc_jax.sim.physics.advance`.
 
 Writes into DIR (atomically): ``summary.json`` (per run: mean forward speed, roll/pitch/yaw oscillation
 amplitudes, max |torque| per joint against its limit, CP tracking error; plus the acceptance checks of
@@ -25,16 +25,16 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from wbc_jax import physics
+from wbc_jax.sim import physics
 from wbc_jax.control.centroidal import (CentroidalConfig, CentroidalGains, CentroidalRef, CentroidalState,
                                         centroidal_control, centroidal_qp_settings, default_gains, init_state)
 from wbc_jax.control.dynamics import dyn_terms
 from wbc_jax.errors import WbcJaxError
 from wbc_jax.io_utils import atomic_dir
-from wbc_jax.model import Robot, mjx
+from wbc_jax.sim.model import Robot, mjx
 from wbc_jax.planner.capture_point import CPWalkPlan, cp_walk_plan, cp_walk_reference
 from wbc_jax.planner.gait import GaitParams
-from wbc_jax.rollout import contact_slots
+from wbc_jax.sim.rollout import contact_slots
 
 MASS_ERRORS = (-0.2, -0.1, 0.0, 0.1, 0.2)  # controller model mass error levels (Fig. 12)
 FALL_Z = 0.3  # [m] trunk height below which a run counts as fallen

@@ -14,7 +14,7 @@ A spec has three tables (every key optional except ``factors``; defaults below):
     qp_iters = 20              # ADMM iterations per control step, 1..1000
     control_substeps = 1       # physics steps per control step (zero-order hold), 1..10; 1 = control at the
                                # physics rate (the control period is this x the scene's timestep; the metrics'
-                               # physics-rate monitors still run every physics step, see wbc_jax.rollout)
+                               # physics-rate monitors still run every physics step, see wbc_jax.sim.rollout)
     chunk_seconds = 2.0        # simulated seconds per jit call / checkpoint, 0.02..60
 
     [factors]                  # levels of the 3 x 3 x 3 design (at least 2 levels each)
@@ -31,7 +31,7 @@ A spec has three tables (every key optional except ``factors``; defaults below):
     push_window = [0.2, 0.7]   # push start: uniform in this fraction of the planned duration, 0 <= a <= b < 1
     qvel_noise_std = 0.01      # noise on the state the controller sees: white Gaussian std added every control step
                                # to each generalized velocity it reads [m/s, rad/s], 0..1 (the physics stays exact;
-                               # drawn from the run's seed, see wbc_jax.rollout.Push)
+                               # drawn from the run's seed, see wbc_jax.sim.rollout.Push)
 
 Run i (cells in the order m, mu, d of the product of the levels, then reps) has seed
 ``SeedSequence([seed, i]).generate_state(1)[0]``; its perturbations are drawn from
@@ -52,7 +52,7 @@ import numpy as np
 
 from wbc_jax.errors import SpecError
 
-SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
+SWEEPS = Path(__file__).resolve().parents[2] / "sweeps"
 
 # key: (type, default, lo, hi, lo_open, unit/description)
 _CAMPAIGN = {

@@ -1,13 +1,13 @@
 """``wbc-jax bench qp-rollout``: the control loop's ADMM settings audited on QPs from real rollouts.
 
-The QP benchmark (:mod:`wbc_jax.qp.bench`) uses synthetic problems; the control loop's settings (iteration
+The QP benchmark (:mod:`wbc_jax.bench.qp`) uses synthetic problems; the control loop's settings (iteration
 count, rho adaptation) are chosen here instead, on the QPs the transport controller actually builds. For each
 variant of :class:`~wbc_jax.qp.QPSettings`:
 
 1. a closed-loop rollout of the flat-ground walk (batch of factor cells) runs **with that variant** in the
    control loop, so each sampled QP carries the warm start the variant itself produced;
 2. every ``sample_every_s`` simulated seconds the QP of the next control step is rebuilt from the state
-   (same code path as :func:`wbc_jax.rollout.control_step`: sense, controller view, dynamics terms, reference,
+   (same code path as :func:`wbc_jax.sim.rollout.control_step`: sense, controller view, dynamics terms, reference,
    observer and assembly) and solved once more by the variant from its warm start;
 3. each sampled QP is solved by OSQP at eps 1e-9 (polished) in float64, the reference.
 
@@ -25,13 +25,13 @@ import time
 import jax
 import numpy as np
 
-from wbc_jax.batch import prepare_batch
+from wbc_jax.sim.batch import prepare_batch
 from wbc_jax.control.transport import TransportConfig, assemble, control_qp_settings
-from wbc_jax.model import Robot
-from wbc_jax.qp import problems as pr
+from wbc_jax.sim.model import Robot
+from wbc_jax.bench import qp_problems as pr
 from wbc_jax.qp import solve_qp
-from wbc_jax.qp.bench import REF_EPS, osqp_solve
-from wbc_jax.rollout import controller_inputs, make_sim, simulate
+from wbc_jax.bench.qp import REF_EPS, osqp_solve
+from wbc_jax.sim.rollout import controller_inputs, make_sim, simulate
 
 CELLS = ((0.2, 0.4, 0.06), (0.4, 1.0, 0.10), (0.3, 0.7, 0.08), (0.4, 0.4, 0.10))
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from wbc_jax.errors import SpecError
-from wbc_jax.spec import _err, _number
+from wbc_jax.study.spec import _err, _number
 
 GAIN_MAX = 1e9  # largest accepted value of any leaf (a typo guard, far above any sensible gain)
 

@@ -1,9 +1,9 @@
 """``wbc-jax campaign``: a spec's whole factorial design (cells x repetitions) as one batched rollout.
 
-spec (``wbc_jax.spec``) -> design table with per-run seeds and perturbations -> one :class:`wbc_jax.batch.Batch`
+spec (``wbc_jax.study.spec``) -> design table with per-run seeds and perturbations -> one :class:`wbc_jax.sim.batch.Batch`
 (all runs) -> chunked, jitted, vmapped rollout (``chunk_seconds`` of simulated time per call; the state is
-checkpointed after every chunk) -> per-run metrics and flags (``wbc_jax.metrics``) -> ``results.csv``,
-the ANOVA report (``wbc_jax.report``) in ``report/`` and ``manifest.json``, all in DIR, written atomically.
+checkpointed after every chunk) -> per-run metrics and flags (``wbc_jax.sim.metrics``) -> ``results.csv``,
+the ANOVA report (``wbc_jax.analysis.report``) in ``report/`` and ``manifest.json``, all in DIR, written atomically.
 
 Checkpoint: ``.<DIR name>.campaign-ckpt/`` next to DIR holds the state after the last finished chunk
 (``state_K.npz``: every leaf of the batched RunState after chunk K) and ``meta.json`` (spec hash, chunks done, wall time so
@@ -29,10 +29,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax import aot
+from wbc_jax.sim import aot
 from wbc_jax.errors import SpecError, WbcJaxError
 from wbc_jax.io_utils import atomic_dir, write_json_atomic
-from wbc_jax.spec import Design, Spec, default_spec_path, design, load_spec
+from wbc_jax.study.spec import Design, Spec, default_spec_path, design, load_spec
 
 LOG_EVERY = 20  # control steps per logged sample (the rollout's outer scan)
 PACKAGES = ("wbc_jax", "jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy", "scipy", "statsmodels", "pandas")
@@ -47,8 +47,8 @@ def has_accelerator() -> bool:
 def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1):
     """The (cached) Sim of a scene: ``iters`` ADMM iterations, control period ``substeps`` x the scene's timestep."""
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
-    from wbc_jax.model import Robot
-    from wbc_jax.rollout import make_sim
+    from wbc_jax.sim.model import Robot
+    from wbc_jax.sim.rollout import make_sim
 
     key = (scene, iters, sensor_noise, substeps)
     if key not in _SIMS:
@@ -59,10 +59,10 @@ def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1):
 
 
 def _chunk_fn(sim, in_axes, n_logs: int):
-    from wbc_jax.rollout import make_chunk_fn
+    from wbc_jax.sim.rollout import make_chunk_fn
 
     key = (id(sim), n_logs)
-    if key not in _FNS:  # jit, with the lowered program kept on disk for the next process (wbc_jax.aot)
+    if key not in _FNS:  # jit, with the lowered program kept on disk for the next process (wbc_jax.sim.aot)
         _FNS[key] = aot.cached_jit("chunk", jax.vmap(make_chunk_fn(sim, n_logs), in_axes=(in_axes, 0, 0, 0, 0, 0, 0)),
                                    aot.describe(sim, in_axes, n_logs))
     return _FNS[key]
@@ -95,9 +95,9 @@ def initial_configuration(robot, dz: Design):
 def build(spec: Spec, gains=None):
     """Spec -> (sim, design, Batch with perturbed initial states and pushes, simulated seconds, chunk plan).
     ``gains``: controller gains (TransportGains, unbatched) instead of the defaults."""
-    from wbc_jax.batch import prepare_batch
+    from wbc_jax.sim.batch import prepare_batch
     from wbc_jax.planner.transport import plan_duration
-    from wbc_jax.rollout import make_push
+    from wbc_jax.sim.rollout import make_push
 
     c = spec.campaign
     sim = _sim(c["scene"], c["qp_iters"], spec.perturbations["qvel_noise_std"] > 0, c["control_substeps"])
@@ -205,7 +205,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     """Run a campaign and write DIR (see module docstring). Returns the manifest.
 
     Args:
-        spec_path: TOML spec; None: :func:`wbc_jax.spec.default_spec_path` for this machine.
+        spec_path: TOML spec; None: :func:`wbc_jax.study.spec.default_spec_path` for this machine.
         out: output directory (replaced atomically on success).
         resume: continue from the checkpoint next to DIR if there is one.
         report: also write the ANOVA report (``report/``).
@@ -213,8 +213,8 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         _interrupt_after: testing hook: raise KeyboardInterrupt after this many chunks (checkpoint kept).
     """
     t_import = time.perf_counter()
-    import wbc_jax.batch  # noqa: F401  (MJX, the controllers, the planner: timed apart from setup)
-    import wbc_jax.rollout  # noqa: F401
+    import wbc_jax.sim.batch  # noqa: F401  (MJX, the controllers, the planner: timed apart from setup)
+    import wbc_jax.sim.rollout  # noqa: F401,I001
 
     t_start = time.perf_counter()
     spec = load_spec(spec_path if spec_path is not None else default_spec_path(has_accelerator()))
@@ -276,7 +276,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         bar.close()
     wall_sim = wall_before + time.perf_counter() - t_run
 
-    from wbc_jax.rollout import final_results
+    from wbc_jax.sim.rollout import final_results
 
     res = final_results(sim, state, p_goal, dz.mu)
     df = results_table(spec, dz, res)
@@ -318,7 +318,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     with atomic_dir(out_p) as tmp:
         df.to_csv(tmp / "results.csv", index=False)
         if report:
-            from wbc_jax.report import run_report
+            from wbc_jax.analysis.report import run_report
 
             try:
                 run_report(str(tmp / "results.csv"), str(tmp / "report"), metrics=["R", "T", "S"])
@@ -338,19 +338,6 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     return manifest
 
 
-# ---------------------------------------------------------------- CI regression of metric means
-
-REGRESS_METRICS = ("R", "T", "S", "max_slip_mm")
-DEFAULT_TOL = {"R": (0.02, 1e-3), "T": (0.05, 2e-5), "S": (0.05, 1e-3), "max_slip_mm": (0.10, 0.05)}  # (rel, abs)
-# Rounding probes of `regress --update` on the CPU: the baseline spec rerun with XLA's CPU code generation capped at
-# these instruction sets. Another machine's CPU (vector width, FMA contraction) rounds float32 differently; in short
-# runs with sliding contacts that moves some cell means by more than the tolerance (measured 2026-11-23: S -12 %,
-# R +8 % in the mu = 0.4 cells on an AVX-512 machine against a baseline stored on another machine), while T and the
-# high-friction cells stay within it. The probes' spread is stored per cell and metric and widens that cell's band.
-ROUNDING_PROBE_ISAS = ("SSE4_2", "AVX", "AVX2")
-NOISE_FACTOR = 2.0  # band = rel |baseline| + abs + NOISE_FACTOR x the probes' largest deviation from their mean
-
-
 def run_in_fresh_process(spec_path, out: Path, **env) -> Path:
     """``wbc-jax campaign --spec SPEC --out OUT --no-report`` in a new Python process (environment variables
     ``env`` set on top of this one's); returns OUT. A failed run raises WbcJaxError with the end of its stderr."""
@@ -360,133 +347,3 @@ def run_in_fresh_process(spec_path, out: Path, **env) -> Path:
         extra = " ".join(f"{k}={v}" for k, v in env.items())
         raise WbcJaxError(f"campaign {spec_path} ({extra}) failed: {r.stderr.strip()[-800:]}")
     return Path(out)
-
-
-def _rounding_probes(spec_p: Path) -> list[list[dict]]:
-    """Cell means of the spec rerun in fresh processes with XLA's CPU codegen capped at each ROUNDING_PROBE_ISAS
-    entry (one compile each, no persistent cache). A probe that fails is an error: the noise floor would be unknown."""
-    import pandas as pd
-
-    out = []
-    for isa in ROUNDING_PROBE_ISAS:
-        with tempfile.TemporaryDirectory() as td:
-            print(f"rounding probe: {spec_p} with --xla_cpu_max_isa={isa}", flush=True)
-            run = run_in_fresh_process(spec_p, Path(td) / "run", JAX_PLATFORMS="cpu", WBC_JAX_CACHE="off",
-                                       XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + f" --xla_cpu_max_isa={isa}").strip())
-            out.append(cell_means(pd.read_csv(run / "results.csv")))
-    return out
-
-
-def _with_noise(cells: list[dict], probes: list[list[dict]]) -> list[dict]:
-    """``cells`` with each metric replaced by its mean over this run and the probes, and ``noise``: per metric the
-    largest |run - mean| (None where a metric is undefined in some run). Success counts stay this run's."""
-    runs = [cells] + probes
-    out = []
-    for i, c in enumerate(cells):
-        c = dict(c)
-        noise = {}
-        for k in REGRESS_METRICS:
-            vals = [r[i][k] for r in runs]
-            if any(v is None for v in vals):
-                noise[k] = None
-                continue
-            mean = float(np.mean(vals))
-            c[k] = mean
-            noise[k] = float(np.max(np.abs(np.asarray(vals) - mean)))
-        c["noise"] = noise
-        out.append(c)
-    return out
-
-
-
-def cell_means(df) -> list[dict]:
-    """Per-cell means of the regression metrics over successful runs, and success counts."""
-    rows = []
-    for (m, mu, d), g in df.groupby(["m", "mu", "d"]):
-        ok = g[g.success.astype(bool)]
-        rows.append(dict(m=float(m), mu=float(mu), d=float(d), runs=int(len(g)), n_success=int(len(ok)),
-                         **{k: (float(ok[k].mean()) if len(ok) else None) for k in REGRESS_METRICS}))
-    return rows
-
-
-def compare(baseline: dict, cells: list[dict]) -> list[dict]:
-    """Rows that moved: a metric mean outside |new - old| <= rel |old| + abs + NOISE_FACTOR x noise (the cell's
-    rounding noise, ``old["noise"][metric]``, 0 where the baseline has none), a success count change or a
-    missing cell."""
-    tol = baseline["tolerance"]
-    new = {(c["m"], c["mu"], c["d"]): c for c in cells}
-    moved = []
-    for old in baseline["cells"]:
-        noise = old.get("noise") or {}
-        key = (old["m"], old["mu"], old["d"])
-        c = new.get(key)
-        if c is None:
-            moved.append(dict(cell=key, metric="(cell)", baseline="present", now="missing", band=""))
-            continue
-        if c["n_success"] != old["n_success"]:
-            moved.append(dict(cell=key, metric="n_success", baseline=old["n_success"], now=c["n_success"], band="exact"))
-        for k in REGRESS_METRICS:
-            a, b = old.get(k), c.get(k)
-            rel, ab = tol[k]["rel"], tol[k]["abs"]
-            if a is None or b is None:
-                if (a is None) != (b is None):
-                    moved.append(dict(cell=key, metric=k, baseline=a, now=b, band="defined"))
-                continue
-            band = rel * abs(a) + ab + NOISE_FACTOR * float(noise.get(k) or 0.0)
-            if not abs(b - a) <= band:
-                moved.append(dict(cell=key, metric=k, baseline=a, now=b, band=f"+-{band:.3g}"))
-    return moved
-
-
-def run_regress(baseline_dir: str, update: bool = False, gains=None, out: str | None = None) -> tuple[int, list]:
-    """Rerun the baseline's stored spec (``DIR/spec.toml``) and compare per-cell metric means with
-    ``DIR/baseline.json`` (means + tolerance band). Returns (exit code: 0 pass / 1 moved, moved rows).
-    ``update``: rewrite baseline.json (tolerances kept) and return 0; on the CPU the spec also runs once per
-    :data:`ROUNDING_PROBE_ISAS` entry in a subprocess (:func:`_rounding_probes`): the stored means are the mean
-    over all runs and each cell's ``noise`` the largest deviation from it."""
-    bdir = Path(baseline_dir)
-    spec_p = bdir / "spec.toml"
-    if not spec_p.exists():
-        raise SpecError(f"{bdir}: no spec.toml in the baseline directory")
-    base_p = bdir / "baseline.json"
-    baseline = None
-    if base_p.exists():
-        try:
-            baseline = json.loads(base_p.read_text())
-            baseline["tolerance"], baseline["cells"]  # noqa: B018
-        except (ValueError, KeyError, TypeError):
-            raise WbcJaxError(f"{base_p}: not a baseline file (expected keys tolerance, cells)") from None
-    elif not update:
-        raise WbcJaxError(f"{base_p}: missing; create it with wbc-jax regress --baseline {bdir} --update")
-    spec = load_spec(spec_p)
-    with tempfile.TemporaryDirectory() as td:
-        run_dir = Path(out) if out else Path(td) / "run"
-        run_campaign(str(spec_p), str(run_dir), report=False, progress=False, gains=gains)
-        import pandas as pd
-
-        cells = cell_means(pd.read_csv(run_dir / "results.csv"))
-    if update:
-        tol = baseline["tolerance"] if baseline else {k: dict(rel=r, abs=a) for k, (r, a) in DEFAULT_TOL.items()}
-        probes = _rounding_probes(spec_p) if jax.default_backend() == "cpu" else []
-        cells = _with_noise(cells, probes)
-        write_json_atomic(base_p, dict(spec_hash=spec.hash, tolerance=tol, cells=cells,
-                                       rounding_probes=["native"] + [f"xla_cpu_max_isa={i}" for i in
-                                                                     ROUNDING_PROBE_ISAS[:len(probes)]],
-                                       note="per-cell means over successful runs (mean over the rounding probes); "
-                                            "a metric moved when |now - baseline| > rel |baseline| + abs + "
-                                            f"{NOISE_FACTOR} x noise"))
-        print(f"baseline written to {base_p} ({len(cells)} cells)")
-        return 0, []
-    if baseline.get("spec_hash") != spec.hash:
-        raise WbcJaxError(f"{spec_p}: spec changed since the baseline was stored; rerun with --update")
-    moved = compare(baseline, cells)
-    if moved:
-        print(f"REGRESSION: {len(moved)} metric mean(s) left the tolerance band of {base_p}:")
-        print(f"{'m':>5} {'mu':>5} {'d':>5}  {'metric':<12} {'baseline':>12} {'now':>12}  band")
-        for r in moved:
-            fmt = lambda v: f"{v:12.6g}" if isinstance(v, float) else f"{v!s:>12}"  # noqa: E731
-            print(f"{r['cell'][0]:5.2f} {r['cell'][1]:5.2f} {r['cell'][2]:5.2f}  {r['metric']:<12} "
-                  f"{fmt(r['baseline'])} {fmt(r['now'])}  {r['band']}")
-        return 1, moved
-    print(f"regress: all {len(cells)} cells within the tolerance band of {base_p}")
-    return 0, []

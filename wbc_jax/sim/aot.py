@@ -1,6 +1,6 @@
 """Second runs without re-tracing: jitted functions exported once (``jax.export``) and reloaded from disk.
 
-The persistent compilation cache (:mod:`wbc_jax.jaxcfg`) skips XLA's compile on a second run, but JAX still
+The persistent compilation cache (:mod:`wbc_jax.sim.jaxcfg`) skips XLA's compile on a second run, but JAX still
 traces the Python function and lowers it to find the cache entry; for the MJX + WBC chunk function that is
 most of a warm start (seconds). :func:`cached_jit` stores the lowered program (StableHLO, serialized
 ``jax.export.Exported``) next to the compilation cache; a later process with the same key deserializes it and
@@ -28,7 +28,7 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
-from wbc_jax import jaxcfg
+from wbc_jax.sim import jaxcfg
 
 # custom-call targets without jax.export's compatibility guarantee that the exported programs may hold: Pallas'
 # Triton kernels on a GPU (wbc_jax.qp.fused)
@@ -44,7 +44,7 @@ def source_digest() -> str:
     global _SRC_DIGEST
     if _SRC_DIGEST is None:
         h = hashlib.sha256()
-        root = Path(__file__).resolve().parent
+        root = Path(__file__).resolve().parents[1]
         for p in sorted(root.rglob("*.py")):
             h.update(str(p.relative_to(root)).encode())
             h.update(p.read_bytes())
@@ -237,7 +237,7 @@ def _export(store: Path, name: str, key: str, fn: Callable, in_tree, leaves) -> 
         exp = jax.export.export(jax.jit(flat), disabled_checks=[
             jax.export.DisabledSafetyCheck.custom_call(t) for t in _UNGUARANTEED_CALLS])(*specs)
     except Exception as e:  # a program export cannot hold: plain jit (only warm starts are lost)
-        warnings.warn(f"wbc_jax.aot: {name} not exported ({type(e).__name__}: {str(e)[:200]}); using plain jit")
+        warnings.warn(f"wbc_jax.sim.aot: {name} not exported ({type(e).__name__}: {str(e)[:200]}); using plain jit")
         return None
     try:
         store.mkdir(parents=True, exist_ok=True)

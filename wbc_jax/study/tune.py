@@ -26,7 +26,7 @@ Round 0 slot 0 is always the start, so the start is scored on the same footing a
     J = w_R mean(R / atan(mu)^2) + w_S mean(S / s_ref) - w_T mean(T) [mm]
 
 R / atan(mu)^2 is R as a fraction of its maximum (a cube at rest on a level tray: every contact force on
-its normal, see ``wbc_jax.metrics``), in [0, 1] for every friction level, so cells of low and high mu
+its normal, see ``wbc_jax.sim.metrics``), in [0, 1] for every friction level, so cells of low and high mu
 weigh alike. S has no natural maximum; S / s_ref (s_ref [s^2/m], default 3, about the default gains'
 S on the quick course) puts it on the same O(1) scale. Defaults: w_R = w_S = 1, w_T = 0.
 **Constraints**: success rate >= ``min_success`` (default 1: every run succeeds) and mean T <= ``t_max_mm``
@@ -38,7 +38,7 @@ feasible candidates.
 Outputs (DIR, written atomically): ``leaderboard.csv`` (one row per candidate evaluated: round, slot, kind,
 multipliers ``<leaf>_x`` and values ``<leaf>`` (first component) of the tuned leaves, R, R_norm, S, S_norm,
 T_mm, success_rate, objective, violation, feasible, rank, pareto), ``best_gains.toml`` (all leaves, for
-``wbc-jax campaign --gains``; :mod:`wbc_jax.gains_io`), ``best_runs.csv`` (per run metrics of the start and the
+``wbc-jax campaign --gains``; :mod:`wbc_jax.study.gains`), ``best_runs.csv`` (per run metrics of the start and the
 best candidate), ``objective_per_round.png``, ``pareto.png`` and ``manifest.json`` (versions, device, spec
 hash, seeds, wall time, candidates/s, compilations).
 
@@ -88,7 +88,7 @@ import numpy as np
 
 from wbc_jax.control.transport import TransportGains, default_gains
 from wbc_jax.errors import SpecError
-from wbc_jax.spec import SWEEPS, Spec, _err, _number, _table, load_spec, parse_spec
+from wbc_jax.study.spec import SWEEPS, Spec, _err, _number, _table, load_spec, parse_spec
 
 LEAVES = TransportGains._fields
 GROUPS = {"kp": tuple(f for f in LEAVES if f.startswith("kp_")), "kd": tuple(f for f in LEAVES if f.startswith("kd_"))}
@@ -97,7 +97,7 @@ MULT_MAX = 1e4  # largest multiplier of a default gain (start scale or range end
 GRID_MAX = 1_000_000  # largest grid (points ** tuned leaves)
 DEFAULT_SPEC = SWEEPS / "gain_tuning.toml"
 
-# key: (type, default, lo, hi, lo_open, unit/description), as in wbc_jax.spec
+# key: (type, default, lo, hi, lo_open, unit/description), as in wbc_jax.study.spec
 _TUNE = {
     "name": (str, "gain-tuning", None, None, False, "text"),
     "campaign": (str, "quick.toml", None, None, False, "campaign spec path, relative to this file"),
@@ -428,7 +428,7 @@ class Evaluator:
         import jax
         import jax.numpy as jnp
 
-        from wbc_jax import campaign
+        from wbc_jax.study import campaign
 
         sim, dz, b, _, logs_per_chunk, n_chunks = campaign.build(spec.campaign)
         if spec.cells is None:
@@ -446,8 +446,8 @@ class Evaluator:
                                 plan=_take(b.plan, idx), om=_take(b.om, idx), gains=_take(b.gains, idx),
                                 push=_take(b.push, idx), mu_ground=_take(b.mu_ground, idx))
         self.mesh = None
-        if jax.device_count() > 1:  # spread the runs over all devices (wbc_jax.sharding)
-            from wbc_jax.sharding import run_mesh, shard_batch
+        if jax.device_count() > 1:  # spread the runs over all devices (wbc_jax.sim.sharding)
+            from wbc_jax.sim.sharding import run_mesh, shard_batch
 
             self.mesh = run_mesh()
             self.batch, _ = shard_batch(self.batch, self.mesh)
@@ -464,7 +464,7 @@ class Evaluator:
 
         g = jax.tree_util.tree_map(lambda x: jnp.repeat(jnp.asarray(x), self.n, axis=0), gains)
         if self.mesh is not None:
-            from wbc_jax.sharding import shard_runs
+            from wbc_jax.sim.sharding import shard_runs
 
             g = shard_runs(g, self.mesh)
         return g
@@ -477,11 +477,11 @@ class Evaluator:
     def __call__(self, gains: TransportGains, bar=None) -> dict[str, np.ndarray]:
         """Roll out every candidate's runs from the initial state. gains: leading axis C.
 
-        Returns ``wbc_jax.metrics.finalize``'s per-run dict, every array reshaped to (C, n).
+        Returns ``wbc_jax.sim.metrics.finalize``'s per-run dict, every array reshaped to (C, n).
         """
         import jax
 
-        from wbc_jax.rollout import final_results
+        from wbc_jax.sim.rollout import final_results
 
         b, B = self.batch, self.B
         g = self.per_run(gains)
@@ -537,7 +537,7 @@ def pareto_mask(points: np.ndarray) -> np.ndarray:
 def _figures(df, best_idx: int) -> dict[str, bytes]:
     from matplotlib.figure import Figure
 
-    from wbc_jax.figures import _png
+    from wbc_jax.analysis.figures import _png
 
     out = {}
     fig = Figure(figsize=(6.4, 4.0), layout="constrained")
@@ -654,8 +654,8 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
     """
     import jax
 
-    from wbc_jax import campaign
-    from wbc_jax.gains_io import gains_toml
+    from wbc_jax.study import campaign
+    from wbc_jax.study.gains import gains_toml
     from wbc_jax.io_utils import atomic_dir, write_json_atomic
 
     t_start = time.perf_counter()

@@ -61,7 +61,7 @@ def shard_runs(tree, mesh: Mesh, in_axes=0):
 
 
 def shard_batch(b, mesh: Mesh | None = None):
-    """A :class:`wbc_jax.batch.Batch` with every per-run input padded and sharded over ``mesh`` (all
+    """A :class:`wbc_jax.sim.batch.Batch` with every per-run input padded and sharded over ``mesh`` (all
     devices by default). Returns (sharded Batch, number of real runs)."""
     mesh = mesh or run_mesh()
     n = int(jnp.shape(b.mu_ground)[0])

@@ -1,6 +1,6 @@
 """The transport paper's metrics (Sec. V-B), computed online inside the rollout, plus safety flags.
 
-Per physics step (inside the jitted scan, after every ``mjx.step`` of a control period, ``wbc_jax.rollout``;
+Per physics step (inside the jitted scan, after every ``mjx.step`` of a control period, ``wbc_jax.sim.rollout``;
 cheap: four contact forces and a few norms):
 
 * **Robustness** integrand 1/H(t), with

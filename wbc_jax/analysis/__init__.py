@@ -1,0 +1,1 @@
+"""Statistics (ANOVA, EMMs, assumption checks), the HTML report, figures and videos."""
