@@ -164,7 +164,8 @@ def test_sensor_noise_is_seeded_and_velocity_only(tiny_spec):
     import jax.numpy as jnp
 
     from wbc_jax.study import campaign as C
-    from wbc_jax.sim.rollout import controller_view
+    from wbc_jax.sim.physics import sense_with_view
+    from wbc_jax.sim.rollout import seen_qvel
 
     spec = load_spec(tiny_spec)
     sim, dz, b, *_ = C.build(spec)
@@ -172,7 +173,7 @@ def test_sensor_noise_is_seeded_and_velocity_only(tiny_spec):
     m0 = jax.tree_util.tree_map(lambda a, x: x if a is None else x[0], b.in_axes, b.model, is_leaf=lambda v: v is None)
     d0 = jax.tree_util.tree_map(lambda x: x[0], b.state.d)
     p0 = jax.tree_util.tree_map(lambda x: x[0], b.push)
-    view = jax.jit(lambda d, p, k: controller_view(sim, m0, d, p, k))
+    view = jax.jit(lambda d, p, k: sense_with_view(m0, d, seen_qvel(sim, d, p, k))[1])
     a, a2, c = view(d0, p0, 5), view(d0, p0, 5), view(d0, p0, 6)
     np.testing.assert_array_equal(a.qvel, a2.qvel)  # same seed and step: same draw
     assert not np.allclose(a.qvel, c.qvel)  # next step: a new draw

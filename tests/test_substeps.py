@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from wbc_jax import cli
-from wbc_jax.sim import metrics
+from wbc_jax.sim import contacts, metrics
 from wbc_jax.sim.batch import prepare_batch
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
 from wbc_jax.errors import SpecError, WbcJaxError
@@ -48,7 +48,7 @@ def _reference(sim, b):
     h = float(sim.robot.mj_model.opt.timestep)
     step = jax.jit(jax.vmap(mjx.step, in_axes=(b.in_axes, 0)))
     integrands = jax.jit(jax.vmap(
-        lambda m, d, d1, mu: metrics.step_integrands(m, d1, sim.obj_slots, mu, d.qvel[oa:oa + 3], d1.qvel[oa:oa + 3],
+        lambda m, d, d1, mu: metrics.step_integrands(contacts.object_contacts(sim, m, d1)[0], mu, d.qvel[oa:oa + 3], d1.qvel[oa:oa + 3],
                                                      h),
         in_axes=(b.in_axes, 0, 0, 0)))
 

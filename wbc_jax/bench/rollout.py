@@ -213,7 +213,7 @@ def run_components(batch: int = 256, iters: int = 50, scene: str = "transport", 
     """Latency of each stage of one control step, each stage its own jit(vmap) call on a state ``warm_steps`` into
     the run (median of ``reps`` calls; includes one dispatch per call, so the stages sum to more than the fused step).
     """
-    from wbc_jax.sim import metrics, physics
+    from wbc_jax.sim import contacts, metrics, physics
     from wbc_jax.control.dynamics import dyn_terms
     from wbc_jax.control.transport import assemble
     from wbc_jax.planner.transport import reference
@@ -235,7 +235,7 @@ def run_components(batch: int = 256, iters: int = 50, scene: str = "transport", 
     dyn = f_dyn(b.model, ds)
 
     def ref_fn(m, d, dyn, plan, p_lift):
-        contact = jnp.any(d._impl.contact.dist[sim.foot_slots] < CONTACT_DIST, axis=1)
+        contact = contacts.foot_dist(sim, m, d) < CONTACT_DIST
         return reference(plan, d.time, p_lift, contact, dyn.p_foot)
 
     f_ref = V(ref_fn, 4)
@@ -248,8 +248,8 @@ def run_components(batch: int = 256, iters: int = 50, scene: str = "transport", 
     f_adv = V(lambda m, d, tau: physics.advance(m, d, tau), 2)
     d_next = f_adv(b.model, ds, tau)
     oa = ids.obj_dof_adr
-    f_met = V(lambda m, d0, d1, mu: metrics.step_integrands(m, d1, sim.obj_slots, mu, d0.qvel[oa:oa + 3],
-                                                            d1.qvel[oa:oa + 3], sim.dt_control), 3)
+    f_met = V(lambda m, d0, d1, mu: metrics.step_integrands(contacts.object_contacts(sim, m, d1)[0], mu,
+                                                            d0.qvel[oa:oa + 3], d1.qvel[oa:oa + 3], sim.dt_control), 3)
     f_step = V(lambda m, rs, plan, om, g, push, mg: control_step(sim, m, rs, plan, om, g, push, mg), 6)
     f_phys = V(mjx.step, 1)
     stages = [("sense (fwd_position + fwd_velocity)", f_sense, (b.model, rs.d)),

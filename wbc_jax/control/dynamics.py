@@ -1,7 +1,7 @@
 """Dynamics terms shared by the transport and centroidal controllers.
 
-All quantities come from one MJX ``fwd_position`` + ``fwd_velocity`` pass (see
-:func:`wbc_jax.sim.physics.sense`) and are restricted to the robot's ``nv_r = 24`` dofs (the object
+All quantities come from one sensing pass (:func:`wbc_jax.sim.physics.sense`: MJX ``fwd_position`` +
+``fwd_velocity`` on the JAX backend, ``forward`` on Warp) and are restricted to the robot's ``nv_r = 24`` dofs (the object
 is a separate kinematic tree, so its dofs never couple into the robot's mass matrix or Jacobians).
 Frames: forces, positions and Jacobians are in the world frame; ``qvel[3:6]`` is MuJoCo's
 body-frame angular velocity of the trunk, which the Jacobians already account for.
@@ -13,6 +13,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from wbc_jax.sim.model import RobotIds, mjx
 
@@ -82,10 +83,25 @@ def point_jacobians(m, d, ids: RobotIds, points, bodies):
     return jax.vmap(one)(points, jnp.asarray(bodies))
 
 
+def mass_matrix(m, d) -> jax.Array:
+    """(nv, nv) dense joint-space mass matrix of either backend.
+
+    MJX's JAX implementation keeps M dense for small models (``mjx.full_m`` returns it); MuJoCo Warp keeps its
+    lower triangle in MuJoCo's CSR layout (``M_rownnz`` / ``M_rowadr`` / ``M_colind``, ``nC`` values), which
+    ``mjx.full_m`` returns unchanged for small models: scatter it and mirror the strict lower triangle.
+    """
+    M = mjx.full_m(m, d)
+    if M.ndim == 2:
+        return M
+    rows = np.repeat(np.arange(m.nv), m.M_rownnz)
+    L = jnp.zeros((m.nv, m.nv), M.dtype).at[rows, np.asarray(m.M_colind)].set(M)
+    return L + jnp.tril(L, -1).T
+
+
 def dyn_terms(m, d, ids: RobotIds) -> DynTerms:
-    """Gather :class:`DynTerms` from sensed MJX data (after fwd_position + fwd_velocity)."""
+    """Gather :class:`DynTerms` from sensed MJX data (:func:`wbc_jax.sim.physics.sense`)."""
     nvr = ids.nv_robot
-    M = mjx.full_m(m, d)[:nvr, :nvr]
+    M = mass_matrix(m, d)[:nvr, :nvr]
     v = d.qvel[:nvr]
     R = d.xmat[ids.trunk_body]
     p_base = d.xpos[ids.trunk_body]

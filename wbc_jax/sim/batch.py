@@ -58,12 +58,14 @@ def broadcast(tree, B: int):
 _INIT_FNS: dict = {}
 
 
-def _init_fn(sim: Sim, in_axes):
-    """jit(vmap(init_state)) over (model, qpos0, qvel0), one per Sim and batched-model layout (one compile)."""
-    key = (id(sim), str(in_axes))
+def _init_fn(sim: Sim, in_axes, n_runs: int):
+    """jit(vmap(init_state)) over (model, qpos0, qvel0), one per Sim and batched-model layout (one compile; on
+    the Warp backend also one per batch size, which sizes its shared contact list)."""
+    n = n_runs if sim.robot.backend == "warp" else 1
+    key = (id(sim), str(in_axes), n)
     if key not in _INIT_FNS:
-        _INIT_FNS[key] = aot.cached_jit("init", jax.vmap(functools.partial(init_state, sim), in_axes=(in_axes, 0, 0)),
-                                        aot.describe(sim, in_axes))
+        fn = jax.vmap(functools.partial(init_state, sim, n_runs=n), in_axes=(in_axes, 0, 0))
+        _INIT_FNS[key] = aot.cached_jit("init", fn, aot.describe(sim, in_axes, n))
     return _INIT_FNS[key]
 
 
@@ -96,7 +98,7 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
     unique = [course_plan(robot, q, side=float(di), **kw) if course else straight_plan(robot, q, **kw)
               for q, di in zip(q_levels, levels)]
     plans = stack(unique, index=inverse)
-    state = _init_fn(sim, in_axes)(bm, jnp.asarray(qpos0, float), jnp.asarray(qvel0, float))
+    state = _init_fn(sim, in_axes, B)(bm, jnp.asarray(qpos0, float), jnp.asarray(qvel0, float))
     om = ObjectModel(mass=jnp.asarray(f.m), side=jnp.asarray(f.d), mu=jnp.asarray(f.mu),
                      inset=jnp.full(B, robot.ids.obj_sphere_radius))
     gains = default_gains() if gains is None else gains

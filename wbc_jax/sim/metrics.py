@@ -76,10 +76,16 @@ def inv_H(alpha, loaded, mu, lam: float = LAMBDA) -> jax.Array:
     return jnp.where(ok, lam / s, 0.0)
 
 
-def step_integrands(m, d_after, slots, mu, v_obj_before, v_obj_after, dt):
+def step_integrands(f_obj, mu, v_obj_before, v_obj_after, dt):
     """Per-step integrands (1/H, ||vdot||) of one run (T's integrand ||p_ref - p|| is the rollout's
-    ``sum_track``)."""
-    alpha, loaded = cone_angle(contact_forces(m, d_after, slots))
+    ``sum_track``).
+
+    Args:
+        f_obj: (4, 3) simulator forces at the object's contact spheres, contact frames, normal first [N]
+            (``wbc_jax.sim.contacts.object_contacts``); mu: () tray friction; v_obj_before, v_obj_after: (3,)
+            object CoM velocity at the step's start and end [m/s]; dt: physics step [s].
+    """
+    alpha, loaded = cone_angle(f_obj)
     a = jnp.linalg.norm((v_obj_after - v_obj_before) / dt)
     return inv_H(alpha, loaded, mu), a
 

@@ -25,7 +25,7 @@ import numpy as np
 from wbc_jax.errors import SceneError
 
 with contextlib.redirect_stdout(io.StringIO()):
-    # MJX prints a notice on stdout when the optional Warp backend is absent; we use the JAX backend.
+    # MJX prints a notice on stdout when the optional Warp backend (warp-lang) is absent.
     from mujoco import mjx  # noqa: E402
 
 FEET = ("FL", "FR", "BL", "BR")
@@ -183,18 +183,44 @@ def resolve_ids(m: mujoco.MjModel, path: str = "<model>") -> RobotIds:
     )
 
 
+def _quiet_solver_limits(mx):
+    """A Warp model that does not print "solver/linesearch iterations limit reached": the scenes cap the constraint
+    solver at ``opt.iterations`` on purpose (fixed cost per step), so reaching it is normal. Capacity overflows
+    (contacts, constraint rows) still print, and the rollout fails the runs they touch."""
+    import dataclasses
+
+    from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
+
+    opt = mx.opt
+    quiet = int(opt._impl.warn_overflow) & ~int(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)
+    return mx.replace(opt=opt.replace(_impl=dataclasses.replace(opt._impl, warn_overflow=quiet)))
+
+
 class Robot:
     """A compiled scene, its MJX model and static ids (one-time setup, not a pytree).
 
     Args:
         scene: 'flat', 'transport' or a path to a scene XML.
+        backend: MJX implementation of the physics, "jax" or "warp" (:mod:`wbc_jax.sim.backend`; resolve "auto"
+            before). With "warp" the scene gets the contact sensors the rollout reads
+            (:func:`wbc_jax.sim.contacts.add_contact_sensors`); the physics is the same model's.
     """
 
-    def __init__(self, scene: str | os.PathLike = "flat"):
+    def __init__(self, scene: str | os.PathLike = "flat", backend: str = "jax"):
+        from wbc_jax.sim import contacts
+
+        if backend not in ("jax", "warp"):
+            raise ValueError(f"backend {backend!r}: expected 'jax' or 'warp'")
         self.path = scene_path(scene)
-        self.mj_model = load_mj_model(self.path)
-        self.ids = resolve_ids(self.mj_model, str(self.path))
-        self.mjx_model = mjx.put_model(self.mj_model)
+        self.backend = backend
+        base = load_mj_model(self.path)
+        self.ids = resolve_ids(base, str(self.path))
+        if backend == "warp":
+            self.mj_model, self.sensors = contacts.with_contact_sensors(self.path, base, self.ids)
+            self.mjx_model = _quiet_solver_limits(mjx.put_model(self.mj_model, impl="warp"))
+        else:
+            self.mj_model, self.sensors = base, None
+            self.mjx_model = mjx.put_model(self.mj_model)
         self.total_robot_mass = float(self.mj_model.body_subtreemass[self.ids.trunk_body])
 
     def home_qpos(self, d: float | None = None) -> np.ndarray:

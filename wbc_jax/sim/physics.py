@@ -1,6 +1,13 @@
-"""MJX physics split so the controller reads fresh kinematics without a second forward pass.
+"""MJX physics on either backend, split so the controller reads fresh kinematics once per control step.
 
-``mjx.step`` = forward (position, velocity, actuation, acceleration, constraint solve) + integrate.
+Two MJX implementations (``Robot(backend=...)``): **JAX** (``impl="jax"``, any device, the CPU path) and **Warp**
+(``impl="warp"``, MuJoCo Warp kernels called through XLA; NVIDIA GPUs, and the CPU for tests). Warp runs only
+``forward`` and ``step``, so on Warp :func:`sense` is ``mjx.forward`` (the whole forward pass, constraint solve
+with the held torques included) and :func:`finish` is ``mjx.step`` with the new torques: two Warp calls per control
+step, both exact (the controller reads the state it acts on, no delay). :func:`resolve_backend` turns "auto" into
+Warp where a CUDA GPU and warp-lang are present, else JAX.
+
+JAX backend: ``mjx.step`` = forward (position, velocity, actuation, acceleration, constraint solve) + integrate.
 :func:`sense` runs the position and velocity stages; the controller reads M, bias forces,
 Jacobians and contacts from its output; :func:`finish` completes that same forward pass with the
 controller's torques and integrates: one physics step. A control period of ``n_substeps`` physics steps
@@ -15,14 +22,90 @@ step (collision runs before integration): after :func:`finish` they are the sens
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 
 from wbc_jax.sim.model import mjx
 
+BACKENDS = ("auto", "jax", "warp")
+NACON_PER_RUN = 32  # Warp: contacts listed per run on average (the list is shared: naconmax = runs x this); a
+#                     standing or walking robot with the object lists 8-12 (feet, object spheres)
+NJMAX_PER_CONTACT = 4  # constraint rows of one pyramidal condim-3 contact
+
+
+def warp_available() -> bool:
+    """warp-lang importable (MJX's Warp implementation can run)."""
+    try:
+        import warp  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def resolve_backend(name: str) -> str:
+    """"auto" -> "warp" on a CUDA GPU with warp-lang installed, else "jax"; "jax" and "warp" unchanged.
+
+    Raises:
+        ValueError: an unknown name, or "warp" without warp-lang.
+    """
+    if name not in BACKENDS:
+        raise ValueError(f"backend {name!r}: expected one of {', '.join(BACKENDS)}")
+    if name == "auto":
+        return "warp" if jax.default_backend() == "gpu" and warp_available() else "jax"
+    if name == "warp" and not warp_available():
+        raise ValueError("backend 'warp' needs warp-lang (pip install -e '.[cuda]', or pip install warp-lang)")
+    return name
+
+
+def is_warp(d) -> bool:
+    """``d`` is MuJoCo Warp data (static: the type of its implementation part)."""
+    return type(d._impl).__name__ == "DataWarp"
+
+
+def make_data(robot, n_runs: int = 1):
+    """A fresh mjx.Data of ``robot``'s backend. Warp: the contact list is shared by the ``n_runs`` runs of a batch
+    (``naconmax = n_runs x NACON_PER_RUN``), constraint rows are per run (``njmax``); call it inside the vmap
+    over runs, as MJX's Warp examples do."""
+    if robot.backend != "warp":
+        return mjx.make_data(robot.mjx_model)
+    m = robot.mj_model
+    njmax = NJMAX_PER_CONTACT * NACON_PER_RUN + 2 * m.njnt
+    return mjx.make_data(m, impl="warp", naconmax=NACON_PER_RUN * max(int(n_runs), 1), njmax=njmax)
+
+
+def overflow(d) -> jax.Array:
+    """() bool: this step's contacts or constraint rows may not all fit (Warp: the shared contact list is full,
+    or this run's rows reached ``njmax``); always False on JAX (fixed slots)."""
+    if not is_warp(d):
+        return jnp.bool_(False)
+    i = d._impl
+    return (jnp.max(i.nacon) >= i.naconmax) | (i.nefc >= i.njmax)
+
 
 def sense(m, d):
-    """Position- and velocity-dependent stages of the forward pass."""
+    """The forward pass's position- and velocity-dependent stages (JAX), or the whole forward pass (Warp)."""
+    if is_warp(d):
+        return mjx.forward(m, d)
     d = mjx.fwd_position(m, d)
     return mjx.fwd_velocity(m, d)
+
+
+def sense_with_view(m, d, qvel_seen=None):
+    """:func:`sense` of ``d``, and the controller's view of it with generalized velocities ``qvel_seen`` (positions,
+    hence kinematics and contacts, exact; None: the view is the sensed data itself).
+
+    Returns:
+        (sensed d, view). JAX: the view recomputes only the velocity stage. Warp: one forward pass of the view;
+        the sensed d is the view with the true velocities put back (what the rollout reads from it is
+        position-level, and :func:`finish` recomputes the rest), so noise costs no second Warp call.
+    """
+    if qvel_seen is None:
+        d = sense(m, d)
+        return d, d
+    if is_warp(d):
+        view = mjx.forward(m, d.replace(qvel=qvel_seen))
+        return view.replace(qvel=d.qvel), view
+    d = sense(m, d)
+    return d, mjx.fwd_velocity(m, d.replace(qvel=qvel_seen))
 
 
 def finish(m, d, ctrl):
@@ -35,6 +118,8 @@ def finish(m, d, ctrl):
         mjx.Data one timestep later (``ctrl`` kept, contacts and constraint forces of the step's start).
     """
     d = d.replace(ctrl=ctrl)
+    if is_warp(d):
+        return mjx.step(m, d)
     d = mjx.fwd_actuation(m, d)
     d = mjx.fwd_acceleration(m, d)
     d = mjx.solve(m, d)

@@ -24,7 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.sim import aot, metrics, physics
+from wbc_jax.sim import contacts, metrics, physics
+from wbc_jax.sim.contacts import CONTACT_DIST, contact_slots  # noqa: F401  (re-exported: tests, trot study)
 from wbc_jax.control.dynamics import dyn_terms
 from wbc_jax.control.transport import (ControlState, ObjectModel, TransportConfig, TransportGains,
                                        init_control_state, transport_control)
@@ -88,6 +89,8 @@ class Accum(NamedTuple):
     first_contact_t: jax.Array  # [s] start of the physics step whose contacts first had a non-foot robot part
     #                             penetrating the floor or terrain; NaN if none yet (physics rate)
     first_contact_k: jax.Array  # int32, index into Sim.nonfoot_slots of that step's deepest such contact; -1 if none
+    overflow: jax.Array  # bool, a physics step's contacts or constraint rows may not all have fit (Warp's capacity,
+    #                      wbc_jax.sim.physics.overflow; the run is failed) (physics rate)
 
 
 class RunState(NamedTuple):
@@ -116,12 +119,14 @@ class Log(NamedTuple):
     qpos: jax.Array
 
 
-CONTACT_DIST = 1e-3  # [m] a foot closer than this to the floor or terrain counts as touching
-
 
 @dataclass(frozen=True)
 class Sim:
-    """Static rollout structure: the robot, controller config, physics substeps and contact slots."""
+    """Static rollout structure: the robot, controller config, physics substeps and contact indices.
+
+    The ``*_slots`` fields index MJX contact slots on the JAX backend and contact-sensor addresses in ``sensordata``
+    on Warp (``wbc_jax.sim.contacts``, whose readers take the Sim); ``nonfoot_geoms`` names each non-foot entry.
+    """
 
     robot: Robot
     cfg: TransportConfig
@@ -145,25 +150,6 @@ class Sim:
         return float(self.robot.mj_model.opt.timestep)
 
 
-def contact_slots(robot: Robot):
-    """Indices of MJX contact slots: non-foot parts vs floor or terrain, anything vs a wall, (4, K) each
-    foot vs floor and terrain, and the object's contact spheres vs the tray; then the (k, 2) geom ids of the
-    non-foot slots (MJX's layout, computed once per model and kept on disk: :func:`wbc_jax.sim.aot.cached_value`)."""
-    return aot.cached_value("slots", aot.describe(robot), lambda: _contact_slots(robot))
-
-
-def _contact_slots(robot: Robot):
-    m = robot.mj_model
-    d = jax.jit(physics.sense)(robot.mjx_model, mjx.make_data(robot.mjx_model))
-    geom = np.asarray(d._impl.contact.geom)
-    pairs = {(int(m.pair_geom1[i]), int(m.pair_geom2[i])): i for i in range(m.npair)}
-    slot_pair = np.array([pairs.get((int(a), int(b)), pairs.get((int(b), int(a)), -1)) for a, b in geom])
-    foot = np.array([np.where(np.isin(slot_pair, fp))[0] for fp in robot.ids.foot_pair])
-    nonfoot = np.where(np.isin(slot_pair, robot.ids.nonfoot_floor_pair))[0]
-    return (nonfoot, np.where(np.isin(slot_pair, robot.ids.wall_pair))[0], foot,
-            np.where(np.isin(slot_pair, robot.ids.obj_pair))[0], geom[nonfoot].reshape(-1, 2).astype(np.int64))
-
-
 def make_sim(robot: Robot, cfg: TransportConfig | None = None, n_substeps: int = 1, log_every: int = 20,
              sensor_noise: bool = False) -> Sim:
     """The Sim of ``robot``. ``cfg.dt`` (the controller's period) must equal ``n_substeps`` x the model's
@@ -176,19 +162,18 @@ def make_sim(robot: Robot, cfg: TransportConfig | None = None, n_substeps: int =
     if abs(cfg.dt - h * n_substeps) > 1e-9 * h:
         raise ValueError(f"control period cfg.dt = {cfg.dt} s != n_substeps ({n_substeps}) x the model's timestep "
                          f"({h} s)")
-    nf, wl, ft, ob, nfg = contact_slots(robot)
+    nf, wl, ft, ob, nfg = contacts.sim_indices(robot)
     return Sim(robot=robot, cfg=cfg, n_substeps=n_substeps, log_every=log_every, nonfoot_slots=nf, nonfoot_geoms=nfg,
                wall_slots=wl, foot_slots=ft, obj_slots=ob, sensor_noise=sensor_noise)
 
 
-def controller_view(sim: Sim, m, d, push: Push, step):
-    """The data the controller reads: ``d`` itself, or (``sim.sensor_noise``) ``d`` with noisy generalized
-    velocities and its velocity-dependent terms recomputed (positions, hence kinematics and contacts, are exact)."""
+def seen_qvel(sim: Sim, d, push: Push, step):
+    """The generalized velocities the controller sees: None (the true ones) or (``sim.sensor_noise``) ``d.qvel``
+    plus the run's white noise of control step ``step``."""
     if not sim.sensor_noise:
-        return d
+        return None
     key = jax.random.fold_in(push.key, step)
-    noise = push.qvel_noise_std * jax.random.normal(key, d.qvel.shape, d.qvel.dtype)
-    return mjx.fwd_velocity(m, d.replace(qvel=d.qvel + noise))
+    return d.qvel + push.qvel_noise_std * jax.random.normal(key, d.qvel.shape, d.qvel.dtype)
 
 
 def _tray_rel(d, ids):
@@ -196,10 +181,11 @@ def _tray_rel(d, ids):
     return R.T @ (d.xpos[ids.obj_body] - d.site_xpos[ids.tray_site])
 
 
-def init_state(sim: Sim, m, qpos0, qvel0=None) -> RunState:
-    """Initial RunState of one run (vmappable over m, qpos0 and qvel0; qvel0 None: at rest)."""
+def init_state(sim: Sim, m, qpos0, qvel0=None, n_runs: int = 1) -> RunState:
+    """Initial RunState of one run (vmappable over m, qpos0 and qvel0; qvel0 None: at rest). ``n_runs``: the size
+    of the batch it is vmapped over (sizes the Warp backend's shared contact list)."""
     ids = sim.robot.ids
-    d = mjx.make_data(sim.robot.mjx_model).replace(qpos=qpos0)
+    d = physics.make_data(sim.robot, n_runs).replace(qpos=qpos0)
     if qvel0 is not None:
         d = d.replace(qvel=qvel0)
     d = physics.sense(m, d)
@@ -210,7 +196,7 @@ def init_state(sim: Sim, m, qpos0, qvel0=None) -> RunState:
                 n_flag=jnp.zeros((), jnp.int32), n_steps=jnp.zeros((), jnp.int32), sum_track=z,
                 nonfinite=jnp.bool_(False), off_steps=jnp.zeros((), jnp.int32), max_off_s=z,
                 sum_invH=z, sum_acc=z, n_boundary=jnp.zeros((), jnp.int32), first_contact_t=jnp.full((), jnp.nan, z.dtype),
-                first_contact_k=jnp.full((), -1, jnp.int32))
+                first_contact_k=jnp.full((), -1, jnp.int32), overflow=jnp.bool_(False))
     return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids), acc=acc)
 
 
@@ -222,11 +208,10 @@ def controller_inputs(sim: Sim, m, rs: RunState, plan: TransportPlan, push: Push
         (d sensed mjx.Data, d_ctl the controller's view, DynTerms of d_ctl, Reference).
     """
     with jax.named_scope("sense"):
-        d = physics.sense(m, rs.d)
+        d, d_ctl = physics.sense_with_view(m, rs.d, seen_qvel(sim, rs.d, push, rs.acc.n_steps))
     with jax.named_scope("dynamics_reference"):
-        d_ctl = controller_view(sim, m, d, push, rs.acc.n_steps)
         dyn = dyn_terms(m, d_ctl, sim.robot.ids)
-        contact = jnp.any(d._impl.contact.dist[sim.foot_slots] < CONTACT_DIST, axis=1)  # (4,)
+        contact = contacts.foot_dist(sim, m, d) < CONTACT_DIST  # (4,)
         ref = reference(plan, d.time, rs.p_lift, contact, dyn.p_foot)
     return d, d_ctl, dyn, ref
 
@@ -243,30 +228,31 @@ class SubstepMonitors(NamedTuple):
     wall: jax.Array  # bool, anything penetrates a wall (dist < 0)
     off: jax.Array  # bool, every object contact sphere farther than CONTACT_DIST from the tray
     finite: jax.Array  # bool, positions after the step and the held torques are finite
+    overflow: jax.Array  # bool, the step's contacts or constraint rows may not all have fit (Warp)
 
 
 def substep_monitors(sim: Sim, m, om: ObjectModel, tau, d, d_after) -> SubstepMonitors:
     """Monitor values of the physics step ``d`` -> ``d_after`` taken with torques ``tau`` (nu,) [N m]."""
-    dist = d_after._impl.contact.dist
     finite = jnp.all(jnp.isfinite(d_after.qpos)) & jnp.all(jnp.isfinite(tau))
     if sim.obj_slots.size:  # paper metrics: forces of this step's constraint solve, object acceleration
         oa = sim.robot.ids.obj_dof_adr
-        inv_h, acc_norm = metrics.step_integrands(m, d_after, sim.obj_slots, om.mu, d.qvel[oa:oa + 3],
-                                                  d_after.qvel[oa:oa + 3], sim.dt_physics)
+        f_obj, obj_dist = contacts.object_contacts(sim, m, d_after)
+        inv_h, acc_norm = metrics.step_integrands(f_obj, om.mu, d.qvel[oa:oa + 3], d_after.qvel[oa:oa + 3],
+                                                  sim.dt_physics)
         inv_h, acc_norm = jnp.where(finite, inv_h, 0.0), jnp.where(finite, acc_norm, 0.0)
-        off = jnp.all(dist[sim.obj_slots] > CONTACT_DIST)
+        off = jnp.all(obj_dist > CONTACT_DIST)
     else:
         inv_h = acc_norm = jnp.zeros(())
         off = jnp.bool_(False)
-    wall = jnp.any(dist[sim.wall_slots] < 0.0) if sim.wall_slots.size else jnp.bool_(False)
+    wall = jnp.any(contacts.wall_dist(sim, d_after) < 0.0) if sim.wall_slots.size else jnp.bool_(False)
     if sim.nonfoot_slots.size:
-        nf_dist = dist[sim.nonfoot_slots]
+        nf_dist = contacts.nonfoot_dist(sim, d_after)
         nonfoot = jnp.any(nf_dist < 0.0)
         nonfoot_k = jnp.where(nonfoot, jnp.argmin(nf_dist), -1).astype(jnp.int32)
     else:
         nonfoot, nonfoot_k = jnp.bool_(False), jnp.full((), -1, jnp.int32)
     return SubstepMonitors(inv_h=inv_h, acc=acc_norm, nonfoot_floor=nonfoot, nonfoot_k=nonfoot_k, t=d.time,
-                           wall=wall, off=off, finite=finite)
+                           wall=wall, off=off, finite=finite, overflow=physics.overflow(d_after))
 
 
 def physics_substep(sim: Sim, m, om: ObjectModel, tau, d):
@@ -286,6 +272,7 @@ def _fold(sim: Sim, a: Accum, s: SubstepMonitors) -> Accum:
         first_contact_k=jnp.where(first, s.nonfoot_k, a.first_contact_k),
         wall_contact=a.wall_contact | s.wall,
         nonfinite=a.nonfinite | ~s.finite,
+        overflow=a.overflow | s.overflow,
         off_steps=off_steps,
         max_off_s=jnp.maximum(a.max_off_s, off_steps * h),
         sum_invH=a.sum_invH + s.inv_h * h,
@@ -352,7 +339,7 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
         sum_track=a.sum_track + jnp.linalg.norm(ref.p_obj - p_obj) * sim.dt_control,
     )
     # a run that went non-finite is frozen (its state no longer advances) so it cannot poison others
-    d_next = jax.tree_util.tree_map(lambda new, old: jnp.where(finite, new, old), d_next, rs.d)
+    d_next = rs.d.where(finite, d_next)  # Data.where: Warp's shared contact list is not per run
     log = Log(t=t, p_obj=p_obj, p_obj_ref=ref.p_obj, com=dyn.com, com_ref=ref.p_com, slip=slip,
               trunk_z=dyn.p_base[2], prim_res=qd.prim_res, tau=tau, qpos=d.qpos)
     return RunState(d=d_next, cs=cs, p_lift=p_lift, rel0=rs.rel0, acc=acc), log
