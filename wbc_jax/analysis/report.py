@@ -50,7 +50,7 @@ SCHEMA = "wbc_jax.analysis.report/1"
 COMMAND = "wbc-jax report"
 CAMPAIGN_METRICS = ("R", "T", "S")  # the metrics of a campaign's report (its results.csv has more columns)
 HUGE = 1e100  # a metric value at least this large in magnitude overflows the sums of squares (squared: 1e200+)
-RESULTS_LIMIT = 256 << 20  # largest results CSV read [bytes]
+RESULTS_LIMIT = 64 << 20  # largest results CSV read [bytes] (16384 runs: about 6 MB)
 
 
 def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: list[str] | None = None,

@@ -46,8 +46,8 @@ LOG_EVERY = 20  # control steps per logged sample (the rollout's outer scan)
 PACKAGES = ("wbc_jax", "jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy", "scipy", "statsmodels", "pandas")
 NUMERICS = ("wbc_jax", "jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy")  # their versions can change a rollout
 COMMAND = "wbc-jax campaign"
-# memory estimate of a batched rollout, per run: state, model, plan and QP workspace, plus the logged samples of one
-# chunk (measured on the CPU: about 1.5 MB per run for the transport scene, and ~40 kB per logged sample)
+# memory estimate of a batched rollout, per run [bytes]: state, model, plan and QP workspace, plus the logged samples
+# of one chunk; deliberately generous round numbers (not measured), only meant to stop batches that cannot fit
 RUN_BYTES = 4 << 20
 LOG_SAMPLE_BYTES = 64 << 10
 _SIMS: dict = {}
