@@ -279,3 +279,17 @@ def test_bench_rollout_rejects_a_bad_campaign_spec_before_timing(tmp_path, capsy
     err = capsys.readouterr().err
     assert str(bad) in err and "campaign.reps" in err
     assert not js.exists()
+
+
+def test_report_reruns_on_the_campaigns_own_results(full_run, tmp_path, capsys):
+    """``wbc-jax report`` on a campaign's own all-success results.csv: metrics R, T, S by default (the empty
+    fail_reason column is no metric); the campaign folder itself is refused as --out (it holds the input)."""
+    out = full_run[0]
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["command"] == "wbc-jax campaign" and len(m["gains_hash"]) == 64 and m["default_gains"]
+    assert cli.main(["report", str(out / "results.csv"), "--out", str(tmp_path / "rep")]) == 0
+    assert list(json.loads((tmp_path / "rep" / "anova.json").read_text())["metrics"]) == ["R", "T", "S"]
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    assert cli.main(["report", str(out / "results.csv"), "--out", str(out), "--force"]) == 2
+    assert "holds the input" in capsys.readouterr().err
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before

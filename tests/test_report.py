@@ -100,16 +100,27 @@ def test_unbalanced_and_deterministic_metric_report(tmp_path):
 
 
 def test_existing_dir_replaced_only_on_success(tmp_path):
+    """An earlier report is replaced only with force and only on success; a foreign folder never."""
+    from wbc_jax.errors import OutputError
+
     csv = tmp_path / "results.csv"
     planted(seed=1).to_csv(csv, index=False)
     out = tmp_path / "rep"
     out.mkdir()
     (out / "stale.txt").write_text("old")
-    with pytest.raises(InputError):
-        report.run_report(str(csv), str(out), factors=["m", "nope"], figures=False)
+    with pytest.raises(OutputError, match="not empty"):
+        report.run_report(str(csv), str(out), figures=False, force=True)
     assert (out / "stale.txt").read_text() == "old"
-    report.run_report(str(csv), str(out), figures=False)
-    assert not (out / "stale.txt").exists() and (out / "anova.json").exists()
+    (out / "stale.txt").unlink()
+    report.run_report(str(csv), str(out), figures=False)  # an empty folder is fine
+    before = (out / "anova.json").read_bytes()
+    with pytest.raises(OutputError, match="--force"):
+        report.run_report(str(csv), str(out), figures=False)
+    with pytest.raises(InputError):
+        report.run_report(str(csv), str(out), factors=["m", "nope"], figures=False, force=True)
+    assert (out / "anova.json").read_bytes() == before
+    report.run_report(str(csv), str(out), figures=False, force=True)
+    assert (out / "anova.json").exists()
     assert not _leftovers(tmp_path, "rep")
     assert oct(out.stat().st_mode & 0o777) != "0o700"
 
@@ -167,7 +178,7 @@ def cli_runs(cases):
     kept = csv.parent / "out_existing"
     kept.mkdir()
     (kept / "old.md").write_text("previous report")
-    runs["existing_dir"] = (_cli(csv, kept, *extra), kept, msg)
+    runs["existing_dir"] = (_cli(csv, kept, *extra), kept, "folder is not empty")
     return {name: (*p.communicate(timeout=120), p.returncode, out, msg) for name, (p, out, msg) in runs.items()}
 
 

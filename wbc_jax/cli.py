@@ -11,13 +11,17 @@ import sys
 
 from wbc_jax.errors import WbcJaxError
 
+MAX_SECONDS = 600.0  # longest simulated time of demo / trot [s] (a campaign's max_seconds has the same bound)
+DISTANCE_RANGE = (0.05, 10.0)  # demo --distance [m], as a campaign spec's campaign.distance
+CPU_BATCHES = {"rollout": (1, 4, 16), "profile": 16, "components": 16, "trace": 16}  # bench defaults on a CPU
+
 
 def _cmd_report(args: argparse.Namespace) -> int:
     from wbc_jax.analysis.report import run_report
 
     factors = args.factors.split(",") if args.factors else None
     metrics = args.metrics.split(",") if args.metrics else None
-    run_report(args.results, args.out, alpha=args.alpha, factors=factors, metrics=metrics)
+    run_report(args.results, args.out, alpha=args.alpha, factors=factors, metrics=metrics, force=args.force)
     print(f"report written to {args.out}")
     return 0
 
@@ -50,6 +54,9 @@ def _check_bench_args(args: argparse.Namespace) -> list[int] | None:
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     sizes = _check_bench_args(args)
+    import jax
+
+    cpu = jax.default_backend() == "cpu"  # GPU-sized default batches would run for hours on a CPU
     if args.what == "qp":
         from wbc_jax.bench.qp import run_bench
 
@@ -58,27 +65,27 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "rollout":
         from wbc_jax.bench.rollout import run_bench as run_rollout_bench
 
-        batches = sizes or ((1, 4) if args.quick else (1, 1024, 4096, 16384))
+        batches = sizes or ((1, 4) if args.quick else CPU_BATCHES["rollout"] if cpu else (1, 1024, 4096, 16384))
         run_rollout_bench(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json, scene=args.scene,
                           qp=args.qp, substeps=args.substeps, campaign=args.campaign)
         return 0
     if args.what == "profile":
         from wbc_jax.bench.rollout import run_profile
 
-        batch = sizes[-1] if sizes else (4 if args.quick else 16384)
+        batch = sizes[-1] if sizes else (4 if args.quick else CPU_BATCHES["profile"] if cpu else 16384)
         run_profile(batch=batch, steps=args.steps, iters=args.iters, scene=args.scene, json_path=args.json,
                     variants=args.variants.split(",") if args.variants else None)
         return 0
     if args.what == "components":
         from wbc_jax.bench.rollout import run_components
 
-        batch = sizes[-1] if sizes else (4 if args.quick else 256)
+        batch = sizes[-1] if sizes else (4 if args.quick else CPU_BATCHES["components"] if cpu else 256)
         run_components(batch=batch, iters=args.iters, scene=args.scene, json_path=args.json)
         return 0
     if args.what == "trace":
         from wbc_jax.bench.trace import run_trace
 
-        batch = sizes[-1] if sizes else (4 if args.quick else 270)
+        batch = sizes[-1] if sizes else (4 if args.quick else CPU_BATCHES["trace"] if cpu else 270)
         run_trace(batch=batch, steps=args.steps, scene=args.scene, qp=args.qp or "it20_a0_r2",
                   substeps=args.substeps, json_path=args.json)
         return 0
@@ -91,16 +98,34 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     raise WbcJaxError(f"bench: unknown target {args.what!r}")
 
 
+def _check_demo_args(args: argparse.Namespace) -> None:
+    """Bounded, finite demo arguments (user errors before anything is built)."""
+    from wbc_jax.errors import LimitError
+
+    lo, hi = DISTANCE_RANGE
+    bounds = {"seconds": (0.0, MAX_SECONDS, "0 < value <= 600 [s]"), "distance": (lo, hi, f"{lo} <= value <= {hi} [m]"),
+              "push_at": (0.0, 1.0, "0 < value < 1 (fraction of the planned duration)")}
+    for name, (a, b, text) in bounds.items():
+        v = getattr(args, name)
+        if v is not None and not (a < v <= b if name == "seconds" else a <= v <= b if name == "distance"
+                                  else a < v < b):
+            raise LimitError(f"--{name.replace('_', '-')} = {v}: expected {text}")
+    if not 1 <= args.iters <= 1000:
+        raise LimitError(f"--iters = {args.iters}: expected 1 <= value <= 1000")
+
+
+def _check_out(args: argparse.Namespace, inputs=()) -> None:
+    """The ``--out`` folder of ``args.command`` (new, empty, or an earlier run of it with ``--force``)."""
+    from wbc_jax.io_utils import check_out_dir
+
+    check_out_dir(args.out, f"wbc-jax {args.command}", force=args.force, inputs=inputs)
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
+    _check_demo_args(args)
+    _check_out(args, [args.scene if args.scene.endswith(".xml") else None])
     from wbc_jax.study.demo import run_demo
 
-    for name in ("seconds", "distance", "push_at"):
-        v = getattr(args, name)
-        if v is not None and not (v > 0 and (name != "push_at" or v < 1)):
-            raise WbcJaxError(f"--{name.replace('_', '-')} = {v}: expected "
-                              + ("0 < value < 1 (fraction of the planned duration)" if name == "push_at" else "> 0"))
-    if args.iters < 1:
-        raise WbcJaxError(f"--iters = {args.iters}: expected >= 1")
     run_demo(out=args.out, scene=args.scene, seconds=args.seconds, all_cells=args.all_cells, push=args.push,
              observer=not args.no_observer, iters=args.iters, distance=args.distance, push_at=args.push_at,
              video=not args.no_video)
@@ -108,13 +133,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_trot(args: argparse.Namespace) -> int:
-    from wbc_jax.study.trot import run_trot
+    from wbc_jax.study.trot import run_trot, validate
 
     try:
         errors = [float(x) for x in args.mass_errors.split(",")]
     except ValueError:
         raise WbcJaxError(f"--mass-errors = {args.mass_errors!r}: expected comma-separated numbers, "
                           "e.g. --mass-errors=-0.2,0,0.2") from None
+    validate(args.seconds, args.stride, args.step_time, args.four_foot, errors, args.iters)
+    _check_out(args)
     run_trot(out=args.out, seconds=args.seconds, stride=args.stride, step_time=args.step_time, t_four=args.four_foot,
              mass_errors=errors, carry_object=not args.no_object, iters=args.iters)
     return 0
@@ -129,14 +156,16 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
 
         gains = load_gains(args.gains)  # validated before anything runs or is written
         print(f"gains from {args.gains}", flush=True)
-    run_campaign(args.spec, args.out, resume=args.resume, report=not args.no_report, gains=gains)
+    run_campaign(args.spec, args.out, resume=args.resume, report=not args.no_report, gains=gains, force=args.force,
+                 allow_large=args.allow_large, inputs=(args.gains,) if args.gains else ())
     return 0
 
 
 def _cmd_tune(args: argparse.Namespace) -> int:
     from wbc_jax.study.tune import run_tune
 
-    run_tune(args.spec, args.out, candidates=args.candidates, rounds=args.rounds, progress=not args.no_progress)
+    run_tune(args.spec, args.out, candidates=args.candidates, rounds=args.rounds, progress=not args.no_progress,
+             force=args.force)
     return 0
 
 
@@ -153,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("report", help="ANOVA report of a results table (one row per run)")
     r.add_argument("results", help="results CSV (one row per run)")
-    r.add_argument("--out", required=True, help="output directory")
+    r.add_argument("--out", required=True, help="output directory (new or empty; never the input's)")
     r.add_argument("--alpha", type=float, default=0.05, help="significance level (default 0.05)")
     r.add_argument("--factors", default=None, help="comma-separated factor columns (default: m,mu,d)")
     r.add_argument("--metrics", default=None, help="comma-separated metric columns (default: inferred)")
@@ -167,7 +196,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "kernels and device time per stage; qp-rollout: control-loop "
                         "ADMM variants (--variants it50,it20_a0,...) against OSQP on QPs sampled from their own "
                         "closed-loop rollouts, CPU)")
-    b.add_argument("--batches", default=None, help="rollout: comma-separated batch sizes")
+    b.add_argument("--batches", default=None, help="rollout: comma-separated batch sizes (default 1,1024,4096,16384 "
+                                                   "on an accelerator, 1,4,16 on a CPU)")
     b.add_argument("--steps", type=int, default=200, help="rollout: control steps per timed call")
     b.add_argument("--iters", type=int, default=30, help="rollout: ADMM iterations per control step")
     b.add_argument("--qp", default=None, help="rollout: control-loop ADMM variant it<N>[_a<K>][_r<R>][_p<W>] (N "
@@ -209,6 +239,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--no-report", action="store_true", help="skip the ANOVA report")
     c.add_argument("--gains", default=None, help="controller gains TOML (e.g. best_gains.toml of wbc-jax tune) "
                                                  "instead of the defaults")
+    c.add_argument("--allow-large", action="store_true", help="run even when the memory estimate of the batch "
+                                                              "exceeds the available memory")
     c.set_defaults(func=_cmd_campaign)
 
     u = sub.add_parser("tune", help="batched gain search (grid, random, cross-entropy method) over factor cells; "
@@ -239,6 +271,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--no-object", action="store_true", help="take the cube off the tray")
     t.add_argument("--iters", type=int, default=40, help="ADMM iterations per control step")
     t.set_defaults(func=_cmd_trot)
+    for cmd in (r, d, c, u, t):
+        cmd.add_argument("--force", action="store_true", help="replace --out when it holds an earlier run of this "
+                                                              "command (never another folder)")
     return p
 
 

@@ -24,3 +24,19 @@ class SpecError(WbcJaxError):
 
 class InputError(WbcJaxError):
     """An input table (e.g. a results CSV) is malformed."""
+
+
+class OutputError(WbcJaxError):
+    """An output folder cannot be used: not empty and not this command's, an input inside it, not writable, ..."""
+
+
+class CheckpointError(WbcJaxError):
+    """A campaign checkpoint is damaged or belongs to another run (spec, gains, versions, backend)."""
+
+
+class LimitError(WbcJaxError):
+    """A request is beyond what the machine can do (memory, time) or beyond a bounded argument's range."""
+
+
+class ReportError(WbcJaxError):
+    """The statistics of a finished campaign failed; its results.csv and manifest.json were kept."""

@@ -16,7 +16,14 @@ Reads the CSV, checks it, runs :func:`wbc_jax.analysis.stats.analyze`, and write
   (EMM +- 95 % CI per two-way interaction), ``figures/qq.png`` (residual Q-Q plots).
 
 Nothing partial is left in DIR: everything is built in memory, written to a temporary
-sibling directory, and renamed into place; an existing DIR is replaced only on success.
+sibling directory, and renamed into place. DIR must be new or empty, or (``force``) hold an
+earlier report (:func:`wbc_jax.io_utils.check_out_dir`); it is never the folder of the input.
+
+A table the statistics cannot fully model still gets a report, with the reason among its
+warnings: a metric with values too large for sums of squares (|value| >= ``HUGE``) or one
+whose model cannot be fitted (e.g. no residual degrees of freedom in a 1-rep table with a
+missing value) is fitted with main effects only or left out; a table without successful
+runs gets the design table only.
 """
 
 from __future__ import annotations
@@ -36,41 +43,55 @@ import numpy as np
 import pandas as pd
 
 from wbc_jax.analysis import stats
-from wbc_jax.io_utils import atomic_dir
+from wbc_jax.io_utils import atomic_dir, check_out_dir, read_capped
 from wbc_jax.errors import InputError, WbcJaxError
 
 SCHEMA = "wbc_jax.analysis.report/1"
+COMMAND = "wbc-jax report"
+CAMPAIGN_METRICS = ("R", "T", "S")  # the metrics of a campaign's report (its results.csv has more columns)
+HUGE = 1e100  # a metric value at least this large in magnitude overflows the sums of squares (squared: 1e200+)
+RESULTS_LIMIT = 64 << 20  # largest results CSV read [bytes] (16384 runs: about 6 MB)
 
 
 def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: list[str] | None = None,
-               metrics: list[str] | None = None, *, figures: bool = True, ss_type: int = 3, order: int = 2) -> dict:
+               metrics: list[str] | None = None, *, figures: bool = True, ss_type: int = 3, order: int = 2,
+               force: bool = False) -> dict:
     """Write the ANOVA report of ``results_csv`` into ``out_dir``.
 
     Args:
         results_csv: results table, one row per run (factors, rep, seed, success, metrics).
-        out_dir: output directory; replaced as a whole on success, untouched on error.
+        out_dir: output directory, new or empty (or an earlier report with ``force``); untouched on error.
         alpha: significance level (0 < alpha < 1).
         factors: factor columns (default: those of m, mu, d present).
         metrics: metric columns (default: see :mod:`wbc_jax.analysis.stats`).
         figures: render the PNG figures (tests switch them off for speed).
         ss_type: sums-of-squares type, 1, 2 or 3.
         order: highest interaction order of the model (2: main effects + two-way).
+        force: replace ``out_dir`` when it holds an earlier report.
 
     Returns:
         The content of ``anova.json``.
 
     Raises:
         InputError: unreadable or malformed input (one-line message naming the problem).
+        OutputError: ``out_dir`` is not a new or empty folder (or an earlier report with ``force``).
         WbcJaxError: the output directory cannot be written.
     """
     t0 = time.perf_counter()
     if not (isinstance(alpha, (int, float)) and 0 < alpha < 1):
         raise InputError(f"alpha must be between 0 and 1, not {alpha}")
+    check_out_dir(out_dir, COMMAND, force=force, inputs=[results_csv])
     raw, df = read_results(results_csv)
     factors = stats.infer_factors(df, factors)
+    _check_categorical(df, factors)
+    if metrics is None and "fail_reason" in df.columns:  # a campaign's results.csv: the campaign report's metrics
+        metrics = [m for m in CAMPAIGN_METRICS if m in df.columns] or None
     metrics = stats.infer_metrics(df, factors, metrics)
     data = stats.prepare(df, factors, metrics)
-    res = stats.analyze(data, factors, metrics, alpha=alpha, ss_type=ss_type, order=order)
+    res = _analyze(data, factors, metrics, alpha=alpha, ss_type=ss_type, order=order)
+    if not res["metrics"]:
+        return _write_design_only(res, results_csv, raw, out_dir, alpha, factors, metrics, ss_type, order, t0)
+    metrics = list(res["metrics"])
 
     images = {}
     if figures:
@@ -85,7 +106,7 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
         images["qq.png"] = fg.qq_grid({m: (f.result.resid, None if f.degenerate else f.mse) for m, f in fits.items()})
 
     manifest = {
-        "input": str(results_csv), "sha256": hashlib.sha256(raw).hexdigest(), "rows": len(df),
+        "command": COMMAND, "input": str(results_csv), "sha256": hashlib.sha256(raw).hexdigest(), "rows": len(df),
         "alpha": alpha, "factors": factors, "metrics": metrics, "ss_type": stats.SS_NAMES[ss_type], "order": order,
         "versions": _versions(), "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
@@ -105,13 +126,94 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
     return summary
 
 
+# --------------------------------------------------------------------------- robust analysis
+
+
+def _check_categorical(df: pd.DataFrame, factors: list[str]) -> None:
+    """A factor needs repeated levels: a column with about one row per value (a measurement) is refused."""
+    for f in factors:
+        n_lv = int(df[f].nunique(dropna=True))
+        if n_lv > 2 and 2 * n_lv > len(df):
+            raise InputError(f"factor '{f}' has {n_lv} distinct values in {len(df)} rows: a continuous column, "
+                             "not a factor (name the factors with --factors)")
+
+
+def _analyze(data: pd.DataFrame, factors: list[str], metrics: list[str], **kw) -> dict:
+    """:func:`wbc_jax.analysis.stats.analyze`, with what it cannot model turned into table-wide warnings.
+
+    A metric with |value| >= HUGE is left out; a metric whose model fails is refitted with main effects only,
+    and left out when that fails too. Without successful runs (or without an analysable metric) ``metrics`` of
+    the result is empty and the report holds the design table.
+    """
+    notes, ok = [], []
+    for m in metrics:
+        big = float(np.nanmax(np.abs(data[m].to_numpy(dtype=float)))) if data[m].notna().any() else 0.0
+        if big >= HUGE:
+            notes.append(f"metric '{m}' not analysed: values up to {big:.3g} overflow the sums of squares "
+                         f"(|value| < {HUGE:g} needed)")
+        else:
+            ok.append(m)
+    if not stats.success_column(data).any():
+        notes.append("no successful runs (success is False in every row): no model fitted, design table only")
+        ok = []
+    try:
+        res = stats.analyze(data, factors, ok, **kw) if ok else None
+    except Exception:  # noqa: BLE001  (which metric failed is found below, one at a time)
+        res = None
+        parts = []
+        for m in ok:
+            for order in sorted({kw["order"], 1}, reverse=True):
+                try:
+                    parts.append(stats.analyze(data, factors, [m], **dict(kw, order=order)))
+                    if order != kw["order"]:
+                        notes.append(f"metric '{m}': the model with interactions cannot be fitted "
+                                     "(too few runs); main effects only")
+                    break
+                except Exception as e:  # noqa: BLE001
+                    if order == 1:
+                        notes.append(f"metric '{m}' not analysed: {_one_line(e)}")
+        if parts:
+            res = dict(parts[0], metrics={m: r for p in parts for m, r in p["metrics"].items()},
+                       cell_means=pd.concat([p["cell_means"] for p in parts], ignore_index=True),
+                       level_means=pd.concat([p["level_means"] for p in parts], ignore_index=True))
+    if res is None:
+        design = stats.design_table(data, factors)
+        res = dict(design=design, metrics={}, warnings=[], n_runs=len(data), n_failed=int(design["failures"].sum()))
+    res["warnings"] = list(res["warnings"]) + notes
+    return res
+
+
+def _write_design_only(res, results_csv, raw, out_dir, alpha, factors, metrics, ss_type, order, t0) -> dict:
+    """The report of a table without an analysable metric: warnings and the design table."""
+    d = _Doc()
+    d.h(1, f"ANOVA report: {Path(results_csv).name}")
+    d.p(f"{res['n_runs']} runs ({res['n_failed']} failed); factors {', '.join(factors)}; no metric analysed.")
+    d.h(2, "Warnings")
+    d.ul(res["warnings"])
+    d.h(2, "Design")
+    d.table(res["design"])
+    manifest = {"command": COMMAND, "input": str(results_csv), "sha256": hashlib.sha256(raw).hexdigest(),
+                "rows": res["n_runs"], "alpha": alpha, "factors": factors, "metrics": [],
+                "ss_type": stats.SS_NAMES[ss_type], "order": order, "versions": _versions(),
+                "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "wall_s": round(time.perf_counter() - t0, 3)}
+    summary = _clean({"schema": SCHEMA, "alpha": alpha, "ss_type": manifest["ss_type"], "n_runs": res["n_runs"],
+                      "n_failed": res["n_failed"], "warnings": res["warnings"], "design": res["design"],
+                      "metrics": {}, "manifest": manifest})
+    write_dir_atomic(out_dir, {"report.md": d.markdown().encode(),
+                               "report.html": d.html({}, title=f"ANOVA report: {Path(results_csv).name}").encode(),
+                               "anova.json": _dumps(summary).encode(),
+                               "design.csv": res["design"].to_csv(index=False).encode(),
+                               "manifest.json": _dumps(manifest).encode()})
+    return summary
+
+
 # --------------------------------------------------------------------------- input / output
 
 
 def read_results(path: str) -> tuple[bytes, pd.DataFrame]:
     """Raw bytes and parsed table of a results CSV; every failure is a one-line InputError."""
     try:
-        raw = Path(path).read_bytes()
+        raw = read_capped(path, RESULTS_LIMIT, what="results")
     except FileNotFoundError:
         raise InputError(f"results file not found: {path}") from None
     except IsADirectoryError:

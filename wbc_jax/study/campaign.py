@@ -3,17 +3,25 @@
 spec (``wbc_jax.study.spec``) -> design table with per-run seeds and perturbations -> one :class:`wbc_jax.sim.batch.Batch`
 (all runs) -> chunked, jitted, vmapped rollout (``chunk_seconds`` of simulated time per call; the state is
 checkpointed after every chunk) -> per-run metrics and flags (``wbc_jax.sim.metrics``) -> ``results.csv``,
-the ANOVA report (``wbc_jax.analysis.report``) in ``report/`` and ``manifest.json``, all in DIR, written atomically.
+``results.csv`` and ``manifest.json`` in DIR (written atomically), then the ANOVA report
+(``wbc_jax.analysis.report``) in ``DIR/report/``. A report that fails leaves the results, writes
+``DIR/report_error.txt`` and ends the command with a one-line error (rerun ``wbc-jax report DIR/results.csv``).
+
+DIR must be new or empty, or (``--force``) hold an earlier campaign (``wbc_jax.io_utils.check_out_dir``); it is
+checked, with the spec's size against the machine's memory (:func:`check_size`), before anything is compiled.
 
 Checkpoint: ``.<DIR name>.campaign-ckpt/`` next to DIR holds the state after the last finished chunk
-(``state_K.npz``: every leaf of the batched RunState after chunk K) and ``meta.json`` (spec hash, chunks done, wall time so
-far). Ctrl-C keeps it; ``--resume`` continues from it (the chunks are the same, so the results equal an
-uninterrupted run's); it is deleted once DIR is written. A run that goes non-finite is frozen by the
+(``state_K.npz``: every leaf of the batched RunState after chunk K) and ``meta.json`` (the run's identity,
+:func:`run_identity`: spec hash, gains hash, backend, numerics package versions, run count; chunks done, the state
+file's SHA-256, wall time so far). Ctrl-C keeps it; ``--resume`` continues from it (the chunks are the same, so the
+results equal an uninterrupted run's) after checking the identity and the checksum: a mismatch or damage is a
+one-line error; it is deleted once the results are written. A run that goes non-finite is frozen by the
 rollout and reported failed; the others continue.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import platform
@@ -30,12 +38,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.sim import aot
-from wbc_jax.errors import SpecError, WbcJaxError
-from wbc_jax.io_utils import atomic_dir, write_json_atomic
+from wbc_jax.errors import CheckpointError, LimitError, ReportError, WbcJaxError
+from wbc_jax.io_utils import atomic_dir, check_out_dir, write_json_atomic
 from wbc_jax.study.spec import Design, Spec, default_spec_path, design, load_spec
 
 LOG_EVERY = 20  # control steps per logged sample (the rollout's outer scan)
 PACKAGES = ("wbc_jax", "jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy", "scipy", "statsmodels", "pandas")
+NUMERICS = ("wbc_jax", "jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy")  # their versions can change a rollout
+COMMAND = "wbc-jax campaign"
+# memory estimate of a batched rollout, per run [bytes]: state, model, plan and QP workspace, plus the logged samples
+# of one chunk; deliberately generous round numbers (not measured), only meant to stop batches that cannot fit
+RUN_BYTES = 4 << 20
+LOG_SAMPLE_BYTES = 64 << 10
 _SIMS: dict = {}
 _FNS: dict = {}
 
@@ -121,38 +135,151 @@ def _ckpt_dir(out: Path) -> Path:
     return out.parent / f".{out.name}.campaign-ckpt"
 
 
+def run_identity(spec: Spec, gains=None, n_runs: int | None = None, backend: str = "jax") -> dict:
+    """Everything that determines a campaign's results, as the dict a checkpoint must match.
+
+    Args:
+        spec: the validated spec (its hash).
+        gains: controller gains (None: the defaults, hashed as such).
+        n_runs: number of runs (default: the spec's design size).
+        backend: the simulation backend ("jax").
+
+    Returns:
+        dict with ``spec_hash``, ``gains_hash`` (SHA-256 of every gains leaf, shape, dtype and value), ``backend``,
+        ``platform`` (jax's default backend: cpu, gpu, ...), ``versions`` (of :data:`NUMERICS`) and ``n_runs``.
+    """
+    from wbc_jax.control.transport import default_gains
+
+    h = hashlib.sha256()
+    for leaf in jax.tree_util.tree_leaves(default_gains() if gains is None else gains):
+        a = np.ascontiguousarray(np.asarray(leaf))
+        h.update(f"{a.dtype}{a.shape}".encode())
+        h.update(a.tobytes())
+    versions = _versions()
+    return dict(spec_hash=spec.hash, gains_hash=h.hexdigest(), backend=backend, platform=jax.default_backend(),
+                versions={p: versions.get(p) for p in NUMERICS},
+                n_runs=int(n_runs if n_runs is not None else n_runs_of(spec)))
+
+
+def n_runs_of(spec: Spec) -> int:
+    """Number of runs of a spec (cells x reps), without building the design."""
+    return int(np.prod([len(v) for v in spec.factors.values()])) * spec.reps
+
+
+def check_size(spec: Spec, allow_large: bool = False) -> None:
+    """Refuse a campaign whose batch would not fit in memory (an estimate, before the design is built).
+
+    Raises:
+        LimitError: runs x (RUN_BYTES + a chunk's log samples x LOG_SAMPLE_BYTES) exceeds the available memory,
+            unless ``allow_large``.
+    """
+    c = spec.campaign
+    n = n_runs_of(spec)
+    samples = max(1.0, c["chunk_seconds"] / (0.002 * c["control_substeps"] * LOG_EVERY))  # 2 ms physics step
+    need = n * (RUN_BYTES + samples * LOG_SAMPLE_BYTES)
+    avail = _available_memory()
+    if avail and need > avail and not allow_large:
+        raise LimitError(f"{spec.path}: {n:,} runs need about {need / 2**30:,.1f} GiB, "
+                         f"{avail / 2**30:,.1f} GiB available; fewer levels or reps, a smaller "
+                         "campaign.chunk_seconds, or --allow-large to try anyway")
+
+
+def _available_memory() -> int | None:
+    """Available memory [bytes]: the accelerator's free memory, else the host's MemAvailable; None if unknown."""
+    try:
+        st = jax.devices()[0].memory_stats() or {}
+        if "bytes_limit" in st:
+            return int(st["bytes_limit"] - st.get("bytes_in_use", 0))
+    except Exception:  # noqa: BLE001  (CPU devices have no memory stats)
+        pass
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def _save_ckpt(ck: Path, state, meta: dict) -> None:
-    """State of chunk k to ``state_k.npz`` first, then ``meta.json`` (naming that file) atomically, then the
-    older state files go: an interruption at any point leaves a consistent (meta, state) pair."""
+    """State of chunk k to ``state_k.npz`` first, then ``meta.json`` (naming that file and its SHA-256)
+    atomically, then the older state files go: an interruption at any point leaves a consistent (meta, state)
+    pair."""
     ck.mkdir(parents=True, exist_ok=True)
     leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(jax.device_get(state))]
     name = f"state_{meta['chunks_done']}.npz"
     fd, tmp = tempfile.mkstemp(prefix=".state.", suffix=".npz", dir=ck)
     with os.fdopen(fd, "wb") as f:
         np.savez(f, *leaves)
+    digest = _sha256(Path(tmp))
     os.replace(tmp, ck / name)
-    write_json_atomic(ck / "meta.json", dict(meta, state_file=name))
+    write_json_atomic(ck / "meta.json", dict(meta, state_file=name, state_sha256=digest))
     for old in ck.glob("state_*.npz"):
         if old.name != name:
             old.unlink(missing_ok=True)
 
 
-def _load_ckpt(ck: Path, state_like, spec_hash: str, n_runs: int):
+def read_ckpt_meta(ck: Path, identity: dict, n_chunks: int) -> dict | None:
+    """The checked ``meta.json`` of checkpoint ``ck`` (None when there is no checkpoint).
+
+    Raises:
+        CheckpointError: meta.json missing beside state files, unreadable, incomplete or with values out of
+            range; an identity entry that differs from ``identity``; the state file missing or not matching its
+            SHA-256. The message says how to restart.
+    """
+    restart = f"delete {ck} or run without --resume to start over"
+    if not ck.exists():
+        return None
     meta_p = ck / "meta.json"
     if not meta_p.exists():
+        if any(ck.iterdir()):
+            raise CheckpointError(f"{ck}: damaged checkpoint (meta.json missing); {restart}")
+        return None
+    try:
+        meta = json.loads(meta_p.read_text())
+        done, name, digest = int(meta["chunks_done"]), str(meta["state_file"]), str(meta["state_sha256"])
+        float(meta["wall_s"]), list(meta["marks"]), dict(meta["identity"])  # noqa: B018
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise CheckpointError(f"{ck}: damaged checkpoint (meta.json unreadable or incomplete: "
+                              f"{type(e).__name__} {e}); {restart}") from None
+    differ = sorted(k for k in set(identity) | set(meta["identity"]) if meta["identity"].get(k) != identity.get(k))
+    if differ:
+        raise CheckpointError(f"{ck}: checkpoint belongs to another run ({', '.join(differ)} differ"
+                              f"{': started with other --gains' if 'gains_hash' in differ else ''}); {restart}")
+    if not (1 <= done <= n_chunks) or meta.get("n_chunks") != n_chunks or name != f"state_{done}.npz":
+        raise CheckpointError(f"{ck}: damaged checkpoint (chunks_done {meta.get('chunks_done')!r} of "
+                              f"{meta.get('n_chunks')!r}, state file {name!r}; this run has {n_chunks}); {restart}")
+    state_p = ck / name
+    if not state_p.is_file() or _sha256(state_p) != digest:
+        raise CheckpointError(f"{ck}: damaged checkpoint ({name} missing or its SHA-256 differs); {restart}")
+    return meta
+
+
+def _load_ckpt(ck: Path, state_like, identity: dict, n_chunks: int):
+    meta = read_ckpt_meta(ck, identity, n_chunks)
+    if meta is None:
         return None, None
-    meta = json.loads(meta_p.read_text())
-    if meta.get("spec_hash") != spec_hash or meta.get("n_runs") != n_runs:
-        raise SpecError(f"{ck}: checkpoint belongs to another spec (hash {meta.get('spec_hash', '?')[:12]}); "
-                        "delete it or run without --resume")
-    with np.load(ck / meta["state_file"]) as z:
-        leaves = [z[f"arr_{i}"] for i in range(len(z.files))]
+    try:
+        with np.load(ck / meta["state_file"]) as z:
+            leaves = [z[f"arr_{i}"] for i in range(len(z.files))]
+    except (OSError, ValueError, KeyError) as e:
+        raise CheckpointError(f"{ck}: damaged checkpoint ({meta['state_file']}: {e}); delete {ck} or run "
+                              "without --resume to start over") from None
     treedef = jax.tree_util.tree_structure(state_like)
-    if treedef.num_leaves != len(leaves):
-        raise WbcJaxError(f"{ck}: checkpoint does not match this version's rollout state; delete it")
+    like = jax.tree_util.tree_leaves(state_like)
+    if treedef.num_leaves != len(leaves) or any(x.shape != a.shape for x, a in zip(leaves, like)):
+        raise CheckpointError(f"{ck}: checkpoint does not match this version's rollout state; delete {ck} or "
+                              "run without --resume to start over")
     # placed like the fresh state (committed to its device where that is): an uncommitted leaf changes the lowered
     # program's input shardings, so the chunk function would compile a second time and miss the compilation cache
-    like = jax.tree_util.tree_leaves(state_like)
     out = [jax.device_put(x, a.sharding) if getattr(a, "committed", False) else jnp.asarray(x)
            for x, a in zip(leaves, like)]
     return jax.tree_util.tree_unflatten(treedef, out), meta
@@ -168,16 +295,29 @@ def _versions() -> dict:
     return out
 
 
-def _git_commit() -> str | None:
-    """HEAD of the checkout this package runs from, with ``-dirty`` when tracked files differ from it (a copied
-    working tree whose ``.git`` is stale then says so); None outside a git checkout."""
-    here = Path(__file__).resolve().parent
+def _git_commit(package_dir: Path | None = None) -> str | None:
+    """HEAD of this project's checkout, with ``-dirty`` when tracked files differ from it; None when the package
+    is not in its own repository (outside git, or inside another repository that does not track this package).
+
+    Args:
+        package_dir: the ``wbc_jax`` folder (default: this package's).
+    """
+    pkg = (package_dir or Path(__file__).resolve().parents[1]).resolve()
     try:
-        r = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5)
+        top = subprocess.run(["git", "rev-parse", "--show-toplevel"], cwd=pkg, capture_output=True, text=True,
+                             timeout=5)
+        root = Path(top.stdout.strip()).resolve() if top.returncode == 0 and top.stdout.strip() else None
+        if root is None or pkg.parent != root:  # the project's root holds wbc_jax/ (pyproject.toml beside it)
+            return None
+        tracked = subprocess.run(["git", "ls-files", "--error-unmatch", "wbc_jax/__init__.py", "pyproject.toml"],
+                                 cwd=root, capture_output=True, text=True, timeout=5)
+        if tracked.returncode != 0:
+            return None
+        r = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=5)
         head = r.stdout.strip()
         if r.returncode != 0 or not head:
             return None
-        st = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here, capture_output=True,
+        st = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root, capture_output=True,
                             text=True, timeout=10)
         return head + ("-dirty" if st.returncode != 0 or st.stdout.strip() else "")
     except (OSError, subprocess.SubprocessError):
@@ -201,16 +341,24 @@ def results_table(spec: Spec, dz: Design, res: dict):
 
 
 def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: bool = True,
-                 progress: bool = True, gains=None, _interrupt_after: int | None = None) -> dict:
+                 progress: bool = True, gains=None, _interrupt_after: int | None = None, *, force: bool = False,
+                 allow_large: bool = False, inputs: tuple = ()) -> dict:
     """Run a campaign and write DIR (see module docstring). Returns the manifest.
 
     Args:
         spec_path: TOML spec; None: :func:`wbc_jax.study.spec.default_spec_path` for this machine.
-        out: output directory (replaced atomically on success).
+        out: output directory: new or empty, or an earlier campaign's with ``force``.
         resume: continue from the checkpoint next to DIR if there is one.
         report: also write the ANOVA report (``report/``).
-        gains: controller gains (unbatched TransportGains) instead of the defaults (Python API only).
+        gains: controller gains (unbatched TransportGains) instead of the defaults.
         _interrupt_after: testing hook: raise KeyboardInterrupt after this many chunks (checkpoint kept).
+        force: replace DIR when it holds an earlier campaign.
+        allow_large: run even when the memory estimate (:func:`check_size`) exceeds what is available.
+        inputs: further input files (e.g. the gains file) that DIR must not hold.
+
+    Raises:
+        OutputError, LimitError, CheckpointError, SpecError: before anything is compiled.
+        ReportError: the report failed after results.csv and manifest.json were written.
     """
     t_import = time.perf_counter()
     import wbc_jax.sim.batch  # noqa: F401  (MJX, the controllers, the planner: timed apart from setup)
@@ -218,14 +366,18 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
 
     t_start = time.perf_counter()
     spec = load_spec(spec_path if spec_path is not None else default_spec_path(has_accelerator()))
-    out_p = Path(out).absolute()
+    out_p = check_out_dir(out, COMMAND, force=force, inputs=[spec.path, *inputs])
+    check_size(spec, allow_large)
     ck = _ckpt_dir(out_p)
+    identity = run_identity(spec, gains)
+    if resume:  # meta.json and the identity before the build and the compile; the state file after the build
+        read_ckpt_meta(ck, identity, _n_chunks_hint(ck))
     sim, dz, b, T_plan, logs_per_chunk, n_chunks = build(spec, gains)
     chunk_s = logs_per_chunk * LOG_EVERY * sim.dt_control
     seconds = n_chunks * chunk_s
     state, done, wall_before, marks, p_goal = b.state, 0, 0.0, [], None
     if resume:
-        st, meta = _load_ckpt(ck, b.state, spec.hash, dz.n)
+        st, meta = _load_ckpt(ck, b.state, identity, n_chunks)
         if st is not None:
             state, done, wall_before, marks = st, meta["chunks_done"], meta["wall_s"], meta["marks"]
             p_goal = np.asarray(meta["p_goal"]) if meta.get("p_goal") is not None else None
@@ -258,7 +410,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
             marks.append(dict(chunk=done, wall_s=dt_wall, fresh_process=first_in_process))
             first_in_process = False
             p_goal = np.asarray(logs.p_obj_ref[:, -1])
-            _save_ckpt(ck, state, dict(spec_hash=spec.hash, n_runs=dz.n, chunks_done=done, n_chunks=n_chunks,
+            _save_ckpt(ck, state, dict(identity=identity, chunks_done=done, n_chunks=n_chunks,
                                        wall_s=wall_before + time.perf_counter() - t_run, marks=marks,
                                        p_goal=p_goal.tolist()))
             if bar is not None:
@@ -304,7 +456,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
             for f in failed_runs[:10]) + (" ..." if len(failed_runs) > 10 else "") + " (all: manifest failed_runs)")
     manifest = dict(
         command="wbc-jax campaign", spec_path=str(spec.path), spec_hash=spec.hash, spec_file_sha256=spec.text_sha256,
-        spec=spec.canonical(), default_gains=gains is None, versions=_versions(), git_commit=_git_commit(),
+        spec=spec.canonical(), default_gains=gains is None, gains_hash=identity["gains_hash"], versions=_versions(), git_commit=_git_commit(),
         device=dict(backend=jax.default_backend(), kind=jax.devices()[0].device_kind, count=jax.device_count(),
                     host=platform.node(), cpu_count=os.cpu_count()),
         n_runs=dz.n, n_cells=int(len(cells)), reps=spec.reps, seeds=[int(s) for s in dz.seed],
@@ -315,27 +467,46 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         resumed=bool(resume and wall_before > 0), n_success=int(df.success.sum()), failures_per_cell=failures, failed_runs=failed_runs,
         warnings=warnings, metric_means={k: float(df.loc[df.success, k].mean()) if df.success.any() else None
                                          for k in ("R", "T", "S", "max_slip_mm")})
-    with atomic_dir(out_p) as tmp:
+    with atomic_dir(out_p) as tmp:  # the finished simulation first: a failing report cannot lose it
         df.to_csv(tmp / "results.csv", index=False)
-        if report:
-            from wbc_jax.analysis.report import run_report
-
-            try:
-                run_report(str(tmp / "results.csv"), str(tmp / "report"), metrics=["R", "T", "S"])
-                if warnings:
-                    md = tmp / "report" / "report.md"
-                    md.write_text("".join(f"> **Campaign warning:** {w}\n\n" for w in warnings) + md.read_text())
-            except WbcJaxError as e:  # keep the results; say why there is no report
-                manifest["warnings"].append(f"no report: {e}")
-                (tmp / "report_error.txt").write_text(str(e) + "\n")
         manifest["wall_s_total"] = time.perf_counter() - t_import + wall_before
         write_json_atomic(tmp / "manifest.json", manifest)
     shutil.rmtree(ck, ignore_errors=True)
+    if report:
+        _campaign_report(out_p, manifest, warnings)
     for w in manifest["warnings"]:
         print(f"warning: {w}", flush=True)
     print(f"{int(df.success.sum())}/{dz.n} runs succeeded; wall {manifest['wall_s_total']:.1f} s, "
           f"{eps:,.0f} env-steps/s; written to {out}", flush=True)
     return manifest
+
+
+def _n_chunks_hint(ck: Path) -> int:
+    """The chunk count a checkpoint's meta.json claims (checked again against the build); 0 when unreadable."""
+    try:
+        return int(json.loads((ck / "meta.json").read_text())["n_chunks"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0
+
+
+def _campaign_report(out: Path, manifest: dict, warnings: list[str]) -> None:
+    """The ANOVA report of ``out/results.csv`` into ``out/report``; a failure is written to
+    ``out/report_error.txt`` and the manifest, and raised as a one-line ReportError (the results stay)."""
+    from wbc_jax.analysis.report import CAMPAIGN_METRICS, run_report
+
+    try:
+        run_report(str(out / "results.csv"), str(out / "report"), metrics=list(CAMPAIGN_METRICS))
+        if warnings:
+            md = out / "report" / "report.md"
+            md.write_text("".join(f"> **Campaign warning:** {w}\n\n" for w in warnings) + md.read_text())
+    except Exception as e:  # noqa: BLE001  (any failure of the statistics: the finished simulation is kept)
+        why = " ".join(f"{type(e).__name__ + ': ' if not isinstance(e, WbcJaxError) else ''}{e}".split())
+        (out / "report_error.txt").write_text(why + "\n")
+        manifest["warnings"].append(f"no report: {why}")
+        write_json_atomic(out / "manifest.json", manifest)
+        raise ReportError(f"the simulation finished and {out}/results.csv and manifest.json are written, but the "
+                          f"report failed ({why}); retry with wbc-jax report {out}/results.csv --out "
+                          f"{out}/report") from None
 
 
 def run_in_fresh_process(spec_path, out: Path, **env) -> Path:

@@ -84,7 +84,7 @@ def run_demo(out: str, scene: str = "transport", seconds: float | None = None, a
                    env_steps_per_s=_steps_per_s(marks, len(cells), sim.dt_control),
                    compile_and_first_chunk_s=marks[0][1],
                    device=jax.devices()[0].device_kind)
-    with atomic_dir(out) as tmp:
+    with atomic_dir(out, command="wbc-jax demo") as tmp:
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2))
         import pandas as pd
 

@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from wbc_jax.errors import SpecError
+from wbc_jax.errors import InputError, SpecError
+from wbc_jax.io_utils import read_capped
 from wbc_jax.study.spec import _err, _number
 
 GAIN_MAX = 1e9  # largest accepted value of any leaf (a typo guard, far above any sensible gain)
@@ -111,8 +112,8 @@ def parse_gains(data: dict, path: str = "<gains>"):
 def load_gains(path: str | Path):
     """Read and validate a gains TOML file (module docstring). Raises SpecError (one line: file, key)."""
     try:
-        text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
+        text = read_capped(path, what="gains").decode("utf-8")
+    except (OSError, UnicodeDecodeError, InputError) as e:
         raise SpecError(f"{path}: cannot read gains file ({getattr(e, 'strerror', None) or e})") from None
     try:
         data = tomllib.loads(text)

@@ -15,8 +15,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from wbc_jax.errors import SpecError, WbcJaxError
-from wbc_jax.io_utils import write_json_atomic
+from wbc_jax.errors import InputError, SpecError, WbcJaxError
+from wbc_jax.io_utils import read_capped, write_json_atomic
 from wbc_jax.study.campaign import run_campaign, run_in_fresh_process
 from wbc_jax.study.spec import load_spec
 
@@ -107,6 +107,42 @@ def compare(baseline: dict, cells: list[dict]) -> list[dict]:
     return moved
 
 
+def load_baseline(base_p: Path) -> dict:
+    """Read and check ``baseline.json``: a ``tolerance`` (rel, abs >= 0 per metric of REGRESS_METRICS), a list of
+    ``cells`` (m, mu, d, n_success and each metric a number or null) and the ``spec_hash``.
+
+    Raises:
+        WbcJaxError: one line naming the file and the first problem.
+    """
+    def bad(what):
+        return WbcJaxError(f"{base_p}: not a valid baseline file ({what}); recreate it with wbc-jax regress "
+                           f"--baseline {base_p.parent} --update")
+
+    def num(v):
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+
+    try:
+        b = json.loads(read_capped(base_p, what="baseline"))
+    except (OSError, InputError) as e:
+        raise bad(f"cannot read it: {getattr(e, 'strerror', None) or e}") from None
+    except ValueError as e:
+        raise bad(f"not JSON: {e}") from None
+    if not isinstance(b, dict) or not isinstance(b.get("tolerance"), dict) or not isinstance(b.get("cells"), list):
+        raise bad("expected keys tolerance, cells")
+    if not isinstance(b.get("spec_hash"), str):
+        raise bad("expected key spec_hash")
+    for k in REGRESS_METRICS:
+        t = b["tolerance"].get(k)
+        if not (isinstance(t, dict) and num(t.get("rel")) and num(t.get("abs")) and t["rel"] >= 0 and t["abs"] >= 0):
+            raise bad(f"tolerance.{k}: expected rel and abs numbers >= 0")
+    for i, c in enumerate(b["cells"]):
+        if not (isinstance(c, dict) and all(num(c.get(k)) for k in ("m", "mu", "d", "n_success"))
+                and all(c.get(k) is None or num(c.get(k)) for k in REGRESS_METRICS)
+                and (c.get("noise") is None or isinstance(c["noise"], dict))):
+            raise bad(f"cells[{i}]: expected m, mu, d, n_success numbers and metric numbers or null")
+    return b
+
+
 def run_regress(baseline_dir: str, update: bool = False, gains=None, out: str | None = None) -> tuple[int, list]:
     """Rerun the baseline's stored spec (``DIR/spec.toml``) and compare per-cell metric means with
     ``DIR/baseline.json`` (means + tolerance band). Returns (exit code: 0 pass / 1 moved, moved rows).
@@ -119,15 +155,13 @@ def run_regress(baseline_dir: str, update: bool = False, gains=None, out: str | 
         raise SpecError(f"{bdir}: no spec.toml in the baseline directory")
     base_p = bdir / "baseline.json"
     baseline = None
-    if base_p.exists():
-        try:
-            baseline = json.loads(base_p.read_text())
-            baseline["tolerance"], baseline["cells"]  # noqa: B018
-        except (ValueError, KeyError, TypeError):
-            raise WbcJaxError(f"{base_p}: not a baseline file (expected keys tolerance, cells)") from None
+    if base_p.exists():  # checked before anything is rerun
+        baseline = load_baseline(base_p)
     elif not update:
         raise WbcJaxError(f"{base_p}: missing; create it with wbc-jax regress --baseline {bdir} --update")
     spec = load_spec(spec_p)
+    if baseline is not None and not update and baseline["spec_hash"] != spec.hash:
+        raise WbcJaxError(f"{spec_p}: spec changed since the baseline was stored; rerun with --update")
     with tempfile.TemporaryDirectory() as td:
         run_dir = Path(out) if out else Path(td) / "run"
         run_campaign(str(spec_p), str(run_dir), report=False, progress=False, gains=gains)
@@ -146,8 +180,6 @@ def run_regress(baseline_dir: str, update: bool = False, gains=None, out: str | 
                                             f"{NOISE_FACTOR} x noise"))
         print(f"baseline written to {base_p} ({len(cells)} cells)")
         return 0, []
-    if baseline.get("spec_hash") != spec.hash:
-        raise WbcJaxError(f"{spec_p}: spec changed since the baseline was stored; rerun with --update")
     moved = compare(baseline, cells)
     if moved:
         print(f"REGRESSION: {len(moved)} metric mean(s) left the tolerance band of {base_p}:")

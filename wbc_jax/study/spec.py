@@ -50,7 +50,8 @@ from pathlib import Path
 
 import numpy as np
 
-from wbc_jax.errors import SpecError
+from wbc_jax.errors import InputError, SpecError
+from wbc_jax.io_utils import read_capped
 
 SWEEPS = Path(__file__).resolve().parents[2] / "sweeps"
 
@@ -198,12 +199,14 @@ def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
 
 
 def load_spec(path: str | Path) -> Spec:
-    """Read and validate a TOML spec. Raises SpecError (one line: file, key, expected) on any problem."""
-    p = Path(path)
+    """Read and validate a TOML spec (at most 1 MiB). Raises SpecError (one line: file, key, expected) on any
+    problem."""
     try:
-        raw = p.read_bytes()
+        raw = read_capped(path, what="spec")
     except OSError as e:
         raise SpecError(f"{path}: cannot read spec file ({e.strerror or e})") from None
+    except InputError as e:
+        raise SpecError(str(e)) from None
     try:
         data = tomllib.loads(raw.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:

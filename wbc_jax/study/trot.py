@@ -194,16 +194,18 @@ def simulate(sim: TrotSim, rs: TrotRun, plan: CPWalkPlan, R0, gains: CentroidalG
 
 def validate(seconds, stride, step_time, t_four, mass_errors, iters):
     """Raise WbcJaxError on values the study cannot run with."""
-    if not seconds > 0:
-        raise WbcJaxError(f"--seconds = {seconds}: expected > 0")
+    if not 0 < seconds <= 600:  # finite and bounded: a day of simulated walking would not fit in memory
+        raise WbcJaxError(f"--seconds = {seconds}: expected 0 < value <= 600 [s]")
     if not 0 < stride <= 0.2:
         raise WbcJaxError(f"--stride = {stride}: expected 0 < stride <= 0.2 m")
+    if not 0.02 <= step_time <= 2.0:
+        raise WbcJaxError(f"--step-time = {step_time}: expected 0.02 <= value <= 2.0 [s]")
     if not 0 < t_four < step_time:
         raise WbcJaxError(f"--step-time = {step_time}, --four-foot = {t_four}: expected 0 < four-foot < step time")
     if not mass_errors or any(not -0.5 < e < 1.0 for e in mass_errors):
         raise WbcJaxError(f"--mass-errors = {list(mass_errors)}: expected one or more values in (-0.5, 1.0)")
-    if iters < 1:
-        raise WbcJaxError(f"--iters = {iters}: expected >= 1")
+    if not 1 <= iters <= 1000:
+        raise WbcJaxError(f"--iters = {iters}: expected 1 <= value <= 1000")
 
 
 def run_trot(out: str, seconds: float = 10.0, stride: float = 0.10, step_time: float = 0.25, t_four: float = 0.08,
@@ -273,7 +275,7 @@ def run_trot(out: str, seconds: float = 10.0, stride: float = 0.10, step_time: f
                       env_steps_per_s_after_compile=steps_s, device=jax.devices()[0].device_kind,
                       jax=jax.__version__, mujoco=mujoco.__version__, python=platform.python_version()),
     )
-    with atomic_dir(out) as tmp:
+    with atomic_dir(out, command="wbc-jax trot") as tmp:
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2))
         plot_figures(tmp, logs, plan, mass_errors, i0, ids, t_start, t_end)
     for r in runs:

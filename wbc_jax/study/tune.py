@@ -644,7 +644,7 @@ SUMMARY = ("round", "slot", "kind", "objective", "R", "R_norm", "S", "S_norm", "
 
 
 def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rounds: int | None = None,
-             progress: bool = True) -> dict:
+             progress: bool = True, force: bool = False) -> dict:
     """Run a gain search and write DIR (module docstring). Returns the manifest.
 
     Args:
@@ -656,10 +656,11 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
 
     from wbc_jax.study import campaign
     from wbc_jax.study.gains import gains_toml
-    from wbc_jax.io_utils import atomic_dir, write_json_atomic
+    from wbc_jax.io_utils import atomic_dir, check_out_dir, write_json_atomic
 
     t_start = time.perf_counter()
     spec = load_tune_spec(spec_path if spec_path is not None else DEFAULT_SPEC).with_overrides(candidates, rounds)
+    check_out_dir(out, "wbc-jax tune", force=force, inputs=[spec.path])  # force: replace an earlier tune's DIR
     space = Space(spec)
     search = make_search(spec, space)
     C, R, t = search.C, search.rounds, spec.tune
