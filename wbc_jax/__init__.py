@@ -1,4 +1,13 @@
-"""wbc_jax: batched whole-body control of legged manipulators in MuJoCo MJX."""
+"""wbc_jax: batched whole-body control of legged manipulators in MuJoCo MJX.
+
+Python entry points (``wbc_jax.api``; loaded on first use, so ``import wbc_jax`` stays light and does not
+import JAX):
+
+- :func:`run_campaign` (spec_path, out): a factorial campaign as one batched rollout, with its report;
+- :func:`load_spec` (path): a validated campaign spec;
+- :func:`load_results` (path): a campaign's ``results.csv`` as a DataFrame;
+- :func:`report` (results_csv, out): the ANOVA report of a results table.
+"""
 
 import os as _os
 
@@ -8,3 +17,16 @@ if "MUJOCO_GL" not in _os.environ and not _os.environ.get("DISPLAY"):
     _os.environ["MUJOCO_GL"] = "egl"
 
 __version__ = "0.1.0"
+__all__ = ["load_results", "load_spec", "report", "run_campaign"]
+
+
+def __getattr__(name: str):
+    if name in __all__:
+        from wbc_jax import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'wbc_jax' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(list(globals()) + __all__)

@@ -1,6 +1,8 @@
 """Campaign specs (``sweeps/*.toml``): loading with stdlib ``tomllib``, validation, the design table.
 
-A spec has three tables (every key optional except ``factors``; defaults below)::
+A spec has three tables (every key optional except ``factors``; an example with the shipped specs' values below;
+every key's default, unit and range: ``docs/specs.md``, generated from the key tables ``CAMPAIGN``, ``FACTORS`` and
+``PERTURBATIONS`` by :mod:`wbc_jax.study.spec_docs`)::
 
     [campaign]                 # what is simulated
     name = "paper"             # free text
@@ -55,8 +57,9 @@ from wbc_jax.io_utils import read_capped
 
 SWEEPS = Path(__file__).resolve().parents[2] / "sweeps"
 
+# The validator's key tables (docs/specs.md is generated from them: wbc_jax.study.spec_docs).
 # key: (type, default, lo, hi, lo_open, unit/description)
-_CAMPAIGN = {
+CAMPAIGN = {
     "name": (str, "campaign", None, None, False, "text"),
     "reps": (int, 10, 1, 1000, False, "repetitions per cell"),
     "seed": (int, 0, 0, 2**32 - 1, False, "base seed"),
@@ -70,8 +73,9 @@ _CAMPAIGN = {
                          "physics steps per control step (zero-order hold); 1 = control at the physics rate"),
     "chunk_seconds": (float, 2.0, 0.02, 60.0, False, "[s]"),
 }
-_FACTORS = {"m": (0.0, 20.0, "[kg]"), "mu": (0.0, 5.0, "[-]"), "d": (0.008, 0.2, "[m]")}
-_PERTURB = {
+# key: (lo, hi, unit); each level in lo < value <= hi
+FACTORS = {"m": (0.0, 20.0, "[kg]"), "mu": (0.0, 5.0, "[-]"), "d": (0.008, 0.2, "[m]")}
+PERTURBATIONS = {
     "object_xy_mm": (float, 0.0, 0.0, 20.0, False, "[mm]"),
     "object_yaw_deg": (float, 0.0, 0.0, 30.0, False, "[deg]"),
     "base_speed_std": (float, 0.0, 0.0, 0.5, False, "[m/s]"),
@@ -171,7 +175,7 @@ def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
     unknown = sorted(set(data) - {"campaign", "factors", "perturbations"})
     if unknown:
         raise _err(path, unknown[0], "unknown table; expected campaign, factors, perturbations")
-    camp = _table(path, "campaign", data.get("campaign", {}), _CAMPAIGN)
+    camp = _table(path, "campaign", data.get("campaign", {}), CAMPAIGN)
     if camp["scene"] not in SCENES:
         raise _err(path, "campaign.scene", f"= {camp['scene']!r}: expected one of {', '.join(SCENES)}")
     if "factors" not in data:
@@ -179,11 +183,11 @@ def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
     raw_f = data["factors"]
     if not isinstance(raw_f, dict):
         raise _err(path, "factors", "expected a table")
-    unknown = sorted(set(raw_f) - set(_FACTORS))
+    unknown = sorted(set(raw_f) - set(FACTORS))
     if unknown:
-        raise _err(path, f"factors.{unknown[0]}", f"unknown factor; expected {', '.join(_FACTORS)}")
+        raise _err(path, f"factors.{unknown[0]}", f"unknown factor; expected {', '.join(FACTORS)}")
     factors = {}
-    for key, (lo, hi, unit) in _FACTORS.items():
+    for key, (lo, hi, unit) in FACTORS.items():
         full = f"factors.{key}"
         if key not in raw_f:
             raise _err(path, full, f"missing; expected a list of levels in {lo} < value <= {hi} {unit}")
@@ -194,7 +198,7 @@ def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
         if len(set(levels)) != len(levels):
             raise _err(path, full, f"= {v}: levels must be distinct")
         factors[key] = levels
-    pert = _table(path, "perturbations", data.get("perturbations", {}), _PERTURB)
+    pert = _table(path, "perturbations", data.get("perturbations", {}), PERTURBATIONS)
     return Spec(path=str(path), campaign=camp, factors=factors, perturbations=pert, text_sha256=text_sha256)
 
 

@@ -1,0 +1,90 @@
+"""The Python entry points: run a campaign from a spec, load its results, write the ANOVA report.
+
+They are what the ``wbc-jax campaign`` and ``wbc-jax report`` commands call, and are re-exported as
+``wbc_jax.run_campaign``, ``wbc_jax.load_spec``, ``wbc_jax.load_results`` and ``wbc_jax.report``. Only
+:func:`run_campaign` imports JAX (when it is called); loading results and reporting do not. Example::
+
+    import wbc_jax
+
+    wbc_jax.run_campaign("sweeps/quick.toml", "out/campaign")   # results.csv, report/, manifest.json
+    df = wbc_jax.load_results("out/campaign")                   # one row per run
+    summary = wbc_jax.report("out/campaign/results.csv", "out/report")
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def load_spec(path: str | Path):
+    """Read and validate a campaign spec (``sweeps/*.toml``; keys in ``docs/specs.md``).
+
+    Returns:
+        The validated :class:`wbc_jax.study.spec.Spec` (defaults filled in).
+
+    Raises:
+        wbc_jax.errors.SpecError: one line naming the file, the key and the expected range.
+    """
+    from wbc_jax.study.spec import load_spec as _load
+
+    return _load(path)
+
+
+def run_campaign(spec_path: str | Path | None, out: str | Path, *, gains: str | Path | None = None,
+                 **options) -> dict:
+    """Run a campaign spec as one batched rollout and write ``out`` (``wbc-jax campaign``).
+
+    Args:
+        spec_path: campaign spec; None picks ``sweeps/quick.toml`` on a CPU-only machine and
+            ``sweeps/paper_campaign.toml`` when an accelerator is present.
+        out: output directory: ``results.csv``, ``report/``, ``manifest.json`` (replaced atomically on success).
+        gains: optional gains TOML (``best_gains.toml`` of ``wbc-jax tune``) instead of the default gains.
+        **options: passed to :func:`wbc_jax.study.campaign.run_campaign`, e.g. ``resume=True``,
+            ``report=False``, ``progress=False``.
+
+    Returns:
+        The campaign manifest (the content of ``manifest.json``).
+
+    Raises:
+        wbc_jax.errors.SpecError: a bad spec or gains file, before anything runs.
+    """
+    from wbc_jax.study.campaign import run_campaign as _run
+
+    if gains is not None:
+        from wbc_jax.study.gains import load_gains
+
+        options["gains"] = load_gains(gains)
+    return _run(None if spec_path is None else str(spec_path), str(out), **options)
+
+
+def load_results(path: str | Path):
+    """A campaign's results table as a pandas DataFrame, one row per run.
+
+    Args:
+        path: a ``results.csv`` or a campaign output directory holding one.
+
+    Raises:
+        wbc_jax.errors.InputError: the file is missing, empty or not a CSV.
+    """
+    from wbc_jax.analysis.report import read_results
+
+    p = Path(path)
+    _, df = read_results(str(p / "results.csv" if p.is_dir() else p))
+    return df
+
+
+def report(results_csv: str | Path, out: str | Path, **options) -> dict:
+    """Write the ANOVA report of a results table into ``out`` (``wbc-jax report``).
+
+    Args:
+        results_csv: results table, one row per run (a campaign's ``results.csv``).
+        out: output directory (``report.md``, ``report.html``, ``anova.json``, figures; replaced atomically).
+        **options: passed to :func:`wbc_jax.analysis.report.run_report`: ``alpha``, ``factors``,
+            ``metrics``, ``figures``, ``ss_type``, ``order``.
+
+    Returns:
+        The content of ``anova.json``: per metric the ANOVA rows, significant terms, assumption tests.
+    """
+    from wbc_jax.analysis.report import run_report
+
+    return run_report(str(results_csv), str(out), **options)
