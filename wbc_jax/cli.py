@@ -49,6 +49,18 @@ def _check_bench_args(args: argparse.Namespace) -> list[int] | None:
             variants([args.qp])
         except ValueError as e:
             raise InputError(f"--qp: {e}") from None
+    if args.what == "rollout":
+        from wbc_jax.sim.physics import BACKENDS, resolve_backend
+
+        names = [x for x in str(args.backend).split(",") if x]
+        try:
+            if not names:
+                raise ValueError("empty list")
+            for x in names:
+                resolve_backend(x)
+        except ValueError as e:
+            raise InputError(f"--backend {args.backend!r}: {e} (expected a comma-separated list of "
+                             f"{', '.join(BACKENDS)})") from None
     return sizes
 
 
@@ -65,9 +77,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "rollout":
         from wbc_jax.bench.rollout import run_bench as run_rollout_bench
 
+        backends = tuple(x for x in args.backend.split(",") if x)
         batches = sizes or ((1, 4) if args.quick else CPU_BATCHES["rollout"] if cpu else (1, 1024, 4096, 16384))
         run_rollout_bench(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json, scene=args.scene,
-                          qp=args.qp, substeps=args.substeps, campaign=args.campaign)
+                          qp=args.qp, substeps=args.substeps, campaign=args.campaign, backends=backends)
         return 0
     if args.what == "profile":
         from wbc_jax.bench.rollout import run_profile
@@ -157,7 +170,7 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
         gains = load_gains(args.gains)  # validated before anything runs or is written
         print(f"gains from {args.gains}", flush=True)
     run_campaign(args.spec, args.out, resume=args.resume, report=not args.no_report, gains=gains, force=args.force,
-                 allow_large=args.allow_large, inputs=(args.gains,) if args.gains else ())
+                 allow_large=args.allow_large, inputs=(args.gains,) if args.gains else (), backend=args.backend)
     return 0
 
 
@@ -204,6 +217,9 @@ def build_parser() -> argparse.ArgumentParser:
                                           "iterations, rho adapted every K (0: never), R Ruiz passes, the fused Pallas "
                                           "kernel with W warps); overrides --iters")
     b.add_argument("--substeps", type=int, default=1, help="rollout: physics steps per control step (default 1)")
+    b.add_argument("--backend", default="jax",
+                   help="rollout: MJX physics implementation(s), comma-separated, each measured in this one run: "
+                        "'jax' (default), 'warp', 'auto', e.g. jax,warp")
     b.add_argument("--scene", default="flat", help="rollout: 'flat' (default), 'transport' or a scene XML path")
     b.add_argument("--variants", default=None, help="profile: comma-separated variants (default wbc_1,wbc_n,"
                                                     "wbc_n_norefactor,wbc_n_chol,wbc_n_pallas; also wbc_n_inv, "
@@ -239,6 +255,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--no-report", action="store_true", help="skip the ANOVA report")
     c.add_argument("--gains", default=None, help="controller gains TOML (e.g. best_gains.toml of wbc-jax tune) "
                                                  "instead of the defaults")
+    c.add_argument("--backend", choices=("auto", "jax", "warp"), default=None,
+                   help="MJX physics implementation (default: the spec's campaign.backend, itself 'auto': Warp on a "
+                        "CUDA GPU with warp-lang, else JAX)")
     c.add_argument("--allow-large", action="store_true", help="run even when the memory estimate of the batch "
                                                               "exceeds the available memory")
     c.set_defaults(func=_cmd_campaign)

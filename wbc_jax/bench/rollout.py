@@ -57,13 +57,16 @@ def _peak_bytes() -> int | None:
 
 
 def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30, json_path: str | None = None,
-              scene: str = "flat", qp: str | None = None, substeps: int = 1, campaign: str | None = None):
+              scene: str = "flat", qp: str | None = None, substeps: int = 1, campaign: str | None = None,
+              backends=("jax",)):
     """Physics-only and physics + WBC env-steps/s per batch size (see module docstring).
 
     An env-step is one physics step (``robot``'s timestep); with ``substeps`` > 1 the controller runs once per
     ``substeps`` physics steps (zero-order hold), so ``steps`` control steps are ``steps * substeps`` env-steps.
 
     Args:
+        backends: MJX physics implementations to measure, each at every batch size ("jax", "warp"; "auto"
+            resolved), in this one process, so their ratios are read from one run.
         qp: control-loop ADMM variant name (``wbc_jax.bench.qp_audit.variants``, e.g. ``"it20_a0"``); None: ``iters``
             iterations with the control loop's default settings.
         campaign: a campaign spec (e.g. ``sweeps/paper_campaign.toml``) also run end to end, twice, in fresh
@@ -80,15 +83,17 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         load_spec(campaign)  # a bad spec fails here (file, key, range), before any timing
     from wbc_jax.bench.qp_audit import variants
 
-    robot = Robot(scene)
+    from wbc_jax.sim.physics import resolve_backend
+
     qs = variants([qp])[qp] if qp else control_qp_settings(iters)
     iters = qs.iters
-    sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=qs),
-                   n_substeps=substeps, log_every=steps)
     device = jax.devices()[0].device_kind
     n_env = steps * substeps  # env-steps per run per timed call
     rows = []
-    for B in batches:
+    for backend, B in [(resolve_backend(k), B) for k in backends for B in batches]:
+        robot = Robot(scene, backend=backend)
+        sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=qs),
+                       n_substeps=substeps, log_every=steps)
         b = random_batch(sim, B)
         f_phys = physics_only_fn(b, n_env)
         d0 = b.state.d
@@ -97,17 +102,17 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         f_wbc, args = wbc_chunk_fn(sim, b)
         _, c_wbc = _timed(f_wbc, *args)
         _, t_wbc = _timed(f_wbc, *args)
-        row = dict(device=device, scene=robot.path.name, batch=B, steps=steps, substeps=substeps, qp_iters=iters,
+        row = dict(device=device, backend=backend, scene=robot.path.name, batch=B, steps=steps, substeps=substeps, qp_iters=iters,
                    qp=qp or f"it{iters}", adapt_every=qs.adapt_every, ruiz_iters=qs.ruiz_iters,
                    peak_device_bytes=_peak_bytes(), physics_steps_per_s=B * n_env / t_phys,
                    wbc_steps_per_s=B * n_env / t_wbc, ratio=t_phys / t_wbc, compile_physics_s=c_phys - t_phys,
                    compile_wbc_s=c_wbc - t_wbc)
-        print(f"{device} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   physics+WBC "
+        print(f"{device} {backend:4s} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   physics+WBC "
               f"{row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   compile {row['compile_wbc_s']:.1f} s"
               + (f"   peak memory {row['peak_device_bytes'] / 2**30:.2f} GiB" if row["peak_device_bytes"] else ""),
               flush=True)
         n_dev = len(jax.devices())
-        if n_dev > 1:  # the same batch with the run axis sharded over every local device
+        if n_dev > 1 and backend == "jax":  # the same batch with the run axis sharded over every local device
             bs, _ = shard_batch(b)
             sargs = (bs.model, bs.state, bs.plan, bs.om, bs.gains, bs.push, bs.mu_ground)
             _timed(f_wbc, *sargs)

@@ -237,6 +237,8 @@ def _export(store: Path, name: str, key: str, fn: Callable, in_tree, leaves) -> 
         exp = jax.export.export(jax.jit(flat), disabled_checks=[
             jax.export.DisabledSafetyCheck.custom_call(t) for t in _UNGUARANTEED_CALLS])(*specs)
     except Exception as e:  # a program export cannot hold: plain jit (only warm starts are lost)
+        if "custom calls whose targets have no compatibility guarantees" in str(e):
+            return None  # expected for MuJoCo Warp's kernels (FFI calls registered per process): quietly plain jit
         warnings.warn(f"wbc_jax.sim.aot: {name} not exported ({type(e).__name__}: {str(e)[:200]}); using plain jit")
         return None
     try:

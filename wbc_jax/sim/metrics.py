@@ -101,7 +101,8 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
     Returns:
         dict of (B,) arrays: R [rad^2], T [m], S [s^2/m] (time averages over acc.n_steps x dt), max_slip_mm,
         boundary_fraction (of the physics steps), flags fell (= trunk_low or body_contact),
-        trunk_low, body_contact, dropped, slid, hit_wall, qp_flagged, nonfinite, success (no fall, no drop, finite,
+        trunk_low, body_contact, dropped, slid, hit_wall, qp_flagged, nonfinite, overflow (Warp's contact or
+        constraint capacity reached), success (no fall, no drop, finite, no overflow,
         final object error <= DONE_TOL) and fail_reason (text, "" for a success).
     """
     n = np.asarray(acc.n_steps, float)
@@ -128,9 +129,10 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
         hit_wall=np.asarray(acc.wall_contact),
         qp_flagged=np.asarray(acc.n_flag) / np.maximum(n, 1) > QP_FLAG_FRACTION,
         nonfinite=nonfinite,
+        overflow=np.asarray(acc.overflow),
         final_err_mm=final_err * 1e3,
     )
-    bad = out["fell"] | dropped | nonfinite | ~np.isfinite(final_err) | (final_err > DONE_TOL)
+    bad = out["fell"] | dropped | nonfinite | out["overflow"] | ~np.isfinite(final_err) | (final_err > DONE_TOL)
     for k in ("R", "T", "S"):
         bad |= ~np.isfinite(out[k])
     out["success"] = ~bad
@@ -142,7 +144,8 @@ def fail_reasons(out: dict, final_err) -> np.ndarray:
     """(B,) text per run: why it failed ("" for a success), e.g. "body contact" for a non-foot robot part (knee,
     shin, trunk, arm) touching the floor or terrain with the trunk still up."""
     parts = [("nonfinite", "non-finite state"), ("trunk_low", "trunk below the fall height"),
-             ("body_contact", "body contact with floor/terrain"), ("dropped", "object dropped")]
+             ("body_contact", "body contact with floor/terrain"), ("dropped", "object dropped"),
+             ("overflow", "contact capacity overflow (Warp)")]
     reasons = []
     for i in range(len(out["success"])):
         r = [text for k, text in parts if out[k][i]]

@@ -216,6 +216,9 @@ class Robot:
         base = load_mj_model(self.path)
         self.ids = resolve_ids(base, str(self.path))
         if backend == "warp":
+            import warp
+
+            warp.config.quiet = True  # no banner or per-kernel-module load lines on the console
             self.mj_model, self.sensors = contacts.with_contact_sensors(self.path, base, self.ids)
             self.mjx_model = _quiet_solver_limits(mjx.put_model(self.mj_model, impl="warp"))
         else:

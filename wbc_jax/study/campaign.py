@@ -58,15 +58,38 @@ def has_accelerator() -> bool:
     return jax.default_backend() != "cpu"
 
 
-def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1):
+def backend_of(spec: Spec) -> str:
+    """The spec's physics backend, "auto" resolved for this machine (:func:`wbc_jax.sim.physics.resolve_backend`)."""
+    from wbc_jax.sim.physics import resolve_backend
+
+    try:
+        return resolve_backend(spec.campaign["backend"])
+    except ValueError as e:
+        raise SpecError(f"{spec.path}: campaign.backend: {e}") from None
+
+
+def with_backend(spec: Spec, backend: str | None) -> Spec:
+    """``spec`` with ``campaign.backend`` replaced (a ``--backend`` flag); unchanged for None."""
+    import dataclasses
+
+    from wbc_jax.study.spec import BACKENDS
+
+    if backend is None:
+        return spec
+    if backend not in BACKENDS:
+        raise SpecError(f"--backend {backend!r}: expected one of {', '.join(BACKENDS)}")
+    return dataclasses.replace(spec, campaign={**spec.campaign, "backend": backend})
+
+
+def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, backend: str = "jax"):
     """The (cached) Sim of a scene: ``iters`` ADMM iterations, control period ``substeps`` x the scene's timestep."""
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
     from wbc_jax.sim.model import Robot
     from wbc_jax.sim.rollout import make_sim
 
-    key = (scene, iters, sensor_noise, substeps)
+    key = (scene, iters, sensor_noise, substeps, backend)
     if key not in _SIMS:
-        robot = Robot(scene)
+        robot = Robot(scene, backend=backend)
         cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=control_qp_settings(iters))
         _SIMS[key] = make_sim(robot, cfg, n_substeps=substeps, log_every=LOG_EVERY, sensor_noise=sensor_noise)
     return _SIMS[key]
@@ -114,7 +137,8 @@ def build(spec: Spec, gains=None):
     from wbc_jax.sim.rollout import make_push
 
     c = spec.campaign
-    sim = _sim(c["scene"], c["qp_iters"], spec.perturbations["qvel_noise_std"] > 0, c["control_substeps"])
+    sim = _sim(c["scene"], c["qp_iters"], spec.perturbations["qvel_noise_std"] > 0, c["control_substeps"],
+               backend_of(spec))
     dz = design(spec)
     qpos0, qvel0 = initial_configuration(sim.robot, dz)
     b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=gains,
@@ -342,7 +366,7 @@ def results_table(spec: Spec, dz: Design, res: dict):
 
 def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: bool = True,
                  progress: bool = True, gains=None, _interrupt_after: int | None = None, *, force: bool = False,
-                 allow_large: bool = False, inputs: tuple = ()) -> dict:
+                 allow_large: bool = False, inputs: tuple = (), backend: str | None = None) -> dict:
     """Run a campaign and write DIR (see module docstring). Returns the manifest.
 
     Args:
@@ -355,6 +379,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         force: replace DIR when it holds an earlier campaign.
         allow_large: run even when the memory estimate (:func:`check_size`) exceeds what is available.
         inputs: further input files (e.g. the gains file) that DIR must not hold.
+        backend: physics backend ("auto", "jax", "warp") instead of the spec's ``campaign.backend``.
 
     Raises:
         OutputError, LimitError, CheckpointError, SpecError: before anything is compiled.
@@ -366,10 +391,12 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
 
     t_start = time.perf_counter()
     spec = load_spec(spec_path if spec_path is not None else default_spec_path(has_accelerator()))
+    spec = with_backend(spec, backend)
+    physics_backend = backend_of(spec)
     out_p = check_out_dir(out, COMMAND, force=force, inputs=[spec.path, *inputs])
     check_size(spec, allow_large)
     ck = _ckpt_dir(out_p)
-    identity = run_identity(spec, gains)
+    identity = run_identity(spec, gains, backend=physics_backend)
     if resume:  # meta.json and the identity before the build and the compile; the state file after the build
         read_ckpt_meta(ck, identity, _n_chunks_hint(ck))
     sim, dz, b, T_plan, logs_per_chunk, n_chunks = build(spec, gains)
@@ -457,6 +484,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     manifest = dict(
         command="wbc-jax campaign", spec_path=str(spec.path), spec_hash=spec.hash, spec_file_sha256=spec.text_sha256,
         spec=spec.canonical(), default_gains=gains is None, gains_hash=identity["gains_hash"], versions=_versions(), git_commit=_git_commit(),
+        physics_backend=physics_backend,
         device=dict(backend=jax.default_backend(), kind=jax.devices()[0].device_kind, count=jax.device_count(),
                     host=platform.node(), cpu_count=os.cpu_count()),
         n_runs=dz.n, n_cells=int(len(cells)), reps=spec.reps, seeds=[int(s) for s in dz.seed],

@@ -72,6 +72,8 @@ CAMPAIGN = {
     "control_substeps": (int, 1, 1, 10, False,
                          "physics steps per control step (zero-order hold); 1 = control at the physics rate"),
     "chunk_seconds": (float, 2.0, 0.02, 60.0, False, "[s]"),
+    "backend": (str, "auto", None, None, False,
+                '"auto" (Warp on a CUDA GPU with warp-lang, else JAX), "jax" or "warp": the MJX physics implementation'),
 }
 # key: (lo, hi, unit); each level in lo < value <= hi
 FACTORS = {"m": (0.0, 20.0, "[kg]"), "mu": (0.0, 5.0, "[-]"), "d": (0.008, 0.2, "[m]")}
@@ -85,9 +87,10 @@ PERTURBATIONS = {
     "qvel_noise_std": (float, 0.0, 0.0, 1.0, False, "[m/s, rad/s]"),
 }
 SCENES = ("transport", "flat")
+BACKENDS = ("auto", "jax", "warp")  # wbc_jax.sim.physics.BACKENDS (not imported here: spec loading stays JAX-free)
 # keys added after specs were first hashed: left out of Spec.hash at these values (which reproduce the behaviour
 # from before the key existed), so the hashes of existing baselines and checkpoints stay valid
-_HASH_NEUTRAL = {"campaign": {"control_substeps": 1}}
+_HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto"}}
 
 
 @dataclass(frozen=True)
@@ -176,6 +179,8 @@ def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
     if unknown:
         raise _err(path, unknown[0], "unknown table; expected campaign, factors, perturbations")
     camp = _table(path, "campaign", data.get("campaign", {}), CAMPAIGN)
+    if camp["backend"] not in BACKENDS:
+        raise _err(path, "campaign.backend", f"= {camp['backend']!r}: expected one of {', '.join(BACKENDS)}")
     if camp["scene"] not in SCENES:
         raise _err(path, "campaign.scene", f"= {camp['scene']!r}: expected one of {', '.join(SCENES)}")
     if "factors" not in data:
