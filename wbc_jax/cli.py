@@ -256,8 +256,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--gains", default=None, help="controller gains TOML (e.g. best_gains.toml of wbc-jax tune) "
                                                  "instead of the defaults")
     c.add_argument("--backend", choices=("auto", "jax", "warp"), default=None,
-                   help="MJX physics implementation (default: the spec's campaign.backend, itself 'auto': Warp on a "
-                        "CUDA GPU with warp-lang, else JAX)")
+                   help="MJX physics implementation (default: the spec's campaign.backend, itself 'auto' = JAX for "
+                        "now; 'warp' runs MuJoCo Warp, NVIDIA GPUs, pip install -e '.[cuda]')")
     c.add_argument("--allow-large", action="store_true", help="run even when the memory estimate of the batch "
                                                               "exceeds the available memory")
     c.set_defaults(func=_cmd_campaign)

@@ -204,9 +204,11 @@ class Robot:
         backend: MJX implementation of the physics, "jax" or "warp" (:mod:`wbc_jax.sim.backend`; resolve "auto"
             before). With "warp" the scene gets the contact sensors the rollout reads
             (:func:`wbc_jax.sim.contacts.add_contact_sensors`); the physics is the same model's.
+        solver_iterations: MuJoCo constraint-solver iterations per physics step (``opt.iterations``); 0: the
+            scene's own value.
     """
 
-    def __init__(self, scene: str | os.PathLike = "flat", backend: str = "jax"):
+    def __init__(self, scene: str | os.PathLike = "flat", backend: str = "jax", solver_iterations: int = 0):
         from wbc_jax.sim import contacts
 
         if backend not in ("jax", "warp"):
@@ -214,12 +216,15 @@ class Robot:
         self.path = scene_path(scene)
         self.backend = backend
         base = load_mj_model(self.path)
+        if solver_iterations:
+            base.opt.iterations = int(solver_iterations)
         self.ids = resolve_ids(base, str(self.path))
         if backend == "warp":
             import warp
 
             warp.config.quiet = True  # no banner or per-kernel-module load lines on the console
             self.mj_model, self.sensors = contacts.with_contact_sensors(self.path, base, self.ids)
+            self.mj_model.opt.iterations = base.opt.iterations
             self.mjx_model = _quiet_solver_limits(mjx.put_model(self.mj_model, impl="warp"))
         else:
             self.mj_model, self.sensors = base, None

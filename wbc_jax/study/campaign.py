@@ -81,15 +81,16 @@ def with_backend(spec: Spec, backend: str | None) -> Spec:
     return dataclasses.replace(spec, campaign={**spec.campaign, "backend": backend})
 
 
-def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, backend: str = "jax"):
+def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, backend: str = "jax",
+         solver_iterations: int = 0):
     """The (cached) Sim of a scene: ``iters`` ADMM iterations, control period ``substeps`` x the scene's timestep."""
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
     from wbc_jax.sim.model import Robot
     from wbc_jax.sim.rollout import make_sim
 
-    key = (scene, iters, sensor_noise, substeps, backend)
+    key = (scene, iters, sensor_noise, substeps, backend, solver_iterations)
     if key not in _SIMS:
-        robot = Robot(scene, backend=backend)
+        robot = Robot(scene, backend=backend, solver_iterations=solver_iterations)
         cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=control_qp_settings(iters))
         _SIMS[key] = make_sim(robot, cfg, n_substeps=substeps, log_every=LOG_EVERY, sensor_noise=sensor_noise)
     return _SIMS[key]
@@ -138,7 +139,7 @@ def build(spec: Spec, gains=None):
 
     c = spec.campaign
     sim = _sim(c["scene"], c["qp_iters"], spec.perturbations["qvel_noise_std"] > 0, c["control_substeps"],
-               backend_of(spec))
+               backend_of(spec), c["solver_iterations"])
     dz = design(spec)
     qpos0, qvel0 = initial_configuration(sim.robot, dz)
     b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=gains,

@@ -72,8 +72,9 @@ CAMPAIGN = {
     "control_substeps": (int, 1, 1, 10, False,
                          "physics steps per control step (zero-order hold); 1 = control at the physics rate"),
     "chunk_seconds": (float, 2.0, 0.02, 60.0, False, "[s]"),
+    "solver_iterations": (int, 0, 0, 1000, False, "MuJoCo constraint-solver iterations per physics step; 0 = the scene's"),
     "backend": (str, "auto", None, None, False,
-                '"auto" (Warp on a CUDA GPU with warp-lang, else JAX), "jax" or "warp": the MJX physics implementation'),
+                '"auto" (JAX for now), "jax" or "warp": the MJX physics implementation'),
 }
 # key: (lo, hi, unit); each level in lo < value <= hi
 FACTORS = {"m": (0.0, 20.0, "[kg]"), "mu": (0.0, 5.0, "[-]"), "d": (0.008, 0.2, "[m]")}
@@ -90,7 +91,7 @@ SCENES = ("transport", "flat")
 BACKENDS = ("auto", "jax", "warp")  # wbc_jax.sim.physics.BACKENDS (not imported here: spec loading stays JAX-free)
 # keys added after specs were first hashed: left out of Spec.hash at these values (which reproduce the behaviour
 # from before the key existed), so the hashes of existing baselines and checkpoints stay valid
-_HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto"}}
+_HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_iterations": 0}}
 
 
 @dataclass(frozen=True)

@@ -36,8 +36,11 @@ CAMPAIGN_MEANING = {
     "control_substeps": "physics steps per control step, zero-order hold; the metrics still sample every "
                         "physics step",
     "chunk_seconds": "simulated seconds per jit call and checkpoint",
+    "solver_iterations": "MuJoCo constraint-solver iterations per physics step (`opt.iterations`); 0 keeps the "
+                         "scene's (4 in the shipped scenes)",
     "backend": "MJX physics implementation: \"warp\" (MuJoCo Warp kernels, NVIDIA GPUs; needs the cuda extra) or "
-               "\"jax\" (any device); \"auto\" picks Warp on a CUDA GPU with warp-lang, else JAX; `--backend` overrides",
+               "\"jax\" (any device); \"auto\" is JAX until Warp's course physics agrees (docs/performance.md); `--backend` "
+               "overrides",
 }
 FACTOR_MEANING = {"m": "object mass levels", "mu": "tray friction levels", "d": "object side levels"}
 PERTURB_MEANING = {
