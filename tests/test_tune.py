@@ -5,7 +5,10 @@ end-to-end CEM run from deliberately poor gains (every Kp x 0.2) with the best g
 time limit (a hang fails the test instead of stalling CI).
 
 The tiny runs use the CI baseline campaign (reports/baseline/spec.toml: flat ground, 0.12 s, 20 ADMM iterations)
-on 2 of its cells; on a CPU every rollout call holds one run (tune_spec.CPU_BATCH).
+on 2 of its cells. The CEM run sets batch = 8 runs per call, the shape of tests/test_campaign.py's campaign and of
+the replay below: float32 results depend on the batch a run is computed in (a sliding cube at mu 0.4 moves R by
+several per cent between batch 1 and 8), so an exact replay needs the same batch. The halving run uses the
+machine's default (one run per call on a CPU, tune_spec.CPU_BATCH).
 """
 
 import json
@@ -36,6 +39,7 @@ candidates = {C}
 rounds = {ROUNDS}
 seed = 5
 cells = {CELLS}
+batch = {C * len(CELLS)}
 [start]
 kp = 0.2
 [leaves]
@@ -364,6 +368,7 @@ def test_tiny_successive_halving_end_to_end(tmp_path):
     import sys
 
     spec = _write(tmp_path, TINY.replace('method = "cem"', 'method = "halving"').replace("rounds = 3", "rounds = 2")
+                  .replace(f"batch = {C * len(CELLS)}\n", "")
                   .replace("[cem]\n", f"[halving]\neta = 3\nrungs = 2\n[confirm]\ncampaign = \"{BASELINE_SPEC}\"\n"
                                       "top = 2\n[cem]\n"))
     out = tmp_path / "out"
@@ -386,7 +391,8 @@ def test_tiny_successive_halving_end_to_end(tmp_path):
     best = pd.read_csv(out / "best_runs.csv")
     best = best[best.candidate == "best"]
     conf = pd.read_csv(out / "confirm_runs.csv")
-    assert set(conf.candidate) == {"default", "rank 1", "rank 2"} and (conf.groupby("candidate").size() == 8).all()
+    assert len(set(conf.candidate)) == 3 and {"default", "rank 1"} <= set(conf.candidate)
+    assert (conf.groupby("candidate").size() == 8).all()
     got = conf[conf.candidate == "rank 1"].merge(best, on=["m", "mu", "d", "rep"], suffixes=("", "_tune"))
     assert len(got) == len(CELLS) and (got.seed == got.seed_tune).all()
     np.testing.assert_allclose(got[["R", "S", "T_mm"]].to_numpy(float), got[["R_tune", "S_tune", "T_mm_tune"]]

@@ -14,6 +14,8 @@ same runs (same cells, seeds and perturbations); every metric is compared run by
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from wbc_jax.study.tune_eval import per_run_objective
@@ -193,3 +195,46 @@ def figures(df, best_idx: int) -> dict[str, bytes]:
     ax.legend(fontsize=7)
     out["pareto.png"] = _png(fig)
     return out
+
+
+def compare_replay(tune_dir: str, campaign_dir: str) -> str:
+    """Paired comparison of a ``wbc-jax campaign --gains best_gains.toml`` replay (``campaign_dir/results.csv``)
+    with the default gains of the tuning's confirmation (``tune_dir/confirm_runs.csv``) on the same seeds, with
+    the tuning's objective and alpha. Returns the markdown table (as in report.md).
+
+    Raises:
+        WbcJaxError: a missing file, or runs that do not pair up (another campaign spec).
+    """
+    import json
+
+    import pandas as pd
+
+    from wbc_jax.errors import WbcJaxError
+
+    tune_dir, campaign_dir = Path(tune_dir), Path(campaign_dir)
+    try:
+        man = json.loads((tune_dir / "manifest.json").read_text())
+        conf = pd.read_csv(tune_dir / "confirm_runs.csv")
+        res = pd.read_csv(campaign_dir / "results.csv")
+    except (OSError, ValueError) as e:
+        raise WbcJaxError(f"cannot read the tuning or campaign outputs: {e}") from None
+    d = conf[conf.candidate == "default"]
+    both = d.merge(res, on=["m", "mu", "d", "rep", "seed"], suffixes=("_d", ""))
+    if len(both) != len(d) or len(both) != len(res):
+        raise WbcJaxError(f"{campaign_dir / 'results.csv'}: {len(res)} runs, {len(both)} pair with the "
+                          f"{len(d)} default runs of {tune_dir / 'confirm_runs.csv'} (same campaign spec needed)")
+    default = dict(success=both.success_d.to_numpy(bool), R=both.R_d.to_numpy(float), S=both.S_d.to_numpy(float),
+                   T=both.T_mm.to_numpy(float) * 1e-3)
+    tuned = dict(success=both.success.to_numpy(bool), R=both.R.to_numpy(float), S=both.S.to_numpy(float),
+                 T=both["T"].to_numpy(float))
+    alpha = man["spec"]["confirm"]["alpha"]
+    cmp = paired_comparison(default, tuned, both.mu.to_numpy(float), man["objective"], alpha)
+    return report_md("Replay of best_gains.toml vs the default gains", [
+        f"Default gains: {tune_dir / 'confirm_runs.csv'}; tuned: {campaign_dir / 'results.csv'}; {len(both)} runs "
+        "paired by seed."], cmp, man["confirmation"]["campaign"], alpha)
+
+
+if __name__ == "__main__":  # python -m wbc_jax.study.tune_report TUNE_DIR CAMPAIGN_DIR
+    import sys
+
+    print(compare_replay(*sys.argv[1:3]))
