@@ -245,6 +245,36 @@ def test_paired_comparison_names_the_test_and_finds_a_shift():
     assert c["J"]["n"] == n - 1 and "McNemar" in c["success"]["test"]
 
 
+def test_compare_replay_pairs_by_seed(tmp_path):
+    """`python -m wbc_jax.study.tune_report TUNE_DIR CAMPAIGN_DIR`: the replay's results.csv paired with the tuning's
+    default-gain runs by seed; a replay of another campaign is an error naming the file."""
+    from wbc_jax.errors import WbcJaxError
+    from wbc_jax.study.tune_report import compare_replay
+
+    rng = np.random.default_rng(1)
+    n = 30
+    cells = dict(m=np.full(n, 0.2), mu=np.tile([0.4, 0.7, 1.0], 10), d=np.full(n, 0.06), rep=np.arange(n),
+                 seed=rng.integers(0, 2**32, n))
+    t_dir, c_dir = tmp_path / "tune", tmp_path / "camp"
+    t_dir.mkdir()
+    c_dir.mkdir()
+    S = rng.uniform(2, 4, n)
+    pd.DataFrame(dict(candidate="default", **cells, success=True, R=0.2, S=S, T_mm=1.5)).to_csv(
+        t_dir / "confirm_runs.csv", index=False)
+    obj = dict(w_R=1.0, w_S=1.0, w_T=0.0, s_ref=3.0, min_success=1.0, t_max_mm=2.0)
+    (t_dir / "manifest.json").write_text(json.dumps(dict(objective=obj, spec=dict(confirm=dict(alpha=0.01)),
+                                                         confirmation=dict(campaign="paper.toml"))))
+    res = pd.DataFrame(dict(run=np.arange(n), **cells, success=True, R=0.2, S=S + 0.5 + 0.01 * rng.random(n),
+                            T=1.5e-3))
+    res.sample(frac=1.0, random_state=0).to_csv(c_dir / "results.csv", index=False)  # order does not matter
+    md = compare_replay(t_dir, c_dir)
+    assert "30 runs paired by seed" in md and "| J | Wilcoxon signed-rank (two-sided) | 30 |" in md
+    assert "| S |" in md and md.count("improved") >= 2
+    res.assign(seed=res.seed + 1).to_csv(c_dir / "results.csv", index=False)
+    with pytest.raises(WbcJaxError, match="results.csv"):
+        compare_replay(t_dir, c_dir)
+
+
 def test_cpu_batch_keeps_lapack_kernels_inline():
     """The hang of `wbc-jax tune --candidates 4` on 2 cores: jaxlib 0.10's batched Cholesky / triangular solve
     hand pieces of a batch to XLA's intra-op pool when batch x n^3 / 3 >= 200,000 and block their own pool thread
