@@ -413,6 +413,8 @@ def test_tiny_successive_halving_end_to_end(tmp_path):
     assert df.sort_values("rank").iloc[0].sim_s == pytest.approx(0.12)
     assert (df[df["round"] == 2].iloc[0].kind == "elite") and df.iloc[0].kind == "start"
     assert man["new_compilations_after_round_1"] in (0, None)
+    # one compiled chunk function for every rung, bracket and the confirmation (continued states keep their types)
+    assert man["compiled_variants_per_round"][-1] in (1, None) and man["compiled_variants_after_confirmation"] in (1, None)
     from wbc_jax.study.campaign import has_accelerator
 
     if not has_accelerator():

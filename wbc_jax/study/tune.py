@@ -67,12 +67,14 @@ def _pick(res: dict, i) -> dict:
 def _bracket(ev: Evaluator, search: HalvingSearch, x: np.ndarray, obj: dict, bar):
     """One successive-halving bracket over the candidates x (C, k). Returns (per candidate: (sc row dict,
     sim_s, per-run dict) of its last rung, the full-horizon candidates' indices and keys)."""
+    import jax.numpy as jnp
+
     alive, horizons = halving_schedule(len(x), search.eta, search.rungs, ev.n_chunks)
     idx, states, h0, last, keys = np.arange(len(x)), None, 0, {}, None
     for a, h in zip(alive, horizons):
         if keys is not None:  # keep the best a of the previous rung, continue their runs
             keep = HalvingSearch.survivors(keys, a)
-            states = take(states, (keep[:, None] * ev.n + np.arange(ev.n)[None]).ravel())
+            states = take(states, jnp.asarray((keep[:, None] * ev.n + np.arange(ev.n)[None]).ravel()))
             idx = idx[keep]
         res, states = ev.rollout(search.space.gains(x[idx]), (h0, h), states, bar)
         sc = score(res, ev.mu, obj)
@@ -234,6 +236,7 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
         round_wall_s=walls, first_round_s=walls[0], steady_round_s=round_s, candidates_per_s=C / round_s,
         env_steps_per_s=sim_steps / max(sum(walls), 1e-9), compiled_variants_per_round=variants,
         new_compilations_after_round_1=new_compiles, planned_run_seconds=total,
+        compiled_variants_after_confirmation=ce.compiled_variants(),
         start={k: start[k] for k in SUMMARY}, best={k: top[k] for k in SUMMARY},
         best_multipliers={n: top[f"{n}_x"] for n in space.names},
         improvement={k: top[k] - start[k] for k in ("objective", "R", "R_norm", "S", "T_mm", "success_rate")},

@@ -29,10 +29,12 @@ def take(tree, idx, in_axes=0):
 
 
 def concat(trees: list):
-    """Leafwise concatenation of pytrees along the run axis (host numpy)."""
+    """Leafwise concatenation of pytrees of device arrays along the run axis (stays on the device: the result
+    keeps the chunk function's input types and placement, so feeding it back does not compile again)."""
     import jax
+    import jax.numpy as jnp
 
-    return jax.tree_util.tree_map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *trees)
+    return trees[0] if len(trees) == 1 else jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *trees)
 
 
 class Evaluator:
@@ -86,13 +88,13 @@ class Evaluator:
         Args:
             gains: TransportGains with leading axis C (host numpy).
             chunks: (c0, c1): first chunk and end chunk (-1: the full horizon); c0 > 0 continues ``states``.
-            states: host pytree of RunState with C n runs (candidate-major), as returned by an earlier call
-                (None: the initial states).
+            states: pytree of RunState with C n runs (candidate-major, device arrays), as returned by an earlier
+                call (None: the initial states).
             bar: progress bar advanced by simulated run-seconds after every call (``update``), or None.
 
         Returns:
             (res, states): ``wbc_jax.sim.metrics.finalize``'s per-run dict at chunk c1, every array (C, n);
-            the runs' states at chunk c1 (host pytree, C n runs, candidate-major).
+            the runs' states at chunk c1 (device pytree, C n runs, candidate-major).
         """
         import jax
         import jax.numpy as jnp
@@ -112,8 +114,8 @@ class Evaluator:
             rows = jnp.asarray(run[idx])
             sub = b._replace(model=take(b.model, rows, b.in_axes), plan=take(b.plan, rows), om=take(b.om, rows),
                              push=take(b.push, rows), mu_ground=take(b.mu_ground, rows),
-                             state=take(b.state, rows) if states is None else
-                             jax.tree_util.tree_map(jnp.asarray, take(states, idx)),
+                             state=take(b.state if states is None else states, rows if states is None else
+                                        jnp.asarray(idx)),
                              gains=jax.tree_util.tree_map(jnp.asarray, take(gains, cand[idx])))
             if self.mesh is not None:
                 from wbc_jax.sim.sharding import shard_batch
@@ -127,7 +129,7 @@ class Evaluator:
                 if bar is not None:
                     bar.update(real * self.chunk_s)
             finals.append(final_results(self.sim, state, logs.p_obj_ref[:, -1], np.tile(self.mu, C)[idx], n=real))
-            outs.append(jax.tree_util.tree_map(lambda x: np.asarray(x)[:real], jax.device_get(state)))
+            outs.append(jax.tree_util.tree_map(lambda x: x[:real], state))
         res = {k: np.concatenate([f[k] for f in finals]).reshape(C, self.n) for k in finals[0]}
         return res, concat(outs)
 
