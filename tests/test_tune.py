@@ -1,9 +1,14 @@
-"""`wbc-jax tune`: spec and gains-file validation, search bookkeeping, one tiny end-to-end tuning run from
-deliberately poor gains (every Kp x 0.2), and the best gains replayed by `wbc-jax campaign --gains`.
+"""`wbc-jax tune`: spec and gains-file validation, search bookkeeping (CEM, grid, successive halving), the paired
+comparison, the CPU batch that keeps jaxlib's LAPACK kernels off the thread pool (the hang of issue 25), one tiny
+end-to-end CEM run from deliberately poor gains (every Kp x 0.2) with the best gains replayed by
+`wbc-jax campaign --gains`, and one tiny successive-halving run through the command line in a subprocess with a
+time limit (a hang fails the test instead of stalling CI).
 
-The tiny run uses the CI baseline campaign (reports/baseline/spec.toml: flat ground, 0.12 s, 20 ADMM iterations)
-on 2 of its cells with 4 candidates per round, so its batch (8 runs) has the shape of tests/test_campaign.py's
-campaign and reuses that compiled chunk function when both files run in one session.
+The tiny runs use the CI baseline campaign (reports/baseline/spec.toml: flat ground, 0.12 s, 20 ADMM iterations)
+on 2 of its cells. The CEM run sets batch = 8 runs per call, the shape of tests/test_campaign.py's campaign and of
+the replay below: float32 results depend on the batch a run is computed in (a sliding cube at mu 0.4 moves R by
+several per cent between batch 1 and 8), so an exact replay needs the same batch. The halving run uses the
+machine's default (one run per call on a CPU, tune_spec.CPU_BATCH).
 """
 
 import json
@@ -16,7 +21,11 @@ from wbc_jax import cli
 from wbc_jax.errors import SpecError
 from wbc_jax.study.gains import gains_toml, load_gains
 from wbc_jax.study.spec import SWEEPS
-from wbc_jax.study.tune import (CEMSearch, GridSearch, Space, load_tune_spec, pareto_mask, rank_key, score)
+from wbc_jax.study.tune_eval import score
+from wbc_jax.study.tune_report import paired_comparison
+from wbc_jax.study.tune_search import (CEMSearch, GridSearch, Space, halving_cost, halving_schedule, pareto_mask,
+                                       rank_key)
+from wbc_jax.study.tune_spec import load_tune_spec
 
 BASELINE_SPEC = SWEEPS.parent / "reports" / "baseline" / "spec.toml"
 CELLS = [[0.2, 0.4, 0.06], [0.4, 1.0, 0.10]]
@@ -30,6 +39,7 @@ candidates = {C}
 rounds = {ROUNDS}
 seed = 5
 cells = {CELLS}
+batch = {C * len(CELLS)}
 [start]
 kp = 0.2
 [leaves]
@@ -70,13 +80,24 @@ def test_shipped_spec_loads():
     assert all(s.start[k] == 0.2 for k in s.start if k.startswith("kp_"))
     assert all(s.start[k] == 1.0 for k in s.start if not k.startswith("kp_"))
     assert s.with_overrides(candidates=1024).tune["candidates"] == 1024  # the GPU run's size
+    course = load_tune_spec(SWEEPS / "gain_tuning_course.toml")  # the accelerator default: the paper's course
+    assert course.campaign.campaign["scene"] == "transport" and course.cells is None
+    assert course.campaign.campaign["max_seconds"] == 0 and course.objective["min_success"] == 1.0
+    assert course.confirm_campaign.path.endswith("paper_campaign.toml") and course.confirm_campaign.reps == 10
+    cpu = load_tune_spec(SWEEPS / "gain_tuning_cpu.toml")  # the CPU default
+    assert cpu.tune["method"] == "halving" and cpu.confirm_campaign.reps == 1
+    from wbc_jax.study.tune_spec import CPU_SPEC, GPU_SPEC, default_tune_spec_path
+
+    assert default_tune_spec_path(True) == GPU_SPEC and default_tune_spec_path(False) == CPU_SPEC
 
 
 @pytest.mark.parametrize("edit, key, expect", [
     (("[tune]\n", "[tune]\nmethd = 'cem'\n"), "tune.methd", "unknown key"),
     (("candidates = 4", "candidates = 'four'"), "tune.candidates", "integer"),
     (("candidates = 4", "candidates = 1"), "tune.candidates", "needs >= 2"),
-    (("method = \"cem\"", "method = \"anneal\""), "tune.method", "grid, random, cem"),
+    (("method = \"cem\"", "method = \"anneal\""), "tune.method", "grid, random, cem, halving"),
+    (("[cem]\n", "[halving]\neta = 1\n[cem]\n"), "halving.eta", "2 <= value <= 10"),
+    (("[cem]\n", "[confirm]\nalpha = 1.5\n[cem]\n"), "confirm.alpha", "0.0 < value <= 1.0"),
     (("kp_com = [0.1, 4.0]", "kp_cmo = [0.1, 4.0]"), "leaves.kp_cmo", "unknown leaf"),
     (("kp_com = [0.1, 4.0]", "kp_com = [4.0, 0.1]"), "leaves.kp_com", "lo < hi"),
     (("kp_obj = [0.1, 4.0]", "kp_obj = [0.5, 4.0]"), "leaves.kp_obj", "start scale 0.2"),
@@ -172,7 +193,7 @@ def test_rank_pareto_and_score():
 
 def test_cem_carries_the_best_and_grid_covers_the_box(tmp_path):
     spec = load_tune_spec(_write(tmp_path, TINY))
-    space = Space(spec)
+    space = Space(spec.leaves, spec.start)
     cem = CEMSearch(space, 6, 3, np.random.default_rng(0), **spec.cem)
     x, kinds = cem.ask(0)
     assert kinds[0] == "start" and np.allclose(np.exp(x[0]), [0.2, 0.2, 1.0])
@@ -189,6 +210,112 @@ def test_cem_carries_the_best_and_grid_covers_the_box(tmp_path):
                                                                 for c in (0.2, 4.0)}
     g = space.gains(x[:2])
     assert g.kp_com.shape == (2, 3) and np.allclose(g.kp_rot, 600.0 * 0.2)  # untuned Kp stays at the start scale
+
+
+def test_halving_schedule_and_survivors():
+    from wbc_jax.study.tune_search import HalvingSearch
+
+    assert halving_schedule(32, 3, 3, 14) == ([32, 11, 4], [2, 5, 14])
+    assert halving_schedule(6, 3, 2, 6) == ([6, 2], [2, 6])
+    assert halving_schedule(5, 2, 4, 2) == ([5, 1], [1, 2])  # rungs with equal horizons merge
+    assert halving_schedule(4, 2, 1, 6) == ([4], [6])  # one rung: plain random search at the full horizon
+    # survivors continue their states: every candidate-chunk is simulated once
+    assert halving_cost(32, 3, 3, 14) == 32 * 2 + 11 * 3 + 4 * 9
+    keys = [rank_key(True, 0.0, v) for v in (0.1, 0.9, 0.5)] + [rank_key(False, 0.2, 5.0)]
+    assert HalvingSearch.survivors(keys, 2).tolist() == [1, 2]
+
+
+def test_paired_comparison_names_the_test_and_finds_a_shift():
+    """Tuned runs better by a fixed shift plus noise on every run: Wilcoxon finds it; a zero shift is not
+    significant; a failure only the tuned set has is counted by McNemar's pairs."""
+    rng = np.random.default_rng(0)
+    n = 40
+    mu = np.tile([0.4, 0.7, 1.0], n)[:n]
+    base = dict(success=np.ones(n, bool), R=rng.uniform(0.1, 0.3, n), S=rng.uniform(2, 4, n),
+                T=rng.uniform(1e-3, 2e-3, n))
+    obj = dict(w_R=1.0, w_S=1.0, w_T=0.0, s_ref=3.0, min_success=1.0, t_max_mm=2.0)
+    tuned = dict(base, S=base["S"] + 0.3 + 0.05 * rng.standard_normal(n))
+    cmp = {r["metric"]: r for r in paired_comparison(base, tuned, mu, obj, 0.01)}
+    assert cmp["J"]["improved"] and cmp["J"]["p"] < 1e-6 and "Wilcoxon" in cmp["J"]["test"]
+    assert cmp["S"]["improved"] and np.isclose(cmp["S"]["diff"], np.mean(tuned["S"] - base["S"]))
+    assert not cmp["R_norm"]["improved"] and not cmp["R_norm"]["worse"] and cmp["R_norm"]["p"] == 1.0
+    worse = dict(base, success=np.r_[False, np.ones(n - 1, bool)])
+    c = {r["metric"]: r for r in paired_comparison(base, worse, mu, obj, 0.01)}
+    assert c["success"]["tuned"] < c["success"]["default"] and c["success"]["n"] == n and not c["success"]["worse"]
+    assert c["J"]["n"] == n - 1 and "McNemar" in c["success"]["test"]
+
+
+def test_compare_replay_pairs_by_seed(tmp_path):
+    """`python -m wbc_jax.study.tune_report TUNE_DIR CAMPAIGN_DIR`: the replay's results.csv paired with the tuning's
+    default-gain runs by seed; a replay of another campaign is an error naming the file."""
+    from wbc_jax.errors import WbcJaxError
+    from wbc_jax.study.tune_report import compare_replay
+
+    rng = np.random.default_rng(1)
+    n = 30
+    cells = dict(m=np.full(n, 0.2), mu=np.tile([0.4, 0.7, 1.0], 10), d=np.full(n, 0.06), rep=np.arange(n),
+                 seed=rng.integers(0, 2**32, n))
+    t_dir, c_dir = tmp_path / "tune", tmp_path / "camp"
+    t_dir.mkdir()
+    c_dir.mkdir()
+    S = rng.uniform(2, 4, n)
+    pd.DataFrame(dict(candidate="default", **cells, success=True, R=0.2, S=S, T_mm=1.5)).to_csv(
+        t_dir / "confirm_runs.csv", index=False)
+    obj = dict(w_R=1.0, w_S=1.0, w_T=0.0, s_ref=3.0, min_success=1.0, t_max_mm=2.0)
+    (t_dir / "manifest.json").write_text(json.dumps(dict(objective=obj, spec=dict(confirm=dict(alpha=0.01)),
+                                                         confirmation=dict(campaign="paper.toml"))))
+    res = pd.DataFrame(dict(run=np.arange(n), **cells, success=True, R=0.2, S=S + 0.5 + 0.01 * rng.random(n),
+                            T=1.5e-3))
+    res.sample(frac=1.0, random_state=0).to_csv(c_dir / "results.csv", index=False)  # order does not matter
+    md = compare_replay(t_dir, c_dir)
+    assert "30 runs paired by seed" in md and "| J | Wilcoxon signed-rank (two-sided) | 30 |" in md
+    assert "| S |" in md and md.count("improved") >= 2
+    res.assign(seed=res.seed + 1).to_csv(c_dir / "results.csv", index=False)
+    with pytest.raises(WbcJaxError, match="results.csv"):
+        compare_replay(t_dir, c_dir)
+
+
+def test_cpu_batch_keeps_lapack_kernels_inline():
+    """The hang of `wbc-jax tune --candidates 4` on 2 cores: jaxlib 0.10's batched Cholesky / triangular solve
+    hand pieces of a batch to XLA's intra-op pool when batch x n^3 / 3 >= 200,000 and block their own pool thread
+    until the pieces finish; two at once on a 2-thread pool deadlock. With CPU_BATCH runs per call, every LAPACK
+    kernel of the chunk program stays below that work and runs inline. Traces the real chunk function (no
+    compile) and checks every factorisation in it, so a larger QP or model breaks this test, not a user's run."""
+    import jax
+
+    from wbc_jax.sim.rollout import make_chunk_fn
+    from wbc_jax.study import campaign
+    from wbc_jax.study.spec import load_spec, parse_spec
+    from wbc_jax.study.tune_eval import take
+    from wbc_jax.study.tune_spec import CPU_BATCH
+
+    paper = load_spec(SWEEPS / "paper_campaign.toml")  # the course scene (the larger model), 8 runs to build
+    spec = parse_spec(dict(campaign=dict(paper.campaign, reps=1), perturbations=paper.perturbations,
+                           factors={k: v[:2] for k, v in paper.factors.items()}))
+    sim, dz, b, *_ = campaign.build(spec)
+    rows = np.arange(CPU_BATCH)
+    sub = b._replace(model=take(b.model, rows, b.in_axes), **{k: take(getattr(b, k), rows) for k in
+                                                              ("state", "plan", "om", "gains", "push", "mu_ground")})
+    f = jax.vmap(make_chunk_fn(sim, 1), in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0))
+    jaxpr = jax.make_jaxpr(f)(sub.model, sub.state, sub.plan, sub.om, sub.gains, sub.push, sub.mu_ground)
+    found = []
+
+    def walk(j):
+        for e in j.eqns:
+            if e.primitive.name in ("cholesky", "triangular_solve", "lu", "qr", "eigh", "svd"):
+                found.append((e.primitive.name, e.invars[0].aval.shape))
+            for p in e.params.values():
+                for v in (p if isinstance(p, (list, tuple)) else [p]):
+                    inner = getattr(v, "jaxpr", None)
+                    if inner is not None:
+                        walk(getattr(inner, "jaxpr", inner))
+
+    walk(jaxpr.jaxpr)
+    names = {k for k, _ in found}
+    assert "cholesky" in names and names <= {"cholesky", "triangular_solve"}, names  # the kernels it was checked on
+    for name, shape in found:
+        batch, n = int(np.prod(shape[:-2])), shape[-1]
+        assert batch == CPU_BATCH and batch * n ** 3 / 3 < 200_000, (name, shape)
 
 
 # ---------------------------------------------------------------- one tiny tuning run
@@ -260,3 +387,48 @@ def test_best_gains_replayed_by_campaign(tiny_run, tmp_path):
     np.testing.assert_allclose(got["T"] * 1e3, got.T_mm, rtol=METRIC_RTOL)
     np.testing.assert_allclose(got.S, got.S_tune, rtol=METRIC_RTOL)
     assert json.loads((camp / "manifest.json").read_text())["default_gains"] is False
+
+
+def test_tiny_successive_halving_end_to_end(tmp_path):
+    """`wbc-jax tune` with method = "halving" through the command line, in a subprocess under a time limit (a
+    hang fails here instead of stalling CI): 4 candidates per bracket, 2 brackets, rungs at 1 and 3 chunks; the
+    survivors' runs continue their states, and their full-horizon metrics equal the confirmation's
+    uninterrupted rollout of the same gains on the same seeds."""
+    import subprocess
+    import sys
+
+    spec = _write(tmp_path, TINY.replace('method = "cem"', 'method = "halving"').replace("rounds = 3", "rounds = 2")
+                  .replace(f"batch = {C * len(CELLS)}\n", "")
+                  .replace("[cem]\n", f"[halving]\neta = 3\nrungs = 2\n[confirm]\ncampaign = \"{BASELINE_SPEC}\"\n"
+                                      "top = 2\n[cem]\n"))
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "wbc_jax", "tune", "--spec", str(spec), "--out", str(out),
+                        "--no-progress"], capture_output=True, text=True, timeout=420)
+    assert r.returncode == 0, r.stderr[-2000:]
+    df = pd.read_csv(out / "leaderboard.csv")
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["method"] == "halving" and len(df) == 2 * C and set(np.round(df.sim_s, 6)) == {0.04, 0.12}
+    full = df[np.isclose(df.sim_s, 0.12)]
+    assert len(full) == 2 * 2  # ceil(4 / 3) = 2 survivors per bracket reach the full horizon
+    assert df.sort_values("rank").iloc[0].sim_s == pytest.approx(0.12)
+    assert (df[df["round"] == 2].iloc[0].kind == "elite") and df.iloc[0].kind == "start"
+    assert man["new_compilations_after_round_1"] in (0, None)
+    # one compiled chunk function for every rung, bracket and the confirmation (continued states keep their types)
+    assert man["compiled_variants_per_round"][-1] in (1, None) and man["compiled_variants_after_confirmation"] in (1, None)
+    from wbc_jax.study.campaign import has_accelerator
+
+    if not has_accelerator():
+        assert man["runs_per_call"] == 1
+    # the continued survivors' metrics equal an uninterrupted rollout (the confirmation) on the same seeds
+    best = pd.read_csv(out / "best_runs.csv")
+    best = best[best.candidate == "best"]
+    conf = pd.read_csv(out / "confirm_runs.csv")
+    assert len(set(conf.candidate)) == 3 and {"default", "rank 1"} <= set(conf.candidate)
+    assert (conf.groupby("candidate").size() == 8).all()
+    got = conf[conf.candidate == "rank 1"].merge(best, on=["m", "mu", "d", "rep"], suffixes=("", "_tune"))
+    assert len(got) == len(CELLS) and (got.seed == got.seed_tune).all()
+    np.testing.assert_allclose(got[["R", "S", "T_mm"]].to_numpy(float), got[["R_tune", "S_tune", "T_mm_tune"]]
+                               .to_numpy(float), rtol=METRIC_RTOL)
+    report = (out / "report.md").read_text()
+    assert "Wilcoxon signed-rank" in report and "McNemar" in report and "| J |" in report
+    assert len(man["comparison"]) == 5 and man["confirmation"]["runs"] == 8

@@ -177,8 +177,8 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
 def _cmd_tune(args: argparse.Namespace) -> int:
     from wbc_jax.study.tune import run_tune
 
-    run_tune(args.spec, args.out, candidates=args.candidates, rounds=args.rounds, progress=not args.no_progress,
-             force=args.force)
+    run_tune(args.spec, args.out, candidates=args.candidates, rounds=args.rounds, batch=args.batch,
+             progress=not args.no_progress, force=args.force)
     return 0
 
 
@@ -262,12 +262,16 @@ def build_parser() -> argparse.ArgumentParser:
                                                               "exceeds the available memory")
     c.set_defaults(func=_cmd_campaign)
 
-    u = sub.add_parser("tune", help="batched gain search (grid, random, cross-entropy method) over factor cells; "
-                                    "leaderboard.csv, best_gains.toml, figures, manifest.json")
-    u.add_argument("--spec", default=None, help="tuning spec (default sweeps/gain_tuning.toml)")
+    u = sub.add_parser("tune", help="batched gain search (grid, random, cross-entropy method, successive halving) "
+                                    "over factor cells; leaderboard.csv, best_gains.toml, report.md (paired test "
+                                    "against the default gains), figures, manifest.json")
+    u.add_argument("--spec", default=None, help="tuning spec (default: sweeps/gain_tuning_course.toml, the obstacle "
+                                                "course, with an accelerator; sweeps/gain_tuning_cpu.toml on a CPU)")
     u.add_argument("--out", default="out/tune", help="output directory (default out/tune)")
     u.add_argument("--candidates", type=int, default=None, help="candidates per round (overrides tune.candidates)")
     u.add_argument("--rounds", type=int, default=None, help="rounds (overrides tune.rounds; not used by grid)")
+    u.add_argument("--batch", type=int, default=None, help="runs per rollout call (overrides tune.batch; 0: all "
+                                                           "of a round's runs on an accelerator, 1 on a CPU)")
     u.add_argument("--no-progress", action="store_true", help="no progress bar")
     u.set_defaults(func=_cmd_tune)
 
