@@ -57,7 +57,7 @@ def _accum(**kw):
                 wall_contact=np.zeros(2, bool), max_tau_ratio=z, max_tau_excess=z, sum_prim_res=z,
                 n_flag=np.zeros(2, int), n_steps=np.array([1000, 1000]), sum_track=z, nonfinite=np.zeros(2, bool),
                 off_steps=np.zeros(2, int), max_off_s=z, sum_invH=z, sum_acc=z, n_boundary=np.zeros(2, int),
-                first_contact_t=np.full(2, np.nan), first_contact_k=np.full(2, -1))
+                first_contact_t=np.full(2, np.nan), first_contact_k=np.full(2, -1), overflow=np.zeros(2, bool))
     base.update(kw)
     return Accum(**base)
 
@@ -88,6 +88,10 @@ def test_finalize_failures():
     acc = _accum(min_trunk_z=np.array([0.2, 0.45]), nonfinite=np.array([False, True]), sum_acc=np.array([1.0, 1.0]))
     r = metrics.finalize(acc, 1e-3, np.array([0.7, 0.7]), course=True, final_err=np.array([0.0, np.nan]))
     assert r["fell"].tolist() == [False, True] and r["success"].tolist() == [True, False]
+    # a run whose contacts overflowed Warp's capacity fails, with its reason
+    acc = _accum(overflow=np.array([False, True]), sum_acc=np.array([1.0, 1.0]))
+    r = metrics.finalize(acc, 1e-3, np.array([0.7, 0.7]), course=False, final_err=np.array([0.0, 0.0]))
+    assert r["success"].tolist() == [True, False] and "overflow" in r["fail_reason"][1]
     assert r["fail_reason"].tolist() == ["", "non-finite state; object not delivered"]
     # a knee or shin touching the ground with the trunk up is a fall, named as body contact
     acc = _accum(min_trunk_z=np.array([0.4, 0.1]), nonfoot_floor=np.array([True, False]), sum_acc=np.array([1.0, 1.0]))
