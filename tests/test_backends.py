@@ -55,7 +55,7 @@ def test_warp_mass_matrix_and_distances_match_references(walks):
     data.qpos[:], data.qvel[:] = np.asarray(st.d.qpos[0]), np.asarray(st.d.qvel[0])
     mujoco.mj_forward(mj, data)
     full = np.zeros((mj.nv, mj.nv))
-    mujoco.mj_fullM(mj, full, data.M)
+    mujoco.mj_fullM(mj, data, full)
     M = np.asarray(jax.jit(mass_matrix)(m0, d_w))
     np.testing.assert_allclose(M, full, rtol=M_TOL, atol=M_TOL * np.abs(full).max())
     # sphere distances: Warp's geometric ones vs the JAX backend's slots at the same positions

@@ -147,7 +147,7 @@ def _plain(leaves) -> bool:
     return True
 
 
-def cached_jit(name: str, fn: Callable, static: str) -> Callable:
+def cached_jit(name: str, fn: Callable, static: str, exportable: bool = True) -> Callable:
     """``jax.jit(fn)`` whose lowered program is kept on disk across processes (see the module docstring).
 
     Args:
@@ -156,12 +156,14 @@ def cached_jit(name: str, fn: Callable, static: str) -> Callable:
             by ``static`` and the arguments' shapes and dtypes (no hidden Python state that can change between
             processes without changing the sources or ``static``).
         static: text describing fn's closed-over configuration (part of the key).
+        exportable: False for programs jax.export cannot hold (MuJoCo Warp's kernels are FFI calls registered per
+            process): plain ``jax.jit`` (the persistent compilation cache still applies).
 
     Returns:
         a callable with fn's signature and results.
     """
     jitted = jax.jit(fn)
-    store = _store()
+    store = _store() if exportable else None
     if store is None:
         return jitted
 
@@ -237,8 +239,6 @@ def _export(store: Path, name: str, key: str, fn: Callable, in_tree, leaves) -> 
         exp = jax.export.export(jax.jit(flat), disabled_checks=[
             jax.export.DisabledSafetyCheck.custom_call(t) for t in _UNGUARANTEED_CALLS])(*specs)
     except Exception as e:  # a program export cannot hold: plain jit (only warm starts are lost)
-        if "custom calls whose targets have no compatibility guarantees" in str(e):
-            return None  # expected for MuJoCo Warp's kernels (FFI calls registered per process): quietly plain jit
         warnings.warn(f"wbc_jax.sim.aot: {name} not exported ({type(e).__name__}: {str(e)[:200]}); using plain jit")
         return None
     try:

@@ -102,7 +102,7 @@ def _chunk_fn(sim, in_axes, n_logs: int):
     key = (id(sim), n_logs)
     if key not in _FNS:  # jit, with the lowered program kept on disk for the next process (wbc_jax.sim.aot)
         _FNS[key] = aot.cached_jit("chunk", jax.vmap(make_chunk_fn(sim, n_logs), in_axes=(in_axes, 0, 0, 0, 0, 0, 0)),
-                                   aot.describe(sim, in_axes, n_logs))
+                                   aot.describe(sim, in_axes, n_logs), exportable=sim.robot.backend != "warp")
     return _FNS[key]
 
 
