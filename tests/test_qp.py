@@ -253,33 +253,3 @@ def test_warm_start_inside_scan_and_jit(batch):
 def _assert_finite(res):
     for name, v in res._asdict().items():
         assert np.all(np.isfinite(np.asarray(v))), name
-
-
-FUSED_PROBLEMS = 6  # WBC-structured problems (the Pallas interpreter is slow on the CPU)
-FUSED_ITERS = 12
-FUSED_X_TOL = 1e-9  # float64: the kernel does the XLA path's arithmetic (sums in another order)
-
-
-def test_fused_kernel_equals_xla_iterations():
-    """The Pallas segment kernel (``kernel="pallas"``, run by Pallas' interpreter here) gives the XLA path's iterates
-    with the control loop's settings (one factorization, explicit inverse, warm start), including the last steps
-    that feed the infeasibility certificates; and ``kernel="auto"`` picks the XLA path on the CPU."""
-    from wbc_jax.control.transport import control_qp_settings
-
-    b = pr.make_batch(SEED + 7, FUSED_PROBLEMS, "wbc")
-    base = control_qp_settings(FUSED_ITERS, linsolve="inv", eps_abs=1e-6, eps_rel=1e-6)
-    with jax.enable_x64(True):
-        args = [jnp.asarray(a, jnp.float64) for a in (b.P, b.q, b.A, b.l, b.u)]
-        warm = solve_qp(*args, iters=5, settings=base._replace(kernel="xla"))
-        ref = solve_qp(*args, warm=warm, settings=base._replace(kernel="xla"))
-        fused = solve_qp(*args, warm=warm, settings=base._replace(kernel="pallas"))
-        auto = solve_qp(*args, warm=warm, settings=base._replace(kernel="auto"))
-    scale = np.maximum(1.0, np.abs(np.asarray(ref.x)).max(axis=1, keepdims=True))
-    moved = np.abs(np.asarray(ref.x) - np.asarray(warm.x)).max()
-    assert moved > 1e-6  # the iterations did something (equal outputs are not a frozen state)
-    np.testing.assert_array_less(np.abs(np.asarray(fused.x) - np.asarray(ref.x)) / scale, FUSED_X_TOL)
-    for f in ("y", "z", "prim_res", "dual_res"):
-        np.testing.assert_allclose(np.asarray(getattr(fused, f)), np.asarray(getattr(ref, f)), rtol=1e-7, atol=1e-9)
-    np.testing.assert_array_equal(np.asarray(fused.flag), np.asarray(ref.flag))
-    for f in QPResult._fields:
-        np.testing.assert_array_equal(np.asarray(getattr(auto, f)), np.asarray(getattr(ref, f)))

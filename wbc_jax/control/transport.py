@@ -197,7 +197,7 @@ def control_qp_settings(iters: int = 20, **kw) -> QPSettings:
     gain from it.
     """
     return QPSettings(**{**dict(iters=iters, eps_abs=1e-3, eps_rel=1e-3, linsolve="auto", adapt_every=0,
-                                ruiz_iters=2, num_warps=4), **kw})
+                                ruiz_iters=2), **kw})
 
 
 @dataclass(frozen=True)
