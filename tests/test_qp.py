@@ -253,3 +253,37 @@ def test_warm_start_inside_scan_and_jit(batch):
 def _assert_finite(res):
     for name, v in res._asdict().items():
         assert np.all(np.isfinite(np.asarray(v))), name
+
+
+# The control loop's rho (issue 22): the loop solves a chain of slowly changing QPs, each warm-started from the
+# last with one factorization per step and rho fixed. Chain of 8 WBC problems (1 % perturbations of one batch of
+# 60), float32, 20 iterations: fraction flagged solved over steps 2..8, measured 0.71 with rho 1 (the loop's value
+# before issue 22) and 0.98 with control_qp_settings' rho 10 (closed loop on the course: 16 % -> 3 % flagged).
+CHAIN_PROBLEMS = 60
+CHAIN_STEPS = 8
+CHAIN_ITERS = 20
+CHAIN_RHO_OLD = 1.0
+CHAIN_PRODUCT_MIN = 0.95  # solved fraction with the control loop's settings
+CHAIN_OLD_MAX = 0.8  # ... and with rho 1 (the test fails if rho stops mattering on this chain)
+
+
+def test_control_loop_rho_on_a_warm_chain():
+    from wbc_jax.control.transport import control_qp_settings
+
+    b = pr.make_batch(11, CHAIN_PROBLEMS, "wbc")
+    chain = [[jnp.asarray(a, jnp.float32) for a in pr.perturb(b, 100 + k, WARM_PERTURBATION)]
+             for k in range(CHAIN_STEPS)]
+    solved = {}
+    for name, s in (("product", control_qp_settings(CHAIN_ITERS)),
+                    ("old", control_qp_settings(CHAIN_ITERS, rho=CHAIN_RHO_OLD))):
+        f = jax.jit(lambda P, q, A, l, u, w: solve_qp(P, q, A, l, u, warm=w, settings=s))
+        w = solve_qp(*(jnp.asarray(a, jnp.float32) for a in b[:5]), settings=s, iters=1)
+        fr = []
+        for k, data in enumerate(chain):
+            w = f(*data, w)
+            if k > 0:
+                fr.append(np.mean(np.asarray(w.flag) == FLAG_SOLVED))
+        solved[name] = float(np.mean(fr))
+        np.testing.assert_allclose(np.asarray(w.rho), s.rho, rtol=1e-6)  # fixed rho: kept through the chain
+    assert solved["product"] >= CHAIN_PRODUCT_MIN, solved
+    assert solved["old"] <= CHAIN_OLD_MAX, solved

@@ -40,26 +40,27 @@ OBJ_TOL = 1e-3  # relative objective error (issue 22, float32)
 VIOL_TOL = 1e-4  # max violation relative to max(1, |Ax|_inf)
 ACCEPT_FRAC = 0.999  # fraction of sampled QPs within both
 CELLS = ((0.2, 0.4, 0.06), (0.4, 1.0, 0.10), (0.3, 0.7, 0.08), (0.4, 0.4, 0.10))
-_PARTS = {"pol": "polish_passes", "a": "adapt_every", "r": "ruiz_iters"}  # longest prefix first
+_PARTS = {"pol": "polish_passes", "rho": "rho", "a": "adapt_every", "b": "adapt_bias", "r": "ruiz_iters"}  # longest prefix first
 DEFAULT_VARIANTS = ("it20",)
 
 
 def variants(names=None) -> dict:
     """Named control-loop settings: ``it<N>`` (N warm-started iterations, otherwise :func:`control_qp_settings`),
     ``..._a<K>`` (rho adapted every K iterations, 0: never, one factorization per step), ``..._r<R>`` (R Ruiz
-    equilibration passes), ``..._pol<P>`` (P active-set polishing passes after the iterations, 0: none)."""
+    equilibration passes), ``..._b<B>`` (rho adaptation bias B), ``..._rho<R>`` (initial rho R), ``..._pol<P>`` (P active-set polishing passes
+    after the iterations, 0: none)."""
     out = {}
     for name in names or DEFAULT_VARIANTS:
         parts = name.split("_")
         if not (parts[0].startswith("it") and parts[0][2:].isdigit()):
-            raise ValueError(f"variant {name!r}: expected it<N>[_a<K>][_r<R>][_pol<P>]")
+            raise ValueError(f"variant {name!r}: expected it<N>[_a<K>][_b<B>][_rho<R>][_r<R>][_pol<P>]")
         iters = int(parts[0][2:])
         kw = {}
         for p in parts[1:]:
             key = next((k for k in _PARTS if p.startswith(k)), None)
             if key is None or not p[len(key):].isdigit():
-                raise ValueError(f"variant {name!r}: unknown part {p!r} (expected a<K>, r<R> or pol<P>)")
-            kw[_PARTS[key]] = int(p[len(key):])
+                raise ValueError(f"variant {name!r}: unknown part {p!r} (expected a<K>, b<B>, rho<R>, r<R> or pol<P>)")
+            kw[_PARTS[key]] = (float if key == "rho" else int)(p[len(key):])
         if "polish_passes" in kw:
             kw["polish"] = kw["polish_passes"] > 0
         out[name] = control_qp_settings(iters, **kw)

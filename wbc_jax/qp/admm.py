@@ -102,6 +102,9 @@ optimum by ~50 % (20-35 activity changes); those problems were the warm failures
 Warm points solved further (400 instead of 100 iterations) do not help (.80 at 37: the
 rho kept from a long solve is less suited).
 
+The control loop's settings (warm start, one factorization per step, rho fixed at 10, 20 iterations) and their
+closed-loop evidence on the course (issue 22) are in :func:`wbc_jax.control.transport.control_qp_settings`.
+
 Removed settings (git has them), each measured without an advantage for the product:
 Anderson acceleration (above: -20 % iterations at +50-70 % per iteration), the x-update
 in OSQP's right-hand-side form (``residual_form=False``, stalls in float32), OSQP's and

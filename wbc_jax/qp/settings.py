@@ -41,7 +41,10 @@ class QPSettings(NamedTuple):
         rho_min: rho of free rows and lower clip of adapted rho.
         rho_max: upper clip of adapted rho.
         adapt_every: iterations per segment between rho re-estimates and refactors;
-            0 disables adaptation (one Cholesky per solve).
+            0 disables adaptation (one Cholesky per solve, rho stays the initial or warm
+            one). ``>= iters``: one Cholesky per solve and rho re-estimated after the
+            iterations, for the next warm-started solve (cross-step adaptation: the
+            control loop's choice, see :func:`wbc_jax.control.transport.control_qp_settings`).
         adapt_tol: rho changes only when the estimate differs by more than this factor.
         adapt_bias: factor on OSQP's estimate ``rho sqrt(prim_rel / dual_rel)`` (> 1
             favours primal feasibility).
