@@ -8,7 +8,7 @@ half with WBC structure and scales):
 * batched QPs per second at batch 1, 1024, 4096, 16384 (quick: 1, 64, 256), default
   iterations, cold start; compile time reported separately; also, at the largest batch,
   the ``linsolve="inv"`` variant (explicit inverse: matrix-vector products only) and
-  Anderson acceleration (``anderson=10``), whose cost per iteration is device-dependent.
+  active-set polishing (``polish=True``), whose costs are device-dependent.
 * accuracy versus iteration count, cold and warm (warm: from the solution of the same
   problems with all data perturbed by 1 %): median and 95th percentile of the relative
   objective error and of the max violation (relative to ``max(1, ||Ax||_inf)``), against
@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.bench import qp_problems as pr
-from wbc_jax.qp.admm import QPSettings, solve_qp
+from wbc_jax.qp import QPSettings, solve_qp
 
 SEED = 7
 POOL = 256  # distinct problems, tiled to the throughput batch sizes
@@ -67,7 +67,7 @@ def _throughput(pool: pr.QPProblem, batches, dtype, settings: QPSettings) -> lis
     for b in batches:
         data = [_tile(a, b, dtype) for a in pool[:5]]
         compile_s, per = _timed(fn, *data)
-        variant = settings.linsolve + (f"+aa{settings.anderson}" if settings.anderson else "")
+        variant = settings.linsolve + (f"+pol{settings.polish_passes}" if settings.polish else "")
         rows.append(dict(batch=b, variant=variant, seconds_per_call=per,
                          qps_per_s=b / per, compile_s=compile_s))
     return rows
@@ -169,7 +169,7 @@ def run_bench(quick: bool = False, json_path: str | None = None) -> dict[str, An
           f"(eq {out['problem']['m_eq']}), default iters={settings.iters}")
 
     thr = _throughput(pool, cfg["batches"], dtype, settings)
-    for variant in (dict(linsolve="inv"), dict(anderson=10)):
+    for variant in (dict(linsolve="inv"), dict(polish=True)):
         thr += _throughput(pool, cfg["batches"][-1:], dtype, settings._replace(**variant))
     out["throughput"] = thr
     print("\nthroughput (cold start, default iters; compile excluded)")

@@ -154,7 +154,7 @@ def campaign_cold_warm(spec: str) -> dict:
     return out
 
 
-PROFILE_VARIANTS = ("wbc_1", "wbc_n", "wbc_n_norefactor", "wbc_n_chol", "wbc_n_pallas")
+PROFILE_VARIANTS = ("wbc_1", "wbc_n", "wbc_n_norefactor", "wbc_n_chol")
 
 
 def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: str = "flat",
@@ -163,7 +163,7 @@ def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: st
 
     Times (per env-step, excluding compile) physics only; physics + WBC with 1 ADMM iteration; with ``iters``
     iterations (the default rho adaptation, i.e. a refactor every ``adapt_every``); with ``iters`` iterations and
-    no refactor; with the Cholesky solve; with the Pallas iteration kernel (``variants`` picks others, e.g. the
+    no refactor; with the Cholesky solve (``variants`` picks others, e.g. the
     unrolled solver ``wbc_n_unroll``; the default linear solve is the backend's, see ``control_qp_settings``). Differences give the controller's fixed cost (sensing,
     QP assembly, equilibration, one factorization), the cost of one ADMM iteration and of one refactor.
     """
@@ -172,8 +172,6 @@ def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: st
     base = control_qp_settings(iters)
     known = dict(wbc_1=base._replace(iters=1), wbc_n=base, wbc_n_norefactor=base._replace(adapt_every=0),
                  wbc_n_inv=base._replace(linsolve="inv"), wbc_n_chol=base._replace(linsolve="chol"),
-                 wbc_n_pallas=base._replace(linsolve="inv", kernel="pallas"),
-                 wbc_n_pallas_norefactor=base._replace(linsolve="inv", kernel="pallas", adapt_every=0),
                  wbc_n_unroll=base._replace(unroll=True),
                  wbc_n_unroll_norefactor=base._replace(unroll=True, adapt_every=0))
     from wbc_jax.bench.qp_audit import variants as named

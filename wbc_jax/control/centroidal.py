@@ -152,8 +152,8 @@ class CentroidalDiag(NamedTuple):
 
 def centroidal_qp_settings(iters: int = 40) -> QPSettings:
     """ADMM settings of the centroidal controller's measured trot study: ``iters`` warm-started iterations, rho
-    adapted every 10, 5 Ruiz passes (the transport loop's :func:`control_qp_settings` otherwise)."""
-    return control_qp_settings(iters, adapt_every=10, ruiz_iters=5)
+    adapted every 10 from an initial 1, 5 Ruiz passes (the transport loop's :func:`control_qp_settings` otherwise)."""
+    return control_qp_settings(iters, adapt_every=10, ruiz_iters=5, rho=1.0)
 
 
 @dataclass(frozen=True)

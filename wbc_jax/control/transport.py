@@ -172,32 +172,40 @@ class ControlState(NamedTuple):
 def control_qp_settings(iters: int = 20, **kw) -> QPSettings:
     """ADMM settings for the control loop (``kw``: other :class:`~wbc_jax.qp.QPSettings` fields).
 
-    ``iters`` warm-started iterations (the previous step's x, z, y and rho); no rho adaptation (``adapt_every=0``:
-    one factorization per step) and 2 Ruiz passes; the flag tolerance is 1e-3 (abs and rel), what float32
-    residuals at WBC scales (forces up to hundreds of N) can show; the linear solve picked per backend
+    ``iters`` warm-started iterations (the previous step's x, z, y); rho fixed at 10 (``rho=10``, no adaptation:
+    one factorization per step) and 2 Ruiz passes; the flag tolerance is 1e-3 (abs and rel, OSQP's test), what
+    float32 residuals at WBC scales (forces up to hundreds of N) can show; the linear solve picked per backend
     (``linsolve="auto"``: Cholesky on the CPU, explicit inverse on a GPU).
 
-    Evidence, 2026-11-23. Speed (``wbc-jax bench profile`` / ``bench rollout``, H100, flat, batch 16384): the
-    earlier 50 iterations with rho adapted every 10 (4 refactors) and 5 Ruiz passes cost 6.32 us per env-step,
-    20 iterations without adaptation 3.16 us, and with 2 Ruiz passes 2.95 us (physics alone 0.83 us).
-    Accuracy on the controller's own QPs (``wbc-jax bench qp-rollout``: each variant in its own closed loop, flat
-    walk, 4 cells, 1.2 s, 48 QPs against OSQP at eps 1e-9): p95 relative objective error 9e-6 (old) vs 9e-4
-    (these settings), p95 relative violation 2.6e-5 vs 2.2e-4, flagged steps 0.4 % vs 13 %; the loop's task
-    metrics are unchanged (max slip 0.04 vs 0.06 mm, T 0.69 vs 0.69 mm, trunk minimum 0.447 m). On the quick
-    campaign (54 runs, H100) the means of R, T, S and max slip move by less than 2 % (R 0.3502 -> 0.3495, T 1.25 ->
-    1.27 mm, S 0.601 -> 0.596, slip 0.145 -> 0.143 mm).
+    Evidence, issue 22 (2026-11-25, CPU, float32). Course scene (``transport``), 4 factor cells
+    (``wbc_jax.bench.qp_audit.CELLS``), the first 6 s of the course plan (6,000 control steps per run); flagged
+    fraction of every control step of each run, each variant in its own closed loop::
 
-    The fused Pallas iteration kernel (``kernel="pallas"``, :mod:`wbc_jax.qp.fused`; ``_p4`` in the
-    ``wbc_jax.bench.qp_audit`` variant names) is not the default. Measured 2026-11-23 on an H100, closed loop, same inputs,
-    one process: flat scene, batch 16384, 350,914 -> 393,790 env-steps/s (+12 %) with 4 warps per problem (4 beat 8
-    and 16 on WBC-sized QPs alone: 0.46 vs 0.57 and 0.56 ms per iteration at 16384 problems; XLA's iterations 0.75
-    ms); course scene, batch 270, 3.63 -> 3.45 ms per control step (-5 %). But the paper campaign with it took
-    192.6 s cold (chunk compile 58.5 s) against 175.0 s (39.7 s) with the XLA iterations, and 268/270 runs succeeded
-    (269 before; GPU runs are not bit-reproducible, so one run cannot pin that on the kernel): the campaign does not
-    gain from it.
+        20 iterations, rho 1 fixed (before issue 22)          16.0-16.8 %
+        20, rho re-estimated after each step (adapt_every=20)  4.4-4.5 %
+        20, same with adapt_bias=4 at 30 iterations             3.7-4.0 %
+        30, rho re-estimated after each step                    1.9-2.3 %
+        40, rho re-estimated after each step                    1.4-2.0 %
+        20, rho 10 fixed (this default)                         3.1-3.3 %
+        40, rho 10 fixed                                        0.75-0.80 %
+
+    Why: with rho 1 the primal residual of the equality rows converges slowly (the failing steps are 80 % primal);
+    re-estimating rho across steps drives it low on quiet steps (0.2-0.8) and the steps after a contact event then
+    fail with primal residuals 0.3-1.5 (tolerance ~0.24). Offline, on 2,400 QPs sampled every 10 steps from the
+    40-iteration loop and solved from its warm starts (OSQP at eps 1e-9 as reference): fixed rho 3 / 5 / 10 / 20 at
+    20 iterations flags 1.3 / 0.46 / 0.46 / 1.7 % and meets issue 22's acceptance (rel. objective <= 1e-3,
+    violation <= 1e-4 of max(1, |Ax|)) on 94.4 / 98.5 / 98.8 / 99.6 %; at 30 iterations rho 10: 0.46 % flagged,
+    99.3 %; at 60 iterations 0 % flagged, 99.96 %. The steps still flagged at 30 iterations are contact events
+    (all runs at the same instants; primal residual ~45, a stance row turning into an equality): ADMM needs ~60
+    warm iterations there. Active-set polishing (``polish=True``, 1-2 passes) does not help on these QPs in float32
+    (the polished points are rejected; float64: 86 % -> 97 % acceptance, not 99.9 %).
+
+    Speed before issue 22 (``wbc-jax bench profile`` / ``bench rollout``, H100, flat, batch 16384): 50 iterations
+    with rho adapted every 10 (4 refactors) and 5 Ruiz passes cost 6.32 us per env-step, 20 iterations without
+    adaptation 3.16 us, and with 2 Ruiz passes 2.95 us (physics alone 0.83 us); rho does not change the cost.
     """
     return QPSettings(**{**dict(iters=iters, eps_abs=1e-3, eps_rel=1e-3, linsolve="auto", adapt_every=0,
-                                ruiz_iters=2, num_warps=4), **kw})
+                                rho=10.0, ruiz_iters=2), **kw})
 
 
 @dataclass(frozen=True)

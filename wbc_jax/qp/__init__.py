@@ -1,9 +1,12 @@
 """Batched fixed-iteration ADMM QP solver in OSQP form (``min 1/2 x'Px + q'x, l <= Ax <= u``).
 
-Knows nothing about robots. Entry point :func:`solve_qp`; see :mod:`wbc_jax.qp.admm`.
+Knows nothing about robots. Entry point :func:`solve_qp` (:mod:`wbc_jax.qp.admm`, the algorithm and its evidence); settings,
+result and flags in :mod:`wbc_jax.qp.settings`, equilibration in :mod:`wbc_jax.qp.scaling`, active-set
+polishing in :mod:`wbc_jax.qp.polish`.
 """
 
-from wbc_jax.qp.admm import (
+from wbc_jax.qp.admm import solve_qp
+from wbc_jax.qp.settings import (
     FLAG_DUAL_INFEASIBLE,
     FLAG_MAX_ITER,
     FLAG_NONFINITE,
@@ -11,7 +14,6 @@ from wbc_jax.qp.admm import (
     FLAG_SOLVED,
     QPResult,
     QPSettings,
-    solve_qp,
 )
 
 __all__ = [
