@@ -57,7 +57,9 @@ def _accum(**kw):
                 wall_contact=np.zeros(2, bool), max_tau_ratio=z, max_tau_excess=z, sum_prim_res=z,
                 n_flag=np.zeros(2, int), n_steps=np.array([1000, 1000]), sum_track=z, nonfinite=np.zeros(2, bool),
                 off_steps=np.zeros(2, int), max_off_s=z, sum_invH=z, sum_acc=z, n_boundary=np.zeros(2, int),
-                first_contact_t=np.full(2, np.nan), first_contact_k=np.full(2, -1), overflow=np.zeros(2, bool))
+                first_contact_t=np.full(2, np.nan), first_contact_k=np.full(2, -1), overflow=np.zeros(2, bool),
+                t_end=np.full(2, np.inf), n_win=np.array([1000, 1000]), min_clear=np.full(2, np.inf),
+                min_clear_t=np.full(2, np.nan), min_clear_k=np.full(2, -1))
     base.update(kw)
     return Accum(**base)
 
@@ -79,6 +81,24 @@ def test_finalize_by_hand():
     assert r["success"].tolist() == [True, True]  # sliding, wall contact and QP flags are flags, not failures
 
 
+def test_finalize_averages_over_the_metric_window():
+    """The same integrals over a 0.5 s window of a 1 s simulation: R and T doubled, S halved, boundary fraction of
+    the window's steps; flags unchanged."""
+    kw = dict(sum_invH=np.array([0.3, 0.1]), sum_track=np.array([0.002, 0.004]), sum_acc=np.array([0.5, 2.0]),
+              n_boundary=np.array([0, 100]), min_clear=np.array([0.011, -0.002]), min_clear_t=np.array([0.2, 0.7]))
+    full = metrics.finalize(_accum(**kw), 1e-3, np.array([0.7, 0.7]), course=False, final_err=np.zeros(2))
+    half = metrics.finalize(_accum(n_win=np.array([500, 500]), **kw), 1e-3, np.array([0.7, 0.7]), course=False,
+                            final_err=np.zeros(2))
+    np.testing.assert_allclose(half["R"], 2 * full["R"])
+    np.testing.assert_allclose(half["T"], 2 * full["T"])
+    np.testing.assert_allclose(half["S"], full["S"] / 2)
+    np.testing.assert_allclose(half["boundary_fraction"], [0.0, 0.2])
+    np.testing.assert_allclose(half["window_s"], [0.5, 0.5])
+    np.testing.assert_allclose(half["min_clearance_mm"], [11.0, -2.0])
+    np.testing.assert_allclose(half["min_clearance_s"], [0.2, 0.7])
+    assert half["success"].tolist() == full["success"].tolist() == [True, True]
+
+
 def test_finalize_failures():
     acc = _accum(min_trunk_z=np.array([0.2, 0.45]), max_lift=np.array([0.0, 0.02]), sum_acc=np.array([1.0, 1.0]))
     r = metrics.finalize(acc, 1e-3, np.array([0.7, 0.7]), course=False, final_err=np.array([0.0, 0.0]))
@@ -88,11 +108,11 @@ def test_finalize_failures():
     acc = _accum(min_trunk_z=np.array([0.2, 0.45]), nonfinite=np.array([False, True]), sum_acc=np.array([1.0, 1.0]))
     r = metrics.finalize(acc, 1e-3, np.array([0.7, 0.7]), course=True, final_err=np.array([0.0, np.nan]))
     assert r["fell"].tolist() == [False, True] and r["success"].tolist() == [True, False]
+    assert r["fail_reason"].tolist() == ["", "non-finite state; object not delivered"]
     # a run whose contacts overflowed Warp's capacity fails, with its reason
     acc = _accum(overflow=np.array([False, True]), sum_acc=np.array([1.0, 1.0]))
     r = metrics.finalize(acc, 1e-3, np.array([0.7, 0.7]), course=False, final_err=np.array([0.0, 0.0]))
     assert r["success"].tolist() == [True, False] and "overflow" in r["fail_reason"][1]
-    assert r["fail_reason"].tolist() == ["", "non-finite state; object not delivered"]
     # a knee or shin touching the ground with the trunk up is a fall, named as body contact
     acc = _accum(min_trunk_z=np.array([0.4, 0.1]), nonfoot_floor=np.array([True, False]), sum_acc=np.array([1.0, 1.0]))
     r = metrics.finalize(acc, 1e-3, np.array([0.7, 0.7]), course=True, final_err=np.array([0.0, 0.0]))

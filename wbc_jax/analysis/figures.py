@@ -15,6 +15,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from scipy import stats as sps
 
+from wbc_jax.analysis.interaction import emm_table, interaction_shape, interaction_views
+
 DPI = 110
 PANEL = (3.2, 2.5)  # inches per subplot (w, h)
 
@@ -59,7 +61,9 @@ def means_grid(level_means: pd.DataFrame, factors: Sequence[str], metrics: Seque
 
 def interaction_grid(emms: dict[str, dict[str, pd.DataFrame]], metrics: Sequence[str],
                      unreliable: Sequence[str] = ()) -> bytes | None:
-    """EMM +- 95 % CI interaction plots: rows metrics, columns two-way interactions; the paper's Fig. 4.
+    """EMM +- 95 % CI interaction plots: rows metrics, columns each two-way interaction in both orientations (A on
+    the x axis with a line per level of B, then B on x with a line per A), each titled ordinal or disordinal
+    (:func:`interaction_shape`); the paper's Fig. 4.
 
     Args:
         emms: metric -> {"A:B": :func:`wbc_jax.analysis.stats.emmeans` table over (A, B)}.
@@ -71,24 +75,27 @@ def interaction_grid(emms: dict[str, dict[str, pd.DataFrame]], metrics: Sequence
     pairs = list(next(iter(emms.values())).keys()) if emms else []
     if not pairs:
         return None
-    fig, ax = _axes(len(metrics), len(pairs))
+    views = interaction_views(pairs)
+    fig, ax = _axes(len(metrics), len(views))
     for i, m in enumerate(metrics):
-        for j, pair in enumerate(pairs):
-            xf, lf = pair.split(":")
+        for j, (pair, xf, lf) in enumerate(views):
             t = emms[m][pair]
             a = ax[i, j]
             xs = list(dict.fromkeys(t[xf]))
+            n_lines = t[lf].nunique()
             for k, (lv, g) in enumerate(t.groupby(lf, sort=False)):
-                pos = np.array([xs.index(v) for v in g[xf]]) + (k - 1) * 0.04
+                pos = np.array([xs.index(v) for v in g[xf]]) + (k - (n_lines - 1) / 2) * 0.04
                 err = np.vstack([g["emm"] - g["ci_low"], g["ci_high"] - g["emm"]])
                 a.errorbar(pos, g["emm"], yerr=err, marker="o", capsize=3, lw=1.3, label=f"{lf}={_label(lv)}")
             a.set_xticks(np.arange(len(xs)), [_label(v) for v in xs])
             a.set_xlabel(xf)
             a.set_ylabel(f"{m} EMM (95% CI)" if j == 0 else "")
-            a.set_title(f"{m}: {xf} × {lf}" + (" (F tests unreliable)" if m in unreliable else ""), fontsize=9)
+            shape = interaction_shape(emm_table(t, xf, lf).to_numpy())
+            a.set_title(f"{m}: {xf} × {lf}, {shape}" + (" (F tests unreliable)" if m in unreliable else ""),
+                        fontsize=9)
             a.legend(fontsize=7, framealpha=0.6)
             a.grid(alpha=0.3)
-    fig.suptitle("Estimated marginal means ± 95 % CI (interaction plots)")
+    fig.suptitle("Estimated marginal means ± 95 % CI (interaction plots, both orientations)")
     return _png(fig)
 
 

@@ -42,13 +42,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from wbc_jax.analysis import stats
+from wbc_jax.analysis import interaction, stats
 from wbc_jax.io_utils import atomic_dir, check_out_dir, read_capped
 from wbc_jax.errors import InputError, WbcJaxError
 
 SCHEMA = "wbc_jax.analysis.report/1"
 COMMAND = "wbc-jax report"
-CAMPAIGN_METRICS = ("R", "T", "S")  # the metrics of a campaign's report (its results.csv has more columns)
+CAMPAIGN_METRICS = ("R", "T", "S")
+CLEARANCE = "min_clearance_mm"  # a campaign's results.csv column: the report's clearance section  # the metrics of a campaign's report (its results.csv has more columns)
 HUGE = 1e100  # a metric value at least this large in magnitude overflows the sums of squares (squared: 1e200+)
 RESULTS_LIMIT = 64 << 20  # largest results CSV read [bytes] (16384 runs: about 6 MB)
 
@@ -111,7 +112,7 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
         "versions": _versions(), "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
     summary = _clean(_summary(res, data, factors, metrics, alpha, manifest))
-    doc = _document(res, summary, factors, metrics, alpha, list(images))
+    doc = _document(res, summary, factors, metrics, alpha, list(images), df)
     manifest["wall_s"] = summary["manifest"]["wall_s"] = round(time.perf_counter() - t0, 3)
     files = {
         "report.md": doc.markdown().encode(),
@@ -296,6 +297,7 @@ def _summary(res: dict, data: pd.DataFrame, factors, metrics, alpha: float, mani
             "unreliable_reasons": fit.unreliable_reasons,
             "significant": r["significant"], "assumptions": r["assumptions"],
             "simple_effects": r["simple_effects"],
+            "interaction_shapes": interaction.shapes(r["emms"]),
             "warnings": r["warnings"],
         }
     return {
@@ -389,7 +391,8 @@ def _f(x, spec: str = ".4g") -> str:
     return str(x)
 
 
-def _document(res: dict, summary: dict, factors, metrics, alpha: float, images: list[str]) -> _Doc:
+def _document(res: dict, summary: dict, factors, metrics, alpha: float, images: list[str],
+              df: pd.DataFrame | None = None) -> _Doc:
     d = _Doc()
     man = summary["manifest"]
     d.h(1, f"ANOVA report: {Path(man['input']).name}")
@@ -397,6 +400,9 @@ def _document(res: dict, summary: dict, factors, metrics, alpha: float, images: 
     d.p(f"{res['n_runs']} runs ({res['n_failed']} failed, excluded), factors {lv}; metrics {', '.join(metrics)}; "
         f"alpha = {alpha:g}; type {summary['ss_type']} sums of squares, sum-to-zero contrasts; model: "
         + ("main effects + two-way interactions" if summary["model_order"] == 2 else f"interactions up to order {summary['model_order']}")
+        + (f" (interactions of order > {summary['model_order']} pooled into the error)"
+           if summary["model_order"] < len(factors) else "")
+        + "; residual df " + ", ".join(f"{m} {_f(summary['metrics'][m]['df_resid'], 'g')}" for m in metrics)
         + ".")
 
     d.h(2, "Warnings")
@@ -437,10 +443,14 @@ def _document(res: dict, summary: dict, factors, metrics, alpha: float, images: 
     if images:
         d.h(2, "Figures")
         captions = {"means.png": "Mean ± SD of each metric per factor level (rows: metrics, columns: factors).",
-                    "interactions.png": "Interaction plots: EMMs ± 95 % CI for each two-way interaction.",
+                    "interactions.png": "Interaction plots: EMMs ± 95 % CI for each two-way interaction, in both "
+                                        "orientations, each titled ordinal or disordinal (lines crossing).",
                     "qq.png": "Normal Q-Q plots of standardized model residuals."}
         for name in images:
             d.img(name, captions[name])
+
+    if df is not None and CLEARANCE in df.columns:
+        _clearance_section(d, df, factors)
 
     d.h(2, "Method")
     d.ul([
@@ -461,6 +471,25 @@ def _document(res: dict, summary: dict, factors, metrics, alpha: float, images: 
         "conditioning level, all with the pooled model MSE and residual df (as SPSS EMMEANS COMPARE, R emmeans).",
     ])
     return d
+
+
+def _clearance_section(d: _Doc, df: pd.DataFrame, factors) -> None:
+    """Per cell, the smallest clearance over its runs (all runs, failed ones included) with its time and pair."""
+    c = pd.to_numeric(df[CLEARANCE], errors="coerce")
+    d.h(2, "Clearance (all runs)")
+    d.p("Smallest signed distance between a non-foot robot geom and the floor, blocks or wall over each run [mm] "
+        "(negative: penetration; inf: none reported, e.g. on the Warp backend without penetration); per cell the "
+        "run with the smallest.")
+    rows = []
+    for key, g in df.assign(_c=c).groupby(factors, sort=True):
+        key = key if isinstance(key, tuple) else (key,)
+        i = g["_c"].idxmin() if g["_c"].notna().any() else g.index[0]
+        r = g.loc[i]
+        pair = r.get("min_clearance_pair", "")
+        rows.append([*(_f(v, "g") for v in key), "inf" if r["_c"] == np.inf else _f(r["_c"], ".3f"),
+                     int(r["run"]) if "run" in g else "", _f(r.get("min_clearance_s", np.nan), ".3f"),
+                     pair if isinstance(pair, str) else ""])
+    d.table(pd.DataFrame(rows, columns=[*factors, "min clearance [mm]", "run", "at [s]", "pair"]))
 
 
 def _metric_section(d: _Doc, m: str, r: dict, level_means: pd.DataFrame, alpha: float) -> None:
@@ -503,6 +532,11 @@ def _metric_section(d: _Doc, m: str, r: dict, level_means: pd.DataFrame, alpha: 
             d.table(pr)
     elif fit.reliable:
         d.p("No significant two-way interaction: no simple main effects.")
+    if r["emms"]:
+        d.h(3, "Interaction shapes")
+        d.p("Disordinal: two lines of the interaction plot cross within the plotted range (the order of the line "
+            "factor's levels reverses across the x-axis levels; EMMs); ordinal otherwise.")
+        d.table(pd.DataFrame(interaction.shapes(r["emms"])))
     d.h(3, "Descriptives per factor level (successful runs)")
     lm = level_means[level_means["metric"] == m]
     d.table(pd.DataFrame({"factor": lm["factor"], "level": lm["level"].map(lambda v: _f(v, "g")),

@@ -10,8 +10,8 @@ cheap: four contact forces and a few norms):
   contact slots, contact frame: row 0 normal, rows 1-2 tangential), alpha_i = atan2(||f_t||, f_n).
   **Boundary rule** (documented choice): a contact carrying no load (f_n <= :data:`LOAD_EPS`, e.g. a
   corner lifted off the tray or a slot not active this step) or a force on or outside the circular cone
-  (alpha_i >= theta_i; MuJoCo's pyramidal cone admits up to sqrt(2) mu f_n on a diagonal) counts as *at the
-  cone boundary*: its term 1/((theta-alpha)(theta+alpha)) is +inf, so H = inf and 1/H(t) = 0 at that step.
+  (alpha_i >= theta_i; MuJoCo's pyramidal cone, |f_t1| + |f_t2| <= mu f_n, is inscribed in the circular one, so
+  this is a guard for solver slack rather than a regular case) counts as *at the cone boundary*: its term 1/((theta-alpha)(theta+alpha)) is +inf, so H = inf and 1/H(t) = 0 at that step.
   1/H is therefore in [0, lambda / (n_c / theta^2)] = [0, theta^2] for n_c = 4 = lambda: a cube resting
   still on a level tray scores theta^2 = atan(mu)^2.
 * **Tracking** integrand ||p_b,ref(t) - p_b(t)|| (object CoM vs the planned object path).
@@ -19,10 +19,27 @@ cheap: four contact forces and a few norms):
   (v(t + dt) - v(t)) / dt with dt the physics timestep, from the free joint's linear velocity (world frame).
 
 The integrals sum these over physics steps times the physics timestep (the tracking integrand, a planner
-quantity, is sampled once per control step times the control period). Over a run of duration T_run (all
-simulated control steps x the control period):
-R = (1/T_run) int 1/H dt [rad^2]; T = (1/T_run) int ||p_ref - p|| dt [m]; S = T_run / int ||vdot_b|| dt
+quantity, is sampled once per control step times the control period).
+
+**Metric window.** The integrals and their duration cover the run's *task window* [0, t_end), not the whole
+simulated time: a control period counts when its midpoint is before t_end (``wbc_jax.sim.rollout.in_window``;
+all physics steps of a period count or none). t_end is per-run data carried in the rollout state
+(``Accum.t_end``, set by ``wbc_jax.sim.rollout.with_metric_window``; +inf = the whole simulation), so one
+compiled chunk serves every window. The campaign (``wbc_jax.study.campaign.build``) sets
+t_end = T_plan + settle, T_plan = the run's own plan duration (end of its object path; plans differ by d) and
+settle = the spec's ``campaign.extra_seconds`` (default 0.5 s: standing after the path ends, while the object
+comes to rest), capped by ``campaign.max_seconds`` when that is set. The campaign simulates whole chunks up to
+max(T_plan) + extra_seconds or beyond, so the window always ends inside the simulation and R, T, S do not depend
+on ``chunk_seconds``. Flags and extremes (falls, body and wall contact, drops, slip, lift, overflow, torque
+ratios, clearance) keep counting over the whole simulation. With T_win = (control steps in the window) x the
+control period:
+R = (1/T_win) int 1/H dt [rad^2]; T = (1/T_win) int ||p_ref - p|| dt [m]; S = T_win / int ||vdot_b|| dt
 [s^2/m] (the paper's S uses the duration T, not the tracking metric T).
+
+**Clearance** (``wbc_jax.sim.rollout.clearance``, every physics step): the smallest signed distance between a
+non-foot robot geom and the floor, the terrain blocks or a wall over the whole run, with its time and pair. Exact
+(MJX contact-slot distances, also when not touching) on the JAX backend; on Warp a distance is reported only
+while a pair penetrates, so there it is only a penetration depth (<= 0) or +inf ("none").
 """
 
 from __future__ import annotations
@@ -99,14 +116,17 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
         substeps: physics steps per control step (``Sim.n_substeps``): ``acc.n_boundary`` counts physics steps.
 
     Returns:
-        dict of (B,) arrays: R [rad^2], T [m], S [s^2/m] (time averages over acc.n_steps x dt), max_slip_mm,
-        boundary_fraction (of the physics steps), flags fell (= trunk_low or body_contact),
+        dict of (B,) arrays: R [rad^2], T [m], S [s^2/m] (time averages over the metric window, acc.n_win x dt),
+        max_slip_mm, boundary_fraction (of the window's physics steps), window_s (the window's duration [s]),
+        min_clearance_mm (non-foot robot geom vs floor, terrain, wall; +inf: none reported) and min_clearance_s
+        (its time; NaN: none), flags fell (= trunk_low or body_contact),
         trunk_low, body_contact, dropped, slid, hit_wall, qp_flagged, nonfinite, overflow (Warp's contact or
         constraint capacity reached), success (no fall, no drop, finite, no overflow,
         final object error <= DONE_TOL) and fail_reason (text, "" for a success).
     """
     n = np.asarray(acc.n_steps, float)
-    dur = np.maximum(n * dt, 1e-12)
+    n_win = np.asarray(acc.n_win, float)
+    dur = np.maximum(n_win * dt, 1e-12)
     trunk_low = np.asarray(acc.min_trunk_z) < (FALL_Z_COURSE if course else FALL_Z_FLAT)
     body_contact = np.asarray(acc.nonfoot_floor)
     fell = trunk_low | body_contact
@@ -120,7 +140,10 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
         T=np.asarray(acc.sum_track) / dur,
         S=S,
         max_slip_mm=np.asarray(acc.max_slip) * 1e3,
-        boundary_fraction=np.asarray(acc.n_boundary) / np.maximum(n * substeps, 1),
+        boundary_fraction=np.asarray(acc.n_boundary) / np.maximum(n_win * substeps, 1),
+        window_s=n_win * dt,
+        min_clearance_mm=np.asarray(acc.min_clear, float) * 1e3,
+        min_clearance_s=np.asarray(acc.min_clear_t, float),
         fell=fell | nonfinite,
         trunk_low=trunk_low,
         body_contact=body_contact,

@@ -91,6 +91,15 @@ class Accum(NamedTuple):
     first_contact_k: jax.Array  # int32, index into Sim.nonfoot_slots of that step's deepest such contact; -1 if none
     overflow: jax.Array  # bool, a physics step's contacts or constraint rows may not all have fit (Warp's capacity,
     #                      wbc_jax.sim.physics.overflow; the run is failed) (physics rate)
+    t_end: jax.Array  # [s] end of the run's metric window [0, t_end) (input, not a reduction: :func:`with_metric_window`;
+    #                   +inf: the whole simulation). sum_invH, sum_acc, n_boundary, sum_track and n_win count only
+    #                   the control periods whose midpoint lies in the window; the flags and extremes count all
+    n_win: jax.Array  # int32, control steps inside the metric window (the duration of R, T, S)
+    min_clear: jax.Array  # [m] smallest signed distance of a non-foot robot geom to the floor, terrain or a wall
+    #                       over the run (:func:`clearance`; +inf: none reported) (physics rate)
+    min_clear_t: jax.Array  # [s] start of the physics step of min_clear (the contacts' time); NaN if none
+    min_clear_k: jax.Array  # int32, its pair: index into Sim.nonfoot_slots, or len(nonfoot_slots) + index into
+    #                         Sim.wall_slots (:func:`clearance_name`); -1 if none
 
 
 class RunState(NamedTuple):
@@ -196,7 +205,10 @@ def init_state(sim: Sim, m, qpos0, qvel0=None, n_runs: int = 1) -> RunState:
                 n_flag=jnp.zeros((), jnp.int32), n_steps=jnp.zeros((), jnp.int32), sum_track=z,
                 nonfinite=jnp.bool_(False), off_steps=jnp.zeros((), jnp.int32), max_off_s=z,
                 sum_invH=z, sum_acc=z, n_boundary=jnp.zeros((), jnp.int32), first_contact_t=jnp.full((), jnp.nan, z.dtype),
-                first_contact_k=jnp.full((), -1, jnp.int32), overflow=jnp.bool_(False))
+                first_contact_k=jnp.full((), -1, jnp.int32), overflow=jnp.bool_(False),
+                t_end=jnp.full((), jnp.inf, z.dtype), n_win=jnp.zeros((), jnp.int32),
+                min_clear=jnp.full((), jnp.inf, z.dtype), min_clear_t=jnp.full((), jnp.nan, z.dtype),
+                min_clear_k=jnp.full((), -1, jnp.int32))
     return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids), acc=acc)
 
 
@@ -229,6 +241,8 @@ class SubstepMonitors(NamedTuple):
     off: jax.Array  # bool, every object contact sphere farther than CONTACT_DIST from the tray
     finite: jax.Array  # bool, positions after the step and the held torques are finite
     overflow: jax.Array  # bool, the step's contacts or constraint rows may not all have fit (Warp)
+    clear: jax.Array  # [m] :func:`clearance` after the step (+inf: none reported)
+    clear_k: jax.Array  # int32, its pair (Accum.min_clear_k numbering; -1: none)
 
 
 def substep_monitors(sim: Sim, m, om: ObjectModel, tau, d, d_after) -> SubstepMonitors:
@@ -251,8 +265,51 @@ def substep_monitors(sim: Sim, m, om: ObjectModel, tau, d, d_after) -> SubstepMo
         nonfoot_k = jnp.where(nonfoot, jnp.argmin(nf_dist), -1).astype(jnp.int32)
     else:
         nonfoot, nonfoot_k = jnp.bool_(False), jnp.full((), -1, jnp.int32)
+    clear, clear_k = clearance(sim, d_after)
     return SubstepMonitors(inv_h=inv_h, acc=acc_norm, nonfoot_floor=nonfoot, nonfoot_k=nonfoot_k, t=d.time,
-                           wall=wall, off=off, finite=finite, overflow=physics.overflow(d_after))
+                           wall=wall, off=off, finite=finite, overflow=physics.overflow(d_after), clear=clear,
+                           clear_k=clear_k)
+
+
+def _wall_robot_mask(sim: Sim, d) -> jax.Array:
+    """(len(wall_slots),) bool: the wall slot's (JAX) or pair's (Warp) other geom is a robot geom (not the object)."""
+    m = sim.robot.mj_model
+    obj = sim.robot.ids.obj_body
+    if sim.robot.backend == "warp":  # sensors in RobotIds.wall_pair order: static
+        p = np.asarray(sim.robot.ids.wall_pair, int)
+        g = np.stack([m.pair_geom1[p], m.pair_geom2[p]], axis=1)
+        return jnp.asarray(np.all(m.geom_bodyid[g] != obj, axis=1))
+    g = d._impl.contact.geom[sim.wall_slots]  # (w, 2) the slots' geoms (MJX fills them at collision)
+    return jnp.all(jnp.asarray(m.geom_bodyid)[g] != obj, axis=1)
+
+
+def clearance(sim: Sim, d):
+    """Smallest signed distance [m] between a non-foot robot geom and the floor, the terrain blocks or a wall, and
+    its pair, from the contacts of ``d`` (after a physics step).
+
+    The pairs are the non-foot ground slots (``Sim.nonfoot_slots``) and the wall slots whose other geom is a robot
+    geom (the object's wall pairs left out). On the JAX backend these are MJX contact-slot distances, reported
+    whether or not the pair touches, so the clearance is the geometric distance (of the pair's collision function)
+    also when positive; on Warp a pair's distance is reported only while it penetrates (``+inf`` otherwise), so
+    the clearance there is only a penetration depth (<= 0) or ``+inf``.
+
+    Returns:
+        (() distance [m], +inf when nothing is reported; () int32 pair: index into ``sim.nonfoot_slots``, or
+        ``len(sim.nonfoot_slots)`` + index into ``sim.wall_slots``; -1 when the distance is +inf).
+    """
+    parts = []
+    if sim.nonfoot_slots.size:
+        parts.append(contacts.nonfoot_dist(sim, d))
+    else:
+        parts.append(jnp.zeros((0,)))
+    if sim.wall_slots.size:
+        parts.append(jnp.where(_wall_robot_mask(sim, d), contacts.wall_dist(sim, d), jnp.inf))
+    dist = jnp.concatenate(parts)
+    if dist.size == 0:
+        return jnp.full((), jnp.inf), jnp.full((), -1, jnp.int32)
+    k = jnp.argmin(dist)
+    c = dist[k]
+    return c, jnp.where(jnp.isfinite(c), k, -1).astype(jnp.int32)
 
 
 def physics_substep(sim: Sim, m, om: ObjectModel, tau, d):
@@ -261,12 +318,32 @@ def physics_substep(sim: Sim, m, om: ObjectModel, tau, d):
     return d_after, substep_monitors(sim, m, om, tau, d, d_after)
 
 
-def _fold(sim: Sim, a: Accum, s: SubstepMonitors) -> Accum:
-    """Accum with one physics step's monitors added (integrals: value x dt_physics; flags OR'ed)."""
+def in_window(sim: Sim, a: Accum) -> jax.Array:
+    """() bool: the control period now starting (index ``a.n_steps``) counts in the metric window: its midpoint
+    (n_steps + 1/2) x dt_control is before ``a.t_end`` (from the step counter, not the float time, so no drift)."""
+    return (a.n_steps.astype(a.t_end.dtype) + 0.5) * sim.dt_control < a.t_end
+
+
+def with_metric_window(state: RunState, t_end) -> RunState:
+    """``state`` (batched or not) with its metric window set to [0, ``t_end``) [s] (scalar or (B,) per run)."""
+    old = state.acc.t_end
+    new = np.broadcast_to(np.asarray(t_end, old.dtype), old.shape)
+    # placed like the leaf it replaces: a leaf committed elsewhere would change the chunk function's input shardings
+    new = jax.device_put(new, old.sharding) if getattr(old, "committed", False) else jnp.asarray(new)
+    return state._replace(acc=state.acc._replace(t_end=new))
+
+
+def _fold(sim: Sim, a: Accum, s: SubstepMonitors, w) -> Accum:
+    """Accum with one physics step's monitors added (integrals: value x dt_physics, only while ``w`` (the period
+    is in the metric window); flags OR'ed and extremes over every step)."""
     h = sim.dt_physics
     off_steps = jnp.where(s.off, a.off_steps + 1, 0)
     first = s.nonfoot_floor & ~a.nonfoot_floor
+    closer = s.clear < a.min_clear
     return a._replace(
+        min_clear=jnp.where(closer, s.clear, a.min_clear),
+        min_clear_t=jnp.where(closer, s.t, a.min_clear_t),
+        min_clear_k=jnp.where(closer, s.clear_k, a.min_clear_k),
         nonfoot_floor=a.nonfoot_floor | s.nonfoot_floor,
         first_contact_t=jnp.where(first, s.t, a.first_contact_t),
         first_contact_k=jnp.where(first, s.nonfoot_k, a.first_contact_k),
@@ -275,9 +352,9 @@ def _fold(sim: Sim, a: Accum, s: SubstepMonitors) -> Accum:
         overflow=a.overflow | s.overflow,
         off_steps=off_steps,
         max_off_s=jnp.maximum(a.max_off_s, off_steps * h),
-        sum_invH=a.sum_invH + s.inv_h * h,
-        sum_acc=a.sum_acc + s.acc * h,
-        n_boundary=a.n_boundary + (s.inv_h <= 0.0).astype(jnp.int32),
+        sum_invH=a.sum_invH + jnp.where(w, s.inv_h * h, 0.0),
+        sum_acc=a.sum_acc + jnp.where(w, s.acc * h, 0.0),
+        n_boundary=a.n_boundary + (w & (s.inv_h <= 0.0)).astype(jnp.int32),
     )
 
 
@@ -298,12 +375,13 @@ def physics_period(sim: Sim, m, om: ObjectModel, d, tau, acc: Accum):
     """
     d1 = physics.finish(m, d, tau)
     s = substep_monitors(sim, m, om, tau, d, d1)
-    carry = (d1, _fold(sim, acc, s), s.finite)
+    w = in_window(sim, acc)  # the whole period is in the window or out of it
+    carry = (d1, _fold(sim, acc, s, w), s.finite)
     if sim.n_substeps > 1:
         def body(carry, _):
             d, a, finite = carry
             d, s = physics_substep(sim, m, om, tau, d)
-            return (d, _fold(sim, a, s), finite & s.finite), None
+            return (d, _fold(sim, a, s, w), finite & s.finite), None
 
         carry = jax.lax.scan(body, carry, None, length=sim.n_substeps - 1)[0]
     return carry
@@ -327,6 +405,7 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     slip = jnp.linalg.norm(rel[:2] - rs.rel0[:2])
     lift = rel[2] - rs.rel0[2]
     p_obj = d.xpos[ids.obj_body]
+    w = in_window(sim, a)  # a.n_steps is still this period's index
     acc = a._replace(
         min_trunk_z=jnp.minimum(a.min_trunk_z, dyn.p_base[2]),
         max_slip=jnp.maximum(a.max_slip, slip),
@@ -336,7 +415,8 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
         sum_prim_res=a.sum_prim_res + qd.prim_res,
         n_flag=a.n_flag + (qd.flag != 0).astype(jnp.int32),
         n_steps=a.n_steps + 1,
-        sum_track=a.sum_track + jnp.linalg.norm(ref.p_obj - p_obj) * sim.dt_control,
+        n_win=a.n_win + w.astype(jnp.int32),
+        sum_track=a.sum_track + jnp.where(w, jnp.linalg.norm(ref.p_obj - p_obj) * sim.dt_control, 0.0),
     )
     # a run that went non-finite is frozen (its state no longer advances) so it cannot poison others
     d_next = rs.d.where(finite, d_next)  # Data.where: Warp's shared contact list is not per run
@@ -365,7 +445,41 @@ def final_results(sim: Sim, state: RunState, p_goal, mu, n: int | None = None) -
                            final_err=np.linalg.norm(p_obj - p_goal, axis=1), substeps=sim.n_substeps)
     out["first_contact_s"] = np.asarray(acc.first_contact_t, float)
     out["first_contact"] = np.array([contact_name(sim, k) for k in np.asarray(acc.first_contact_k)], dtype=object)
+    wall_geoms = _wall_geoms(sim, state.d)
+    out["min_clearance_pair"] = np.array([clearance_name(sim, k, wall_geoms) for k in np.asarray(acc.min_clear_k)],
+                                         dtype=object)
     return out
+
+
+def _wall_geoms(sim: Sim, d) -> np.ndarray:
+    """(len(wall_slots), 2) geom ids of each wall slot (JAX: from a sensed batched ``d``) or pair (Warp)."""
+    m = sim.robot.mj_model
+    if sim.robot.backend == "warp":
+        p = np.asarray(sim.robot.ids.wall_pair, int)
+        return np.stack([m.pair_geom1[p], m.pair_geom2[p]], axis=1).reshape(-1, 2)
+    g = np.asarray(d._impl.contact.geom)
+    return g.reshape(-1, *g.shape[-2:])[0][sim.wall_slots].reshape(-1, 2)
+
+
+def _pair_name(sim: Sim, g1, g2) -> str:
+    """``"robot geom (body B) / scene geom"``: the geom not on the world body (floor, blocks, walls) first."""
+    m = sim.robot.mj_model
+
+    def name(g):
+        return m.geom(int(g)).name or f"geom{int(g)}"
+
+    robot_g, env_g = (g1, g2) if int(m.geom_bodyid[g1]) != 0 else (g2, g1)
+    return f"{name(robot_g)} (body {m.body(int(m.geom_bodyid[robot_g])).name}) / {name(env_g)}"
+
+
+def clearance_name(sim: Sim, k: int, wall_geoms: np.ndarray) -> str:
+    """Readable pair of clearance index ``k`` (Accum.min_clear_k; -1: ""): a non-foot ground slot as
+    :func:`contact_name`, or a wall slot ``k - len(sim.nonfoot_slots)`` with ``wall_geoms`` (:func:`_wall_geoms`)."""
+    n = len(sim.nonfoot_slots)
+    if k < n:
+        return contact_name(sim, k)
+    g1, g2 = wall_geoms[int(k) - n]
+    return _pair_name(sim, g1, g2)
 
 
 def contact_name(sim: Sim, k: int) -> str:
@@ -373,14 +487,8 @@ def contact_name(sim: Sim, k: int) -> str:
     ``"BR_shank (body BR_calf) / block3"``: the robot geom with its body, then the floor or terrain geom."""
     if k < 0:
         return ""
-    m = sim.robot.mj_model
-
-    def name(g):
-        return m.geom(int(g)).name or f"geom{int(g)}"
-
     g1, g2 = sim.nonfoot_geoms[int(k)]
-    robot_g, ground_g = (g1, g2) if int(m.geom_bodyid[g1]) != 0 else (g2, g1)
-    return f"{name(robot_g)} (body {m.body(int(m.geom_bodyid[robot_g])).name}) / {name(ground_g)}"
+    return _pair_name(sim, g1, g2)
 
 
 def make_chunk_fn(sim: Sim, n_logs: int):

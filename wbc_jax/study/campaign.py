@@ -135,7 +135,7 @@ def build(spec: Spec, gains=None):
     ``gains``: controller gains (TransportGains, unbatched) instead of the defaults."""
     from wbc_jax.sim.batch import prepare_batch
     from wbc_jax.planner.transport import plan_duration
-    from wbc_jax.sim.rollout import make_push
+    from wbc_jax.sim.rollout import make_push, with_metric_window
 
     c = spec.campaign
     sim = _sim(c["scene"], c["qp_iters"], spec.perturbations["qvel_noise_std"] > 0, c["control_substeps"],
@@ -146,7 +146,11 @@ def build(spec: Spec, gains=None):
                       plan_kwargs=dict(distance=c["distance"], speed=c["speed"]), qpos0=qpos0, qvel0=qvel0)
     T_plan = plan_duration(b.plan)
     push = make_push(dz.push_force, dz.push_frac * T_plan, dz.push_duration, dz.qvel_noise_std, dz.seed)
-    b = b._replace(push=push)
+    # metric window (wbc_jax.sim.metrics): each run's own plan end + the settling time, capped like the horizon
+    t_end = np.asarray(b.plan.obj_path.t_knots)[:, -1] + c["extra_seconds"]
+    if c["max_seconds"] > 0:
+        t_end = np.minimum(t_end, c["max_seconds"])
+    b = b._replace(push=push, state=with_metric_window(b.state, t_end))
     log_dt = sim.dt_control * LOG_EVERY
     logs_per_chunk = max(1, int(round(c["chunk_seconds"] / log_dt)))
     horizon = T_plan + c["extra_seconds"]
@@ -349,6 +353,15 @@ def _git_commit(package_dir: Path | None = None) -> str | None:
         return None
 
 
+def zero_noise_warning(spec: Spec) -> str | None:
+    """The warning for a spec without perturbations, or None: only with reps > 1 are identical repetitions a problem
+    (one run per cell, e.g. sweeps/paper_exact.toml, is a deliberate deterministic design)."""
+    if spec.zero_noise and spec.reps > 1:
+        return ("all perturbations are zero: repetitions are identical, within-cell variance is zero and the F "
+                "tests are meaningless")
+    return None
+
+
 def results_table(spec: Spec, dz: Design, res: dict):
     import pandas as pd
 
@@ -356,7 +369,7 @@ def results_table(spec: Spec, dz: Design, res: dict):
                            success=res["success"]))
     for k in ("R", "T", "S", "max_slip_mm", "fell", "trunk_low", "body_contact", "dropped", "slid", "hit_wall",
               "qp_flagged", "nonfinite", "overflow", "boundary_fraction", "final_err_mm", "fail_reason", "first_contact_s",
-              "first_contact"):
+              "first_contact", "window_s", "min_clearance_mm", "min_clearance_s", "min_clearance_pair"):
         df[k] = res[k]
     df["obj_dx_mm"] = dz.obj_dx * 1e3
     df["obj_dy_mm"] = dz.obj_dy * 1e3
@@ -414,7 +427,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
             print(f"no checkpoint at {ck}: starting from the beginning", flush=True)
     elif ck.exists():
         shutil.rmtree(ck)
-    if spec.zero_noise:
+    if zero_noise_warning(spec):
         print("warning: all perturbations are zero: repetitions are identical (deterministic runs)", flush=True)
     print(f"campaign {spec.campaign['name']!r} ({spec.path}): {dz.n} runs = {dz.n // spec.reps} cells x {spec.reps} "
           f"reps, {seconds:.2f} s simulated in {n_chunks} chunks of {chunk_s:.2f} s, scene {spec.campaign['scene']}, "
@@ -473,10 +486,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
                         push_N=float(r.push_N), first_contact=r.first_contact or None,
                         first_contact_s=None if np.isnan(r.first_contact_s) else float(r.first_contact_s))
                    for r in df[~df.success].itertuples()]
-    warnings = []
-    if spec.zero_noise:
-        warnings.append("all perturbations are zero: repetitions are identical, within-cell variance is zero and "
-                        "the F tests are meaningless")
+    warnings = [w for w in [zero_noise_warning(spec)] if w]
     if failures:
         warnings.append(f"{int((~df.success).sum())} of {dz.n} runs failed: " + "; ".join(
             f"run {f['run']} (m {f['m']}, mu {f['mu']}, d {f['d']}, rep {f['rep']}): {f['reason']}"

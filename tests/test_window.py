@@ -1,0 +1,147 @@
+"""Metric window and clearance (issue 23 item 1, issue 24).
+
+* R, T, S integrate over each run's window [0, t_end), t_end = T_plan + extra_seconds capped by max_seconds, not
+  over the whole simulated time, so ``chunk_seconds`` (which rounds the simulation up to whole chunks) does not
+  change them.
+* The clearance (smallest signed distance of a non-foot robot geom to floor / terrain / wall) equals MuJoCo C's
+  ``mj_geomDistance`` on the same configurations.
+
+Reuses the compiled shapes of tests/test_campaign.py (the tiny spec's 2-log chunk function and its init function).
+"""
+
+import dataclasses
+
+import jax
+import mujoco
+import numpy as np
+import pytest
+
+from wbc_jax.sim import metrics
+from wbc_jax.sim.rollout import clearance, clearance_name, final_results, with_metric_window
+from wbc_jax.study import campaign as C
+from wbc_jax.study.spec import SWEEPS, load_spec
+
+TINY = SWEEPS.parent / "reports" / "baseline" / "spec.toml"
+WINDOW_RTOL = 1e-6  # R, T, S of one window at two simulated lengths: float rounding only (same operations)
+CLEAR_TOL = 2e-5  # [m] MJX (float32 kinematics) vs MuJoCo C (float64) geom distances
+DISTMAX = 1.0  # [m] mj_geomDistance's search radius (the clearances here are ~1 cm)
+
+
+def _spec(**campaign):
+    s = load_spec(TINY)
+    return dataclasses.replace(s, campaign={**s.campaign, **campaign})
+
+
+def _finalize(sim, dz, state):
+    return metrics.finalize(jax.device_get(state.acc), sim.dt_control, dz.mu, course=False,
+                            final_err=np.zeros(dz.n), substeps=sim.n_substeps)
+
+
+@pytest.fixture(scope="module")
+def windowed():
+    """The tiny spec capped at 0.08 s (window 0.08 s) built for chunk_seconds 0.04 and 0.06; the 0.04 s chunk
+    function run for 2, 3 and 4 chunks (0.08, 0.12, 0.16 s simulated: chunk_seconds 0.04, 0.06 (2 chunks of 3 logs)
+    and 0.08 (2 of 4) round 0.08 s up to these) and, from the 2-chunk state, one more chunk with no window."""
+    spec_a, spec_b = _spec(max_seconds=0.08, chunk_seconds=0.04), _spec(max_seconds=0.08, chunk_seconds=0.06)
+    sim, dz, b, T_plan, lpc, n_chunks = C.build(spec_a)
+    _, _, b6, _, lpc6, n6 = C.build(spec_b)
+    assert (lpc, n_chunks) == (2, 2) and (lpc6, n6) == (3, 2)  # 0.08 s and 0.12 s simulated
+    fn = C._chunk_fn(sim, b.in_axes, lpc)
+    states, state = {}, b.state
+    for k in range(1, 5):
+        state, _ = fn(b.model, state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+        states[k] = state
+    open_tail, _ = fn(b.model, with_metric_window(states[2], np.inf), b.plan, b.om, b.gains, b.push, b.mu_ground)
+    return sim, dz, b, b6, T_plan, states, open_tail
+
+
+def test_window_is_per_run_plan_end_capped_and_independent_of_chunking(windowed):
+    sim, dz, b, b6, T_plan, states, _ = windowed
+    t_end = np.asarray(b.state.acc.t_end)
+    np.testing.assert_array_equal(t_end, np.asarray(b6.state.acc.t_end))  # chunk_seconds does not enter
+    np.testing.assert_allclose(t_end, 0.08, rtol=1e-6)  # T_plan (> 2 s) + 0 s, capped at max_seconds
+    # uncapped: each run's own plan end + extra_seconds (plans differ by d)
+    _, _, bu, _, _, _ = C.build(_spec(max_seconds=0.0, extra_seconds=0.25))
+    ends = np.asarray(bu.plan.obj_path.t_knots)[:, -1]
+    np.testing.assert_allclose(np.asarray(bu.state.acc.t_end), ends + 0.25, rtol=1e-6)
+    assert T_plan == pytest.approx(ends.max())
+
+
+def test_tail_after_the_window_is_excluded(windowed):
+    """0.08 s simulated (window = simulation) vs 0.12 and 0.16 s with the same 0.08 s window: equal integrals,
+    R, T, S and window; the flags and counters still see the tail; without the window the tail adds to them."""
+    sim, dz, b, _, _, states, open_tail = windowed
+    acc = {k: jax.device_get(states[k].acc) for k in (2, 3, 4)}
+    res = {k: _finalize(sim, dz, states[k]) for k in (2, 3, 4)}
+    for k in (3, 4):
+        np.testing.assert_array_equal(acc[k].n_steps, 40 * k)
+        np.testing.assert_array_equal(acc[k].n_win, 80)
+        for f in ("sum_invH", "sum_acc", "sum_track", "n_boundary"):
+            np.testing.assert_allclose(getattr(acc[k], f), getattr(acc[2], f), rtol=WINDOW_RTOL, err_msg=f)
+        for f in ("R", "T", "S", "boundary_fraction", "window_s"):
+            np.testing.assert_allclose(res[k][f], res[2][f], rtol=WINDOW_RTOL, err_msg=f)
+        assert np.all(acc[k].max_slip >= acc[2].max_slip)
+    np.testing.assert_allclose(res[2]["window_s"], 0.08, rtol=1e-9)
+    # the tail's integrands are not zero (standing, loaded: 1/H > 0), so including it would change R and T
+    tail = jax.device_get(open_tail.acc)
+    assert np.all(tail.n_win == 120) and np.all(tail.sum_invH > acc[2].sum_invH)
+    assert np.all(tail.sum_track > acc[2].sum_track)
+
+
+def _c_clearance(sim, qpos):
+    """Smallest mj_geomDistance over the non-foot ground pairs at ``qpos`` (MuJoCo C): (distance [m], pair index)."""
+    m = sim.robot.mj_model
+    d = mujoco.MjData(m)
+    d.qpos[:] = qpos
+    mujoco.mj_forward(m, d)
+    pairs = [tuple(int(g) for g in p) for p in sim.nonfoot_geoms]
+    dist = [mujoco.mj_geomDistance(m, d, g1, g2, DISTMAX, None) for g1, g2 in pairs]
+    k = int(np.argmin(dist))
+    return dist[k], pairs[k]
+
+
+@pytest.mark.parametrize("drop", [0.0, 0.03])
+def test_clearance_equals_mujoco_geom_distance(windowed, drop):
+    """Home poses (about 1 cm clearance) and the robot lowered 3 cm (shanks into the floor): the MJX clearance and
+    its pair equal MuJoCo C's smallest geom distance over the same pairs."""
+    from wbc_jax.sim.batch import _init_fn
+
+    sim, dz, b, *_ = windowed
+    qpos = np.asarray(b.state.d.qpos, float).copy()
+    qpos[:, 2] -= drop
+    st = _init_fn(sim, b.in_axes, dz.n)(b.model, qpos, np.asarray(b.state.d.qvel))  # sensed: contacts filled
+    c, k = jax.jit(jax.vmap(lambda d: clearance(sim, d)))(st.d)
+    c, k = np.asarray(c), np.asarray(k)
+    for i in range(dz.n):
+        ref, pair = _c_clearance(sim, np.asarray(st.d.qpos[i], float))
+        assert abs(c[i] - ref) < CLEAR_TOL, (i, c[i], ref)
+        got = tuple(int(g) for g in sim.nonfoot_geoms[k[i]])
+        # the same pair, or a tie (left and right legs are symmetric)
+        assert got == pair or abs(_c_dist(sim, qpos[i], got) - ref) < CLEAR_TOL
+        assert clearance_name(sim, int(k[i]), np.zeros((0, 2))).endswith("/ floor")
+    assert (np.all(c < 0) if drop else np.all(c > 0))
+
+
+def _c_dist(sim, qpos, pair):
+    m = sim.robot.mj_model
+    d = mujoco.MjData(m)
+    d.qpos[:] = qpos
+    mujoco.mj_forward(m, d)
+    return mujoco.mj_geomDistance(m, d, pair[0], pair[1], DISTMAX, None)
+
+
+def test_run_clearance_bounds_logged_configurations_and_is_reported(windowed):
+    """The run's min clearance is at most MuJoCo C's clearance at every logged configuration (every 20 steps) and
+    lies in the run; final_results names its pair."""
+    sim, dz, b, _, _, states, _ = windowed
+    fn = C._chunk_fn(sim, b.in_axes, 2)
+    _, logs = fn(b.model, states[1], b.plan, b.om, b.gains, b.push, b.mu_ground)  # chunk 2 again: its logs
+    acc = jax.device_get(states[2].acc)
+    q = np.asarray(logs.qpos, float)  # (B, 2, nq)
+    for i in range(dz.n):
+        logged = min(_c_clearance(sim, q[i, j])[0] for j in range(q.shape[1]))
+        assert acc.min_clear[i] <= logged + CLEAR_TOL
+        assert 0.0 <= acc.min_clear_t[i] < 0.08
+    res = final_results(sim, states[2], np.zeros((dz.n, 3)), dz.mu)
+    np.testing.assert_allclose(res["min_clearance_mm"], acc.min_clear * 1e3)
+    assert all(" (body " in p and p.endswith("/ floor") for p in res["min_clearance_pair"])
