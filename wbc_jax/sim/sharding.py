@@ -48,14 +48,12 @@ def _place(x, sharding: NamedSharding):
     return jax.make_array_from_callback(a.shape, sharding, lambda idx: a[idx])
 
 
-def shard_runs(tree, mesh: Mesh, in_axes=0, replicate_empty: bool = True):
+def shard_runs(tree, mesh: Mesh, in_axes=0):
     """Pad and place a pytree whose batched leaves carry the run axis first.
 
     Args:
         tree: pytree; in_axes: 0 (every leaf batched) or a matching pytree of 0 / None.
         mesh: from :func:`run_mesh`.
-        replicate_empty: place empty batched leaves replicated (what ``jax.jit`` returns for them) rather than
-            split over the run axis (what a function of :func:`over_runs` returns).
 
     Returns:
         The padded, sharded pytree (batched leaves have ``padded_size(B, mesh.size)`` runs).
@@ -70,23 +68,20 @@ def shard_runs(tree, mesh: Mesh, in_axes=0, replicate_empty: bool = True):
     runs, rep = NamedSharding(mesh, P("runs")), NamedSharding(mesh, P())
     # an empty batched leaf (MJX's unused fields, e.g. (B, 0)) is replicated: jit returns empty outputs replicated,
     # and a state leaf placed otherwise would make the next chunk's call compile the whole program a second time
-    out = [_place(_pad(x, n), runs if np.size(x) or not replicate_empty else rep) if a == 0 else _place(x, rep)
+    out = [_place(_pad(x, n), runs if np.size(x) else rep) if a == 0 else _place(x, rep)
            for x, a in zip(leaves, ax_leaves)]
     return jax.tree_util.tree_unflatten(treedef, out)
 
 
-def shard_batch(b, mesh: Mesh | None = None, replicate_empty: bool = True):
+def shard_batch(b, mesh: Mesh | None = None):
     """A :class:`wbc_jax.sim.batch.Batch` with every per-run input padded and sharded over ``mesh`` (all
-    devices by default; ``replicate_empty`` as in :func:`shard_runs`). Returns (sharded Batch, number of real
-    runs)."""
+    devices by default). Returns (sharded Batch, number of real runs)."""
     mesh = mesh or run_mesh()
     n = int(jnp.shape(b.mu_ground)[0])
-
-    def put(tree, axes=0):
-        return shard_runs(tree, mesh, axes, replicate_empty)
-
-    return b._replace(model=put(b.model, b.in_axes), state=put(b.state), plan=put(b.plan), om=put(b.om),
-                      gains=put(b.gains), push=put(b.push), mu_ground=put(b.mu_ground)), n
+    return b._replace(
+        model=shard_runs(b.model, mesh, b.in_axes), state=shard_runs(b.state, mesh), plan=shard_runs(b.plan, mesh),
+        om=shard_runs(b.om, mesh), gains=shard_runs(b.gains, mesh), push=shard_runs(b.push, mesh),
+        mu_ground=shard_runs(b.mu_ground, mesh)), n
 
 
 def over_runs(fn, mesh: Mesh, in_axes):
@@ -100,8 +95,8 @@ def over_runs(fn, mesh: Mesh, in_axes):
             the same for every run and every device gets it whole).
 
     Returns:
-        The jitted function; its outputs are split over ``mesh`` along the run axis (empty ones too: place the
-        inputs that feed back into it with ``replicate_empty=False``).
+        The jitted function; its outputs are split over ``mesh`` along the run axis, empty ones replicated (as
+        :func:`shard_runs` places them: an output fed back in does not compile the function again).
     """
     def spec(a):
         return P() if a is None else P("runs")

@@ -390,7 +390,7 @@ def _shared_resume(state, done: int, mesh, n: int):
 
     if distributed.is_multiprocess():
         state, done = multihost_utils.broadcast_one_to_all((_first(jax.device_get(state), n), np.int32(done)))
-    return shard_runs(state, mesh, replicate_empty=False), int(done)
+    return shard_runs(state, mesh), int(done)
 
 
 def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: bool = True,
@@ -447,7 +447,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         from wbc_jax.sim.sharding import run_mesh, shard_batch
 
         mesh = run_mesh()
-        b, _ = shard_batch(b, mesh, replicate_empty=False)
+        b, _ = shard_batch(b, mesh)
     state, done, wall_before, marks, p_goal = b.state, 0, 0.0, [], None
     if resume:
         st = meta = problem = None
