@@ -1,6 +1,12 @@
 """Campaigns over several processes (``wbc_jax.sim.distributed``): settings from flags, JAX_* and SLURM variables,
 one-line errors for bad ones, and a real 2-process run on this machine (localhost coordinator, one CPU device per
-process, gloo collectives) whose results.csv equals the single-process run's, with only process 0 writing."""
+process, gloo collectives) whose results.csv equals the single-process run's, with only process 0 writing.
+
+"Equal" is what float32 rounding allows: each device compiles the rollout for its own 4 runs instead of 8, which
+rounds differently, and the low-friction cells of the CI spec amplify rounding (``wbc-jax regress``'s rounding
+probes measured per-cell R spreads of 0.004-0.014 there, 4e-5 at mu 1.0). So the design columns, seeds,
+perturbations and success flags must match exactly, and the metrics' cell means within the regression band
+(tolerance + 2 x the measured rounding noise of reports/baseline/baseline.json)."""
 
 import json
 import os
@@ -16,10 +22,12 @@ import pytest
 from wbc_jax import cli
 from wbc_jax.errors import InputError
 from wbc_jax.sim.distributed import DEFAULT_PORT, Layout, first_host, resolve
+from wbc_jax.study.regress import cell_means, compare
+from wbc_jax.study.spec import SWEEPS
 
 TIMEOUT_S = 900  # the 2-process campaign compiles in both processes at once (2 cores: measured ~4 min)
-FLOAT_COLS = ["R", "T", "S", "max_slip_mm", "boundary_fraction", "final_err_mm", "first_contact_s", "obj_dx_mm",
-              "obj_dy_mm", "obj_yaw_deg", "push_N"]
+BASELINE = SWEEPS.parent / "reports" / "baseline"
+ROLLOUT_COLS = ["R", "T", "S", "max_slip_mm", "boundary_fraction", "final_err_mm", "first_contact_s"]  # rounding
 
 
 # ---------------------------------------------------------------- settings
@@ -119,11 +127,16 @@ def test_two_processes_equal_one(full_run, tiny_spec, tmp_path):
     ref = pd.read_csv(full_run[0] / "results.csv")
     assert got["run"].tolist() == list(range(8)) and len(got) == len(ref)  # every run once
     assert list(got.columns) == list(ref.columns)
-    exact = [c for c in ref.columns if c not in FLOAT_COLS]
-    pd.testing.assert_frame_equal(got[exact], ref[exact])  # factors, seeds, flags, failure reasons, contacts
-    for c in FLOAT_COLS:
-        np.testing.assert_allclose(got[c], ref[c], rtol=1e-5, atol=1e-6, err_msg=c)
-    assert ref["R"].std() > 0 and ref["T"].std() > 0  # runs differ: a permuted or repeated run would show
+    exact = [c for c in ref.columns if c not in ROLLOUT_COLS]
+    pd.testing.assert_frame_equal(got[exact], ref[exact])  # design, seeds, perturbations, flags, failure reasons
+    base = json.loads((BASELINE / "baseline.json").read_text())
+    noise = {(c["m"], c["mu"], c["d"]): c["noise"] for c in base["cells"]}
+    ref_cells = [dict(c, noise=noise[c["m"], c["mu"], c["d"]]) for c in cell_means(ref)]
+    assert compare(dict(base, cells=ref_cells), cell_means(got)) == []
+    hi = ref.mu == 1.0  # cells that do not amplify rounding: the runs themselves agree closely
+    for c in ("R", "S"):
+        np.testing.assert_allclose(got.loc[hi, c], ref.loc[hi, c], rtol=2e-3, err_msg=c)
+    assert np.isfinite(got[ROLLOUT_COLS[:6]].to_numpy()).all()
 
     man = json.loads((out / "manifest.json").read_text())
     lay = man["layout"]
