@@ -10,22 +10,8 @@ from wbc_jax import cli
 from wbc_jax.errors import SpecError
 from wbc_jax.study.spec import SWEEPS, design, load_spec, parse_spec
 
-BASELINE = SWEEPS.parent / "reports" / "baseline"  # its spec.toml is the tiny campaign of these tests
+BASELINE = SWEEPS.parent / "reports" / "baseline"  # its spec.toml is the tiny campaign of these tests (conftest.py)
 NUMERIC = ["m", "mu", "d", "rep", "seed", "R", "T", "S", "max_slip_mm", "boundary_fraction", "final_err_mm"]
-
-
-@pytest.fixture(scope="session")
-def tiny_spec():
-    return BASELINE / "spec.toml"
-
-
-@pytest.fixture(scope="session")
-def full_run(tiny_spec, tmp_path_factory):
-    from wbc_jax.study.campaign import run_campaign
-
-    out = tmp_path_factory.mktemp("camp") / "full"
-    manifest = run_campaign(str(tiny_spec), str(out), progress=False)
-    return out, manifest
 
 
 # ---------------------------------------------------------------- specs

@@ -160,7 +160,17 @@ def _cmd_trot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _join_processes(args: argparse.Namespace) -> None:
+    """``jax.distributed`` from the ``--coordinator`` / ``--num-processes`` / ``--process-id`` flags or the
+    environment (``wbc_jax.sim.distributed``), before anything touches a device; nothing when none is set."""
+    from wbc_jax.sim import distributed
+
+    distributed.initialize(distributed.resolve(args.coordinator, args.num_processes, args.process_id,
+                                               args.local_device_ids))
+
+
 def _cmd_campaign(args: argparse.Namespace) -> int:
+    _join_processes(args)
     from wbc_jax.study.campaign import run_campaign
 
     gains = None
@@ -260,6 +270,16 @@ def build_parser() -> argparse.ArgumentParser:
                         "now; 'warp' runs MuJoCo Warp, NVIDIA GPUs, pip install -e '.[cuda]')")
     c.add_argument("--allow-large", action="store_true", help="run even when the memory estimate of the batch "
                                                               "exceeds the available memory")
+    c.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                   help="several processes (one per host or GPU; docs/cluster.md): process 0's address, the same in "
+                        "every process (default: $JAX_COORDINATOR_ADDRESS, or the first node of a SLURM step)")
+    c.add_argument("--num-processes", default=None, metavar="N",
+                   help="number of processes (default: $JAX_NUM_PROCESSES or SLURM's task count; none: one process)")
+    c.add_argument("--process-id", default=None, metavar="I",
+                   help="this process's id, 0 to N-1; process 0 writes everything (default: $JAX_PROCESS_ID or "
+                        "$SLURM_PROCID)")
+    c.add_argument("--local-device-ids", default=None, metavar="IDS",
+                   help="comma-separated ids of the local devices this process uses, e.g. 0 (default: all it sees)")
     c.set_defaults(func=_cmd_campaign)
 
     u = sub.add_parser("tune", help="batched gain search (grid, random, cross-entropy method, successive halving) "

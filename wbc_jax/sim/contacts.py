@@ -124,7 +124,7 @@ def _contact_slots(robot):
     from wbc_jax.sim.model import mjx
 
     m = robot.mj_model
-    d = jax.jit(physics.sense)(robot.mjx_model, mjx.make_data(robot.mjx_model))
+    d = jax.jit(physics.sense)(robot.mjx_model, mjx.make_data(robot.mjx_model, device=jax.local_devices()[0]))
     geom = np.asarray(d._impl.contact.geom)
     pairs = {(int(m.pair_geom1[i]), int(m.pair_geom2[i])): i for i in range(m.npair)}
     slot_pair = np.array([pairs.get((int(a), int(b)), pairs.get((int(b), int(a)), -1)) for a, b in geom])

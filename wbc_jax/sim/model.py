@@ -227,8 +227,11 @@ class Robot:
             self.mj_model.opt.iterations = base.opt.iterations
             self.mjx_model = _quiet_solver_limits(mjx.put_model(self.mj_model, impl="warp"))
         else:
+            import jax
+
             self.mj_model, self.sensors = base, None
-            self.mjx_model = mjx.put_model(self.mj_model)
+            # on this process's device: MJX's default, jax.devices()[0], is process 0's in a multi-process run
+            self.mjx_model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])
         self.total_robot_mass = float(self.mj_model.body_subtreemass[self.ids.trunk_body])
 
     def home_qpos(self, d: float | None = None) -> np.ndarray:

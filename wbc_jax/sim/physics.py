@@ -69,7 +69,7 @@ def make_data(robot, n_runs: int = 1):
     (``naconmax = n_runs x NACON_PER_RUN``), constraint rows are per run (``njmax``); call it inside the vmap
     over runs, as MJX's Warp examples do."""
     if robot.backend != "warp":
-        return mjx.make_data(robot.mjx_model)
+        return mjx.make_data(robot.mjx_model, device=jax.local_devices()[0])  # (several processes: not process 0's)
     m = robot.mj_model
     njmax = NJMAX_PER_CONTACT * NACON_PER_RUN + 2 * m.njnt
     return mjx.make_data(m, impl="warp", naconmax=NACON_PER_RUN * max(int(n_runs), 1), njmax=njmax)

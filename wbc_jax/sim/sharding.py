@@ -6,8 +6,11 @@ None, e.g. the shared fields of the batched ``mjx.Model``) are replicated. ``jax
 rollout along the run axis by itself (GSPMD): each device steps its own runs, with no communication.
 Trim outputs with ``[:n_runs]``.
 
-Several hosts: call ``jax.distributed.initialize()`` on every host before anything else; ``jax.devices()``
-then lists the devices of all hosts and :func:`run_mesh` spans them (each host must build the same batch).
+Several processes (``wbc_jax.sim.distributed``: one per host or per GPU): ``jax.devices()`` lists the devices of
+all of them and :func:`run_mesh` spans them; every process builds the same batch and :func:`shard_runs` makes
+global arrays of it, each process supplying its own devices' shards. :func:`over_runs` runs a vmapped function
+on each device's own runs (``shard_map``): no communication between devices, not even for the batched
+solver loops' conditions (a plain ``jax.jit`` of the sharded batch all-reduces those at every iteration).
 On one CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` fakes N devices (used by the tests).
 """
 
@@ -30,9 +33,19 @@ def padded_size(n_runs: int, n_devices: int) -> int:
 
 
 def _pad(x, n: int):
-    x = jnp.asarray(x)
+    xp = np if jax.process_count() > 1 else jnp  # several processes: whole host arrays, cut by _place
+    x = xp.asarray(x)
     extra = n - x.shape[0]
-    return x if extra == 0 else jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)], axis=0)
+    return x if extra == 0 else xp.concatenate([x, xp.repeat(x[-1:], extra, axis=0)], axis=0)
+
+
+def _place(x, sharding: NamedSharding):
+    """``x`` (the whole array, the same in every process) placed with ``sharding``: a global array whose shards
+    each process fills from its own copy when the mesh spans several processes."""
+    if jax.process_count() == 1:
+        return jax.device_put(x, sharding)
+    a = np.asarray(x)
+    return jax.make_array_from_callback(a.shape, sharding, lambda idx: a[idx])
 
 
 def shard_runs(tree, mesh: Mesh, in_axes=0):
@@ -55,7 +68,7 @@ def shard_runs(tree, mesh: Mesh, in_axes=0):
     runs, rep = NamedSharding(mesh, P("runs")), NamedSharding(mesh, P())
     # an empty batched leaf (MJX's unused fields, e.g. (B, 0)) is replicated: jit returns empty outputs replicated,
     # and a state leaf placed otherwise would make the next chunk's call compile the whole program a second time
-    out = [jax.device_put(_pad(x, n), runs if np.size(x) else rep) if a == 0 else jax.device_put(x, rep)
+    out = [_place(_pad(x, n), runs if np.size(x) else rep) if a == 0 else _place(x, rep)
            for x, a in zip(leaves, ax_leaves)]
     return jax.tree_util.tree_unflatten(treedef, out)
 
@@ -69,3 +82,25 @@ def shard_batch(b, mesh: Mesh | None = None):
         model=shard_runs(b.model, mesh, b.in_axes), state=shard_runs(b.state, mesh), plan=shard_runs(b.plan, mesh),
         om=shard_runs(b.om, mesh), gains=shard_runs(b.gains, mesh), push=shard_runs(b.push, mesh),
         mu_ground=shard_runs(b.mu_ground, mesh)), n
+
+
+def over_runs(fn, mesh: Mesh, in_axes):
+    """``fn`` (vmapped over the run axis: batched arguments and every output carry it first) run by each device
+    on its own shard of the runs (``jax.shard_map``), jitted.
+
+    Args:
+        fn: function of positional pytrees.
+        mesh: from :func:`run_mesh`.
+        in_axes: tuple, one entry per argument: 0 (batched) or a matching pytree of 0 / None (None: the leaf is
+            the same for every run and every device gets it whole).
+
+    Returns:
+        The jitted function; its outputs are split over ``mesh`` along the run axis, empty ones replicated (as
+        :func:`shard_runs` places them: an output fed back in does not compile the function again).
+    """
+    def spec(a):
+        return P() if a is None else P("runs")
+
+    in_specs = tuple(jax.tree_util.tree_map(spec, a, is_leaf=lambda v: v is None) if not isinstance(a, int)
+                     else spec(a) for a in in_axes)
+    return jax.jit(jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=P("runs"), check_vma=False))

@@ -17,6 +17,13 @@ file's SHA-256, wall time so far). Ctrl-C keeps it; ``--resume`` continues from 
 results equal an uninterrupted run's) after checking the identity and the checksum: a mismatch or damage is a
 one-line error; it is deleted once the results are written. A run that goes non-finite is frozen by the
 rollout and reported failed; the others continue.
+
+Several devices or processes (``wbc_jax.sim.distributed``: ``jax.distributed`` initialised by the CLI): the run
+axis is split over every device of every process (``wbc_jax.sim.sharding.over_runs``); every process builds the
+same batch and steps its own devices' runs; the states are gathered after each chunk and only process 0 writes
+(DIR, the checkpoint; the others write nothing). The checkpoint holds the real runs only (no padding), so a run
+can resume on another layout; process 0 reads it and hands it to the others. ``manifest.json``'s ``layout``
+records the processes and devices.
 """
 
 from __future__ import annotations
@@ -37,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.sim import aot
+from wbc_jax.sim import aot, distributed
 from wbc_jax.errors import CheckpointError, LimitError, ReportError, WbcJaxError
 from wbc_jax.io_utils import atomic_dir, check_out_dir, write_json_atomic
 from wbc_jax.study.spec import Design, Spec, default_spec_path, design, load_spec
@@ -96,13 +103,18 @@ def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, 
     return _SIMS[key]
 
 
-def _chunk_fn(sim, in_axes, n_logs: int):
+def _chunk_fn(sim, in_axes, n_logs: int, mesh=None):
+    """The jitted, vmapped chunk function; with a ``mesh`` (several devices), each device steps its own runs."""
     from wbc_jax.sim.rollout import make_chunk_fn
+    from wbc_jax.sim.sharding import over_runs
 
-    key = (id(sim), n_logs)
+    key = (id(sim), n_logs, mesh)
     if key not in _FNS:  # jit, with the lowered program kept on disk for the next process (wbc_jax.sim.aot)
-        _FNS[key] = aot.cached_jit("chunk", jax.vmap(make_chunk_fn(sim, n_logs), in_axes=(in_axes, 0, 0, 0, 0, 0, 0)),
-                                   aot.describe(sim, in_axes, n_logs), exportable=sim.robot.backend != "warp")
+        axes = (in_axes, 0, 0, 0, 0, 0, 0)
+        fn = jax.vmap(make_chunk_fn(sim, n_logs), in_axes=axes)
+        _FNS[key] = (aot.cached_jit("chunk", fn, aot.describe(sim, in_axes, n_logs),
+                                     exportable=sim.robot.backend != "warp") if mesh is None
+                     else over_runs(fn, mesh, axes))
     return _FNS[key]
 
 
@@ -216,7 +228,7 @@ def check_size(spec: Spec, allow_large: bool = False) -> None:
 def _available_memory() -> int | None:
     """Available memory [bytes]: the accelerator's free memory, else the host's MemAvailable; None if unknown."""
     try:
-        st = jax.devices()[0].memory_stats() or {}
+        st = jax.local_devices()[0].memory_stats() or {}
         if "bytes_limit" in st:
             return int(st["bytes_limit"] - st.get("bytes_in_use", 0))
     except Exception:  # noqa: BLE001  (CPU devices have no memory stats)
@@ -378,6 +390,23 @@ def results_table(spec: Spec, dz: Design, res: dict):
     return df
 
 
+def _first(tree, n: int):
+    """The first ``n`` runs of a host pytree (drops a sharded batch's padding)."""
+    return jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], tree)
+
+
+def _shared_resume(state, done: int, mesh, n: int):
+    """Process 0's resume point (its loaded state and chunk count) in every process, the state placed on
+    ``mesh``; one process: as given."""
+    from jax.experimental import multihost_utils
+
+    from wbc_jax.sim.sharding import shard_runs
+
+    if distributed.is_multiprocess():
+        state, done = multihost_utils.broadcast_one_to_all((_first(jax.device_get(state), n), np.int32(done)))
+    return shard_runs(state, mesh), int(done)
+
+
 def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: bool = True,
                  progress: bool = True, gains=None, _interrupt_after: int | None = None, *, force: bool = False,
                  allow_large: bool = False, inputs: tuple = (), backend: str | None = None) -> dict:
@@ -395,8 +424,12 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         inputs: further input files (e.g. the gains file) that DIR must not hold.
         backend: physics backend ("auto", "jax", "warp") instead of the spec's ``campaign.backend``.
 
+    Returns:
+        The manifest; None in a process other than process 0 of a multi-process run (it writes nothing).
+
     Raises:
-        OutputError, LimitError, CheckpointError, SpecError: before anything is compiled.
+        OutputError, LimitError, CheckpointError, SpecError: before anything is compiled (in every process of a
+            multi-process run: process 0's checks are every process's).
         ReportError: the report failed after results.csv and manifest.json were written.
     """
     t_import = time.perf_counter()
@@ -407,34 +440,60 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     spec = load_spec(spec_path if spec_path is not None else default_spec_path(has_accelerator()))
     spec = with_backend(spec, backend)
     physics_backend = backend_of(spec)
-    out_p = check_out_dir(out, COMMAND, force=force, inputs=[spec.path, *inputs])
-    check_size(spec, allow_large)
-    ck = _ckpt_dir(out_p)
+    writer = distributed.is_writer()
     identity = run_identity(spec, gains, backend=physics_backend)
-    if resume:  # meta.json and the identity before the build and the compile; the state file after the build
-        read_ckpt_meta(ck, identity, _n_chunks_hint(ck))
+    out_p = ck = problem = None
+    try:  # process 0's output folder and checkpoint (the others write nothing and read neither)
+        if writer:
+            out_p = check_out_dir(out, COMMAND, force=force, inputs=[spec.path, *inputs])
+            ck = _ckpt_dir(out_p)
+            if resume:  # meta.json and the identity before the build and the compile; the state file after it
+                read_ckpt_meta(ck, identity, _n_chunks_hint(ck))
+        check_size(spec, allow_large)
+    except WbcJaxError as e:
+        problem = e
+    distributed.agree(problem)
     sim, dz, b, T_plan, logs_per_chunk, n_chunks = build(spec, gains)
     chunk_s = logs_per_chunk * LOG_EVERY * sim.dt_control
     seconds = n_chunks * chunk_s
+    mesh, state0 = None, b.state
+    if jax.device_count() > 1:  # the run axis over every device of every process
+        from wbc_jax.sim.sharding import run_mesh, shard_batch
+
+        mesh = run_mesh()
+        b, _ = shard_batch(b, mesh)
     state, done, wall_before, marks, p_goal = b.state, 0, 0.0, [], None
     if resume:
-        st, meta = _load_ckpt(ck, b.state, identity, n_chunks)
-        if st is not None:
-            state, done, wall_before, marks = st, meta["chunks_done"], meta["wall_s"], meta["marks"]
+        st = meta = problem = None
+        if writer:
+            try:
+                st, meta = _load_ckpt(ck, state0, identity, n_chunks)
+            except WbcJaxError as e:
+                problem = e
+        distributed.agree(problem)
+        if mesh is not None:  # every process: process 0's resume point, placed on the mesh
+            state, done = _shared_resume(state0 if st is None else st, meta["chunks_done"] if meta else 0, mesh,
+                                         dz.n)
+        elif st is not None:
+            state, done = st, meta["chunks_done"]
+        if meta is not None:
+            wall_before, marks = meta["wall_s"], meta["marks"]
             p_goal = np.asarray(meta["p_goal"]) if meta.get("p_goal") is not None else None
-            print(f"resuming from {ck}: {done} of {n_chunks} chunks done", flush=True)
-        else:
-            print(f"no checkpoint at {ck}: starting from the beginning", flush=True)
-    elif ck.exists():
+        if writer:
+            print(f"resuming from {ck}: {done} of {n_chunks} chunks done" if meta is not None else
+                  f"no checkpoint at {ck}: starting from the beginning", flush=True)
+    elif writer and ck.exists():
         shutil.rmtree(ck)
-    if zero_noise_warning(spec):
+    if zero_noise_warning(spec) and writer:
         print("warning: all perturbations are zero: repetitions are identical (deterministic runs)", flush=True)
-    print(f"campaign {spec.campaign['name']!r} ({spec.path}): {dz.n} runs = {dz.n // spec.reps} cells x {spec.reps} "
-          f"reps, {seconds:.2f} s simulated in {n_chunks} chunks of {chunk_s:.2f} s, scene {spec.campaign['scene']}, "
-          f"device {jax.devices()[0].device_kind}", flush=True)
-    fn = _chunk_fn(sim, b.in_axes, logs_per_chunk)
+    spread = f" x {jax.device_count()} over {jax.process_count()} processes" if distributed.is_multiprocess() else ""
+    print(f"{'' if writer else f'process {jax.process_index()}: '}campaign {spec.campaign['name']!r} ({spec.path}): "
+          f"{dz.n} runs = {dz.n // spec.reps} cells x {spec.reps} reps, {seconds:.2f} s simulated in {n_chunks} "
+          f"chunks of {chunk_s:.2f} s, scene {spec.campaign['scene']}, device {jax.devices()[0].device_kind}{spread}",
+          flush=True)
+    fn = _chunk_fn(sim, b.in_axes, logs_per_chunk, mesh)
     bar = None
-    if progress:
+    if progress and writer:
         from tqdm import tqdm
 
         bar = tqdm(total=round(seconds, 3), initial=round(done * chunk_s, 3), unit="sim-s", file=sys.stderr,
@@ -450,10 +509,15 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
             done += 1
             marks.append(dict(chunk=done, wall_s=dt_wall, fresh_process=first_in_process))
             first_in_process = False
-            p_goal = np.asarray(logs.p_obj_ref[:, -1])
-            _save_ckpt(ck, state, dict(identity=identity, chunks_done=done, n_chunks=n_chunks,
-                                       wall_s=wall_before + time.perf_counter() - t_run, marks=marks,
-                                       p_goal=p_goal.tolist()))
+            if mesh is None:
+                p_goal, saved = np.asarray(logs.p_obj_ref[:, -1]), state
+            else:  # every process takes part in the gathers; process 0 writes
+                p_goal, saved = _first(distributed.gather(logs.p_obj_ref), dz.n)[:, -1], _first(
+                    distributed.gather(state), dz.n)
+            if writer:
+                _save_ckpt(ck, saved, dict(identity=identity, chunks_done=done, n_chunks=n_chunks,
+                                           wall_s=wall_before + time.perf_counter() - t_run, marks=marks,
+                                           p_goal=p_goal.tolist()))
             if bar is not None:
                 bar.update(chunk_s)
                 bar.set_postfix_str(f"{dz.n} runs, {dz.n * chunk_s / sim.dt_physics / dt_wall:,.0f} env-steps/s")
@@ -462,12 +526,18 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     except KeyboardInterrupt:
         if bar is not None:
             bar.close()
-        print(f"interrupted after {done} of {n_chunks} chunks; finished chunks kept in {ck}; "
-              f"continue with --resume", file=sys.stderr, flush=True)
+        if writer:
+            print(f"interrupted after {done} of {n_chunks} chunks; finished chunks kept in {ck}; "
+                  f"continue with --resume", file=sys.stderr, flush=True)
         raise
     if bar is not None:
         bar.close()
     wall_sim = wall_before + time.perf_counter() - t_run
+    if mesh is not None:
+        state = _first(distributed.gather(state), dz.n)
+    if not writer:
+        print(f"process {jax.process_index()}: done; process 0 writes {out}", flush=True)
+        return None
 
     from wbc_jax.sim.rollout import final_results
 
@@ -498,6 +568,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         physics_backend=physics_backend,
         device=dict(backend=jax.default_backend(), kind=jax.devices()[0].device_kind, count=jax.device_count(),
                     host=platform.node(), cpu_count=os.cpu_count()),
+        layout=distributed.layout_record(),
         n_runs=dz.n, n_cells=int(len(cells)), reps=spec.reps, seeds=[int(s) for s in dz.seed],
         simulated_s=seconds, planned_s=T_plan, chunk_s=chunk_s, n_chunks=n_chunks, control_dt_s=sim.dt_control,
         wall_s_total=time.perf_counter() - t_import + wall_before, wall_s_rollout=wall_sim,
