@@ -172,8 +172,8 @@ class ControlState(NamedTuple):
 def control_qp_settings(iters: int = 20, **kw) -> QPSettings:
     """ADMM settings for the control loop (``kw``: other :class:`~wbc_jax.qp.QPSettings` fields).
 
-    ``iters`` warm-started iterations (the previous step's x, z, y); rho fixed at 10 (``rho=10``, no adaptation:
-    one factorization per step) and 2 Ruiz passes; the flag tolerance is 1e-3 (abs and rel, OSQP's test), what
+    ``iters`` warm-started iterations (the previous step's x, z, y); rho fixed at 1 (no adaptation: one
+    factorization per step) and 2 Ruiz passes; the flag tolerance is 1e-3 (abs and rel, OSQP's test), what
     float32 residuals at WBC scales (forces up to hundreds of N) can show; the linear solve picked per backend
     (``linsolve="auto"``: Cholesky on the CPU, explicit inverse on a GPU).
 
@@ -186,7 +186,7 @@ def control_qp_settings(iters: int = 20, **kw) -> QPSettings:
         20, same with adapt_bias=4 at 30 iterations             3.7-4.0 %
         30, rho re-estimated after each step                    1.9-2.3 %
         40, rho re-estimated after each step                    1.4-2.0 %
-        20, rho 10 fixed (this default)                         3.1-3.3 %
+        20, rho 10 fixed                                        3.1-3.3 %
         40, rho 10 fixed                                        0.75-0.80 %
 
     Why: with rho 1 the primal residual of the equality rows converges slowly (the failing steps are 80 % primal);
@@ -200,12 +200,19 @@ def control_qp_settings(iters: int = 20, **kw) -> QPSettings:
     warm iterations there. Active-set polishing (``polish=True``, 1-2 passes) does not help on these QPs in float32
     (the polished points are rejected; float64: 86 % -> 97 % acceptance, not 99.9 %).
 
+    Why rho stays 1 (the default): the paper campaign on an H100 (2026-11-25, ``sweeps/paper_campaign.toml``, 270
+    runs) succeeded in 259/270 runs with rho 10 at 20 iterations and 262/270 at 40, against 267-269/270 with rho 1
+    (three earlier runs); every failure is the front-left shank grazing block2 at 13.7 s (a clearance of a few mm,
+    the factors issue), which the better-converged QP's slightly different gait hits more often. All 270 runs stay
+    flagged either way (the per-run flag line is 1 %), so converging the QP at every step needs the work of issue
+    22 (a smaller QP or more iterations at contact events) together with the block2 clearance fix.
+
     Speed before issue 22 (``wbc-jax bench profile`` / ``bench rollout``, H100, flat, batch 16384): 50 iterations
     with rho adapted every 10 (4 refactors) and 5 Ruiz passes cost 6.32 us per env-step, 20 iterations without
     adaptation 3.16 us, and with 2 Ruiz passes 2.95 us (physics alone 0.83 us); rho does not change the cost.
     """
     return QPSettings(**{**dict(iters=iters, eps_abs=1e-3, eps_rel=1e-3, linsolve="auto", adapt_every=0,
-                                rho=10.0, ruiz_iters=2), **kw})
+                                rho=1.0, ruiz_iters=2), **kw})
 
 
 @dataclass(frozen=True)
