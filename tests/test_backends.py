@@ -43,34 +43,34 @@ def walks():
 
 
 def test_warp_mass_matrix_and_distances_match_references(walks):
-    sim, b, st, _ = walks["warp"]
-    jsim, jb, *_ = walks["jax"]
-    m0 = jax.tree_util.tree_map(lambda a, x: x if a is None else x[0], b.in_axes, b.model,
-                                is_leaf=lambda v: v is None)
-    d_w = jax.jit(physics.sense)(m0, jax.tree_util.tree_map(lambda x: x, b.state.d).replace(
-        qpos=st.d.qpos[0], qvel=st.d.qvel[0]))
-    # MuJoCo C reference at the same state (the run's object fields are the nominal model's for run 0: d = 0.08)
-    mj = sim.robot.mj_model
-    data = mujoco.MjData(mj)
+    """At the Warp walk's final configurations: M rebuilt from Warp's CSR vs MuJoCo C; foot and object-sphere
+    distances (geometric on Warp) and the object's total normal force vs the JAX backend at the same positions."""
+    out = {}
+    for backend, (sim, b, st, _) in walks.items():
+        def one(m, d, sim=sim):
+            ds = physics.sense(m, d)
+            dist = contacts.object_contacts(sim, m, ds)[1]
+            f = contacts.object_contacts(sim, m, physics.finish(m, ds, ds.ctrl))[0]  # one step's solved forces
+            return mass_matrix(m, ds), contacts.foot_dist(sim, m, ds), dist, f[:, 0].sum()
+
+        w = walks["warp"][2].d  # the Warp walk's final state, torques included, on both backends
+        d = b.state.d.replace(qpos=jax.numpy.asarray(w.qpos), qvel=jax.numpy.asarray(w.qvel),
+                              ctrl=jax.numpy.asarray(w.ctrl))
+        out[backend] = jax.device_get(jax.jit(jax.vmap(one, in_axes=(b.in_axes, 0)))(b.model, d))
+    sim, _, st, _ = walks["warp"]
+    mj, nvr = sim.robot.mj_model, sim.robot.ids.nv_robot
+    data = mujoco.MjData(mj)  # MuJoCo C at run 0's configuration (the robot's block does not depend on the object)
     data.qpos[:], data.qvel[:] = np.asarray(st.d.qpos[0]), np.asarray(st.d.qvel[0])
     mujoco.mj_forward(mj, data)
     full = np.zeros((mj.nv, mj.nv))
     mujoco.mj_fullM(mj, data, full)
-    M = np.asarray(jax.jit(mass_matrix)(m0, d_w))
-    np.testing.assert_allclose(M, full, rtol=M_TOL, atol=M_TOL * np.abs(full).max())
-    # sphere distances: Warp's geometric ones vs the JAX backend's slots at the same positions
-    jm0 = jax.tree_util.tree_map(lambda a, x: x if a is None else x[0], jb.in_axes, jb.model,
-                                 is_leaf=lambda v: v is None)
-    d_j = jax.jit(physics.sense)(jm0, jax.tree_util.tree_map(lambda x: x[0], jb.state.d).replace(
-        qpos=st.d.qpos[0], qvel=st.d.qvel[0]))
-    foot = [jax.jit(lambda m, d, s=s: contacts.foot_dist(s, m, d))(mm, dd) for s, mm, dd in
-            ((sim, m0, d_w), (jsim, jm0, d_j))]
-    np.testing.assert_allclose(foot[0], foot[1], atol=DIST_TOL)
-    obj = [jax.jit(lambda m, d, s=s: contacts.object_contacts(s, m, d))(mm, dd) for s, mm, dd in
-           ((sim, m0, d_w), (jsim, jm0, d_j))]
-    np.testing.assert_allclose(obj[0][1], obj[1][1], atol=DIST_TOL)
-    # total normal force on the object (its weight at rest, split differently by the two constraint solvers)
-    np.testing.assert_allclose(obj[0][0][:, 0].sum(), obj[1][0][:, 0].sum(), rtol=0.05)
+    M = np.asarray(out["warp"][0][0])
+    np.testing.assert_allclose(M[:nvr, :nvr], full[:nvr, :nvr], rtol=M_TOL, atol=M_TOL * np.abs(full).max())
+    np.testing.assert_allclose(out["warp"][0], out["jax"][0], rtol=M_TOL, atol=M_TOL * np.abs(full).max())
+    np.testing.assert_allclose(out["warp"][1], out["jax"][1], atol=DIST_TOL)  # feet
+    np.testing.assert_allclose(out["warp"][2], out["jax"][2], atol=DIST_TOL)  # object spheres
+    # total normal force on the object (its weight at rest; the two constraint solvers split it differently)
+    np.testing.assert_allclose(out["warp"][3], out["jax"][3], rtol=0.05)
 
 
 def test_short_loaded_walk_agrees_between_backends(walks):
