@@ -277,7 +277,8 @@ def _fake_ckpt(tmp_path, gains=None, **meta_over):
     """A checkpoint next to ``tmp_path/out`` with the identity of the tiny spec (and ``gains``)."""
     import hashlib
 
-    from wbc_jax.study.campaign import _ckpt_dir, run_identity
+    from wbc_jax.study.campaign import run_identity
+    from wbc_jax.study.checkpoint import ckpt_dir as _ckpt_dir
     from wbc_jax.study.spec import load_spec
 
     ck = _ckpt_dir(tmp_path / "out")

@@ -2,7 +2,7 @@
 
 spec (``wbc_jax.study.spec``) -> design table with per-run seeds and perturbations -> one :class:`wbc_jax.sim.batch.Batch`
 (all runs) -> chunked, jitted, vmapped rollout (``chunk_seconds`` of simulated time per call; the state is
-checkpointed after every chunk) -> per-run metrics and flags (``wbc_jax.sim.metrics``) -> ``results.csv``,
+checkpointed after every chunk) -> per-run metrics and flags (``wbc_jax.sim.metrics``) ->
 ``results.csv`` and ``manifest.json`` in DIR (written atomically), then the ANOVA report
 (``wbc_jax.analysis.report``) in ``DIR/report/``. A report that fails leaves the results, writes
 ``DIR/report_error.txt`` and ends the command with a one-line error (rerun ``wbc-jax report DIR/results.csv``).
@@ -10,7 +10,7 @@ checkpointed after every chunk) -> per-run metrics and flags (``wbc_jax.sim.metr
 DIR must be new or empty, or (``--force``) hold an earlier campaign (``wbc_jax.io_utils.check_out_dir``); it is
 checked, with the spec's size against the machine's memory (:func:`check_size`), before anything is compiled.
 
-Checkpoint: ``.<DIR name>.campaign-ckpt/`` next to DIR holds the state after the last finished chunk
+Checkpoint (``wbc_jax.study.checkpoint``): ``.<DIR name>.campaign-ckpt/`` next to DIR holds the state after the last finished chunk
 (``state_K.npz``: every leaf of the batched RunState after chunk K) and ``meta.json`` (the run's identity,
 :func:`run_identity`: spec hash, gains hash, backend, numerics package versions, run count; chunks done, the state
 file's SHA-256, wall time so far). Ctrl-C keeps it; ``--resume`` continues from it (the chunks are the same, so the
@@ -29,24 +29,22 @@ records the processes and devices.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import platform
 import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from importlib import metadata
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.sim import aot, distributed
-from wbc_jax.errors import CheckpointError, LimitError, ReportError, WbcJaxError
+from wbc_jax.errors import LimitError, ReportError, SpecError, WbcJaxError
 from wbc_jax.io_utils import atomic_dir, check_out_dir, write_json_atomic
+from wbc_jax.study import checkpoint
 from wbc_jax.study.spec import Design, Spec, default_spec_path, design, load_spec
 
 LOG_EVERY = 20  # control steps per logged sample (the rollout's outer scan)
@@ -172,10 +170,6 @@ def build(spec: Spec, gains=None):
     return sim, dz, b, T_plan, logs_per_chunk, n_chunks
 
 
-def _ckpt_dir(out: Path) -> Path:
-    return out.parent / f".{out.name}.campaign-ckpt"
-
-
 def run_identity(spec: Spec, gains=None, n_runs: int | None = None, backend: str = "jax") -> dict:
     """Everything that determines a campaign's results, as the dict a checkpoint must match.
 
@@ -240,90 +234,6 @@ def _available_memory() -> int | None:
     except OSError:
         pass
     return None
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def _save_ckpt(ck: Path, state, meta: dict) -> None:
-    """State of chunk k to ``state_k.npz`` first, then ``meta.json`` (naming that file and its SHA-256)
-    atomically, then the older state files go: an interruption at any point leaves a consistent (meta, state)
-    pair."""
-    ck.mkdir(parents=True, exist_ok=True)
-    leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(jax.device_get(state))]
-    name = f"state_{meta['chunks_done']}.npz"
-    fd, tmp = tempfile.mkstemp(prefix=".state.", suffix=".npz", dir=ck)
-    with os.fdopen(fd, "wb") as f:
-        np.savez(f, *leaves)
-    digest = _sha256(Path(tmp))
-    os.replace(tmp, ck / name)
-    write_json_atomic(ck / "meta.json", dict(meta, state_file=name, state_sha256=digest))
-    for old in ck.glob("state_*.npz"):
-        if old.name != name:
-            old.unlink(missing_ok=True)
-
-
-def read_ckpt_meta(ck: Path, identity: dict, n_chunks: int) -> dict | None:
-    """The checked ``meta.json`` of checkpoint ``ck`` (None when there is no checkpoint).
-
-    Raises:
-        CheckpointError: meta.json missing beside state files, unreadable, incomplete or with values out of
-            range; an identity entry that differs from ``identity``; the state file missing or not matching its
-            SHA-256. The message says how to restart.
-    """
-    restart = f"delete {ck} or run without --resume to start over"
-    if not ck.exists():
-        return None
-    meta_p = ck / "meta.json"
-    if not meta_p.exists():
-        if any(ck.iterdir()):
-            raise CheckpointError(f"{ck}: damaged checkpoint (meta.json missing); {restart}")
-        return None
-    try:
-        meta = json.loads(meta_p.read_text())
-        done, name, digest = int(meta["chunks_done"]), str(meta["state_file"]), str(meta["state_sha256"])
-        float(meta["wall_s"]), list(meta["marks"]), dict(meta["identity"])  # noqa: B018
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise CheckpointError(f"{ck}: damaged checkpoint (meta.json unreadable or incomplete: "
-                              f"{type(e).__name__} {e}); {restart}") from None
-    differ = sorted(k for k in set(identity) | set(meta["identity"]) if meta["identity"].get(k) != identity.get(k))
-    if differ:
-        raise CheckpointError(f"{ck}: checkpoint belongs to another run ({', '.join(differ)} differ"
-                              f"{': started with other --gains' if 'gains_hash' in differ else ''}); {restart}")
-    if not (1 <= done <= n_chunks) or meta.get("n_chunks") != n_chunks or name != f"state_{done}.npz":
-        raise CheckpointError(f"{ck}: damaged checkpoint (chunks_done {meta.get('chunks_done')!r} of "
-                              f"{meta.get('n_chunks')!r}, state file {name!r}; this run has {n_chunks}); {restart}")
-    state_p = ck / name
-    if not state_p.is_file() or _sha256(state_p) != digest:
-        raise CheckpointError(f"{ck}: damaged checkpoint ({name} missing or its SHA-256 differs); {restart}")
-    return meta
-
-
-def _load_ckpt(ck: Path, state_like, identity: dict, n_chunks: int):
-    meta = read_ckpt_meta(ck, identity, n_chunks)
-    if meta is None:
-        return None, None
-    try:
-        with np.load(ck / meta["state_file"]) as z:
-            leaves = [z[f"arr_{i}"] for i in range(len(z.files))]
-    except (OSError, ValueError, KeyError) as e:
-        raise CheckpointError(f"{ck}: damaged checkpoint ({meta['state_file']}: {e}); delete {ck} or run "
-                              "without --resume to start over") from None
-    treedef = jax.tree_util.tree_structure(state_like)
-    like = jax.tree_util.tree_leaves(state_like)
-    if treedef.num_leaves != len(leaves) or any(x.shape != a.shape for x, a in zip(leaves, like)):
-        raise CheckpointError(f"{ck}: checkpoint does not match this version's rollout state; delete {ck} or "
-                              "run without --resume to start over")
-    # placed like the fresh state (committed to its device where that is): an uncommitted leaf changes the lowered
-    # program's input shardings, so the chunk function would compile a second time and miss the compilation cache
-    out = [jax.device_put(x, a.sharding) if getattr(a, "committed", False) else jnp.asarray(x)
-           for x, a in zip(leaves, like)]
-    return jax.tree_util.tree_unflatten(treedef, out), meta
 
 
 def _versions() -> dict:
@@ -446,9 +356,9 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     try:  # process 0's output folder and checkpoint (the others write nothing and read neither)
         if writer:
             out_p = check_out_dir(out, COMMAND, force=force, inputs=[spec.path, *inputs])
-            ck = _ckpt_dir(out_p)
+            ck = checkpoint.ckpt_dir(out_p)
             if resume:  # meta.json and the identity before the build and the compile; the state file after it
-                read_ckpt_meta(ck, identity, _n_chunks_hint(ck))
+                checkpoint.read_meta(ck, identity, checkpoint.n_chunks_hint(ck))
         check_size(spec, allow_large)
     except WbcJaxError as e:
         problem = e
@@ -467,7 +377,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         st = meta = problem = None
         if writer:
             try:
-                st, meta = _load_ckpt(ck, state0, identity, n_chunks)
+                st, meta = checkpoint.load_state(ck, state0, identity, n_chunks)
             except WbcJaxError as e:
                 problem = e
         distributed.agree(problem)
@@ -515,7 +425,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
                 p_goal, saved = _first(distributed.gather(logs.p_obj_ref), dz.n)[:, -1], _first(
                     distributed.gather(state), dz.n)
             if writer:
-                _save_ckpt(ck, saved, dict(identity=identity, chunks_done=done, n_chunks=n_chunks,
+                checkpoint.save_state(ck, saved, dict(identity=identity, chunks_done=done, n_chunks=n_chunks,
                                            wall_s=wall_before + time.perf_counter() - t_run, marks=marks,
                                            p_goal=p_goal.tolist()))
             if bar is not None:
@@ -589,14 +499,6 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     print(f"{int(df.success.sum())}/{dz.n} runs succeeded; wall {manifest['wall_s_total']:.1f} s, "
           f"{eps:,.0f} env-steps/s; written to {out}", flush=True)
     return manifest
-
-
-def _n_chunks_hint(ck: Path) -> int:
-    """The chunk count a checkpoint's meta.json claims (checked again against the build); 0 when unreadable."""
-    try:
-        return int(json.loads((ck / "meta.json").read_text())["n_chunks"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return 0
 
 
 def _campaign_report(out: Path, manifest: dict, warnings: list[str]) -> None:
