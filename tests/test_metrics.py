@@ -78,6 +78,7 @@ def test_finalize_by_hand():
     assert r["slid"].tolist() == [False, True]
     assert r["hit_wall"].tolist() == [False, True]
     assert r["qp_flagged"].tolist() == [False, True]  # 2 % > 1 %
+    np.testing.assert_allclose(r["qp_flag_fraction"], [0.0, 0.02])  # 20 of 1000 control steps
     assert r["success"].tolist() == [True, True]  # sliding, wall contact and QP flags are flags, not failures
 
 

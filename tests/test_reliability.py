@@ -52,6 +52,7 @@ def _setup(t: Path) -> dict:
     """The files the bad inputs point at, inside ``t`` (the test's current folder)."""
     (t / "spec.toml").write_bytes(TINY.read_bytes())
     (t / "huge.toml").write_text(HUGE_SPEC)
+    (t / "backend.toml").write_text(TINY.read_text().replace("[campaign]", '[campaign]\nbackend = "bullet"', 1))
     full = t / "full"
     full.mkdir()
     (full / "notes.txt").write_text("my notes")
@@ -74,6 +75,10 @@ def _setup(t: Path) -> dict:
 
 # (name, argv, expected part of the one-line message). {T}: the test folder (also the current folder).
 BAD_INPUTS = [
+    # physics backend: the spec key and the flag name the expected values
+    ("campaign_spec_backend", ["campaign", "--spec", "backend.toml", "--out", "new_b"],
+     'campaign.backend: = \'bullet\': expected one of auto, jax, warp'),
+    ("bench_backend", ["bench", "rollout", "--backend", "bullet"], "--backend 'bullet'"),
     # 1. --out never deletes what the command did not create
     ("campaign_out_nonempty", ["campaign", "--spec", "spec.toml", "--out", "full"], "folder is not empty"),
     ("campaign_out_nonempty_force", ["campaign", "--spec", "spec.toml", "--out", "full", "--force"],

@@ -49,6 +49,8 @@ from wbc_jax.errors import InputError, WbcJaxError
 SCHEMA = "wbc_jax.analysis.report/1"
 COMMAND = "wbc-jax report"
 CAMPAIGN_METRICS = ("R", "T", "S")
+QP_FLAG = "qp_flag_fraction"  # a campaign's results.csv column: the report's QP convergence section
+QP_FLAG_LINE = 0.01  # wbc_jax.sim.metrics.QP_FLAG_FRACTION (not imported: the report stays JAX-free)
 CLEARANCE = "min_clearance_mm"  # a campaign's results.csv column: the report's clearance section  # the metrics of a campaign's report (its results.csv has more columns)
 HUGE = 1e100  # a metric value at least this large in magnitude overflows the sums of squares (squared: 1e200+)
 RESULTS_LIMIT = 64 << 20  # largest results CSV read [bytes] (16384 runs: about 6 MB)
@@ -451,6 +453,8 @@ def _document(res: dict, summary: dict, factors, metrics, alpha: float, images: 
 
     if df is not None and CLEARANCE in df.columns:
         _clearance_section(d, df, factors)
+    if df is not None and QP_FLAG in df.columns:
+        _qp_section(d, df, factors)
 
     d.h(2, "Method")
     d.ul([
@@ -490,6 +494,19 @@ def _clearance_section(d: _Doc, df: pd.DataFrame, factors) -> None:
                      int(r["run"]) if "run" in g else "", _f(r.get("min_clearance_s", np.nan), ".3f"),
                      pair if isinstance(pair, str) else ""])
     d.table(pd.DataFrame(rows, columns=[*factors, "min clearance [mm]", "run", "at [s]", "pair"]))
+
+
+def _qp_section(d: _Doc, df: pd.DataFrame, factors) -> None:
+    """Per cell, the share of control steps whose QP ended outside its tolerance (all runs): mean and worst run."""
+    f = pd.to_numeric(df[QP_FLAG], errors="coerce")
+    d.h(2, "QP convergence (all runs)")
+    d.p("Share of each run's control steps whose whole-body QP ended its fixed ADMM iterations outside the 1e-3 "
+        f"tolerance (OSQP's test); a run above {QP_FLAG_LINE:g} is `qp_flagged`. Per cell: mean over the runs, the "
+        "worst run and how many runs are flagged.")
+    g = df.assign(_f=f).groupby(factors, sort=True)["_f"]
+    rows = [[*(_f(v, "g") for v in (key if isinstance(key, tuple) else (key,))), _f(100 * s.mean(), ".2f"),
+             _f(100 * s.max(), ".2f"), f"{int((s > QP_FLAG_LINE).sum())}/{len(s)}"] for key, s in g]
+    d.table(pd.DataFrame(rows, columns=[*factors, "mean [%]", "worst run [%]", "runs flagged"]))
 
 
 def _metric_section(d: _Doc, m: str, r: dict, level_means: pd.DataFrame, alpha: float) -> None:

@@ -120,7 +120,8 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
         max_slip_mm, boundary_fraction (of the window's physics steps), window_s (the window's duration [s]),
         min_clearance_mm (non-foot robot geom vs floor, terrain, wall; +inf: none reported) and min_clearance_s
         (its time; NaN: none), flags fell (= trunk_low or body_contact),
-        trunk_low, body_contact, dropped, slid, hit_wall, qp_flagged, nonfinite, overflow (Warp's contact or
+        trunk_low, body_contact, dropped, slid, hit_wall, qp_flag_fraction (of the control steps), qp_flagged,
+        nonfinite, overflow (Warp's contact or
         constraint capacity reached), success (no fall, no drop, finite, no overflow,
         final object error <= DONE_TOL) and fail_reason (text, "" for a success).
     """
@@ -150,6 +151,7 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
         dropped=dropped,
         slid=np.asarray(acc.max_slip) > SLIP_LIMIT,
         hit_wall=np.asarray(acc.wall_contact),
+        qp_flag_fraction=np.asarray(acc.n_flag) / np.maximum(n, 1),
         qp_flagged=np.asarray(acc.n_flag) / np.maximum(n, 1) > QP_FLAG_FRACTION,
         nonfinite=nonfinite,
         overflow=np.asarray(acc.overflow),

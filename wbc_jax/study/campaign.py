@@ -290,7 +290,7 @@ def results_table(spec: Spec, dz: Design, res: dict):
     df = pd.DataFrame(dict(run=np.arange(dz.n), m=dz.m, mu=dz.mu, d=dz.d, rep=dz.rep, seed=dz.seed,
                            success=res["success"]))
     for k in ("R", "T", "S", "max_slip_mm", "fell", "trunk_low", "body_contact", "dropped", "slid", "hit_wall",
-              "qp_flagged", "nonfinite", "overflow", "boundary_fraction", "final_err_mm", "fail_reason", "first_contact_s",
+              "qp_flagged", "qp_flag_fraction", "nonfinite", "overflow", "boundary_fraction", "final_err_mm", "fail_reason", "first_contact_s",
               "first_contact", "window_s", "min_clearance_mm", "min_clearance_s", "min_clearance_pair"):
         df[k] = res[k]
     df["obj_dx_mm"] = dz.obj_dx * 1e3
