@@ -31,7 +31,7 @@ import numpy as np
 from wbc_jax.sim import jaxcfg
 
 # custom-call targets without jax.export's compatibility guarantee that the exported programs may hold: Pallas'
-# Triton kernels on a GPU (wbc_jax.qp.fused)
+# Triton kernels on a GPU (none in the product since the fused QP kernel left it; kept for Pallas code)
 _UNGUARANTEED_CALLS = ("__gpu$xla.gpu.triton",)
 
 _SRC_DIGEST: str | None = None
@@ -234,7 +234,7 @@ def _export(store: Path, name: str, key: str, fn: Callable, in_tree, leaves) -> 
 
     specs = [jax.ShapeDtypeStruct(np.shape(x), _dtype(x)) for x in leaves]
     try:
-        # Pallas' Triton kernels (the fused QP segment on a GPU) are custom calls without jax.export's cross-version
+        # Pallas' Triton kernels are custom calls without jax.export's cross-version
         # guarantee; the key already pins the jax/jaxlib versions and the backend, so that guarantee is not needed.
         exp = jax.export.export(jax.jit(flat), disabled_checks=[
             jax.export.DisabledSafetyCheck.custom_call(t) for t in _UNGUARANTEED_CALLS])(*specs)

@@ -6,8 +6,8 @@ Two MJX implementations (``Robot(backend=...)``): **JAX** (``impl="jax"``, any d
 with the held torques included) and :func:`finish` is ``mjx.step`` with the new torques: two Warp calls per control
 step, both exact (the controller reads the state it acts on, no delay). :func:`resolve_backend` turns "auto" into
 JAX for now: on the obstacle course MuJoCo Warp 1.18 (mujoco-mjx 3.17) lets a foot that lands on a block's edge
-slide off and sink 12-18 mm into the floor, so a shank touches the floor at ~5.9 s in 261 of 270 paper runs, where
-the JAX implementation keeps the foot on the block (H100, 2026-11-25; docs/performance.md). On flat ground both
+slide off and sink 12-18 mm into the floor, so a shank touches the floor at 5.9-6.2 s in 259 of 270 paper runs
+(0/270 succeed), where the JAX implementation keeps the foot on the block (H100, 2026-11-25; docs/performance.md). On flat ground both
 give the same statistics. Warp is chosen explicitly (``--backend warp``).
 
 JAX backend: ``mjx.step`` = forward (position, velocity, actuation, acceleration, constraint solve) + integrate.
