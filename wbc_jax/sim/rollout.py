@@ -258,14 +258,15 @@ def substep_monitors(sim: Sim, m, om: ObjectModel, tau, d, d_after) -> SubstepMo
     else:
         inv_h = acc_norm = jnp.zeros(())
         off = jnp.bool_(False)
-    wall = jnp.any(contacts.wall_dist(sim, d_after) < 0.0) if sim.wall_slots.size else jnp.bool_(False)
-    if sim.nonfoot_slots.size:
-        nf_dist = contacts.nonfoot_dist(sim, d_after)
+    wall_d = contacts.wall_dist(sim, d_after) if sim.wall_slots.size else None
+    nf_dist = contacts.nonfoot_dist(sim, d_after) if sim.nonfoot_slots.size else None
+    wall = jnp.any(wall_d < 0.0) if wall_d is not None else jnp.bool_(False)
+    if nf_dist is not None:
         nonfoot = jnp.any(nf_dist < 0.0)
         nonfoot_k = jnp.where(nonfoot, jnp.argmin(nf_dist), -1).astype(jnp.int32)
     else:
         nonfoot, nonfoot_k = jnp.bool_(False), jnp.full((), -1, jnp.int32)
-    clear, clear_k = clearance(sim, d_after)
+    clear, clear_k = clearance(sim, d_after, nf_dist, wall_d)
     return SubstepMonitors(inv_h=inv_h, acc=acc_norm, nonfoot_floor=nonfoot, nonfoot_k=nonfoot_k, t=d.time,
                            wall=wall, off=off, finite=finite, overflow=physics.overflow(d_after), clear=clear,
                            clear_k=clear_k)
@@ -283,7 +284,7 @@ def _wall_robot_mask(sim: Sim, d) -> jax.Array:
     return jnp.all(jnp.asarray(m.geom_bodyid)[g] != obj, axis=1)
 
 
-def clearance(sim: Sim, d):
+def clearance(sim: Sim, d, nf_dist=None, wall_d=None):
     """Smallest signed distance [m] between a non-foot robot geom and the floor, the terrain blocks or a wall, and
     its pair, from the contacts of ``d`` (after a physics step).
 
@@ -293,17 +294,22 @@ def clearance(sim: Sim, d):
     also when positive; on Warp a pair's distance is reported only while it penetrates (``+inf`` otherwise), so
     the clearance there is only a penetration depth (<= 0) or ``+inf``.
 
+    Args:
+        nf_dist, wall_d: :func:`wbc_jax.sim.contacts.nonfoot_dist` and ``wall_dist`` of ``d`` when the caller
+            already has them (None: read here).
+
     Returns:
         (() distance [m], +inf when nothing is reported; () int32 pair: index into ``sim.nonfoot_slots``, or
         ``len(sim.nonfoot_slots)`` + index into ``sim.wall_slots``; -1 when the distance is +inf).
     """
     parts = []
     if sim.nonfoot_slots.size:
-        parts.append(contacts.nonfoot_dist(sim, d))
+        parts.append(contacts.nonfoot_dist(sim, d) if nf_dist is None else nf_dist)
     else:
         parts.append(jnp.zeros((0,)))
     if sim.wall_slots.size:
-        parts.append(jnp.where(_wall_robot_mask(sim, d), contacts.wall_dist(sim, d), jnp.inf))
+        wall_d = contacts.wall_dist(sim, d) if wall_d is None else wall_d
+        parts.append(jnp.where(_wall_robot_mask(sim, d), wall_d, jnp.inf))
     dist = jnp.concatenate(parts)
     if dist.size == 0:
         return jnp.full((), jnp.inf), jnp.full((), -1, jnp.int32)
