@@ -126,3 +126,51 @@ def qq_grid(residuals: dict[str, tuple[np.ndarray, float]]) -> bytes:
         a.grid(alpha=0.3)
     fig.suptitle("Residual normal Q-Q plots")
     return _png(fig)
+
+
+def success_levels(rates: pd.DataFrame, factors: Sequence[str]) -> bytes:
+    """Success rate [%] (all runs) against each factor's levels, one panel per factor.
+
+    Args:
+        rates: :func:`wbc_jax.analysis.success.by_level` output.
+    """
+    fig, ax = _axes(1, len(factors))
+    for a, f in zip(ax[0], factors):
+        t = rates[rates["factor"] == f]
+        x = np.arange(len(t))
+        a.plot(x, 100 * t["rate"], "o-")
+        a.set_xticks(x, [_label(v) for v in t["level"]])
+        a.set_ylim(-5, 105)
+        a.set_xlabel(f)
+        a.set_ylabel("success rate [%]")
+        a.grid(alpha=0.3)
+    fig.suptitle("Success rate per factor level (all runs)")
+    return _png(fig)
+
+
+def success_pairs(tables: dict[tuple[str, str], pd.DataFrame]) -> bytes:
+    """Heatmaps of the success rate [%] of each pair of factors (all runs), cells annotated successes/runs.
+
+    Args:
+        tables: (a, b) -> :func:`wbc_jax.analysis.success.by_pair` output.
+    """
+    n = len(tables)
+    ncols = min(n, 3)
+    fig, ax = _axes(-(-n // ncols), ncols)
+    for a in ax.flat[n:]:
+        a.set_visible(False)
+    for a, ((f, g), t) in zip(ax.flat, tables.items()):
+        ya, xb = list(pd.unique(t[f])), list(pd.unique(t[g]))
+        rate = t.pivot(index=f, columns=g, values="rate").reindex(index=ya, columns=xb)
+        im = a.imshow(100 * rate.to_numpy(float), vmin=0, vmax=100, cmap="RdYlGn", origin="lower", aspect="auto")
+        for (i, j), r in np.ndenumerate(t.pivot(index=f, columns=g, values="runs").reindex(index=ya, columns=xb)
+                                        .to_numpy()):
+            s = t[(t[f] == ya[i]) & (t[g] == xb[j])]["successes"].iloc[0]
+            a.text(j, i, f"{s}/{r}", ha="center", va="center", fontsize=7)
+        a.set_xticks(np.arange(len(xb)), [_label(v) for v in xb])
+        a.set_yticks(np.arange(len(ya)), [_label(v) for v in ya])
+        a.set_xlabel(g)
+        a.set_ylabel(f)
+    fig.colorbar(im, ax=ax.ravel().tolist(), label="success rate [%]", shrink=0.8)
+    fig.suptitle("Success rate per pair of factors (all runs; cells: successes/runs)")
+    return _png(fig)

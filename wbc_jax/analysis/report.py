@@ -13,7 +13,17 @@ Reads the CSV, checks it, runs :func:`wbc_jax.analysis.stats.analyze`, and write
 - ``design.csv``, ``cell_means.csv`` (mean, sd, n per cell and metric; CI baselines).
 - ``manifest.json``: input path and SHA-256, arguments, package versions, wall time.
 - ``figures/means.png`` (metric means +- SD per factor level), ``figures/interactions.png``
-  (EMM +- 95 % CI per two-way interaction), ``figures/qq.png`` (residual Q-Q plots).
+  (EMM +- 95 % CI per two-way interaction), ``figures/qq.png`` (residual Q-Q plots),
+  ``figures/success_levels.png`` and ``figures/success_pairs.png`` (success rate per factor level and per
+  pair of factors, :mod:`wbc_jax.analysis.success`).
+
+Besides the ANOVA: success rates per factor level and per pair of factors (all runs; ``anova.json``
+``success``), and for a ``variant`` or ``observer`` factor each level against the reference controller
+(:mod:`wbc_jax.analysis.ablation`: Welch t and Mann-Whitney U on max slip and R, Fisher's exact test on
+success; ``anova.json`` ``ablation``).
+
+Factors and model order: as given; else, for a campaign's ``results.csv`` with its ``manifest.json`` beside it,
+the spec's factors and ``[analysis] order``; else m, mu, d and order 2.
 
 Nothing partial is left in DIR: everything is built in memory, written to a temporary
 sibling directory, and renamed into place. DIR must be new or empty, or (``force``) hold an
@@ -52,12 +62,20 @@ CAMPAIGN_METRICS = ("R", "T", "S")
 QP_FLAG = "qp_flag_fraction"  # a campaign's results.csv column: the report's QP convergence section
 QP_FLAG_LINE = 0.01  # wbc_jax.sim.metrics.QP_FLAG_FRACTION (not imported: the report stays JAX-free)
 CLEARANCE = "min_clearance_mm"  # a campaign's results.csv column: the report's clearance section  # the metrics of a campaign's report (its results.csv has more columns)
+FIGURE_CAPTIONS = {
+    "means.png": "Mean ± SD of each metric per factor level (rows: metrics, columns: factors).",
+    "interactions.png": "Interaction plots: EMMs ± 95 % CI for each two-way interaction, in both orientations, "
+                        "each titled ordinal or disordinal (lines crossing).",
+    "qq.png": "Normal Q-Q plots of standardized model residuals.",
+    "success_levels.png": "Success rate (all runs) per level of each factor.",
+    "success_pairs.png": "Success rate (all runs) per pair of factors; cells: successes/runs.",
+}
 HUGE = 1e100  # a metric value at least this large in magnitude overflows the sums of squares (squared: 1e200+)
 RESULTS_LIMIT = 64 << 20  # largest results CSV read [bytes] (16384 runs: about 6 MB)
 
 
 def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: list[str] | None = None,
-               metrics: list[str] | None = None, *, figures: bool = True, ss_type: int = 3, order: int = 2,
+               metrics: list[str] | None = None, *, figures: bool = True, ss_type: int = 3, order: int | None = None,
                force: bool = False) -> dict:
     """Write the ANOVA report of ``results_csv`` into ``out_dir``.
 
@@ -65,11 +83,11 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
         results_csv: results table, one row per run (factors, rep, seed, success, metrics).
         out_dir: output directory, new or empty (or an earlier report with ``force``); untouched on error.
         alpha: significance level (0 < alpha < 1).
-        factors: factor columns (default: those of m, mu, d present).
+        factors: factor columns (default: the campaign's, :func:`campaign_defaults`, else those of m, mu, d).
         metrics: metric columns (default: see :mod:`wbc_jax.analysis.stats`).
         figures: render the PNG figures (tests switch them off for speed).
         ss_type: sums-of-squares type, 1, 2 or 3.
-        order: highest interaction order of the model (2: main effects + two-way).
+        order: highest interaction order of the model (2: main effects + two-way; default: the campaign's or 2).
         force: replace ``out_dir`` when it holds an earlier report.
 
     Returns:
@@ -85,15 +103,19 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
         raise InputError(f"alpha must be between 0 and 1, not {alpha}")
     check_out_dir(out_dir, COMMAND, force=force, inputs=[results_csv])
     raw, df = read_results(results_csv)
-    factors = stats.infer_factors(df, factors)
+    camp_factors, camp_order = campaign_defaults(results_csv, df)
+    factors = stats.infer_factors(df, factors if factors is not None else camp_factors)
+    order = order if order is not None else camp_order
     _check_categorical(df, factors)
     if metrics is None and "fail_reason" in df.columns:  # a campaign's results.csv: the campaign report's metrics
         metrics = [m for m in CAMPAIGN_METRICS if m in df.columns] or None
     metrics = stats.infer_metrics(df, factors, metrics)
     data = stats.prepare(df, factors, metrics)
     res = _analyze(data, factors, metrics, alpha=alpha, ss_type=ss_type, order=order)
+    extra = _beyond_anova(data, factors, alpha)
     if not res["metrics"]:
-        return _write_design_only(res, results_csv, raw, out_dir, alpha, factors, metrics, ss_type, order, t0)
+        return _write_design_only(res, extra, results_csv, raw, out_dir, alpha, factors, metrics, ss_type, order,
+                                  t0, figures)
     metrics = list(res["metrics"])
 
     images = {}
@@ -107,14 +129,15 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
         if inter is not None:
             images["interactions.png"] = inter
         images["qq.png"] = fg.qq_grid({m: (f.result.resid, None if f.degenerate else f.mse) for m, f in fits.items()})
+        images.update(_success_images(extra, factors))
 
     manifest = {
         "command": COMMAND, "input": str(results_csv), "sha256": hashlib.sha256(raw).hexdigest(), "rows": len(df),
         "alpha": alpha, "factors": factors, "metrics": metrics, "ss_type": stats.SS_NAMES[ss_type], "order": order,
         "versions": _versions(), "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
-    summary = _clean(_summary(res, data, factors, metrics, alpha, manifest))
-    doc = _document(res, summary, factors, metrics, alpha, list(images), df)
+    summary = _clean(dict(_summary(res, data, factors, metrics, alpha, manifest), **_extra_json(extra)))
+    doc = _document(res, summary, factors, metrics, alpha, list(images), df, extra)
     manifest["wall_s"] = summary["manifest"]["wall_s"] = round(time.perf_counter() - t0, 3)
     files = {
         "report.md": doc.markdown().encode(),
@@ -127,6 +150,78 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
     }
     write_dir_atomic(out_dir, files)
     return summary
+
+
+def campaign_defaults(results_csv: str, df: pd.DataFrame) -> tuple[list[str] | None, int]:
+    """(factors, model order) of the campaign that wrote ``results_csv``: its ``manifest.json`` beside it
+    (``wbc-jax campaign``: the spec's factors and ``[analysis] order``), the factors only if all are columns of
+    ``df``; (None, 2) otherwise."""
+    try:
+        man = json.loads((Path(results_csv).parent / "manifest.json").read_text())
+        spec = man["spec"] if man.get("command") == "wbc-jax campaign" else {}
+        names = [str(f) for f in spec.get("factors", {})]
+        order = spec.get("analysis", {}).get("order", 2)
+    except (OSError, ValueError, TypeError, AttributeError, KeyError):
+        return None, 2
+    ok = bool(names) and all(f in df.columns for f in names)
+    return (names if ok else None), (int(order) if isinstance(order, int) and order >= 1 else 2)
+
+
+# --------------------------------------------------------------------------- beyond the ANOVA
+
+
+def _beyond_anova(data: pd.DataFrame, factors, alpha: float) -> dict:
+    """Success rates per level and per pair of factors (all runs), and the ablation comparisons."""
+    from wbc_jax.analysis import ablation, success
+
+    return {"by_level": success.by_level(data, factors),
+            "by_pair": {p: success.by_pair(data, *p) for p in success.pairs(factors)},
+            "ablation": ablation.compare(data, factors, alpha)}
+
+
+def _extra_json(extra: dict) -> dict:
+    return {"success": {"by_level": extra["by_level"],
+                        "by_pair": {":".join(p): t for p, t in extra["by_pair"].items()}},
+            "ablation": extra["ablation"]}
+
+
+def _success_images(extra: dict, factors) -> dict[str, bytes]:
+    from wbc_jax.analysis import figures as fg
+
+    out = {"success_levels.png": fg.success_levels(extra["by_level"], factors)}
+    if extra["by_pair"]:
+        out["success_pairs.png"] = fg.success_pairs(extra["by_pair"])
+    return out
+
+
+def _success_sections(d: "_Doc", extra: dict, factors, alpha: float) -> None:
+    """The report's success-rate tables and, for an ablation factor, the comparisons with the reference."""
+    from wbc_jax.analysis import ablation, success
+
+    d.h(2, "Success rate (all runs)")
+    d.p("Share of runs with success = True per factor level and per pair of factors, pooled over the other "
+        "factors and the repetitions (failed runs included; cells: successes/runs (rate)).")
+    lv = extra["by_level"]
+    d.table(pd.DataFrame({"factor": lv["factor"], "level": lv["level"].map(lambda v: _f(v, "g")),
+                          "successes/runs": [f"{s}/{n}" for s, n in zip(lv["successes"], lv["runs"])],
+                          "rate [%]": (100 * lv["rate"]).map(lambda v: _f(v, ".1f"))}))
+    for (a, b), t in extra["by_pair"].items():
+        d.h(3, f"{a} × {b}")
+        d.table(success.wide(t, a, b, fmt=lambda v: _f(v, "g")))
+    t = extra["ablation"]
+    if len(t):
+        d.h(2, "Controller variants against the reference")
+        d.p("Each level of " + ", ".join(f"`{f}`" for f in pd.unique(t["factor"])) + " against the reference "
+            "(" + ", ".join(f"{f} = {ablation.REFERENCE[f]}" for f in pd.unique(t["factor"])) + "), pooled over "
+            "the other factors: Welch's t test and the Mann-Whitney U test on max slip [mm] and R (successful "
+            "runs), Fisher's exact test on success (all runs); two-sided, Bonferroni over the levels compared.")
+        d.ul(ablation.answers(t, alpha))
+        d.table(pd.DataFrame({
+            "factor": t["factor"], "level": t["level"].map(lambda v: _f(v, "g")), "metric": t["metric"],
+            "test": t["test"], "n": t["n"], "n ref": t["n_ref"], "value": t["value"].map(_f),
+            "ref value": t["value_ref"].map(_f), "statistic": t["statistic"].map(_f),
+            "p": t["p"].map(lambda v: _f(v, ".3g")), "p Bonferroni": t["p_bonf"].map(lambda v: _f(v, ".3g")),
+            "differs": ["yes" if x else "no" for x in t["differs"]]}))
 
 
 # --------------------------------------------------------------------------- robust analysis
@@ -186,8 +281,9 @@ def _analyze(data: pd.DataFrame, factors: list[str], metrics: list[str], **kw) -
     return res
 
 
-def _write_design_only(res, results_csv, raw, out_dir, alpha, factors, metrics, ss_type, order, t0) -> dict:
-    """The report of a table without an analysable metric: warnings and the design table."""
+def _write_design_only(res, extra, results_csv, raw, out_dir, alpha, factors, metrics, ss_type, order, t0,
+                       figures) -> dict:
+    """The report of a table without an analysable metric: warnings, the design table and the success rates."""
     d = _Doc()
     d.h(1, f"ANOVA report: {Path(results_csv).name}")
     d.p(f"{res['n_runs']} runs ({res['n_failed']} failed); factors {', '.join(factors)}; no metric analysed.")
@@ -195,18 +291,23 @@ def _write_design_only(res, results_csv, raw, out_dir, alpha, factors, metrics, 
     d.ul(res["warnings"])
     d.h(2, "Design")
     d.table(res["design"])
+    _success_sections(d, extra, factors, alpha)
+    images = _success_images(extra, factors) if figures else {}
+    for name in images:
+        d.img(name, FIGURE_CAPTIONS[name])
     manifest = {"command": COMMAND, "input": str(results_csv), "sha256": hashlib.sha256(raw).hexdigest(),
                 "rows": res["n_runs"], "alpha": alpha, "factors": factors, "metrics": [],
                 "ss_type": stats.SS_NAMES[ss_type], "order": order, "versions": _versions(),
                 "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "wall_s": round(time.perf_counter() - t0, 3)}
     summary = _clean({"schema": SCHEMA, "alpha": alpha, "ss_type": manifest["ss_type"], "n_runs": res["n_runs"],
                       "n_failed": res["n_failed"], "warnings": res["warnings"], "design": res["design"],
-                      "metrics": {}, "manifest": manifest})
+                      "metrics": {}, **_extra_json(extra), "manifest": manifest})
     write_dir_atomic(out_dir, {"report.md": d.markdown().encode(),
-                               "report.html": d.html({}, title=f"ANOVA report: {Path(results_csv).name}").encode(),
+                               "report.html": d.html(images, title=f"ANOVA report: {Path(results_csv).name}").encode(),
                                "anova.json": _dumps(summary).encode(),
                                "design.csv": res["design"].to_csv(index=False).encode(),
-                               "manifest.json": _dumps(manifest).encode()})
+                               "manifest.json": _dumps(manifest).encode(),
+                               **{f"figures/{k}": v for k, v in images.items()}})
     return summary
 
 
@@ -394,7 +495,7 @@ def _f(x, spec: str = ".4g") -> str:
 
 
 def _document(res: dict, summary: dict, factors, metrics, alpha: float, images: list[str],
-              df: pd.DataFrame | None = None) -> _Doc:
+              df: pd.DataFrame | None = None, extra: dict | None = None) -> _Doc:
     d = _Doc()
     man = summary["manifest"]
     d.h(1, f"ANOVA report: {Path(man['input']).name}")
@@ -442,14 +543,12 @@ def _document(res: dict, summary: dict, factors, metrics, alpha: float, images: 
         wide[m] = [f"{_f(a)} ± {_f(s)} ({n})" for a, s, n in zip(t["mean"], t["sd"], t["n"])]
     d.table(wide)
 
+    if extra is not None:
+        _success_sections(d, extra, factors, alpha)
     if images:
         d.h(2, "Figures")
-        captions = {"means.png": "Mean ± SD of each metric per factor level (rows: metrics, columns: factors).",
-                    "interactions.png": "Interaction plots: EMMs ± 95 % CI for each two-way interaction, in both "
-                                        "orientations, each titled ordinal or disordinal (lines crossing).",
-                    "qq.png": "Normal Q-Q plots of standardized model residuals."}
         for name in images:
-            d.img(name, captions[name])
+            d.img(name, FIGURE_CAPTIONS[name])
 
     if df is not None and CLEARANCE in df.columns:
         _clearance_section(d, df, factors)

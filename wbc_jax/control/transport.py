@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 
 from wbc_jax.control.dynamics import GRAVITY, DynTerms, cone_edges, point_jacobians, rot_error, wrench_map
+from wbc_jax.control.variants import FULL, Variant
 from wbc_jax.sim.model import RobotIds
 from wbc_jax.qp import QPResult, QPSettings, solve_qp
 from wbc_jax.sim.scenario import cube_inertia
@@ -161,12 +162,14 @@ class ObserverState(NamedTuple):
 
 
 class ControlState(NamedTuple):
-    """Controller memory between steps: warm start, observer, and the arm's nominal posture q_post (6,)
-    [rad] (its configuration at the start)."""
+    """Controller memory between steps: warm start, observer, the arm's nominal posture q_post (6,)
+    [rad] (its configuration at the start), and the run's ablation switches (:mod:`wbc_jax.control.variants`;
+    data, constant over the run)."""
 
     warm: QPResult
     obs: ObserverState
     q_post: jax.Array
+    variant: Variant
 
 
 def control_qp_settings(iters: int = 20, **kw) -> QPSettings:
@@ -269,7 +272,8 @@ def init_control_state(cfg: TransportConfig, dyn: DynTerms, ids: RobotIds) -> Co
     warm = QPResult(x=z(n), y=z(mcon), z=z(mcon), prim_res=z(()), dual_res=z(()),
                     flag=jnp.zeros((), jnp.int32), iters=jnp.zeros((), jnp.int32), rho=z(()) + cfg.qp.rho)
     obs = ObserverState(h0=dyn.h_G, integral=z(6), r=z(6), w_cmd=z(6))
-    return ControlState(warm=warm, obs=obs, q_post=dyn.q[ids.act_qpos[12:]])
+    return ControlState(warm=warm, obs=obs, q_post=dyn.q[ids.act_qpos[12:]],
+                        variant=Variant(*(jnp.asarray(v, float) for v in FULL)))
 
 
 def observer_update(obs: ObserverState, dyn: DynTerms, k_obs, dt) -> ObserverState:
@@ -281,13 +285,15 @@ def observer_update(obs: ObserverState, dyn: DynTerms, k_obs, dt) -> ObserverSta
 
 
 def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: ObjectModel, gains: TransportGains,
-             r_ext, ids: RobotIds, cfg: TransportConfig, mu_ground, q_post):
+             r_ext, ids: RobotIds, cfg: TransportConfig, mu_ground, q_post, variant: Variant = FULL):
     """Assemble the QP in OSQP form.
 
     ``q_post`` (6,) is the arm's nominal posture [rad]; the posture task only acts in the null space
     of the tray constraint (11): without it that null space is free and the QP uses the arm as a
     reaction wheel (joint accelerations of 1000 rad/s^2 at the torque limits, flipping sign within a
     millisecond) to make up the moment two stance feet cannot produce.
+    ``variant``: ablation switches (:mod:`wbc_jax.control.variants`): ``tray_cone`` scales the object-wrench
+    weights and, at 0, pins the object's contact multipliers to 0; ``posture`` scales the posture weight.
 
     Returns:
         (P (n, n), q (n,), A (m, n), l (m,), u (m,), A_tau (18, n), h_a (18,), H_com (6, n)) where
@@ -337,7 +343,8 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     H = jnp.concatenate([H, jnp.zeros((6, n)).at[jnp.arange(6), arm_v].set(1.0)])
     a_post = gains.kp_post * (q_post - dyn.q[arm_q]) - gains.kd_post * dyn.v[arm_v]
     l_vec = jnp.concatenate([l_com, f_b, t_b, a_post])
-    Qw = jnp.concatenate([gains.w_com, jnp.full(3, gains.w_obj_f), jnp.full(3, gains.w_obj_t), jnp.full(6, gains.w_post)])
+    Qw = jnp.concatenate([gains.w_com, jnp.full(3, gains.w_obj_f * variant.tray_cone),
+                          jnp.full(3, gains.w_obj_t * variant.tray_cone), jnp.full(6, gains.w_post * variant.posture)])
     Rw = jnp.concatenate([jnp.full(nv, gains.r_vdot), jnp.full(ng + nb, gains.r_lam), jnp.full(ns, gains.r_slack)])
     P = H.T @ (Qw[:, None] * H) + jnp.diag(Rw)
     q = -H.T @ (Qw * l_vec)
@@ -379,7 +386,8 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     add(jnp.zeros((12, n)).at[:, iv].set(Jf).at[:, isl].set(-eye), jnp.full(12, -inf), jnp.where(sw3, b14, inf))
     # (12) multipliers and slack bounds
     add(jnp.zeros((ng, n)).at[:, ig].set(jnp.eye(ng)), jnp.zeros(ng), jnp.where(jnp.repeat(stance, k), inf, 0.0))
-    add(jnp.zeros((nb, n)).at[:, ib].set(jnp.eye(nb)), jnp.zeros(nb), jnp.full(nb, inf))
+    add(jnp.zeros((nb, n)).at[:, ib].set(jnp.eye(nb)), jnp.zeros(nb),  # the tray cone; pinned to 0 without it
+        jnp.full(nb, jnp.where(jnp.asarray(variant.tray_cone) > 0, inf, 0.0)))
     add(jnp.zeros((ns, n)).at[:, isl].set(eye), jnp.zeros(ns), jnp.where(sw3, inf, 0.0))
 
     A = jnp.concatenate(rows)
@@ -391,12 +399,12 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
 def assemble(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gains: TransportGains, cs: ControlState,
              ids: RobotIds, cfg: TransportConfig, mu_ground=1.0):
     """Observer step and the QP of this control step: (new ObserverState, :func:`build_qp`'s outputs)."""
-    obs = observer_update(cs.obs, dyn, gains.k_obs, cfg.dt)
+    obs = observer_update(cs.obs, dyn, gains.k_obs * cs.variant.observer, cfg.dt)
     obj = object_state(d, ids)
     Jp, Jr, Jdp, Jdr = point_jacobians(m, d, ids, obj.p[None], [ids.tray_body])
     J_o = jnp.concatenate([Jp[0], Jr[0]])  # (6, nv)
     Jdv_o = jnp.concatenate([Jdp[0], Jdr[0]])
-    return obs, build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, obs.r, ids, cfg, mu_ground, cs.q_post)
+    return obs, build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, obs.r, ids, cfg, mu_ground, cs.q_post, cs.variant)
 
 
 def transport_control(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gains: TransportGains,

@@ -71,7 +71,7 @@ def _init_fn(sim: Sim, in_axes, n_runs: int):
 
 
 def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push: Push | None = None,
-                  plan_kwargs: dict | None = None, qpos0=None, qvel0=None) -> Batch:
+                  plan_kwargs: dict | None = None, qpos0=None, qvel0=None, speed=None, ground_mu=None) -> Batch:
     """Validated factors (each (B,) or scalar) -> a ready Batch.
 
     Args:
@@ -82,22 +82,27 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
             the scene has obstacles or terrain (blocks, a wall), else :func:`~wbc_jax.planner.transport.straight_plan`.
         qpos0, qvel0: (B, nq), (B, nv) initial configurations and velocities; None: the home pose of each run's
             object side, at rest.
+        speed: (B,) cruise speed of each run's plan [m/s] instead of ``plan_kwargs``' (None: that one).
+        ground_mu: (B,) foot/ground friction of each run, in the physics and the controller (None: the scene's).
     """
     robot = sim.robot
     f = scenario.validate_factors(robot.ids, m, mu, d)
     B = f.m.shape[0]
-    bm, in_axes = scenario.batch_model(robot.mjx_model, robot.mj_model, robot.ids, f)
+    bm, in_axes = scenario.batch_model(robot.mjx_model, robot.mj_model, robot.ids, f, ground_mu)
     kw = plan_kwargs or {}
     course = scene_geometry(robot).is_course
-    # start pose and plan depend on the run only through d (carried height): compute each level once
-    levels, inverse = np.unique(f.d, return_inverse=True)
-    q_levels = [robot.home_qpos(di) for di in levels]
+    # start pose and plan depend on the run only through d (carried height) and the speed: each pair once
+    keys = f.d[:, None] if speed is None else np.stack([f.d, np.broadcast_to(speed, f.d.shape)], axis=1)
+    levels, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    q_levels = [robot.home_qpos(key[0]) for key in levels]
     if qpos0 is None:
         qpos0 = np.stack(q_levels)[inverse]
     if qvel0 is None:
         qvel0 = np.zeros((B, robot.mj_model.nv))
-    unique = [course_plan(robot, q, side=float(di), **kw) if course else straight_plan(robot, q, **kw)
-              for q, di in zip(q_levels, levels)]
+    kws = [kw if speed is None else dict(kw, speed=float(key[1])) for key in levels]
+    unique = [course_plan(robot, q, side=float(key[0]), **k) if course else straight_plan(robot, q, **k)
+              for q, key, k in zip(q_levels, levels, kws)]
     plans = stack(unique, index=inverse)
     state = _init_fn(sim, in_axes, B)(bm, jnp.asarray(qpos0, float), jnp.asarray(qvel0, float))
     om = ObjectModel(mass=jnp.asarray(f.m), side=jnp.asarray(f.d), mu=jnp.asarray(f.mu),
@@ -108,5 +113,8 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
     push = no_push() if push is None else push
     if jnp.ndim(push.t0) == 0:
         push = broadcast(push, B)
-    mu_ground = jnp.full(B, float(robot.mj_model.pair_friction[robot.ids.foot_pair[0, 0], 0]))
+    if ground_mu is None:
+        mu_ground = jnp.full(B, float(robot.mj_model.pair_friction[robot.ids.foot_pair[0, 0], 0]))
+    else:
+        mu_ground = _device(np.broadcast_to(np.asarray(ground_mu, float), (B,)))
     return Batch(bm, in_axes, state, plans, om, gains, push, mu_ground, f)

@@ -29,6 +29,7 @@ from wbc_jax.sim.contacts import CONTACT_DIST, contact_slots  # noqa: F401  (re-
 from wbc_jax.control.dynamics import dyn_terms
 from wbc_jax.control.transport import (ControlState, ObjectModel, TransportConfig, TransportGains,
                                        init_control_state, transport_control)
+from wbc_jax.control.variants import Variant
 from wbc_jax.sim.model import Robot, mjx
 from wbc_jax.planner.transport import TransportPlan, reference
 
@@ -330,13 +331,23 @@ def in_window(sim: Sim, a: Accum) -> jax.Array:
     return (a.n_steps.astype(a.t_end.dtype) + 0.5) * sim.dt_control < a.t_end
 
 
+def _like(old, value):
+    """``value`` broadcast to the shape and dtype of the leaf ``old`` and placed like it (a leaf committed
+    elsewhere would change the chunk function's input shardings)."""
+    new = np.broadcast_to(np.asarray(value, old.dtype), old.shape)
+    return jax.device_put(new, old.sharding) if getattr(old, "committed", False) else jnp.asarray(new)
+
+
 def with_metric_window(state: RunState, t_end) -> RunState:
     """``state`` (batched or not) with its metric window set to [0, ``t_end``) [s] (scalar or (B,) per run)."""
-    old = state.acc.t_end
-    new = np.broadcast_to(np.asarray(t_end, old.dtype), old.shape)
-    # placed like the leaf it replaces: a leaf committed elsewhere would change the chunk function's input shardings
-    new = jax.device_put(new, old.sharding) if getattr(old, "committed", False) else jnp.asarray(new)
-    return state._replace(acc=state.acc._replace(t_end=new))
+    return state._replace(acc=state.acc._replace(t_end=_like(state.acc.t_end, t_end)))
+
+
+def with_variant(state: RunState, variant: Variant) -> RunState:
+    """``state`` (batched or not) with the controller's ablation switches set (:mod:`wbc_jax.control.variants`;
+    each field 0/1, scalar or (B,) per run)."""
+    cs = state.cs
+    return state._replace(cs=cs._replace(variant=Variant(*(_like(o, v) for o, v in zip(cs.variant, variant)))))
 
 
 def _fold(sim: Sim, a: Accum, s: SubstepMonitors, w) -> Accum:

@@ -105,7 +105,7 @@ def object_fields(ids: RobotIds, f: Factors, geom_pos0: np.ndarray) -> dict[str,
     }
 
 
-def batch_model(mjx_model, mj_model: mujoco.MjModel, ids: RobotIds, f: Factors):
+def batch_model(mjx_model, mj_model: mujoco.MjModel, ids: RobotIds, f: Factors, ground_mu=None):
     """A batched mjx.Model with per-run object fields, and its vmap ``in_axes``.
 
     Args:
@@ -113,6 +113,7 @@ def batch_model(mjx_model, mj_model: mujoco.MjModel, ids: RobotIds, f: Factors):
         mj_model: the MuJoCo C model it came from (for nominal values).
         ids: static ids (the scene must contain the object).
         f: validated factors, each (B,).
+        ground_mu: (B,) sliding friction of every foot/ground pair (``ids.foot_pair``) per run; None: the scene's.
 
     Returns:
         (batched_model, in_axes): fields body_mass, body_inertia, body_invweight0, geom_size,
@@ -128,7 +129,12 @@ def batch_model(mjx_model, mj_model: mujoco.MjModel, ids: RobotIds, f: Factors):
         x = np.asarray(getattr(mjx_model, name))
         out = np.array(np.broadcast_to(x, (B,) + x.shape))
         out[:, cols] = np.asarray(value, x.dtype)
-        return jnp.asarray(out)
+        return out
+
+    friction = field("pair_friction", ids.obj_pair, v["pair_friction"])
+    if ground_mu is not None:  # both sliding entries of the foot pairs; torsional and rolling stay the scene's
+        feet = np.asarray(ids.foot_pair).ravel()
+        friction[:, feet, 0:2] = np.asarray(ground_mu, friction.dtype).reshape(B, 1, 1)
 
     fields = {
         "body_mass": field("body_mass", ob, v["body_mass"]),
@@ -137,8 +143,9 @@ def batch_model(mjx_model, mj_model: mujoco.MjModel, ids: RobotIds, f: Factors):
         "dof_invweight0": field("dof_invweight0", slice(dof, dof + 6), v["dof_invweight0"]),
         "geom_size": field("geom_size", ids.obj_box_geom, v["box_size"]),
         "geom_pos": field("geom_pos", ids.obj_contact_geom, v["sphere_pos"]),
-        "pair_friction": field("pair_friction", ids.obj_pair, v["pair_friction"]),
+        "pair_friction": friction,
     }
+    fields = {k: jnp.asarray(x) for k, x in fields.items()}
     batched = mjx_model.tree_replace(fields)
     in_axes = jax.tree_util.tree_map(lambda _: None, mjx_model)
     in_axes = in_axes.tree_replace({k: 0 for k in fields})

@@ -140,27 +140,52 @@ def initial_configuration(robot, dz: Design):
     return qpos, qvel
 
 
+def run_gains(gains, dz: Design):
+    """Per-run gains of a design: ``gains`` (unbatched TransportGains; None: the defaults) with each ``gain.*``
+    factor's multiplier applied (leaves with a leading run axis); unbatched as given without such factors."""
+    from wbc_jax.control.transport import default_gains
+
+    if not dz.gain_scale:
+        return gains
+    base = default_gains() if gains is None else gains
+    out = {}
+    for name, leaf in zip(base._fields, base):
+        x = np.broadcast_to(np.asarray(leaf), (dz.n,) + np.shape(leaf))
+        scale = dz.gain_scale.get(name)
+        if scale is not None:
+            x = x * scale.reshape((dz.n,) + (1,) * np.ndim(leaf)).astype(x.dtype)
+        out[name] = jax.numpy.asarray(x)
+    return type(base)(**out)
+
+
 def build(spec: Spec, gains=None):
     """Spec -> (sim, design, Batch with perturbed initial states and pushes, simulated seconds, chunk plan).
     ``gains``: controller gains (TransportGains, unbatched) instead of the defaults."""
+    from wbc_jax.control.variants import Variant
     from wbc_jax.sim.batch import prepare_batch
     from wbc_jax.planner.transport import plan_duration
-    from wbc_jax.sim.rollout import make_push, with_metric_window
+    from wbc_jax.sim.rollout import make_push, with_metric_window, with_variant
 
     c = spec.campaign
-    sim = _sim(c["scene"], c["qp_iters"], spec.perturbations["qvel_noise_std"] > 0, c["control_substeps"],
-               backend_of(spec), c["solver_iterations"])
     dz = design(spec)
+    sim = _sim(c["scene"], c["qp_iters"], bool(np.any(dz.qvel_noise_std > 0)), c["control_substeps"],
+               backend_of(spec), c["solver_iterations"])
     qpos0, qvel0 = initial_configuration(sim.robot, dz)
-    b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=gains,
-                      plan_kwargs=dict(distance=c["distance"], speed=c["speed"]), qpos0=qpos0, qvel0=qvel0)
+    b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=run_gains(gains, dz),
+                      plan_kwargs=dict(distance=c["distance"], speed=c["speed"]), qpos0=qpos0, qvel0=qvel0,
+                      speed=dz.speed if "speed" in spec.factors else None,
+                      ground_mu=dz.ground_mu if np.all(dz.ground_mu > 0) else None)
     T_plan = plan_duration(b.plan)
-    push = make_push(dz.push_force, dz.push_frac * T_plan, dz.push_duration, dz.qvel_noise_std, dz.seed)
+    t_plan = np.asarray(b.plan.obj_path.t_knots)[:, -1]  # (B,) each run's plan end [s]
+    # push start: a fraction of the planned duration (each run's own when the speed is varied)
+    push = make_push(dz.push_force, dz.push_frac * (t_plan if "speed" in spec.factors else T_plan),
+                     dz.push_duration, dz.qvel_noise_std, dz.seed)
     # metric window (wbc_jax.sim.metrics): each run's own plan end + the settling time, capped like the horizon
-    t_end = np.asarray(b.plan.obj_path.t_knots)[:, -1] + c["extra_seconds"]
+    t_end = t_plan + c["extra_seconds"]
     if c["max_seconds"] > 0:
         t_end = np.minimum(t_end, c["max_seconds"])
-    b = b._replace(push=push, state=with_metric_window(b.state, t_end))
+    state = with_variant(with_metric_window(b.state, t_end), Variant(*dz.variant.T))
+    b = b._replace(push=push, state=state)
     log_dt = sim.dt_control * LOG_EVERY
     logs_per_chunk = max(1, int(round(c["chunk_seconds"] / log_dt)))
     horizon = T_plan + c["extra_seconds"]
@@ -284,10 +309,18 @@ def zero_noise_warning(spec: Spec) -> str | None:
     return None
 
 
+def factor_columns(spec: Spec) -> list[str]:
+    """The results table's factor columns: the spec's factors in design order (m, mu, d for the paper's)."""
+    return list(spec.factors)
+
+
 def results_table(spec: Spec, dz: Design, res: dict):
+    """One row per run: run, m, mu, d, the other factors' levels (one column each, named like the factor),
+    rep, seed, success, the metrics and flags, the perturbations."""
     import pandas as pd
 
-    df = pd.DataFrame(dict(run=np.arange(dz.n), m=dz.m, mu=dz.mu, d=dz.d, rep=dz.rep, seed=dz.seed,
+    extra = {k: v for k, v in dz.levels.items() if k not in ("m", "mu", "d", "push_N")}
+    df = pd.DataFrame(dict(run=np.arange(dz.n), m=dz.m, mu=dz.mu, d=dz.d, **extra, rep=dz.rep, seed=dz.seed,
                            success=res["success"]))
     for k in ("R", "T", "S", "max_slip_mm", "fell", "trunk_low", "body_contact", "dropped", "slid", "hit_wall",
               "qp_flagged", "qp_flag_fraction", "nonfinite", "overflow", "boundary_fraction", "final_err_mm", "fail_reason", "first_contact_s",
@@ -296,7 +329,7 @@ def results_table(spec: Spec, dz: Design, res: dict):
     df["obj_dx_mm"] = dz.obj_dx * 1e3
     df["obj_dy_mm"] = dz.obj_dy * 1e3
     df["obj_yaw_deg"] = np.rad2deg(dz.obj_yaw)
-    df["push_N"] = np.linalg.norm(dz.push_force, axis=1)
+    df["push_N"] = dz.levels["push_N"] if "push_N" in dz.levels else np.linalg.norm(dz.push_force, axis=1)
     return df
 
 
@@ -459,17 +492,18 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     first = [mk["wall_s"] for mk in marks if mk["fresh_process"]]
     compile_s = (first[0] - per_chunk) if (first and per_chunk) else None
     eps = dz.n * chunk_s / sim.dt_physics / per_chunk if per_chunk else dz.n * seconds / sim.dt_physics / wall_sim
-    cells = df.groupby(["m", "mu", "d"])["success"].agg(["size", "sum"]).reset_index()
-    failures = [dict(m=r.m, mu=r.mu, d=r.d, failed=int(r.size - r.sum), runs=int(r.size))
-                for r in cells.itertuples() if r.size != r.sum]
-    failed_runs = [dict(run=int(r.run), m=r.m, mu=r.mu, d=r.d, rep=int(r.rep), seed=int(r.seed), reason=r.fail_reason,
-                        push_N=float(r.push_N), first_contact=r.first_contact or None,
+    cols = list(dict.fromkeys(["m", "mu", "d", *factor_columns(spec)]))  # a cell's values, the paper's first
+    cells = df.groupby(cols)["success"].agg(["size", "sum"]).reset_index()
+    failures = [dict(**{k: _plain(r[k]) for k in cols}, failed=int(r["size"] - r["sum"]), runs=int(r["size"]))
+                for _, r in cells.iterrows() if r["size"] != r["sum"]]
+    failed_runs = [dict(run=int(r.run), **{k: _plain(r[k]) for k in cols}, rep=int(r.rep), seed=int(r.seed),
+                        reason=r.fail_reason, push_N=float(r.push_N), first_contact=r.first_contact or None,
                         first_contact_s=None if np.isnan(r.first_contact_s) else float(r.first_contact_s))
-                   for r in df[~df.success].itertuples()]
+                   for _, r in df[~df.success].iterrows()]
     warnings = [w for w in [zero_noise_warning(spec)] if w]
     if failures:
         warnings.append(f"{int((~df.success).sum())} of {dz.n} runs failed: " + "; ".join(
-            f"run {f['run']} (m {f['m']}, mu {f['mu']}, d {f['d']}, rep {f['rep']}): {f['reason']}"
+            f"run {f['run']} ({', '.join(f'{k} {f[k]}' for k in cols)}, rep {f['rep']}): {f['reason']}"
             + (f" (first at {f['first_contact_s']:.3f} s: {f['first_contact']})" if f["first_contact"] else "")
             for f in failed_runs[:10]) + (" ..." if len(failed_runs) > 10 else "") + " (all: manifest failed_runs)")
     manifest = dict(
@@ -501,13 +535,21 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     return manifest
 
 
+def _plain(x):
+    """A numpy scalar as the Python number or string it holds (for JSON)."""
+    return x.item() if isinstance(x, np.generic) else x
+
+
 def _campaign_report(out: Path, manifest: dict, warnings: list[str]) -> None:
-    """The ANOVA report of ``out/results.csv`` into ``out/report``; a failure is written to
-    ``out/report_error.txt`` and the manifest, and raised as a one-line ReportError (the results stay)."""
+    """The ANOVA report of ``out/results.csv`` into ``out/report`` (the spec's factors and ``[analysis]``); a
+    failure is written to ``out/report_error.txt`` and the manifest, and raised as a one-line ReportError (the
+    results stay)."""
     from wbc_jax.analysis.report import CAMPAIGN_METRICS, run_report
 
+    spec = manifest["spec"]
     try:
-        run_report(str(out / "results.csv"), str(out / "report"), metrics=list(CAMPAIGN_METRICS))
+        run_report(str(out / "results.csv"), str(out / "report"), metrics=list(CAMPAIGN_METRICS),
+                   factors=list(spec["factors"]), order=spec["analysis"]["order"], alpha=spec["analysis"]["alpha"])
         if warnings:
             md = out / "report" / "report.md"
             md.write_text("".join(f"> **Campaign warning:** {w}\n\n" for w in warnings) + md.read_text())

@@ -52,8 +52,10 @@ from pathlib import Path
 
 import numpy as np
 
+from wbc_jax.control.variants import VARIANTS
 from wbc_jax.errors import InputError, SpecError
 from wbc_jax.io_utils import read_capped
+from wbc_jax.study import factors as factors_mod
 
 SWEEPS = Path(__file__).resolve().parents[2] / "sweeps"
 
@@ -75,9 +77,15 @@ CAMPAIGN = {
     "solver_iterations": (int, 0, 0, 1000, False, "MuJoCo constraint-solver iterations per physics step; 0 = the scene's"),
     "backend": (str, "auto", None, None, False,
                 '"auto" (JAX for now), "jax" or "warp": the MJX physics implementation'),
+    # a run's value of a factor the spec does not vary (wbc_jax.study.factors.REGISTRY: FactorDef.fixed)
+    "m": (float, 0.3, 0.0, 20.0, True, "[kg]"),
+    "mu": (float, 0.7, 0.0, 5.0, True, "[-]"),
+    "d": (float, 0.08, 0.008, 0.2, True, "[m]"),
+    "ground_mu": (float, 0.0, 0.0, 5.0, False, "[-], 0 = the scene's"),
+    "variant": (str, "full", None, None, False, '"full", "no_tray_cone", "no_observer" or "no_posture"'),
 }
-# key: (lo, hi, unit); each level in lo < value <= hi
-FACTORS = {"m": (0.0, 20.0, "[kg]"), "mu": (0.0, 5.0, "[-]"), "d": (0.008, 0.2, "[m]")}
+# the factors a spec may vary: wbc_jax.study.factors (name -> FactorDef; plus gain.<leaf> multipliers)
+FACTORS = factors_mod.REGISTRY
 PERTURBATIONS = {
     "object_xy_mm": (float, 0.0, 0.0, 20.0, False, "[mm]"),
     "object_yaw_deg": (float, 0.0, 0.0, 30.0, False, "[deg]"),
@@ -86,12 +94,20 @@ PERTURBATIONS = {
     "push_duration_s": (float, 0.2, 0.0, 2.0, False, "[s]"),
     "push_window": (list, [0.2, 0.7], 0.0, 1.0, False, "fractions of the planned duration, 0 <= a <= b < 1"),
     "qvel_noise_std": (float, 0.0, 0.0, 1.0, False, "[m/s, rad/s]"),
+    "push_dir_deg": (float, 0.0, 0.0, 360.0, False, "[deg]"),
+}
+# the report's statistics (not hashed: they do not change a run)
+ANALYSIS = {
+    "order": (int, 2, 1, factors_mod.MAX_FACTORS, False, "highest interaction order of the ANOVA model"),
+    "alpha": (float, 0.05, 0.0, 0.5, True, "significance level"),
 }
 SCENES = ("transport", "flat")
 BACKENDS = ("auto", "jax", "warp")  # wbc_jax.sim.physics.BACKENDS (not imported here: spec loading stays JAX-free)
 # keys added after specs were first hashed: left out of Spec.hash at these values (which reproduce the behaviour
 # from before the key existed), so the hashes of existing baselines and checkpoints stay valid
-_HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_iterations": 0}}
+_HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_iterations": 0, "m": 0.3, "mu": 0.7,
+                               "d": 0.08, "ground_mu": 0.0, "variant": "full"},
+                 "perturbations": {"push_dir_deg": 0.0}}
 
 
 @dataclass(frozen=True)
@@ -103,17 +119,20 @@ class Spec:
     factors: dict
     perturbations: dict
     text_sha256: str = field(default="")
+    analysis: dict = field(default_factory=lambda: {k: v[1] for k, v in ANALYSIS.items()})
 
     @property
     def reps(self) -> int:
         return self.campaign["reps"]
 
     def canonical(self) -> dict:
-        return dict(campaign=self.campaign, factors=self.factors, perturbations=self.perturbations)
+        return dict(campaign=self.campaign, factors=self.factors, perturbations=self.perturbations,
+                    analysis=self.analysis)
 
     def hashed(self) -> dict:
-        """:meth:`canonical` less the keys of ``_HASH_NEUTRAL`` that are at their neutral value."""
+        """:meth:`canonical` less ``analysis`` and the keys of ``_HASH_NEUTRAL`` that are at their neutral value."""
         out = self.canonical()
+        del out["analysis"]
         for table, keys in _HASH_NEUTRAL.items():
             out[table] = {k: v for k, v in out[table].items() if not (k in keys and v == keys[k])}
         return out
@@ -125,9 +144,13 @@ class Spec:
 
     @property
     def zero_noise(self) -> bool:
-        p = self.perturbations
+        """No per-run randomness: the repetitions of a cell are identical."""
+        p, f = self.perturbations, self.factors
+        a, b = p["push_window"]
+        pushed = p["push_max_N"] > 0 or (max(f.get("push_N", [0.0])) > 0 and a < b)  # random size or start
         return not (p["object_xy_mm"] > 0 or p["object_yaw_deg"] > 0 or p["base_speed_std"] > 0
-                    or (p["push_max_N"] > 0 and p["push_duration_s"] > 0) or p["qvel_noise_std"] > 0)
+                    or (pushed and p["push_duration_s"] > 0) or p["qvel_noise_std"] > 0
+                    or max(f.get("qvel_noise_std", [0.0])) > 0)
 
 
 def _err(path, key, msg):
@@ -174,38 +197,72 @@ def _table(path, name, raw, schema):
     return out
 
 
-def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
-    """Validate a spec dict (as read by tomllib). Raises SpecError naming ``path``, the key and the range."""
-    unknown = sorted(set(data) - {"campaign", "factors", "perturbations"})
-    if unknown:
-        raise _err(path, unknown[0], "unknown table; expected campaign, factors, perturbations")
-    camp = _table(path, "campaign", data.get("campaign", {}), CAMPAIGN)
-    if camp["backend"] not in BACKENDS:
-        raise _err(path, "campaign.backend", f"= {camp['backend']!r}: expected one of {', '.join(BACKENDS)}")
-    if camp["scene"] not in SCENES:
-        raise _err(path, "campaign.scene", f"= {camp['scene']!r}: expected one of {', '.join(SCENES)}")
-    if "factors" not in data:
-        raise _err(path, "factors", "missing table [factors] (m, mu, d level lists)")
-    raw_f = data["factors"]
+def _level(path, key, x, fd: factors_mod.FactorDef):
+    """One level of a factor, validated and normalised (numbers: float; bool: 1/0; choice: the string)."""
+    if fd.kind == "bool":
+        if x in (True, False) or (isinstance(x, int) and x in (0, 1)):
+            return int(x)
+        raise _err(path, key, f"level {x!r}: expected true, false, 1 or 0")
+    if fd.kind == "choice":
+        if isinstance(x, str) and x in fd.choices:
+            return x
+        raise _err(path, key, f"level {x!r}: expected one of {', '.join(fd.choices)}")
+    return _number(path, key, x, float, fd.lo, fd.hi, fd.lo_open, fd.unit)
+
+
+def _parse_factors(path, raw_f) -> dict:
+    """The [factors] table: 1..MAX_FACTORS known factors, each a list of >= 2 distinct valid levels; returned
+    in design order (:func:`wbc_jax.study.factors.design_order`)."""
     if not isinstance(raw_f, dict):
         raise _err(path, "factors", "expected a table")
-    unknown = sorted(set(raw_f) - set(FACTORS))
-    if unknown:
-        raise _err(path, f"factors.{unknown[0]}", f"unknown factor; expected {', '.join(FACTORS)}")
-    factors = {}
-    for key, (lo, hi, unit) in FACTORS.items():
-        full = f"factors.{key}"
-        if key not in raw_f:
-            raise _err(path, full, f"missing; expected a list of levels in {lo} < value <= {hi} {unit}")
-        v = raw_f[key]
+    for key in sorted(raw_f):
+        if factors_mod.factor_def(key) is None:
+            raise _err(path, f"factors.{key}", f"unknown factor; expected one of {factors_mod.known_names()}")
+    if not 1 <= len(raw_f) <= factors_mod.MAX_FACTORS:
+        raise _err(path, "factors", f"{len(raw_f)} factors: expected 1 to {factors_mod.MAX_FACTORS}")
+    out = {}
+    for key in factors_mod.design_order(raw_f):
+        full, v = f"factors.{key}", raw_f[key]
         if not isinstance(v, list) or len(v) < 2:
             raise _err(path, full, f"expected a list of at least 2 levels, got {v!r}")
-        levels = [_number(path, full, x, float, lo, hi, True, unit) for x in v]
+        levels = [_level(path, full, x, factors_mod.factor_def(key)) for x in v]
         if len(set(levels)) != len(levels):
             raise _err(path, full, f"= {v}: levels must be distinct")
-        factors[key] = levels
+        out[key] = levels
+    return out
+
+
+def _check_fixed(path, camp: dict, pert: dict, factors: dict) -> None:
+    """A varied factor's fixed-value key (FactorDef.fixed) must stay at its default; ``push_dir_deg`` needs the
+    push_N factor."""
+    tables = {"campaign": (camp, CAMPAIGN), "perturbations": (pert, PERTURBATIONS)}
+    for key in factors:
+        table, _, name = factors_mod.factor_def(key).fixed.partition(".")
+        if table in tables and tables[table][0][name] != tables[table][1][name][1]:
+            raise _err(path, f"{table}.{name}", f"= {tables[table][0][name]!r}: the factor {key} is varied; "
+                                                "leave this key out (or at its default)")
+    if pert["push_dir_deg"] != PERTURBATIONS["push_dir_deg"][1] and "push_N" not in factors:
+        raise _err(path, "perturbations.push_dir_deg", "used only with the push_N factor (random pushes have a "
+                                                      "random direction)")
+
+
+def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
+    """Validate a spec dict (as read by tomllib). Raises SpecError naming ``path``, the key and the range."""
+    unknown = sorted(set(data) - {"campaign", "factors", "perturbations", "analysis"})
+    if unknown:
+        raise _err(path, unknown[0], "unknown table; expected campaign, factors, perturbations, analysis")
+    camp = _table(path, "campaign", data.get("campaign", {}), CAMPAIGN)
+    for key, allowed in (("backend", BACKENDS), ("scene", SCENES), ("variant", tuple(VARIANTS))):
+        if camp[key] not in allowed:
+            raise _err(path, f"campaign.{key}", f"= {camp[key]!r}: expected one of {', '.join(allowed)}")
+    if "factors" not in data:
+        raise _err(path, "factors", "missing table [factors] (level lists, e.g. m, mu, d)")
+    factors = _parse_factors(path, data["factors"])
     pert = _table(path, "perturbations", data.get("perturbations", {}), PERTURBATIONS)
-    return Spec(path=str(path), campaign=camp, factors=factors, perturbations=pert, text_sha256=text_sha256)
+    _check_fixed(path, camp, pert, factors)
+    analysis = _table(path, "analysis", data.get("analysis", {}), ANALYSIS)
+    return Spec(path=str(path), campaign=camp, factors=factors, perturbations=pert, text_sha256=text_sha256,
+                analysis=analysis)
 
 
 def load_spec(path: str | Path) -> Spec:
@@ -231,13 +288,19 @@ def default_spec_path(accelerator: bool) -> Path:
 
 @dataclass(frozen=True)
 class Design:
-    """One row per run (cells in product order of m, mu, d, then reps), with the run's perturbations.
+    """One row per run (cells in the product order of the spec's factors, in design order, then reps), with the
+    run's perturbations and controller settings.
 
-    Attributes (each (B,)): m, mu, d, rep, seed; obj_dx, obj_dy [m] and obj_yaw [rad] (placement on the
+    Attributes (each (B,) unless shown): m, mu, d (object mass [kg], tray friction, side [m]: the level of the
+    factor or the campaign's value), rep, seed; obj_dx, obj_dy [m] and obj_yaw [rad] (placement on the
     tray, tray-aligned world x/y), v0 (B, 2) [m/s] initial horizontal velocity, push_force (B, 3) [N],
-    push_t0 [s] (fraction of the planned duration until the plan is known: see :func:`design`),
-    push_duration [s]; qvel_noise_std [m/s, rad/s] (controller-view velocity noise, drawn during the rollout from
-    the run's seed).
+    push_frac (push start as a fraction of the planned duration, known once the plan is: see
+    :func:`wbc_jax.study.campaign.build`), push_duration [s]; qvel_noise_std [m/s, rad/s] (controller-view
+    velocity noise, drawn during the rollout from the run's seed); ground_mu (foot/ground friction, 0: the
+    scene's), speed [m/s] (cruise speed of the run's plan); variant (B, 3) the controller's ablation switches
+    (tray_cone, observer, posture; :mod:`wbc_jax.control.variants`); gain_scale: leaf -> (B,) multiplier of that
+    ``TransportGains`` leaf (the ``gain.*`` factors); levels: factor name -> (B,) the run's level of each
+    varied factor (the results table's factor columns).
     """
 
     m: np.ndarray
@@ -253,6 +316,11 @@ class Design:
     push_frac: np.ndarray
     push_duration: np.ndarray
     qvel_noise_std: np.ndarray
+    ground_mu: np.ndarray
+    speed: np.ndarray
+    variant: np.ndarray
+    gain_scale: dict
+    levels: dict
 
     @property
     def n(self) -> int:
@@ -268,24 +336,40 @@ def run_seed(base: int, i: int) -> int:
 
 def design(spec: Spec) -> Design:
     """The design table of a spec with every run's seed and perturbations (host-side, deterministic)."""
-    f, p = spec.factors, spec.perturbations
-    cells = list(itertools.product(f["m"], f["mu"], f["d"]))
-    rows = [(c, r) for c in cells for r in range(spec.reps)]
+    f, p, c = spec.factors, spec.perturbations, spec.campaign
+    cells = list(itertools.product(*f.values()))  # spec.factors is in design order
+    rows = [(cell, r) for cell in cells for r in range(spec.reps)]
     B = len(rows)
-    seeds = np.array([run_seed(spec.campaign["seed"], i) for i in range(B)], dtype=np.uint64)
+    levels = {k: np.array([cell[j] for cell, _ in rows]) for j, k in enumerate(f)}
+
+    def value(key, fixed):
+        """(B,) the run's level of factor ``key``, or ``fixed`` for every run when it is not varied."""
+        return levels[key] if key in levels else np.full(B, fixed)
+
+    seeds = np.array([run_seed(c["seed"], i) for i in range(B)], dtype=np.uint64)
     draws = np.zeros((B, 8))
     for i, s in enumerate(seeds):
         rng = np.random.default_rng(int(s))
         draws[i] = [rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-1, 1), rng.normal(), rng.normal(),
                     rng.uniform(0, 1), rng.uniform(0, 2 * np.pi), rng.uniform(0, 1)]
     a, b = p["push_window"]
-    mag = draws[:, 5] * p["push_max_N"] if p["push_duration_s"] > 0 else np.zeros(B)
-    push = np.stack([mag * np.cos(draws[:, 6]), mag * np.sin(draws[:, 6]), np.zeros(B)], axis=1)
+    on = p["push_duration_s"] > 0
+    if "push_N" in levels:  # a fixed magnitude and direction; the start still drawn in the window
+        mag, angle = levels["push_N"] * on, np.full(B, np.deg2rad(p["push_dir_deg"]))
+    else:  # random magnitude in [0, push_max_N] and direction
+        mag, angle = (draws[:, 5] * p["push_max_N"] if on else np.zeros(B)), draws[:, 6]
+    push = np.stack([mag * np.cos(angle), mag * np.sin(angle), np.zeros(B)], axis=1)
+    pushed = levels["push_N"] > 0 if "push_N" in levels else np.full(B, p["push_max_N"] > 0)
+    switches = np.array([VARIANTS[v] for v in value("variant", c["variant"])], dtype=float)  # (B, 3)
+    switches[:, 1] *= value("observer", 1)
     return Design(
-        m=np.array([c[0] for c, _ in rows]), mu=np.array([c[1] for c, _ in rows]),
-        d=np.array([c[2] for c, _ in rows]), rep=np.array([r for _, r in rows]), seed=seeds,
-        obj_dx=draws[:, 0] * p["object_xy_mm"] * 1e-3, obj_dy=draws[:, 1] * p["object_xy_mm"] * 1e-3,
+        m=value("m", c["m"]), mu=value("mu", c["mu"]), d=value("d", c["d"]), rep=np.array([r for _, r in rows]),
+        seed=seeds, obj_dx=draws[:, 0] * p["object_xy_mm"] * 1e-3, obj_dy=draws[:, 1] * p["object_xy_mm"] * 1e-3,
         obj_yaw=np.deg2rad(draws[:, 2] * p["object_yaw_deg"]), v0=draws[:, 3:5] * p["base_speed_std"],
         push_force=push, push_frac=a + (b - a) * draws[:, 7],
-        push_duration=np.full(B, p["push_duration_s"] if p["push_max_N"] > 0 else 0.0),
-        qvel_noise_std=np.full(B, p["qvel_noise_std"]))
+        push_duration=np.where(pushed, p["push_duration_s"], 0.0),
+        qvel_noise_std=value("qvel_noise_std", p["qvel_noise_std"]), ground_mu=value("ground_mu", c["ground_mu"]),
+        speed=value("speed", c["speed"]), variant=switches,
+        gain_scale={k[len(factors_mod.GAIN_PREFIX):]: v for k, v in levels.items()
+                    if k.startswith(factors_mod.GAIN_PREFIX)},
+        levels=levels)
