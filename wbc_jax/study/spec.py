@@ -1,8 +1,8 @@
 """Campaign specs (``sweeps/*.toml``): loading with stdlib ``tomllib``, validation, the design table.
 
-A spec has three tables (every key optional except ``factors``; an example with the shipped specs' values below;
-every key's default, unit and range: ``docs/specs.md``, generated from the key tables ``CAMPAIGN``, ``FACTORS`` and
-``PERTURBATIONS`` by :mod:`wbc_jax.study.spec_docs`)::
+A spec has up to four tables (every key optional except ``factors``; an example with the paper specs' values below;
+every key's default, unit and range: ``docs/specs.md``, generated from the key tables ``CAMPAIGN``, ``FACTORS``,
+``PERTURBATIONS`` and ``ANALYSIS`` by :mod:`wbc_jax.study.spec_docs`)::
 
     [campaign]                 # what is simulated
     name = "paper"             # free text
@@ -18,11 +18,17 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
                                # physics rate (the control period is this x the scene's timestep; the metrics'
                                # physics-rate monitors still run every physics step, see wbc_jax.sim.rollout)
     chunk_seconds = 2.0        # simulated seconds per jit call / checkpoint, 0.02..60
+    m = 0.3                    # object mass [kg], tray friction, object side [m], foot/ground friction (0: the
+    mu = 0.7                   # scene's) and controller variant of every run, for those of them that are not
+    d = 0.08                   # factors
+    ground_mu = 0.0
+    variant = "full"
 
-    [factors]                  # levels of the 3 x 3 x 3 design (at least 2 levels each)
-    m = [0.2, 0.3, 0.4]        # object mass [kg], 0 < m <= 20
+    [factors]                  # 1 to 5 factors of wbc_jax.study.factors, at least 2 levels each: here the
+    m = [0.2, 0.3, 0.4]        # paper's 3 x 3 x 3: object mass [kg], 0 < m <= 20
     mu = [0.4, 0.7, 1.0]       # tray friction, 0 < mu <= 5
     d = [0.06, 0.08, 0.10]     # object side [m], 0.008 < d <= 0.2 (the robot's tray narrows it further)
+                               # others: ground_mu, speed, push_N, qvel_noise_std, observer, variant, gain.<leaf>
 
     [perturbations]            # per run, drawn from the run's own seed; all zero = deterministic repetitions
     object_xy_mm = 3.0         # object placement on the tray: uniform in +-value along x and y [mm], 0..20
@@ -34,9 +40,14 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     qvel_noise_std = 0.01      # noise on the state the controller sees: white Gaussian std added every control step
                                # to each generalized velocity it reads [m/s, rad/s], 0..1 (the physics stays exact;
                                # drawn from the run's seed, see wbc_jax.sim.rollout.Push)
+    push_dir_deg = 0.0         # direction of the push_N factor's pushes from world +x [deg] (only with push_N)
 
-Run i (cells in the order m, mu, d of the product of the levels, then reps) has seed
-``SeedSequence([seed, i]).generate_state(1)[0]``; its perturbations are drawn from
+    [analysis]                 # the report's statistics (not hashed)
+    order = 2                  # highest ANOVA interaction order
+    alpha = 0.05
+
+Run i (cells in the design order of the factors' product, :func:`wbc_jax.study.factors.design_order`, then reps)
+has seed ``SeedSequence([seed, i]).generate_state(1)[0]``; its perturbations are drawn from
 ``numpy.random.default_rng(run_seed)`` in the order dx, dy, yaw, vx, vy, push magnitude, push angle, push start.
 """
 

@@ -18,7 +18,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from wbc_jax.study import spec
+from wbc_jax.study import factors, spec
 
 DOCS = Path(__file__).resolve().parents[2] / "docs" / "specs.md"
 
@@ -41,8 +41,29 @@ CAMPAIGN_MEANING = {
     "backend": "MJX physics implementation: \"warp\" (MuJoCo Warp kernels, NVIDIA GPUs; needs the cuda extra) or "
                "\"jax\" (any device); \"auto\" is JAX until Warp's course physics agrees (docs/performance.md); `--backend` "
                "overrides",
+    "m": "object mass of every run when `m` is not a factor",
+    "mu": "tray friction of every run when `mu` is not a factor",
+    "d": "object side of every run when `d` is not a factor",
+    "ground_mu": "foot/ground friction of every run when `ground_mu` is not a factor (0: the scene's, 1.0 in the "
+                 "shipped scenes)",
+    "variant": "controller variant of every run when `variant` is not a factor (docs/method.md, \"Controller "
+               "variants\")",
 }
-FACTOR_MEANING = {"m": "object mass levels", "mu": "tray friction levels", "d": "object side levels"}
+FACTOR_MEANING = {
+    "m": "object mass",
+    "mu": "tray (object/tray) friction",
+    "d": "object side (the robot's tray narrows it further)",
+    "ground_mu": "foot/ground friction: the physics' foot pairs and the controller's ground cone",
+    "speed": "cruise speed of the plan (the push start and metric window follow each run's own plan)",
+    "push_N": "one trunk push of this magnitude per run, direction `perturbations.push_dir_deg`, duration "
+              "`push_duration_s`, start drawn in `push_window` (0: no push); `perturbations.push_max_N` must stay 0",
+    "qvel_noise_std": "controller-view velocity noise std; `perturbations.qvel_noise_std` must stay 0",
+    "observer": "momentum observer on (true / 1) or off (false / 0); combined with `variant` (off if either "
+                "turns it off)",
+    "variant": "controller variant: `full`, `no_tray_cone`, `no_observer`, `no_posture` (docs/method.md)",
+    "gain.<leaf>": "multiplier of that `TransportGains` leaf of the campaign's gains (defaults or `--gains`), "
+                   "e.g. `gain.kp_obj`",
+}
 PERTURB_MEANING = {
     "object_xy_mm": "object placement on the tray: uniform in +-value along x and y",
     "object_yaw_deg": "object yaw on the tray: uniform in +-value",
@@ -52,6 +73,12 @@ PERTURB_MEANING = {
     "push_window": "push start: uniform in this fraction of the planned duration",
     "qvel_noise_std": "white Gaussian noise on every generalized velocity the controller reads, every control "
                       "step (the physics stays exact)",
+    "push_dir_deg": "direction of the `push_N` factor's pushes, counterclockwise from world +x (only with that "
+                    "factor)",
+}
+ANALYSIS_MEANING = {
+    "order": "highest interaction order of the report's ANOVA model (2: main effects + two-way interactions)",
+    "alpha": "significance level of the report's tests",
 }
 TUNE_MEANING = {
     "name": "free text",
@@ -137,14 +164,19 @@ def key_table(name: str, schema: dict, meaning: dict) -> list[str]:
 
 
 def factor_table() -> list[str]:
-    """Markdown rows of the ``[factors]`` table (each a list of at least 2 distinct levels)."""
-    missing = sorted(set(spec.FACTORS) - set(FACTOR_MEANING))
+    """Markdown rows of the ``[factors]`` table (each a list of at least 2 distinct levels), in design order."""
+    defs = {**spec.FACTORS, f"{factors.GAIN_PREFIX}<leaf>": factors.GAIN}
+    missing = sorted(set(defs) - set(FACTOR_MEANING))
     if missing:
         raise KeyError(f"[factors] {missing[0]}: no description in wbc_jax.study.spec_docs")
-    rows = ["| key | type | unit | range of each level | meaning |", "|---|---|---|---|---|"]
-    for key, (lo, hi, unit) in spec.FACTORS.items():
-        rows.append(f"| `factors.{key}` | list of >= 2 distinct numbers (required) | {unit.strip('[]')} | "
-                    f"{_number(lo)} < value <= {_number(hi)} | {FACTOR_MEANING[key]} |")
+    rows = ["| key | levels | unit | range of each level | when not a factor | meaning |", "|---|---|---|---|---|---|"]
+    for key, fd in defs.items():
+        kind = {"number": "numbers", "bool": "booleans (true/false or 1/0)", "choice": "strings"}[fd.kind]
+        rng = (_range(float, fd.lo, fd.hi, fd.lo_open, fd.unit) if fd.kind == "number" else
+               ", ".join(f"`{c}`" for c in fd.choices) if fd.kind == "choice" else "")
+        fixed = f"`{fd.fixed}`" if "." in fd.fixed and " " not in fd.fixed else fd.fixed
+        rows.append(f"| `factors.{key}` | list of >= 2 distinct {kind} | {_unit(float, fd.unit)} | {rng} | {fixed} "
+                    f"| {FACTOR_MEANING[key]} |")
     return rows
 
 
@@ -175,16 +207,30 @@ def render() -> str:
         "",
         "### `[factors]`: levels of the factorial design",
         "",
+        f"1 to {factors.MAX_FACTORS} of these factors, each a list of at least 2 distinct levels. The design is the "
+        "product of their levels in the order of this table (whatever the order in the file), then the "
+        "repetitions; a factor not listed takes the value of the key in \"when not a factor\". A run's results "
+        "row has one column per factor (`m`, `mu`, `d` always). The shipped specs beyond the paper: "
+        "`sweeps/ablation.toml` (variant x mu x d) and `sweeps/robustness.toml` (push_N x speed x m).",
+        "",
         *factor_table(),
         "",
         "### `[perturbations]`: per run, drawn from the run's own seed",
         "",
-        "All zero makes the repetitions identical (the campaign and the report warn). Run i (cells in the order "
-        "m, mu, d of the product of the levels, then reps) has seed `SeedSequence([seed, i]).generate_state(1)[0]`; "
+        "All zero makes the repetitions identical (the campaign and the report warn). Run i (cells in the design "
+        "order of the product of the levels, then reps) has seed `SeedSequence([seed, i]).generate_state(1)[0]`; "
         "its perturbations are drawn from `numpy.random.default_rng(run_seed)` in the order dx, dy, yaw, vx, vy, "
         "push magnitude, push angle, push start.",
         "",
         *key_table("perturbations", spec.PERTURBATIONS, PERTURB_MEANING),
+        "",
+        "### `[analysis]`: the campaign report's statistics (not part of the spec hash)",
+        "",
+        "The report fits, per metric, an ANOVA with every interaction up to `order`; it also tabulates the success "
+        "rate per factor level and per pair of factors, and compares each `variant` (or `observer` level) with the "
+        "reference controller (Welch t and Mann-Whitney U on max slip and R, Fisher's exact test on success).",
+        "",
+        *key_table("analysis", spec.ANALYSIS, ANALYSIS_MEANING),
         "",
         "## Tuning specs (`wbc-jax tune --spec`; `sweeps/gain_tuning_course.toml` with an accelerator, "
         "`sweeps/gain_tuning_cpu.toml` on a CPU, `sweeps/gain_tuning.toml`)",
