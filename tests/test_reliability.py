@@ -53,6 +53,8 @@ def _setup(t: Path) -> dict:
     (t / "spec.toml").write_bytes(TINY.read_bytes())
     (t / "huge.toml").write_text(HUGE_SPEC)
     (t / "backend.toml").write_text(TINY.read_text().replace("[campaign]", '[campaign]\nbackend = "bullet"', 1))
+    (t / "factor.toml").write_text(TINY.read_text().replace("[factors]", "[factors]\nwind = [1.0, 2.0]", 1))
+    (t / "variant.toml").write_text(TINY.read_text().replace("[factors]", '[factors]\nvariant = ["full", "no_arm"]', 1))
     full = t / "full"
     full.mkdir()
     (full / "notes.txt").write_text("my notes")
@@ -78,6 +80,11 @@ BAD_INPUTS = [
     # physics backend: the spec key and the flag name the expected values
     ("campaign_spec_backend", ["campaign", "--spec", "backend.toml", "--out", "new_b"],
      'campaign.backend: = \'bullet\': expected one of auto, jax, warp'),
+    # factors beyond the paper (wbc_jax.study.factors): an unknown name, a bad level
+    ("campaign_spec_unknown_factor", ["campaign", "--spec", "factor.toml", "--out", "new_f"],
+     "factor.toml: factors.wind: unknown factor; expected one of m, mu, d, ground_mu, speed, push_N"),
+    ("campaign_spec_bad_variant", ["campaign", "--spec", "variant.toml", "--out", "new_v"],
+     "variant.toml: factors.variant: level 'no_arm': expected one of full, no_tray_cone, no_observer, no_posture"),
     ("bench_backend", ["bench", "rollout", "--backend", "bullet"], "--backend 'bullet'"),
     # 1. --out never deletes what the command did not create
     ("campaign_out_nonempty", ["campaign", "--spec", "spec.toml", "--out", "full"], "folder is not empty"),

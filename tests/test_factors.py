@@ -1,0 +1,277 @@
+"""Factors beyond the paper (wbc_jax.study.factors) and the controller variants (wbc_jax.control.variants):
+spec validation, design, the paper specs' hashes, per-run batching, one batched rollout mixing the four variants,
+two tiny 2-factor campaigns end to end, and the report's success-rate and ablation sections."""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from wbc_jax.errors import SpecError
+from wbc_jax.study import factors
+from wbc_jax.study.spec import SWEEPS, design, load_spec, parse_spec
+
+# the spec hashes checkpoints and regress baselines are keyed on: new keys at their defaults must not change them
+PAPER_HASHES = {
+    "sweeps/paper_campaign.toml": "75f7865c13036c85c5b0d193ebf1539759a28d2495e34c1b105e4d5caabd50ea",
+    "sweeps/paper_exact.toml": "d594b1b22fa83c7772d977f60dea718f6d211a6f37164d87a3321f5b69dab503",
+    "sweeps/quick.toml": "27581f550c9366a961f417dae61d5e2f574508b2166df650817028929c35acc4",
+    "reports/baseline/spec.toml": "78e6c19601357c83fdec4918c933e653c0a1b6266d0e9c96d9cb229cc99447c3",
+}
+# a tiny flat-ground campaign: 4 runs x 0.06 s (3 chunks of one log each); every test rollout here has this shape
+TINY = """[campaign]
+reps = 1
+seed = 5
+scene = "flat"
+distance = 0.1
+extra_seconds = 0.0
+max_seconds = 0.06
+chunk_seconds = 0.02
+{campaign}
+[factors]
+{factors}
+[perturbations]
+{perturbations}
+"""
+
+
+def tiny(tmp_path, name="tiny.toml", campaign="", factors="", perturbations=""):
+    p = tmp_path / name
+    p.write_text(TINY.format(campaign=campaign, factors=factors, perturbations=perturbations))
+    return p
+
+
+# ---------------------------------------------------------------- specs and design (no JAX)
+
+
+@pytest.mark.parametrize("rel", sorted(PAPER_HASHES))
+def test_paper_spec_hashes_unchanged(rel):
+    s = load_spec(SWEEPS.parent / rel)
+    assert s.hash == PAPER_HASHES[rel]
+    assert list(s.factors) == ["m", "mu", "d"]
+
+
+def test_shipped_studies_load():
+    abl, rob = load_spec(SWEEPS / "ablation.toml"), load_spec(SWEEPS / "robustness.toml")
+    assert abl.factors["variant"] == ["full", "no_tray_cone", "no_observer", "no_posture"]
+    assert abl.campaign["scene"] == "transport" and abl.perturbations["push_max_N"] > 0
+    assert set(rob.factors) == {"push_N", "speed", "m"} and rob.factors["push_N"][0] == 0.0
+    dz = design(rob)
+    assert dz.n == 5 * 3 * 2 * rob.reps
+    np.testing.assert_array_equal(np.linalg.norm(dz.push_force, axis=1), dz.levels["push_N"])
+    np.testing.assert_array_equal(dz.push_force[:, 1:], 0.0)  # push_dir_deg 0: along world +x
+    assert set(np.unique(dz.speed)) == set(rob.factors["speed"]) and np.all(dz.mu == rob.campaign["mu"])
+
+
+def test_design_order_ignores_the_file_order(tmp_path):
+    a = parse_spec(dict(factors=dict(variant=["full", "no_posture"], speed=[0.1, 0.2]), campaign=dict(reps=1)))
+    b = parse_spec(dict(factors=dict(speed=[0.1, 0.2], variant=["full", "no_posture"]), campaign=dict(reps=1)))
+    assert a.hash == b.hash and list(a.factors) == list(b.factors) == ["speed", "variant"]
+    da, db = design(a), design(b)
+    np.testing.assert_array_equal(da.speed, [0.1, 0.1, 0.2, 0.2])
+    np.testing.assert_array_equal(da.levels["variant"], db.levels["variant"])
+    np.testing.assert_array_equal(da.variant, [[1, 1, 1], [1, 1, 0], [1, 1, 1], [1, 1, 0]])
+
+
+def test_levels_are_normalised_and_switches_combine():
+    s = parse_spec(dict(factors=dict(observer=[True, False], variant=["full", "no_tray_cone"]),
+                        campaign=dict(reps=1, m=0.25)))
+    assert s.factors["observer"] == [1, 0]
+    dz = design(s)
+    # observer x variant, variant fastest: (1, full) (1, no_tray_cone) (0, full) (0, no_tray_cone)
+    np.testing.assert_array_equal(dz.variant, [[1, 1, 1], [0, 1, 1], [1, 0, 1], [0, 0, 1]])
+    assert np.all(dz.m == 0.25) and np.all(dz.mu == 0.7) and np.all(dz.d == 0.08)
+    assert s.zero_noise
+
+
+def test_gain_leaves_match_the_controller_and_multiply():
+    from wbc_jax.control.transport import TransportGains, default_gains
+    from wbc_jax.study.campaign import run_gains
+
+    assert factors.GAIN_LEAVES == TransportGains._fields
+    dz = design(parse_spec(dict(factors={"gain.kp_com": [0.5, 2.0], "gain.k_obs": [0.0, 1.0]},
+                                campaign=dict(reps=1))))
+    g = run_gains(None, dz)
+    base = default_gains()
+    np.testing.assert_allclose(np.asarray(g.kp_com), np.asarray(base.kp_com)[None] * np.array([.5, .5, 2, 2])[:, None])
+    np.testing.assert_allclose(np.asarray(g.k_obs), float(base.k_obs) * np.array([0, 1, 0, 1]))
+    np.testing.assert_array_equal(np.asarray(g.kd_com), np.broadcast_to(base.kd_com, (4, 3)))
+    assert run_gains(base, design(load_spec(SWEEPS / "quick.toml"))) is base  # no gain factor: unbatched as given
+
+
+def test_push_n_factor_is_a_fixed_push():
+    s = parse_spec(dict(factors=dict(push_N=[0.0, 40.0], mu=[0.4, 1.0]), campaign=dict(reps=2),
+                        perturbations=dict(push_dir_deg=90.0, push_window=[0.3, 0.5], push_duration_s=0.1)))
+    dz = design(s)
+    np.testing.assert_allclose(dz.push_force[:, 1], dz.levels["push_N"])
+    np.testing.assert_allclose(dz.push_force[:, 0], 0.0, atol=1e-14)
+    np.testing.assert_array_equal(dz.push_duration, np.where(dz.levels["push_N"] > 0, 0.1, 0.0))
+    assert np.all((dz.push_frac >= 0.3) & (dz.push_frac <= 0.5)) and not s.zero_noise
+
+
+# (name, [factors] / other tables, expected key in the message, expected text)
+BAD = [
+    ("unknown_factor", dict(factors=dict(wind=[1.0, 2.0])), "factors.wind", "unknown factor; expected one of m, mu"),
+    ("unknown_gain_leaf", dict(factors={"gain.kp_nope": [1.0, 2.0]}), "factors.gain.kp_nope", "unknown factor"),
+    ("bad_variant", dict(factors=dict(variant=["full", "no_arm"])), "factors.variant",
+     "level 'no_arm': expected one of full, no_tray_cone, no_observer, no_posture"),
+    ("bad_observer", dict(factors=dict(observer=[1, 2])), "factors.observer", "level 2: expected true, false, 1 or 0"),
+    ("observer_twice", dict(factors=dict(observer=[1, True])), "factors.observer", "levels must be distinct"),
+    ("negative_push", dict(factors=dict(push_N=[-1.0, 10.0])), "factors.push_N", "out of range"),
+    ("speed_range", dict(factors=dict(speed=[0.1, 0.9])), "factors.speed", "out of range"),
+    ("gain_range", dict(factors={"gain.kp_obj": [1.0, 500.0]}), "factors.gain.kp_obj", "out of range"),
+    ("one_level", dict(factors=dict(ground_mu=[0.5])), "factors.ground_mu", "at least 2 levels"),
+    ("string_number", dict(factors=dict(ground_mu=["a", 1.0])), "factors.ground_mu", "expected a number"),
+    ("six_factors", dict(factors=dict(m=[.2, .3], mu=[.4, .7], d=[.06, .1], speed=[.1, .2], push_N=[0., 1.],
+                                      ground_mu=[.5, 1.])), "factors", "6 factors: expected 1 to 5"),
+    ("no_factor", dict(factors={}), "factors", "0 factors: expected 1 to 5"),
+    ("fixed_and_varied", dict(factors=dict(speed=[0.1, 0.2]), campaign=dict(speed=0.2)), "campaign.speed",
+     "the factor speed is varied"),
+    ("random_and_fixed_push", dict(factors=dict(push_N=[0.0, 10.0]), perturbations=dict(push_max_N=5.0)),
+     "perturbations.push_max_N", "the factor push_N is varied"),
+    ("direction_without_push", dict(factors=dict(m=[0.2, 0.3]), perturbations=dict(push_dir_deg=45.0)),
+     "perturbations.push_dir_deg", "used only with the push_N factor"),
+    ("bad_campaign_variant", dict(factors=dict(m=[0.2, 0.3]), campaign=dict(variant="none")), "campaign.variant",
+     "expected one of full"),
+    ("bad_order", dict(factors=dict(m=[0.2, 0.3]), analysis=dict(order=0)), "analysis.order", "out of range"),
+    ("unknown_analysis_key", dict(factors=dict(m=[0.2, 0.3]), analysis=dict(terms="all")), "analysis.terms",
+     "unknown key"),
+]
+
+
+@pytest.mark.parametrize("name, data, key, text", BAD, ids=[b[0] for b in BAD])
+def test_bad_factor_is_one_line(name, data, key, text):
+    with pytest.raises(SpecError) as e:
+        parse_spec(data, "bad.toml")
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith(f"bad.toml: {key}: ") and text in msg, msg
+
+
+# ---------------------------------------------------------------- report (no JAX)
+
+
+def _ablation_table(seed=0):
+    """variant (full / no_tray_cone) x mu x 8 reps: no_tray_cone slips 3 mm more and fails half its runs."""
+    rng = np.random.default_rng(seed)
+    rows = [dict(variant=v, mu=mu, rep=r) for v in ("full", "no_tray_cone") for mu in (0.4, 1.0) for r in range(8)]
+    df = pd.DataFrame(rows)
+    off = (df["variant"] == "no_tray_cone").to_numpy()
+    df.insert(0, "run", np.arange(len(df)))
+    df["m"], df["d"], df["seed"] = 0.3, 0.08, 0
+    df["success"] = ~off | (df["rep"] % 2 == 0).to_numpy()
+    df["R"] = 0.5 + 0.01 * rng.standard_normal(len(df))
+    df["T"], df["S"] = rng.random(len(df)), rng.random(len(df))
+    df["max_slip_mm"] = 1.0 + 3.0 * off + 0.2 * rng.standard_normal(len(df))
+    df["fail_reason"] = np.where(df["success"], "", "dropped")
+    return df
+
+
+def test_report_answers_the_ablation_with_named_tests(tmp_path):
+    from wbc_jax.analysis.report import run_report
+
+    df = _ablation_table()
+    df.to_csv(tmp_path / "results.csv", index=False)
+    out = run_report(str(tmp_path / "results.csv"), str(tmp_path / "rep"), factors=["variant", "mu"], figures=True)
+    t = pd.DataFrame(out["ablation"])
+    slip = t[(t.metric == "max_slip_mm")].set_index("test")
+    assert slip.loc["Welch t (mean)", "differs"] and slip.loc["Mann-Whitney U (median)", "differs"]
+    assert slip.loc["Welch t (mean)", "value"] > slip.loc["Welch t (mean)", "value_ref"] + 2
+    succ = t[t.metric == "success"].iloc[0]
+    assert succ["test"] == "Fisher exact (rate)" and succ["value"] == 0.5 and succ["value_ref"] == 1.0
+    assert succ["differs"]  # 8/16 vs 16/16: Fisher p = 0.002
+    r = t[(t.metric == "R") & (t.test == "Welch t (mean)")].iloc[0]
+    assert not r["differs"]
+    lv = pd.DataFrame(out["success"]["by_level"]).set_index(["factor", "level"])
+    assert lv.loc[("variant", "no_tray_cone"), "rate"] == 0.5
+    assert len(out["success"]["by_pair"]["variant:mu"]) == 4  # the factors in the order given
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "## Controller variants against the reference" in md and "### variant × mu" in md
+    assert "variant = no_tray_cone against variant = full: changes max slip [mm] (Welch t (mean)" in md
+    assert (tmp_path / "rep" / "figures" / "success_pairs.png").stat().st_size > 1000
+
+
+def test_report_reads_the_campaigns_factors_from_its_manifest(tmp_path):
+    from wbc_jax.analysis.report import run_report
+
+    df = _ablation_table()
+    df.to_csv(tmp_path / "results.csv", index=False)
+    spec = dict(factors=dict(variant=["full", "no_tray_cone"], mu=[0.4, 1.0]), analysis=dict(order=1, alpha=0.05))
+    (tmp_path / "manifest.json").write_text(json.dumps(dict(command="wbc-jax campaign", spec=spec)))
+    out = run_report(str(tmp_path / "results.csv"), str(tmp_path / "rep"), figures=False)
+    assert list(out["factors"]) == ["variant", "mu"] and out["model_order"] == 1
+
+
+# ---------------------------------------------------------------- rollouts (JAX, one compiled shape)
+
+
+@pytest.fixture(scope="module")
+def variants_run(tmp_path_factory):
+    """The four variants side by side in one batched rollout (4 runs, 0.06 s, no perturbations)."""
+    from wbc_jax.study import campaign as C
+
+    spec = load_spec(tiny(tmp_path_factory.mktemp("variants"),
+                          factors='variant = ["full", "no_tray_cone", "no_observer", "no_posture"]'))
+    sim, dz, b, _, logs_per_chunk, n_chunks = C.build(spec)
+    fn = C._chunk_fn(sim, b.in_axes, logs_per_chunk)
+    state = b.state
+    for _ in range(n_chunks):
+        state, _ = fn(b.model, state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+    return sim, dz, b, state
+
+
+def test_variants_differ_where_they_should(variants_run):
+    import jax
+
+    sim, dz, b, state = variants_run
+    names = list(dz.levels["variant"])
+    assert names == ["full", "no_tray_cone", "no_observer", "no_posture"]
+    full, cone, obs, post = range(4)
+    cs = jax.device_get(state.cs)
+    np.testing.assert_array_equal(np.stack(cs.variant, axis=1), dz.variant)  # the switches ride in the state
+    r = np.asarray(cs.obs.r)
+    assert np.all(r[obs] == 0.0) and np.abs(r[full]).max() > 1e-3  # observer off: its estimate stays zero
+    # the object's contact multipliers (rows of their bounds, the tray cone): pinned to 0 without the cone
+    cfg = sim.cfg
+    nb, ns = cfg.k * 4, 3 * 4
+    lam_b = np.asarray(cs.warm.z)[:, cfg.n_con - ns - nb:cfg.n_con - ns]
+    assert np.all(lam_b[cone] == 0.0) and lam_b[full].sum() > 0.1
+    qpos = np.asarray(state.d.qpos)
+    for k in (cone, obs, post):  # every variant changes the motion
+        assert np.abs(qpos[k] - qpos[full]).max() > 0, names[k]
+
+
+def test_push_and_variant_campaign_end_to_end(variants_run, tmp_path):
+    """push_N x variant, 2 x 2, through run_campaign and its report (the rollout shape of variants_run)."""
+    from wbc_jax.study.campaign import run_campaign
+
+    spec = tiny(tmp_path, factors='push_N = [0.0, 30.0]\nvariant = ["full", "no_observer"]',
+                perturbations="push_duration_s = 0.02\npush_window = [0.0, 0.1]\npush_dir_deg = 90.0")
+    man = run_campaign(str(spec), str(tmp_path / "out"), progress=False)
+    df = pd.read_csv(tmp_path / "out" / "results.csv")
+    assert list(df["push_N"]) == [0.0, 0.0, 30.0, 30.0] and list(df["variant"]) == ["full", "no_observer"] * 2
+    assert man["n_runs"] == 4 and man["n_cells"] == 4 and man["spec"]["factors"]["variant"] == ["full", "no_observer"]
+    rep = json.loads((tmp_path / "out" / "report" / "anova.json").read_text())
+    assert list(rep["factors"]) == ["push_N", "variant"]
+    assert {r["metric"] for r in rep["ablation"]} == {"max_slip_mm", "R", "success"}
+    md = (tmp_path / "out" / "report" / "report.md").read_text()
+    assert "### push_N × variant" in md and "variant = no_observer against variant = full" in md
+
+
+def test_ground_friction_and_speed_campaign_end_to_end(variants_run, tmp_path):
+    """ground_mu x speed, 2 x 2: per-run foot friction in the physics and the controller, per-run plans."""
+    from wbc_jax.study import campaign as C
+
+    spec = tiny(tmp_path, factors="ground_mu = [0.5, 1.2]\nspeed = [0.05, 0.2]")
+    sim, dz, b, *_ = C.build(load_spec(spec))
+    feet = np.asarray(sim.robot.ids.foot_pair).ravel()
+    pf = np.asarray(b.model.pair_friction)
+    np.testing.assert_allclose(pf[:, feet, 0], np.repeat(dz.ground_mu[:, None], len(feet), 1), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(b.mu_ground), dz.ground_mu, rtol=1e-6)
+    t_end = np.asarray(b.plan.obj_path.t_knots)[:, -1]
+    assert t_end[0] > t_end[1] and t_end[0] == t_end[2]  # (0.5, 0.05) (0.5, 0.2) (1.2, 0.05) (1.2, 0.2)
+    man = C.run_campaign(str(spec), str(tmp_path / "out"), progress=False, report=False)
+    df = pd.read_csv(tmp_path / "out" / "results.csv")
+    assert list(df.columns[:6]) == ["run", "m", "mu", "d", "ground_mu", "speed"]
+    assert list(df["ground_mu"]) == [0.5, 0.5, 1.2, 1.2] and list(df["speed"]) == [0.05, 0.2] * 2
+    assert man["n_cells"] == 4 and np.isfinite(df["R"]).all()
