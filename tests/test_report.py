@@ -49,11 +49,11 @@ def test_cli_full_report_with_figures(tmp_path):
     assert p.returncode == 0, stderr
     assert {f.name for f in out.iterdir()} == {"report.md", "report.html", "anova.json", "design.csv",
                                               "cell_means.csv", "manifest.json", "figures"}
-    for png in ("means.png", "interactions.png", "qq.png"):
+    for png in ("means.png", "interactions.png", "qq.png", "success_levels.png", "success_pairs.png"):
         data = (out / "figures" / png).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
     html = (out / "report.html").read_text()
-    assert html.count('src="data:image/png;base64,') == 3 and 'src="figures/' not in html
+    assert html.count('src="data:image/png;base64,') == 5 and 'src="figures/' not in html
     md = (out / "report.md").read_text()
     assert "![" in md and "figures/means.png" in md and "## Metric R" in md
     summary = _strict_json(out / "anova.json")
