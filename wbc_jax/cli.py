@@ -207,7 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("results", help="results CSV (one row per run)")
     r.add_argument("--out", required=True, help="output directory (new or empty; never the input's)")
     r.add_argument("--alpha", type=float, default=0.05, help="significance level (default 0.05)")
-    r.add_argument("--factors", default=None, help="comma-separated factor columns (default: m,mu,d)")
+    r.add_argument("--factors", default=None, help="comma-separated factor columns (default: the campaign's, "
+                                                        "from manifest.json beside the results; else m,mu,d)")
     r.add_argument("--metrics", default=None, help="comma-separated metric columns (default: inferred)")
     r.set_defaults(func=_cmd_report)
 
