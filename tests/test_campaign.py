@@ -33,7 +33,7 @@ def test_shipped_specs_load():
     ("[campaign]\nreps = 0\n[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n", "campaign.reps", "1 <= value <= 1000"),
     ("[factors]\nm=[0.2,0.3]\nmu=[0.4,7.0]\nd=[0.06,0.1]\n", "factors.mu", "0.0 < value <= 5.0"),
     ("[factors]\nm=[0.2]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n", "factors.m", "at least 2 levels"),
-    ("[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\n", "factors.d", "missing"),
+    ("[factors]\n", "factors", "0 factors: expected 1 to 5"),  # a factor left out takes its campaign value
     ("[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\nk=[1,2]\n", "factors.k", "unknown factor"),
     ("[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n[perturbations]\nobject_xy_mm = -1\n",
      "perturbations.object_xy_mm", "0.0 <= value <= 20.0"),
