@@ -65,8 +65,11 @@ def test_bad_spec_cli_is_one_line_exit_2_nothing_written(tmp_path, capsys):
 def test_design_seeds_and_perturbations(tiny_spec):
     s = load_spec(tiny_spec)
     a, b = design(s), design(s)
-    for k, v in a.asdict().items():
-        np.testing.assert_array_equal(v, b.asdict()[k])  # deterministic
+    da, db = a.asdict(), b.asdict()
+    for k, v in da.items():
+        pairs = [(v[n], db[k][n]) for n in v] if isinstance(v, dict) else [(v, db[k])]  # levels: name -> (B,)
+        for x, y in pairs:
+            np.testing.assert_array_equal(x, y)  # deterministic
     assert a.n == 8 and len(set(a.seed.tolist())) == 8
     assert np.all(np.abs(a.obj_dx) <= 2e-3) and np.all(np.abs(a.obj_yaw) <= np.deg2rad(2.0))
     assert np.all(np.linalg.norm(a.push_force, axis=1) <= 20.0) and np.all((a.push_frac >= 0) & (a.push_frac <= 0.04))

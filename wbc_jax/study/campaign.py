@@ -546,10 +546,12 @@ def _campaign_report(out: Path, manifest: dict, warnings: list[str]) -> None:
     results stay)."""
     from wbc_jax.analysis.report import CAMPAIGN_METRICS, run_report
 
-    spec = manifest["spec"]
+    spec = manifest.get("spec", {})
+    analysis = spec.get("analysis", {})
     try:
         run_report(str(out / "results.csv"), str(out / "report"), metrics=list(CAMPAIGN_METRICS),
-                   factors=list(spec["factors"]), order=spec["analysis"]["order"], alpha=spec["analysis"]["alpha"])
+                   factors=list(spec["factors"]) if "factors" in spec else None, order=analysis.get("order", 2),
+                   alpha=analysis.get("alpha", 0.05))
         if warnings:
             md = out / "report" / "report.md"
             md.write_text("".join(f"> **Campaign warning:** {w}\n\n" for w in warnings) + md.read_text())
