@@ -12,9 +12,12 @@ its planned path, the integrand of T) into:
 
 per phase: standing, walking (the path's motion), settling (after the path ends). Usage::
 
-    PYTHONPATH=$PWD python tools/t_cause.py [--stand 1.0] [--distance 0.2] [--iters 20] [--out DIR]
+    PYTHONPATH=$PWD python tools/t_cause.py [--stand 1.0] [--distance 0.2] [--iters 20] [--object-lever]
+        [--wrench] [--scale w_obj_f=100,w_obj_t=100] [--out DIR]
 
-A few minutes on a 2-core CPU (one compile of ~1 min, then the rollout).
+``--object-lever`` runs the controller as before issue 23; ``--wrench`` adds the trace of the object wrench the QP
+plans vs the one the cube's motion needs (``wrench_trace``), the mechanism (docs/method.md, "T's dependence on m,
+mu, d"). About 1.5 min on a 2-core CPU without ``--wrench``, 3 min with it (compiles included).
 """
 
 from __future__ import annotations
@@ -199,6 +202,10 @@ def main(argv=None):
     ap.add_argument("--iters", type=int, default=20, help="ADMM iterations of the control-loop QP")
     ap.add_argument("--log-every", type=int, default=10)
     ap.add_argument("--scale", default="", help="gain multipliers, e.g. w_obj_f=100,w_obj_t=100")
+    ap.add_argument("--object-lever", action="store_true",
+                    help="the CoM-wrench row before issue 23 (object reaction through Lambda_b)")
+    ap.add_argument("--wrench", action="store_true",
+                    help="also trace the planned vs needed object wrench every control step (a second compile)")
     ap.add_argument("--out", type=Path, default=None, help="write decomposition.json and logs.npz here")
     a = ap.parse_args(argv)
     cells = one_at_a_time()
@@ -210,7 +217,8 @@ def main(argv=None):
         for kv in a.scale.split(","):
             k, v = kv.split("=")
             gains = gains._replace(**{k: getattr(gains, k) * float(v)})
-    robot, logs, info = run(cells, a.stand, a.distance, a.speed, iters=a.iters, log_every=a.log_every, gains=gains)
+    robot, logs, info = run(cells, a.stand, a.distance, a.speed, iters=a.iters, log_every=a.log_every, gains=gains,
+                            lever=a.object_lever)
     rows = decompose(robot, logs, info)
     print(f"plan end {info['T_plan']:.2f} s, window {info['t_end']:.2f} s, rollout {info['wall_s']:.1f} s")
     hdr = "m    mu   d    | phase  | T [mm] | offset along/lat/vert [mm] | dyn [mm] | tray offset a/l/v | on-tray a/l/v"
@@ -223,6 +231,19 @@ def main(argv=None):
         i = cells.index((m, mu, d))
         print(f"  T (rollout metric) = {Tm:.3f} mm, R {info['R'][i]:.4f}, S {info['S'][i]:.3f}, "
               f"max slip {info['max_slip_mm'][i]:.2f} mm, success {info['success'][i]}")
+    if a.wrench:
+        wr = wrench_trace(cells, a.stand, a.distance, a.speed, iters=a.iters, gains=gains, lever=a.object_lever)
+        print("walk phase: planned object wrench G F_c minus the needed F_b,ref; tray acceleration error")
+        print("m    mu   d    | mean dF x/y/z [N] | rms |dF| [N] | rms |dtau| [N mm] | mean a - a_b along [m/s^2]")
+        t = wr["t"]
+        k = (t >= wr["t_start"]) & (t < wr["T_plan"])
+        u = np.asarray(info["heading"])[0]
+        for i, (m, mu, d) in enumerate(cells):
+            dW = wr["W"][i, k] - wr["target"][i, k]
+            rms = lambda v: float(np.sqrt((v**2).sum(1).mean()))  # noqa: E731
+            print(f"{m:.1f} {mu:.1f} {d:.2f} | " + "/".join(f"{x:+.3f}" for x in dW[:, :3].mean(0)) +
+                  f" | {rms(dW[:, :3]):.3f} | {1e3 * rms(dW[:, 3:]):.1f} | "
+                  f"{float(wr['acc_err'][i, k, :2].mean(0) @ u):+.4f}")
     if a.out:
         a.out.mkdir(parents=True, exist_ok=True)
         (a.out / "decomposition.json").write_text(json.dumps(dict(cells=cells, info=info, rows=rows), indent=1))
