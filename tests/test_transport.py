@@ -52,23 +52,24 @@ def _take0(tree, axes=None):
     return jax.tree_util.tree_map(lambda x, a: x[0] if a == 0 else x, tree, axes)
 
 
+def _qp_at(m, rs, plan, om, gains, ids, cfg):
+    """(DynTerms, ObjectState, build_qp's outputs) of one run's state ``rs`` (no observer estimate)."""
+    d = physics.sense(m, rs.d)
+    dyn = dyn_terms(m, d, ids)
+    ref = reference(plan, d.time, rs.p_lift)
+    obj = object_state(d, ids)
+    Jp, Jr, Jdp, Jdr = point_jacobians(m, d, ids, obj.p[None], [ids.tray_body])
+    J_o, Jdv_o = jnp.concatenate([Jp[0], Jr[0]]), jnp.concatenate([Jdp[0], Jdr[0]])
+    return dyn, obj, build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, jnp.zeros(6), ids, cfg, 1.0, rs.cs.q_post)
+
+
 def test_qp_matches_reference_and_dynamics(setup):
     robot, sim, b = setup
     ids = robot.ids
     m = _take0(b.model, b.in_axes)
     rs, plan, om, gains = _take0(b.state), _take0(b.plan), _take0(b.om), _take0(b.gains)
 
-    @jax.jit
-    def build(m, rs, plan, om, gains):
-        d = physics.sense(m, rs.d)
-        dyn = dyn_terms(m, d, ids)
-        ref = reference(plan, d.time, rs.p_lift)
-        obj = object_state(d, ids)
-        Jp, Jr, Jdp, Jdr = point_jacobians(m, d, ids, obj.p[None], [ids.tray_body])
-        J_o, Jdv_o = jnp.concatenate([Jp[0], Jr[0]]), jnp.concatenate([Jdp[0], Jdr[0]])
-        return dyn, build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, jnp.zeros(6), ids, sim.cfg, 1.0,
-                                rs.cs.q_post)
-
+    build = jax.jit(lambda m, rs, plan, om, gains: _qp_at(m, rs, plan, om, gains, ids, sim.cfg)[::2])
     dyn, (P, q, A, l, u, A_tau, h_a, H_com) = build(m, rs, plan, om, gains)
     Pn, qn, An, ln, un, Atn, han = (np.asarray(x, float) for x in (P, q, A, l, u, A_tau, h_a))
     s = osqp.OSQP()
@@ -101,6 +102,44 @@ def test_qp_matches_reference_and_dynamics(setup):
     # the stance feet carry the robot plus the object: total normal force = (m_r + m_obj) g
     total = (float(dyn.mass) + float(om.mass)) * 9.81
     assert abs(F_gr[2::3].sum() - total) < 0.02 * total
+
+
+def test_object_wrench_is_no_lever_for_the_com_row(setup):
+    """Issue 23: the CoM-wrench cost row carries the object's *target* wrench as a constant, so the cost does not
+    couple the object's multipliers Lambda_b to the ground's, and their linear cost term is the object row's
+    alone: q_b = -W_b^T Q_obj F_b,ref with F_b,ref = [m g e_z; 0] for the cube at rest on its reference (hand
+    computation). With ``object_lever`` (the old row) the coupling is there: the QP could trade object wrench for
+    CoM wrench, which made T grow with m, mu and d (docs/method.md)."""
+    robot, sim, b = setup
+    ids = robot.ids
+    m = _take0(b.model, b.in_axes)
+    rs, plan, om, gains = _take0(b.state), _take0(b.plan), _take0(b.om), _take0(b.gains)
+
+    def build(cfg):
+        dyn, obj, qp = _qp_at(m, rs, plan, om, gains, ids, cfg)
+        return np.asarray(qp[0], float), np.asarray(qp[1], float), obj, dyn
+
+    k, nv = sim.cfg.k, ids.nv_robot
+    ig, ib = slice(nv, nv + 4 * k), slice(nv + 4 * k, nv + 8 * k)
+    P, q, obj, dyn = build(sim.cfg)
+    assert np.abs(P[ig, ib]).max() == 0.0
+    # hand computation of the object row's term: contact points at the cube's bottom corners, inset by the
+    # sphere radius; pyramid edges about the tray normal; target force m g up (at rest on the reference)
+    mass, side, mu, inset = (float(x) for x in (om.mass, om.side, om.mu, om.inset))
+    h = side / 2 - inset
+    R = np.asarray(obj.R, float)
+    corners = np.array([[h, h, -side / 2], [-h, h, -side / 2], [-h, -h, -side / 2], [h, -h, -side / 2]])
+    th, a = np.arctan(mu), 2 * np.pi * np.arange(1, k + 1) / k
+    edges = np.asarray(dyn.R_tray, float) @ np.stack([np.sin(th) * np.cos(a), np.sin(th) * np.sin(a),
+                                                      np.cos(th) * np.ones(k)])
+    Wb = np.concatenate([np.concatenate([edges, np.cross(R @ c, edges.T).T]) for c in corners], axis=1)  # (6, 4k)
+    target = np.array([0.0, 0.0, mass * 9.81, 0.0, 0.0, 0.0])
+    Qobj = np.array([float(gains.w_obj_f)] * 3 + [float(gains.w_obj_t)] * 3)
+    q_hand = -Wb.T @ (Qobj * target)
+    np.testing.assert_allclose(q[ib], q_hand, rtol=2e-3, atol=2e-3 * np.abs(q_hand).max())
+    # the old row couples them
+    P_old = build(TransportConfig(dt=sim.cfg.dt, qp=sim.cfg.qp, object_lever=True))[0]
+    assert np.abs(P_old[ig, ib]).max() > 1.0
 
 
 def test_loaded_stand_under_qp_torques(setup):

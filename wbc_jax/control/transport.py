@@ -8,8 +8,10 @@ normal), F_c = E_c Lambda_b (tray on object, tray z normal). The robot receives 
 contact points, i.e. the generalized force -J_o^T W_b with W_b = G F_c the object wrench about its CoM
 and J_o the 6D Jacobian of the tray at the object's CoM.
 
-Cost (7)-(8): ||H zeta - l||_Q + ||zeta||_R with H = [robot net contact wrench about its CoM;
-object wrench about its CoM] and l = [F_com,ref - observer estimate; F_b,ref].
+Cost (7)-(8): ||H zeta - l||_Q + ||zeta||_R with H = [ground contact wrench about the robot's CoM;
+object wrench about its CoM] and l = [F_com,ref - observer estimate + F_b,ref moved to the robot's CoM; F_b,ref]:
+the ground carries the object's target wrench as a constant, so Lambda_b is no lever for the CoM row (issue 23;
+``TransportConfig.object_lever`` restores the old row with the robot's net contact wrench, Lambda_b included).
 Constraints, switched between stance and swing through bounds only (fixed shapes):
     (9)  floating-base rows of M vdot + h = J_f^T E_g Lambda_gr - J_o^T W_b Lambda_b
     (10) stance feet: J_f vdot = -Jdot v - kd_stance v_f          (free rows for swing feet)
@@ -224,11 +226,17 @@ class TransportConfig:
 
     Attributes:
         k: friction-pyramid edges; qp: ADMM settings; dt: control period [s].
+        object_lever: the CoM-wrench cost row takes the object's reaction on the robot from the decision
+            variables Lambda_b (the behaviour before issue 23). The QP then trades object wrench for CoM wrench
+            during two-foot support, plans an object wrench the cube's motion does not produce, and the tray is
+            pushed off its path by the difference (T grows with m, mu, d: docs/method.md, "T's dependence on m,
+            mu, d"). Default False: that row carries the object's *target* wrench F_b,ref as a constant.
     """
 
     k: int = 4
     qp: QPSettings = control_qp_settings()
     dt: float = 0.001
+    object_lever: bool = False
 
     @property
     def n_var(self) -> int:
@@ -317,10 +325,12 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     Wb = wrench_map(p_c, obj.p) @ Ec  # (6, 4k) object wrench about its CoM
     JoW = J_o.T @ Wb  # (nv, 4k) generalized force on the robot is -JoW Lambda_b
 
-    # ---- cost: robot net contact wrench about its CoM, object wrench about its CoM
+    # ---- cost: ground contact wrench about the robot's CoM, object wrench about its CoM
     H = jnp.zeros((12, n))
     H = H.at[0:6, nv : nv + ng].set(wrench_map(dyn.p_foot, dyn.com) @ Eg)
-    H = H.at[0:6, nv + ng : nv + ng + nb].set(-(wrench_map(p_c, dyn.com) @ Ec))
+    H_net = H[0:6].at[:, nv + ng : nv + ng + nb].set(-(wrench_map(p_c, dyn.com) @ Ec))  # + the object's reaction
+    if cfg.object_lever:
+        H = H.at[0:6].set(H_net)
     H = H.at[6:12, nv + ng : nv + ng + nb].set(Wb)
 
     # CoM wrench reference: F = Kp e + Kd edot + m g + M_com a_ref
@@ -330,7 +340,6 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     e_w = -dyn.omega_base
     f_com = gains.kp_com * e_p + gains.kd_com * e_v + m_r * (ref.a_com + jnp.array([0.0, 0.0, GRAVITY]))
     t_com = gains.kp_rot * e_o + gains.kd_rot * e_w
-    l_com = jnp.concatenate([f_com, t_com]) - r_ext
 
     # object: F_b = M_b (a_ref + Kd edot + Kp e) + C_b V_b + N_b, world frame
     a_b = ref.a_obj + gains.kd_obj * (ref.v_obj - obj.v) + gains.kp_obj * (ref.p_obj - obj.p)
@@ -338,6 +347,12 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     I_b = cube_inertia(om.mass, om.side)
     f_b = om.mass * (a_b + jnp.array([0.0, 0.0, GRAVITY]))
     t_b = I_b * al_b  # cube: isotropic inertia, omega x I omega = 0
+
+    # the ground wrench carries the CoM reference plus the object: its target wrench F_b,ref, moved to the robot's
+    # CoM, is a constant of the row, not a function of Lambda_b (object_lever: the old, variable form)
+    l_com = jnp.concatenate([f_com, t_com]) - r_ext
+    if not cfg.object_lever:
+        l_com = l_com + jnp.concatenate([f_b, t_b + jnp.cross(obj.p - dyn.com, f_b)])
     # arm posture: vdot_arm = Kp (q_post - q) - Kd qdot
     arm_v, arm_q = ids.act_dof[12:], ids.act_qpos[12:]
     H = jnp.concatenate([H, jnp.zeros((6, n)).at[jnp.arange(6), arm_v].set(1.0)])
@@ -393,7 +408,7 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     A = jnp.concatenate(rows)
     l = jnp.concatenate(lo)
     u = jnp.concatenate(hi)
-    return P, q, A, l, u, A_tau, h_a, H[0:6]
+    return P, q, A, l, u, A_tau, h_a, H_net
 
 
 def assemble(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gains: TransportGains, cs: ControlState,
