@@ -111,7 +111,7 @@ def wrench_trace(cells, stand=1.0, distance=0.2, speed=0.13, settle=0.5, iters=2
 
     def one(mdl, rs, plan, om, gn, push, mu_g):
         def step(rs, _):
-            d, d_ctl, dyn, ref = controller_inputs(sim, mdl, rs, plan, push)
+            d, d_ctl, dyn, ref, mu_f = controller_inputs(sim, mdl, rs, plan, push, mu_g)
             new, _log = control_step(sim, mdl, rs, plan, om, gn, push, mu_g)
             lam = new.cs.warm.x[ib]
             obj = object_state(d_ctl, ids)
@@ -123,7 +123,7 @@ def wrench_trace(cells, stand=1.0, distance=0.2, speed=0.13, settle=0.5, iters=2
             a_act = (new.d.qvel[oa:oa + 3] - d.qvel[oa:oa + 3]) / cfg.dt
             Fl = F @ dyn.R_tray  # tray frame: column 2 normal
             use = jnp.linalg.norm(Fl[:, :2], axis=1) / (om.mu * jnp.maximum(Fl[:, 2], 1e-9))
-            _obs, qp = assemble(mdl, d_ctl, dyn, ref, om, gn, rs.cs, ids, cfg, mu_g)
+            _obs, qp = assemble(mdl, d_ctl, dyn, ref, om, gn, rs.cs, ids, cfg, mu_f)
             res = qp[2] @ new.cs.warm.x - qp[3]  # rows 0:6 floating base (9), 18:24 tray (11): equalities
             return new, (d.time, W, target, om.mass * (a_act + g), jnp.max(use), jnp.min(lam), a_act - a_b,
                          res[0:6], res[18:24], ref.p_obj - obj.p, ref.v_obj - obj.v, ref.a_obj)

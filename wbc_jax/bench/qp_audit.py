@@ -73,8 +73,8 @@ def _sample_fn(sim):
     cfg = sim.cfg
 
     def one(m, rs, plan, om, gains, push, mu_ground):
-        _, d_ctl, dyn, ref = controller_inputs(sim, m, rs, plan, push)
-        _, (P, q, A, l, u, A_tau, h_a, _) = assemble(m, d_ctl, dyn, ref, om, gains, rs.cs, ids, cfg, mu_ground)
+        _, d_ctl, dyn, ref, mu = controller_inputs(sim, m, rs, plan, push, mu_ground)
+        _, (P, q, A, l, u, A_tau, h_a, _) = assemble(m, d_ctl, dyn, ref, om, gains, rs.cs, ids, cfg, mu)
         return P, q, A, l, u, A_tau, h_a
 
     return one

@@ -302,6 +302,8 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     millisecond) to make up the moment two stance feet cannot produce.
     ``variant``: ablation switches (:mod:`wbc_jax.control.variants`): ``tray_cone`` scales the object-wrench
     weights and, at 0, pins the object's contact multipliers to 0; ``posture`` scales the posture weight.
+    ``mu_ground``: () or (4,) friction coefficient of the ground under each foot (the rollout passes the
+    surface each foot is nearest to: floor or a block, :func:`wbc_jax.sim.contacts.foot_ground`).
 
     Returns:
         (P (n, n), q (n,), A (m, n), l (m,), u (m,), A_tau (18, n), h_a (18,), H_com (6, n)) where
@@ -314,8 +316,9 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     stance = ~ref.swing
 
     # friction pyramids
-    Eg1 = cone_edges(mu_ground, k)  # (3, k) ground normal = world z
-    Eg = jax.scipy.linalg.block_diag(*([Eg1] * N_FEET))  # (12, 4k)
+    mu_feet = jnp.broadcast_to(jnp.asarray(mu_ground, dyn.M.dtype), (N_FEET,))  # () or (4,): per foot's surface
+    Eg_feet = jax.vmap(lambda mu: cone_edges(mu, k))(mu_feet)  # (4, 3, k) ground normal = world z
+    Eg = jax.scipy.linalg.block_diag(*Eg_feet)  # (12, 4k)
     Ec1 = cone_edges(om.mu, k, dyn.R_tray)  # (3, k) contact normal = tray z axis
     Ec = jax.scipy.linalg.block_diag(*([Ec1] * N_OBJ))  # (12, 4k)
     p_c = contact_points(obj, om)
@@ -383,7 +386,7 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     b11 = jnp.concatenate([a_b, al_b]) - Jdv_o
     add(jnp.zeros((6, n)).at[:, iv].set(J_o), b11, b11)
     # (12b) normal force of stance feet between f_min and the (ramped) cap
-    An = jnp.zeros((4, n)).at[:, ig].set(jax.scipy.linalg.block_diag(*([Eg1[2:3]] * N_FEET)))
+    An = jnp.zeros((4, n)).at[:, ig].set(jax.scipy.linalg.block_diag(*Eg_feet[:, 2:3]))
     cap = gains.f_max * ref.load
     add(An, jnp.where(stance, jnp.minimum(gains.f_min, cap), -inf), jnp.where(stance, cap, inf))
     # (13) torque limits

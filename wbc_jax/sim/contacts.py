@@ -182,11 +182,22 @@ def _pair_distances(sim, m, d, pairs) -> jax.Array:
     return jnp.stack([one(p) for p in flat]).reshape(np.shape(pairs))
 
 
+def foot_ground(sim, m, d) -> tuple[jax.Array, jax.Array]:
+    """Each foot's nearest ground surface (floor or a terrain block): (4,) distance [m] and (4,) its sliding
+    friction coefficient (the contact pair's, from the model: per run where the batch varies it)."""
+    if sim.robot.backend == "warp":
+        dist = _pair_distances(sim, m, d, sim.foot_slots)  # (4, K) over ids.foot_pair
+        mu = m.pair_friction[jnp.asarray(sim.foot_slots), 0]
+    else:
+        dist = _slot_dist(d, sim.foot_slots)  # (4, K) MJX slots
+        mu = d._impl.contact.friction[sim.foot_slots, 0]
+    k = jnp.argmin(dist, axis=1)[:, None]
+    return jnp.take_along_axis(dist, k, 1)[:, 0], jnp.take_along_axis(mu, k, 1)[:, 0]
+
+
 def foot_dist(sim, m, d) -> jax.Array:
     """(4,) each foot's distance to the nearest ground surface [m]."""
-    if sim.robot.backend == "warp":
-        return jnp.min(_pair_distances(sim, m, d, sim.foot_slots), axis=1)
-    return jnp.min(_slot_dist(d, sim.foot_slots), axis=1)
+    return foot_ground(sim, m, d)[0]
 
 
 def object_contacts(sim, m, d) -> tuple[jax.Array, jax.Array]:

@@ -213,20 +213,23 @@ def init_state(sim: Sim, m, qpos0, qvel0=None, n_runs: int = 1) -> RunState:
     return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids), acc=acc)
 
 
-def controller_inputs(sim: Sim, m, rs: RunState, plan: TransportPlan, push: Push):
+def controller_inputs(sim: Sim, m, rs: RunState, plan: TransportPlan, push: Push, mu_ground):
     """What one control step computes before the controller: the sensed state, the controller's view of it, its
     dynamics terms and the reference (with foot contacts from MJX).
 
     Returns:
-        (d sensed mjx.Data, d_ctl the controller's view, DynTerms of d_ctl, Reference).
+        (d sensed mjx.Data, d_ctl the controller's view, DynTerms of d_ctl, Reference, (4,) the friction
+        coefficient of each foot's pyramid: that of the ground surface the foot is nearest to (floor or a block),
+        capped by the run's ``mu_ground`` (the scene's floor friction, or the campaign's ``ground_mu``, which the
+        physics then also uses for every foot pair)).
     """
     with jax.named_scope("sense"):
         d, d_ctl = physics.sense_with_view(m, rs.d, seen_qvel(sim, rs.d, push, rs.acc.n_steps))
     with jax.named_scope("dynamics_reference"):
         dyn = dyn_terms(m, d_ctl, sim.robot.ids)
-        contact = contacts.foot_dist(sim, m, d) < CONTACT_DIST  # (4,)
-        ref = reference(plan, d.time, rs.p_lift, contact, dyn.p_foot)
-    return d, d_ctl, dyn, ref
+        dist, mu_feet = contacts.foot_ground(sim, m, d)  # (4,), (4,)
+        ref = reference(plan, d.time, rs.p_lift, dist < CONTACT_DIST, dyn.p_foot)
+    return d, d_ctl, dyn, ref, jnp.minimum(mu_ground, mu_feet)
 
 
 class SubstepMonitors(NamedTuple):
@@ -408,9 +411,9 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
                  push: Push, mu_ground):
     """One control period of one run. Returns (new RunState, per-step values for the log)."""
     ids = sim.robot.ids
-    d, d_ctl, dyn, ref = controller_inputs(sim, m, rs, plan, push)
+    d, d_ctl, dyn, ref, mu = controller_inputs(sim, m, rs, plan, push, mu_ground)
     t = d.time
-    tau, cs, qd = transport_control(m, d_ctl, dyn, ref, om, gains, rs.cs, ids, sim.cfg, mu_ground)
+    tau, cs, qd = transport_control(m, d_ctl, dyn, ref, om, gains, rs.cs, ids, sim.cfg, mu)
     on = (t >= push.t0) & (t < push.t0 + push.duration)
     xfrc = jnp.zeros_like(d.xfrc_applied).at[ids.trunk_body, 0:3].set(jnp.where(on, push.force, 0.0))
     with jax.named_scope("physics"):
