@@ -496,9 +496,10 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     cells = df.groupby(cols)["success"].agg(["size", "sum"]).reset_index()
     failures = [dict(**{k: _plain(r[k]) for k in cols}, failed=int(r["size"] - r["sum"]), runs=int(r["size"]))
                 for _, r in cells.iterrows() if r["size"] != r["sum"]]
-    failed_runs = [dict(run=int(r.run), **{k: _plain(r[k]) for k in cols}, rep=int(r.rep), seed=int(r.seed),
-                        reason=r.fail_reason, push_N=float(r.push_N), first_contact=r.first_contact or None,
-                        first_contact_s=None if np.isnan(r.first_contact_s) else float(r.first_contact_s))
+    failed_runs = [{"run": int(r.run), "push_N": float(r.push_N),  # the drawn push; a push_N factor's level agrees
+                    **{k: _plain(r[k]) for k in cols}, "rep": int(r.rep), "seed": int(r.seed),
+                    "reason": r.fail_reason, "first_contact": r.first_contact or None,
+                    "first_contact_s": None if np.isnan(r.first_contact_s) else float(r.first_contact_s)}
                    for _, r in df[~df.success].iterrows()]
     warnings = [w for w in [zero_noise_warning(spec)] if w]
     if failures:
