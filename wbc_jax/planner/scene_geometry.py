@@ -81,9 +81,9 @@ def terrain_height(terrain, xy):
     return jnp.max(jnp.where(inside, terrain[:, 1, 2], 0.0), axis=-1)
 
 
-SHIN_SLOPE = 2.75  # [-] 1 / tan(20 deg): the shins slope up backwards from the feet at 20 deg or more above the
-#                    horizontal (measured 23 deg in the crouch over block2, where 1 / tan(30 deg) left the shank
-#                    1-15 mm above the edge it had stepped off)
+SHIN_SLOPE = 1.8  # [-] 1 / tan(30 deg): the shins slope up backwards from the feet at 30 deg or more (in the crouch
+#                   over block2 they slope at 23 deg, but 1 / tan(20 deg) = 2.75 put the landing so far beyond the
+#                   edge that 63 of 270 paper runs struck it during the swing: H100, 2026-11-25)
 
 
 def clear_of_edges(terrain, xy, direction, clearance):
