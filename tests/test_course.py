@@ -117,3 +117,35 @@ def test_wall_passage_segment(wall_segment):
     p_obj = np.asarray(st.d.xpos[0, robot.ids.obj_body])
     assert p_obj[1] < SEG_WALL_Y - 0.3, "the object did not get past the wall"
     assert np.linalg.norm(p_obj - np.asarray(logs.p_obj_ref[0, -1])) < 0.05
+
+
+def test_foot_ground_surface_and_friction_match_mujoco_c():
+    """Each foot's nearest ground surface (floor or a block) and that pair's friction, which sizes the foot's
+    friction pyramid in the QP (the floor's 1.0 on block1's 0.4 let a loaded foot slide off block1): front feet
+    placed over block1, hind feet over the floor; distances and friction vs MuJoCo C (mj_geomDistance over each
+    foot's pairs, pair_friction of the nearest)."""
+    import jax
+
+    from wbc_jax.sim import contacts, physics
+    from wbc_jax.sim.model import mjx
+
+    robot = Robot("transport")
+    m = robot.mj_model
+    q = robot.home_qpos(0.08).copy()
+    q[1] = -1.05 + 0.2875  # trunk y: the front hips (0.2875 m ahead, walking along -y) over block1's centre
+    sim = make_sim(robot)
+    d = mjx.make_data(robot.mjx_model).replace(qpos=jax.numpy.asarray(q))
+    dist, mu = jax.device_get(jax.jit(lambda d: contacts.foot_ground(sim, robot.mjx_model,
+                                                                     physics.sense(robot.mjx_model, d)))(d))
+    dc = mujoco.MjData(m)
+    dc.qpos[:] = q
+    mujoco.mj_forward(m, dc)
+    ref_d, ref_mu = [], []
+    for pairs in robot.ids.foot_pair:
+        ds = [mujoco.mj_geomDistance(m, dc, m.pair_geom1[p], m.pair_geom2[p], 0.5, None) for p in pairs]
+        ref_d.append(min(ds))
+        ref_mu.append(m.pair_friction[pairs[int(np.argmin(ds))], 0])
+    np.testing.assert_allclose(dist, ref_d, atol=1e-5)
+    np.testing.assert_allclose(mu, ref_mu, rtol=1e-6)
+    names = [m.geom(int(m.pair_geom2[p[0]])).name for p in robot.ids.foot_pair]  # sanity of the placement
+    assert mu[0] == mu[1] == np.float32(0.4) and mu[2] == mu[3] == np.float32(1.0), (mu, names)

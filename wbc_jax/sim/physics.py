@@ -5,10 +5,12 @@ Two MJX implementations (``Robot(backend=...)``): **JAX** (``impl="jax"``, any d
 ``forward`` and ``step``, so on Warp :func:`sense` is ``mjx.forward`` (the whole forward pass, constraint solve
 with the held torques included) and :func:`finish` is ``mjx.step`` with the new torques: two Warp calls per control
 step, both exact (the controller reads the state it acts on, no delay). :func:`resolve_backend` turns "auto" into
-JAX for now: on the obstacle course MuJoCo Warp 1.18 (mujoco-mjx 3.17) lets a foot that lands on a block's edge
-slide off and sink 12-18 mm into the floor, so a shank touches the floor at 5.9-6.2 s in 259 of 270 paper runs
-(0/270 succeed), where the JAX implementation keeps the foot on the block (H100, 2026-11-25; docs/performance.md). On flat ground both
-give the same statistics. Warp is chosen explicitly (``--backend warp``).
+JAX for now, by measurement (H100, 2026-11-25): the paper campaign gives the same outcome on both (268/270, the
+same two runs failing), but at its batch of 270 the whole-body QP dominates a control step, so Warp is not faster
+end to end (physics + WBC 84 k vs 87 k env-steps/s; physics alone 433 k vs 187 k), and the clearance metric on
+Warp sees only penetrating contacts (its contact sensors list contacts, not distances). The earlier Warp failure
+on the course (a front foot sliding off block1 at 5.8 s in 259/270 runs) was the controller planning the floor's
+friction on block1, fixed in ``wbc_jax.sim.contacts.foot_ground``. Warp is chosen explicitly (``--backend warp``).
 
 JAX backend: ``mjx.step`` = forward (position, velocity, actuation, acceleration, constraint solve) + integrate.
 :func:`sense` runs the position and velocity stages; the controller reads M, bias forces,
@@ -45,7 +47,7 @@ def warp_available() -> bool:
 
 
 def resolve_backend(name: str) -> str:
-    """"auto" -> "jax" (module docstring: Warp's course physics is not yet trusted); "jax" and "warp" unchanged.
+    """"auto" -> "jax" (module docstring: no end-to-end gain at the campaign's batch yet); "jax", "warp" unchanged.
 
     Raises:
         ValueError: an unknown name, or "warp" without warp-lang.
