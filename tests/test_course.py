@@ -8,7 +8,8 @@ import pytest
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
 from wbc_jax.sim.model import Robot, mjcf_dir
 from wbc_jax.planner.apf import overhead, plan_dip
-from wbc_jax.planner.scene_geometry import SHIN_SLOPE, clear_of_edges, scene_geometry, terrain_height
+from wbc_jax.planner.scene_geometry import (HIP_DROP, SHIN_MARGIN, clear_of_edges, knee_position, leg_geometry,
+                                           scene_geometry, shin_clearance, terrain_height)
 from wbc_jax.planner.spline import eval_path, max_abs_accel_z
 from wbc_jax.planner.transport import course_plan
 from wbc_jax.sim.batch import prepare_batch
@@ -51,8 +52,8 @@ def test_scene_geometry_reads_blocks_and_wall():
     u = np.array([0.0, -1.0])
     xy = np.asarray(clear_of_edges(geo.terrain, np.array([0.1, -1.59]), u, 0.038))  # 1 cm before entry edge
     assert xy[1] == pytest.approx(-1.6 + 0.038) and xy[0] == pytest.approx(0.1)
-    xy = np.asarray(clear_of_edges(geo.terrain, np.array([0.1, -1.95]), u, 0.038))  # 5 cm past the exit edge
-    assert xy[1] == pytest.approx(-1.9 - 0.038 - SHIN_SLOPE * 0.035)
+    xy = np.asarray(clear_of_edges(geo.terrain, np.array([0.1, -1.92]), u, 0.038))  # 2 cm past the exit edge
+    assert xy[1] == pytest.approx(-1.9 - 0.038)  # without a hip: the foot's clearance only
     xy = np.asarray(clear_of_edges(geo.terrain, np.array([0.1, -1.88]), u, 0.038))  # on the block, near its end
     assert xy[1] == pytest.approx(-1.9 + 0.038)
     xy = np.asarray(clear_of_edges(geo.terrain, np.array([0.1, -1.75]), u, 0.038))  # mid-block: unchanged
@@ -149,3 +150,90 @@ def test_foot_ground_surface_and_friction_match_mujoco_c():
     np.testing.assert_allclose(mu, ref_mu, rtol=1e-6)
     names = [m.geom(int(m.pair_geom2[p[0]])).name for p in robot.ids.foot_pair]  # sanity of the placement
     assert mu[0] == mu[1] == np.float32(0.4) and mu[2] == mu[3] == np.float32(1.0), (mu, names)
+
+
+def _hand_clearance(hip, foot, edge, L1, L2, Ls, rs, rt):
+    """Leg capsules' distance to an edge by the law of cosines (an independent hand computation; (s, z) points)."""
+    d = np.subtract(foot, hip)
+    r = np.hypot(*d)
+    phi = np.arctan2(d[1], d[0])
+    gam = np.arccos((L1**2 + r**2 - L2**2) / (2 * L1 * r))  # angle at the hip between thigh and hip-foot line
+    knees = [np.add(hip, L1 * np.array([np.cos(phi + sg * gam), np.sin(phi + sg * gam)])) for sg in (1, -1)]
+    knee = min(knees, key=lambda k: k[0])  # the knee bends backwards
+
+    def seg(p, a, b):
+        a, b, p = (np.asarray(x, float) for x in (a, b, p))
+        t = np.clip((p - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1)
+        return np.hypot(*(p - a - t * (b - a)))
+
+    tip = knee + Ls * (np.asarray(foot) - knee) / L2
+    return knee, min(seg(edge, knee, tip) - rs, seg(edge, hip, knee) - rt)
+
+
+def test_knee_and_leg_clearance_match_mujoco():
+    """The planar leg (knee, shank and thigh capsules vs block2's far edge) against MuJoCo C's kinematics and
+    mj_geomDistance, for the front-right leg crouched over that edge."""
+    robot = Robot("transport")
+    m = robot.mj_model
+    leg = leg_geometry(robot)
+    assert leg == pytest.approx((0.315, 0.30, 0.2764, 0.015, 0.025))
+    d = mujoco.MjData(m)
+    q = robot.home_qpos(0.08)
+    jq = lambda n: m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)]  # noqa: E731
+    gid = lambda n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n)  # noqa: E731
+    bid = lambda n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n)  # noqa: E731
+    u = np.array([0.0, -1.0])
+    edge = np.array([1.9, 0.035])  # block2's far edge as (s = -y, z)
+    geo = scene_geometry(robot)
+    for dy, dz, pitch, knee in ((-1.66, -0.14, 1.1, -2.2), (-1.70, -0.13, 1.15, -2.3), (-1.75, -0.10, 1.1, -2.1)):
+        q2 = q.copy()
+        q2[1] += dy
+        q2[2] += dz
+        q2[jq("FR_pitch")] = pitch
+        q2[jq("FR_knee")] = knee
+        d.qpos[:] = q2
+        mujoco.mj_kinematics(m, d)
+        sz = lambda p: np.array([p[:2] @ u, p[2]])  # noqa: E731
+        hip, foot, k_mj = sz(d.xpos[bid("FR_thigh")]), sz(d.geom_xpos[gid("FR_foot")]), sz(d.xpos[bid("FR_calf")])
+        assert foot[0] > 1.9  # the foot is beyond the edge
+        np.testing.assert_allclose(np.asarray(knee_position(hip, foot, np.asarray(leg))), k_mj, atol=1e-6)
+        ft = np.zeros(6)
+        want = min(mujoco.mj_geomDistance(m, d, gid("FR_shank"), gid("block2"), 1.0, ft),
+                   mujoco.mj_geomDistance(m, d, gid("FR_thigh"), gid("block2"), 1.0, ft))
+        got = float(shin_clearance(hip, foot, edge, np.asarray(leg)))
+        assert 0.0 < want < 0.06  # near the edge, not through it (a penetration depth is MuJoCo's own measure)
+        assert got == pytest.approx(want, abs=1e-5)
+        assert got == pytest.approx(_hand_clearance(hip, foot, edge, *leg)[1], abs=1e-6)  # float32
+    assert geo.terrain.shape[0] == 3
+
+
+def test_far_edge_rule_by_hand():
+    """Stepping down from block2 in the crouch (planned hip 0.336 m high, checked HIP_DROP lower): with the hip
+    56 mm past the far edge at touchdown (the graze of issue 24) the shin cannot clear the edge anywhere near the
+    nominal foothold, so the foot stays on the block; with the hip 125 mm past it the nominal foothold is kept; a
+    nominal foothold just past the edge moves to the first landing that clears it."""
+    robot = Robot("transport")
+    geo = scene_geometry(robot)
+    leg = np.asarray(leg_geometry(robot))
+    u = np.array([0.0, -1.0])
+    edge, zf, hz = np.array([1.9, 0.035]), 0.028, 0.336
+
+    def rule(hip_s, foot_s):
+        hip = np.array([-0.187, -hip_s, hz])
+        return -float(clear_of_edges(geo.terrain, np.array([-0.187, -foot_s]), u, 0.038, hip, zf, leg)[1])
+
+    def hand(hip_s, foot_s):
+        return _hand_clearance((hip_s, hz - HIP_DROP), (foot_s, zf), edge, *leg)[1]
+
+    # hip 56 mm past the edge, foot under it: by hand the capsules miss the edge by less than the margin
+    assert hand(1.956, 1.957) < SHIN_MARGIN
+    assert rule(1.956, 1.957) == pytest.approx(1.9 - 0.038)  # stays on block2
+    # hip 125 mm past: the nominal foothold (under the hip) clears by more than the margin and is kept
+    assert hand(2.025, 2.026) > SHIN_MARGIN
+    assert rule(2.025, 2.026) == pytest.approx(2.026)
+    # hip 100 mm past, nominal 45 mm past the edge: too close; the first candidate landing (5 mm steps from the
+    # foot clearance 38 mm) that clears by the margin, found here by hand
+    assert hand(2.0, 1.945) < SHIN_MARGIN
+    first = next(s for s in 1.938 + 0.005 * np.arange(80) if hand(2.0, s) >= SHIN_MARGIN)
+    assert first - 1.945 < 1.945 - (1.9 - 0.038)  # nearer than the block side
+    assert rule(2.0, 1.945) == pytest.approx(first, abs=1e-6)  # float32

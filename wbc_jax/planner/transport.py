@@ -6,7 +6,8 @@ the CoM and the arm: the CoM goes down by ``com_dip_share`` of the object's dip 
 for the rest (the tray constraint of the QP makes the arm follow the object; its posture task acts
 in the null space). The trunk keeps its initial orientation; feet follow a time-based trot and land
 at their nominal offset from the CoM reference at mid-stance, on the terrain height there, moved off
-block edges.
+block edges (and, beyond a block's far edge, only where the shin clears that edge from the planned hip at
+touchdown: :func:`.scene_geometry.clear_of_edges`).
 
 Plans: :func:`straight_plan` (flat ground) and :func:`course_plan` (the obstacle course: the object's
 height profile from the artificial-potential planner over the scene's wall, :mod:`.apf`).
@@ -23,9 +24,9 @@ import mujoco
 import numpy as np
 
 from wbc_jax.control.transport import Reference
-from wbc_jax.planner.gait import GaitParams, foot_stance_time, gait_phase
+from wbc_jax.planner.gait import FOOT_NAMES, GaitParams, foot_stance_time, gait_phase
 from wbc_jax.planner.apf import APFParams, overhead, plan_dip
-from wbc_jax.planner.scene_geometry import clear_of_edges, scene_geometry, terrain_height
+from wbc_jax.planner.scene_geometry import clear_of_edges, leg_geometry, scene_geometry, terrain_height
 from wbc_jax.planner.spline import (CubicPath, cubic_path, eval_path, max_abs_accel_z, path_end_time,
                                     straight_path)
 from wbc_jax.planner.swing import swing_reference
@@ -53,6 +54,9 @@ class TransportPlan(NamedTuple):
         terrain: (nt, 2, 3) standable boxes (:mod:`.scene_geometry`); foot_clear: () [m] minimum
             distance of a foothold from a box edge.
         heading: (2,) unit walking direction in the horizontal plane.
+        hip_offset: (4, 3) each leg's hip pitch axis minus the CoM at the start [m] (the trunk keeps its
+            orientation): the planned hip at touchdown, for the shin's clearance over a block's far edge.
+        leg: (5,) :class:`.scene_geometry.LegGeometry` values (thigh, shank, shank_len, shank_r, thigh_r) [m].
     """
 
     obj_path: CubicPath
@@ -68,6 +72,8 @@ class TransportPlan(NamedTuple):
     terrain: jax.Array
     foot_clear: jax.Array
     heading: jax.Array
+    hip_offset: jax.Array
+    leg: jax.Array
 
 
 class PlanError(ValueError):
@@ -75,19 +81,21 @@ class PlanError(ValueError):
 
 
 def _start_state(robot, qpos0):
-    """(object position, CoM, foot centres (4, 3), object R, trunk R) at qpos0 (MuJoCo C)."""
+    """(object position, CoM, foot centres (4, 3), object R, trunk R, hip pitch axes (4, 3)) at qpos0
+    (MuJoCo C)."""
     m, ids = robot.mj_model, robot.ids
     d = mujoco.MjData(m)
     d.qpos[:] = qpos0
     mujoco.mj_kinematics(m, d)
     mujoco.mj_comPos(m, d)
+    hips = np.stack([d.xpos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, f"{leg}_thigh")] for leg in FOOT_NAMES])
     return (d.xpos[ids.obj_body].copy(), d.subtree_com[ids.trunk_body].copy(), d.site_xpos[ids.foot_site].copy(),
-            d.xmat[ids.obj_body].reshape(3, 3).copy(), d.xmat[ids.trunk_body].reshape(3, 3).copy())
+            d.xmat[ids.obj_body].reshape(3, 3).copy(), d.xmat[ids.trunk_body].reshape(3, 3).copy(), hips.copy())
 
 
 def _make_plan(robot, qpos0, path: CubicPath, gait: GaitParams, swing_height, t_ramp, com_dip_share,
                terrain, heading) -> TransportPlan:
-    p_obj, com, feet, R_obj, R_base = _start_state(robot, qpos0)
+    p_obj, com, feet, R_obj, R_base, hips = _start_state(robot, qpos0)
     gait = gait._replace(t_stop=float(path_end_time(path)))
     foot_off = feet.copy()
     foot_off[:, :2] -= com[:2]
@@ -98,6 +106,7 @@ def _make_plan(robot, qpos0, path: CubicPath, gait: GaitParams, swing_height, t_
         gait=GaitParams(*(f(x) for x in gait)), swing_height=f(swing_height), t_ramp=f(t_ramp),
         z_obj0=f(p_obj[2]), com_dip_share=f(com_dip_share), terrain=f(terrain),
         foot_clear=f(robot.ids.foot_radius + EDGE_MARGIN), heading=f(heading[:2] / np.linalg.norm(heading[:2])),
+        hip_offset=f(hips - com), leg=f(leg_geometry(robot)),
     )
 
 
@@ -201,7 +210,12 @@ def reference(plan: TransportPlan, t, p_lift, contact=None, p_foot=None) -> Refe
     t_mid = jnp.where(jnp.isfinite(t_mid), t_mid, t)
     com_mid = jax.vmap(lambda tt: _com_from_object(plan, *eval_path(plan.obj_path, tt))[0])(t_mid)
     xy = com_mid[:, :2] + plan.foot_offset[:, :2]
-    xy = jax.vmap(clear_of_edges, in_axes=(None, 0, None, None))(plan.terrain, xy, plan.heading, plan.foot_clear)
+    # the hips at touchdown (planned CoM + start offset): the shin's clearance over a far edge depends on them
+    t_td = jnp.where(jnp.isfinite(g.t_to_touchdown), t + g.t_to_touchdown, t)
+    com_td = jax.vmap(lambda tt: _com_from_object(plan, *eval_path(plan.obj_path, tt))[0])(t_td)
+    hip_td = com_td + plan.hip_offset
+    xy = jax.vmap(clear_of_edges, in_axes=(None, 0, None, None, 0, 0, None))(
+        plan.terrain, xy, plan.heading, plan.foot_clear, hip_td, plan.foot_offset[:, 2], plan.leg)
     z = terrain_height(plan.terrain, xy) + plan.foot_offset[:, 2]
     p_land = jnp.concatenate([xy, z[:, None]], axis=1)
     # quintic pieces: the acceleration is continuous at liftoff, apex and touchdown (cubic pieces jump by
