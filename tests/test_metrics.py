@@ -66,6 +66,10 @@ def _x_with(lam_b, seed=0):
     return jnp.asarray(x)
 
 
+def _pih(*a):
+    return metrics.planned_inv_H(*a)[0]
+
+
 def test_planned_R_by_hand():
     """R of the QP's planned object forces (F_c = E_c Lambda_b) against a hand computation: edges j = 1..4 point
     (in the tangent plane) along +y, -x, -y, +x at atan(mu) from the normal, so each force's tan(alpha) is known."""
@@ -81,14 +85,16 @@ def test_planned_R_by_hand():
     np.testing.assert_allclose(f[2], [2 * c, -s, s], atol=1e-5)
     alpha = np.arctan(mu * np.array([0.0, 0.5, 1 / np.sqrt(2), 1.5 / 3.5]))
     hand = 4.0 / np.sum(1.0 / ((th - alpha) * (th + alpha)))
-    np.testing.assert_allclose(metrics.planned_inv_H(_x_with(lam), mu, NV, K), hand, rtol=1e-5)
+    np.testing.assert_allclose(_pih(_x_with(lam), mu, NV, K), hand, rtol=1e-5)
     # every contact along its normal: the maximum th^2, whatever the load
-    np.testing.assert_allclose(metrics.planned_inv_H(_x_with(np.full((4, 4), 2.5)), mu, NV, K), th**2, rtol=1e-5)
+    np.testing.assert_allclose(_pih(_x_with(np.full((4, 4), 2.5)), mu, NV, K), th**2, rtol=1e-5)
     # boundary rule: a contact without planned load -> 0; a force along one edge (alpha = theta) -> 0 up to
     # rounding; a slightly negative multiplier (ADMM tolerance) that puts a force outside the cone -> 0
-    assert float(metrics.planned_inv_H(_x_with(np.r_[lam[:3], np.zeros((1, 4))]), mu, NV, K)) == 0.0
-    assert float(metrics.planned_inv_H(_x_with(np.r_[lam[:3], [[0.0, 2.0, 0.0, 0.0]]]), mu, NV, K)) < 1e-5 * th**2
-    assert float(metrics.planned_inv_H(_x_with(np.r_[lam[:3], [[-0.1, 0.0, 1.0, 0.0]]]), mu, NV, K)) == 0.0
+    assert float(_pih(_x_with(np.r_[lam[:3], np.zeros((1, 4))]), mu, NV, K)) == 0.0
+    assert float(_pih(_x_with(np.r_[lam[:3], [[0.0, 2.0, 0.0, 0.0]]]), mu, NV, K)) < 1e-5 * th**2
+    assert float(_pih(_x_with(np.r_[lam[:3], [[-0.1, 0.0, 1.0, 0.0]]]), mu, NV, K)) == 0.0
+    assert bool(metrics.planned_inv_H(_x_with(np.r_[lam[:3], [[-0.1, 0.0, 1.0, 0.0]]]), mu, NV, K)[1])  # the cone
+    assert not bool(metrics.planned_inv_H(_x_with(np.r_[lam[:3], np.zeros((1, 4))]), mu, NV, K)[1])  # unloaded
     # the simulator's R path is untouched: the same forces through cone_angle / inv_H give the same value
     alpha_s, loaded = metrics.cone_angle(jnp.asarray(f))
     np.testing.assert_allclose(metrics.inv_H(alpha_s, loaded, mu), hand, rtol=1e-5)
@@ -106,7 +112,7 @@ def _accum(**kw):
                 first_contact_t=np.full(2, np.nan), first_contact_k=np.full(2, -1), overflow=np.zeros(2, bool),
                 t_end=np.full(2, np.inf), n_win=np.array([1000, 1000]), min_clear=np.full(2, np.inf),
                 min_clear_t=np.full(2, np.nan), min_clear_k=np.full(2, -1), n_boundary_cone=np.zeros(2, int),
-                sum_invH_plan=z, n_boundary_plan=np.zeros(2, int))
+                sum_invH_plan=z, n_boundary_plan=np.zeros(2, int), n_boundary_plan_cone=np.zeros(2, int))
     base.update(kw)
     return Accum(**base)
 
@@ -116,7 +122,8 @@ def test_finalize_by_hand():
     acc = _accum(sum_invH=np.array([0.3, 0.1]), sum_track=np.array([0.002, 0.004]), sum_acc=np.array([0.5, 2.0]),
                  max_slip=np.array([0.004, 0.012]), n_flag=np.array([0, 20]), n_boundary=np.array([0, 100]),
                  wall_contact=np.array([False, True]), n_boundary_cone=np.array([0, 40]),
-                 sum_invH_plan=np.array([0.25, 0.2]), n_boundary_plan=np.array([10, 500]))
+                 sum_invH_plan=np.array([0.25, 0.2]), n_boundary_plan=np.array([10, 500]),
+                 n_boundary_plan_cone=np.array([0, 100]))
     r = metrics.finalize(acc, dt, np.array([0.7, 0.7]), course=False, final_err=np.array([0.001, 0.002]))
     np.testing.assert_allclose(r["R"], [0.3, 0.1])
     np.testing.assert_allclose(r["T"], [0.002, 0.004])
@@ -126,6 +133,7 @@ def test_finalize_by_hand():
     np.testing.assert_allclose(r["boundary_cone_fraction"], [0.0, 0.04])
     np.testing.assert_allclose(r["R_plan"], [0.25, 0.2])
     np.testing.assert_allclose(r["boundary_fraction_plan"], [0.01, 0.5])  # of the control steps
+    np.testing.assert_allclose(r["boundary_cone_fraction_plan"], [0.0, 0.1])
     assert r["slid"].tolist() == [False, True]
     assert r["hit_wall"].tolist() == [False, True]
     assert r["qp_flagged"].tolist() == [False, True]  # 2 % > 1 %

@@ -107,6 +107,7 @@ def test_substep_monitors_equal_hand_stepping(setup, step):
         np.testing.assert_allclose(a1.sum_invH_plan - a0.sum_invH_plan, inv_h_plan * sim.dt_control, rtol=1e-4,
                                    atol=1e-10)
         np.testing.assert_array_equal(a1.n_boundary_plan - a0.n_boundary_plan, inv_h_plan <= 0)
+        assert np.all(np.asarray(a1.n_boundary_plan_cone - a0.n_boundary_plan_cone) <= (inv_h_plan <= 0))
         # the slice holds the object's multipliers: their normal forces carry about the object's weight
         np.testing.assert_allclose(fn_plan, np.asarray(b.om.mass) * 9.81, rtol=0.5)
         total_acc += (a * h).sum()

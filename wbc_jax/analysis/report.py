@@ -66,7 +66,8 @@ QP_FLAG_LINE = 0.01  # wbc_jax.sim.metrics.QP_FLAG_FRACTION (not imported: the r
 R_PLAN = "R_plan"  # a campaign's results.csv column: the report's "R: simulator vs planned forces" section
 R_SOURCE_COLUMNS = (("R", "R (simulator)"), ("R_plan", "R (QP plan)"), ("boundary_fraction", "rule share, simulator [%]"),
                     ("boundary_cone_fraction", "of which on/outside the cone [%]"),
-                    ("boundary_fraction_plan", "rule share, plan [%]"))
+                    ("boundary_fraction_plan", "rule share, plan [%]"),
+                    ("boundary_cone_fraction_plan", "of which on/outside the cone, plan [%]"))
 CLEARANCE = "min_clearance_mm"  # a campaign's results.csv column: the report's clearance section  # the metrics of a campaign's report (its results.csv has more columns)
 FIGURE_CAPTIONS = {
     "means.png": "Mean ± SD of each metric per factor level (rows: metrics, columns: factors).",
@@ -605,7 +606,7 @@ def _r_sources_section(d: _Doc, df: pd.DataFrame, factors) -> None:
         "physics step); R (QP plan): the same metric of the object contact forces the whole-body QP planned "
         "(F_c = E_c Lambda_b per contact, every control step). Rule share: the fraction of the metric window's "
         "samples whose integrand 1/H the boundary rule set to 0 (a contact without load, or a force on or outside "
-        "the circular cone); 'on/outside the cone' is the part of the simulator's share with every contact loaded. "
+        "the circular cone); 'on/outside the cone' is the part of a share with every contact loaded. "
         "Means per cell.")
     shown = t[list(factors)].map(lambda v: _f(v, "g"))
     shown["n"] = t["n"]

@@ -26,8 +26,8 @@ cheap: four contact forces and a few norms):
   every contact is unloaded: R_plan = 0.
 * **The boundary rule's share**: the fraction of the window's integrand samples (physics steps for R, control
   steps for R_plan) whose 1/H the rule set to 0 instead of the formula: ``boundary_fraction`` and
-  ``boundary_fraction_plan``; ``boundary_cone_fraction`` is the part of ``boundary_fraction`` with every contact
-  loaded and a force on or outside the circular cone (the rest: a contact carried no load).
+  ``boundary_fraction_plan``; ``boundary_cone_fraction`` (``boundary_cone_fraction_plan``) is the part of it with
+  every contact loaded and a force on or outside the circular cone (the rest: a contact carried no load).
 * **Tracking** integrand ||p_b,ref(t) - p_b(t)|| (object CoM vs the planned object path).
 * **Smoothness** integrand ||vdot_b(t)||: the object CoM's linear acceleration over the physics step,
   (v(t + dt) - v(t)) / dt with dt the physics timestep, from the free joint's linear velocity (world frame).
@@ -134,12 +134,12 @@ def object_multipliers(x, nv: int, k: int, n_feet: int = 4, n_obj: int = 4) -> j
     return x[nv + k * n_feet: nv + k * (n_feet + n_obj)].reshape(n_obj, k)
 
 
-def planned_inv_H(x, mu, nv: int, k: int) -> jax.Array:
-    """1/H [rad^2] of the object contact forces planned in the transport QP solution ``x`` (boundary rule included);
-    0 if not finite."""
+def planned_inv_H(x, mu, nv: int, k: int) -> tuple[jax.Array, jax.Array]:
+    """1/H [rad^2] of the object contact forces planned in the transport QP solution ``x`` (boundary rule included;
+    0 if not finite), and () bool :func:`at_cone` of those forces (every contact loaded, one on/outside the cone)."""
     alpha, loaded = cone_angle(planned_contact_forces(object_multipliers(x, nv, k), mu, k))
     v = inv_H(alpha, loaded, mu)
-    return jnp.where(jnp.isfinite(v), v, 0.0)
+    return jnp.where(jnp.isfinite(v), v, 0.0), at_cone(alpha, loaded, mu)
 
 
 def step_integrands(f_obj, mu, v_obj_before, v_obj_after, dt):
@@ -169,6 +169,7 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
         R_plan [rad^2] (R of the QP's planned object forces), max_slip_mm, boundary_fraction (of the window's
         physics steps: the boundary rule's share of R), boundary_cone_fraction (the part of it with a loaded force
         on/outside the cone), boundary_fraction_plan (of the window's control steps: the rule's share of R_plan),
+        boundary_cone_fraction_plan (its part with a loaded planned force on/outside the cone),
         window_s (the window's duration [s]),
         min_clearance_mm (non-foot robot geom vs floor, terrain, wall; +inf: none reported) and min_clearance_s
         (its time; NaN: none), flags fell (= trunk_low or body_contact),
@@ -197,6 +198,7 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
         boundary_fraction=np.asarray(acc.n_boundary) / np.maximum(n_win * substeps, 1),
         boundary_cone_fraction=np.asarray(acc.n_boundary_cone) / np.maximum(n_win * substeps, 1),
         boundary_fraction_plan=np.asarray(acc.n_boundary_plan) / np.maximum(n_win, 1),
+        boundary_cone_fraction_plan=np.asarray(acc.n_boundary_plan_cone) / np.maximum(n_win, 1),
         window_s=n_win * dt,
         min_clearance_mm=np.asarray(acc.min_clear, float) * 1e3,
         min_clearance_s=np.asarray(acc.min_clear_t, float),

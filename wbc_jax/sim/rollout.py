@@ -106,6 +106,7 @@ class Accum(NamedTuple):
     sum_invH_plan: jax.Array  # integral of 1/H of the QP's planned object forces [rad^2 s] (control rate,
     #                           :func:`wbc_jax.sim.metrics.planned_inv_H`)
     n_boundary_plan: jax.Array  # int32, control steps with that 1/H = 0 (the boundary rule)
+    n_boundary_plan_cone: jax.Array  # int32, the part of n_boundary_plan with a loaded planned force on/outside the cone
 
 
 class RunState(NamedTuple):
@@ -215,7 +216,7 @@ def init_state(sim: Sim, m, qpos0, qvel0=None, n_runs: int = 1) -> RunState:
                 t_end=jnp.full((), jnp.inf, z.dtype), n_win=jnp.zeros((), jnp.int32),
                 min_clear=jnp.full((), jnp.inf, z.dtype), min_clear_t=jnp.full((), jnp.nan, z.dtype),
                 min_clear_k=jnp.full((), -1, jnp.int32), n_boundary_cone=jnp.zeros((), jnp.int32), sum_invH_plan=z,
-                n_boundary_plan=jnp.zeros((), jnp.int32))
+                n_boundary_plan=jnp.zeros((), jnp.int32), n_boundary_plan_cone=jnp.zeros((), jnp.int32))
     return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids), acc=acc)
 
 
@@ -435,7 +436,7 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     lift = rel[2] - rs.rel0[2]
     p_obj = d.xpos[ids.obj_body]
     w = in_window(sim, a)  # a.n_steps is still this period's index
-    inv_h_plan = metrics.planned_inv_H(cs.warm.x, om.mu, ids.nv_robot, sim.cfg.k)  # R of the QP's planned forces
+    inv_h_plan, cone_plan = metrics.planned_inv_H(cs.warm.x, om.mu, ids.nv_robot, sim.cfg.k)  # the QP's planned forces
     acc = a._replace(
         min_trunk_z=jnp.minimum(a.min_trunk_z, dyn.p_base[2]),
         max_slip=jnp.maximum(a.max_slip, slip),
@@ -449,6 +450,7 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
         sum_track=a.sum_track + jnp.where(w, jnp.linalg.norm(ref.p_obj - p_obj) * sim.dt_control, 0.0),
         sum_invH_plan=a.sum_invH_plan + jnp.where(w, inv_h_plan * sim.dt_control, 0.0),
         n_boundary_plan=a.n_boundary_plan + (w & (inv_h_plan <= 0.0)).astype(jnp.int32),
+        n_boundary_plan_cone=a.n_boundary_plan_cone + (w & (inv_h_plan <= 0.0) & cone_plan).astype(jnp.int32),
     )
     # a run that went non-finite is frozen (its state no longer advances) so it cannot poison others
     d_next = rs.d.where(finite, d_next)  # Data.where: Warp's shared contact list is not per run

@@ -324,7 +324,7 @@ def results_table(spec: Spec, dz: Design, res: dict):
                            success=res["success"]))
     for k in ("R", "T", "S", "R_plan", "max_slip_mm", "fell", "trunk_low", "body_contact", "dropped", "slid", "hit_wall",
               "qp_flagged", "qp_flag_fraction", "nonfinite", "overflow", "boundary_fraction", "boundary_cone_fraction",
-              "boundary_fraction_plan", "final_err_mm", "fail_reason", "first_contact_s",
+              "boundary_fraction_plan", "boundary_cone_fraction_plan", "final_err_mm", "fail_reason", "first_contact_s",
               "first_contact", "window_s", "min_clearance_mm", "min_clearance_s", "min_clearance_pair"):
         df[k] = res[k]
     df["obj_dx_mm"] = dz.obj_dx * 1e3
