@@ -19,7 +19,7 @@ from wbc_jax.planner import capture_point as cpm
 from wbc_jax.planner.gait import GaitParams
 from wbc_jax.qp import QPSettings, solve_qp
 from wbc_jax.sim.rollout import contact_slots
-from wbc_jax.study.trot import TrotSim, init_run, make_plan, simulate
+from wbc_jax.study.trot import SNAPSHOT_SIZE, TrotSim, init_run, make_plan, simulate, write_snapshots
 
 MOM_RTOL = 2e-5  # float32 A_G v vs float64 references, relative to ||h||
 FD_TOL = 2e-3  # [N, N m] Adot v vs central differences of the body-velocity momentum
@@ -211,8 +211,9 @@ def test_qp_matches_osqp_and_obeys_the_model(robot, trot_sim):
     assert np.all(np.abs(np.asarray(A_tau, float) @ x + np.asarray(b_tau, float)) <= np.asarray(ids.tau_max))
 
 
-def test_short_trot_keeps_the_robot_up(robot, trot_sim):
-    """Four steps at 0.4 m/s with the exact model and a 20 % too light one (one batch)."""
+def test_short_trot_keeps_the_robot_up(robot, trot_sim, tmp_path):
+    """Four steps at 0.4 m/s with the exact model and a 20 % too light one (one batch); the Fig. 9 strip of its
+    logged configurations (skipped part without an offscreen OpenGL backend)."""
     ids = robot.ids
     q0 = robot.home_qpos()
     plan, R0 = make_plan(robot, q0, 0.1, 0.25, 0.08, 4, t_start=0.2)
@@ -233,3 +234,11 @@ def test_short_trot_keeps_the_robot_up(robot, trot_sim):
     # it stepped: every foot moved forward by about two strides or more
     feet = np.asarray(st.d.site_xpos[:, ids.foot_site, :2] - rs.d.site_xpos[:, ids.foot_site, :2]) @ h
     assert np.all(feet > 0.15), feet
+    snap = write_snapshots(tmp_path / "fig9.png", robot, logs, 0, plan, 0.2, 1.2, 0.25, 4)
+    assert len(snap["times_s"]) == 4
+    if snap["written"] is not None:
+        from PIL import Image
+
+        assert Image.open(tmp_path / "fig9.png").size == (4 * SNAPSHOT_SIZE[1], SNAPSHOT_SIZE[0])
+    else:
+        assert snap["reason"].startswith("no snapshots")

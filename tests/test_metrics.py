@@ -51,6 +51,58 @@ def test_inv_H_boundary_rule():
     np.testing.assert_allclose(out, [np.arctan(0.4) ** 2, 0.0, np.arctan(1.0) ** 2], rtol=1e-5)
 
 
+NV, K = 24, 4  # the transport QP's vdot size and pyramid edges (TransportConfig's defaults)
+
+
+def _x_with(lam_b, seed=0):
+    """A transport QP solution vector x (TransportConfig().n_var) with Lambda_b = lam_b (4, K) and random other
+    entries (vdot, ground multipliers, slack: must not matter)."""
+    from wbc_jax.control.transport import N_FEET, N_OBJ, TransportConfig
+
+    n = TransportConfig().n_var
+    assert n == NV + K * (N_FEET + N_OBJ) + 3 * N_FEET  # the layout object_multipliers reads
+    x = np.random.default_rng(seed).uniform(-50, 50, n)
+    x[NV + K * N_FEET: NV + K * (N_FEET + N_OBJ)] = np.asarray(lam_b, float).ravel()
+    return jnp.asarray(x)
+
+
+def _pih(*a):
+    return metrics.planned_inv_H(*a)[0]
+
+
+def test_planned_R_by_hand():
+    """R of the QP's planned object forces (F_c = E_c Lambda_b) against a hand computation: edges j = 1..4 point
+    (in the tangent plane) along +y, -x, -y, +x at atan(mu) from the normal, so each force's tan(alpha) is known."""
+    mu = 0.7
+    th = np.arctan(mu)
+    s, c = np.sin(th), np.cos(th)
+    lam = np.array([[1.0, 1.0, 1.0, 1.0],    # symmetric: along the normal, alpha = 0
+                    [3.0, 0.0, 1.0, 0.0],    # f_y = 2 s, f_n = 4 c: tan alpha = mu / 2
+                    [1.0, 1.0, 0.0, 0.0],    # f = s (-1, 1), f_n = 2 c: tan alpha = mu / sqrt 2
+                    [0.5, 0.5, 0.5, 2.0]])   # f_x = 1.5 s, f_n = 3.5 c: tan alpha = mu 1.5 / 3.5
+    f = np.asarray(metrics.planned_contact_forces(jnp.asarray(lam), mu, K))
+    np.testing.assert_allclose(f[1], [4 * c, 0.0, 2 * s], atol=1e-5)  # normal first, then x, y
+    np.testing.assert_allclose(f[2], [2 * c, -s, s], atol=1e-5)
+    alpha = np.arctan(mu * np.array([0.0, 0.5, 1 / np.sqrt(2), 1.5 / 3.5]))
+    hand = 4.0 / np.sum(1.0 / ((th - alpha) * (th + alpha)))
+    np.testing.assert_allclose(_pih(_x_with(lam), mu, NV, K), hand, rtol=1e-5)
+    # every contact along its normal: the maximum th^2, whatever the load
+    np.testing.assert_allclose(_pih(_x_with(np.full((4, 4), 2.5)), mu, NV, K), th**2, rtol=1e-5)
+    # boundary rule: a contact without planned load -> 0; a force along one edge (alpha = theta) -> 0 up to
+    # rounding; a slightly negative multiplier (ADMM tolerance) that puts a force outside the cone -> 0
+    assert float(_pih(_x_with(np.r_[lam[:3], np.zeros((1, 4))]), mu, NV, K)) == 0.0
+    assert float(_pih(_x_with(np.r_[lam[:3], [[0.0, 2.0, 0.0, 0.0]]]), mu, NV, K)) < 1e-5 * th**2
+    assert float(_pih(_x_with(np.r_[lam[:3], [[-0.1, 0.0, 1.0, 0.0]]]), mu, NV, K)) == 0.0
+    assert bool(metrics.planned_inv_H(_x_with(np.r_[lam[:3], [[-0.1, 0.0, 1.0, 0.0]]]), mu, NV, K)[1])  # the cone
+    assert not bool(metrics.planned_inv_H(_x_with(np.r_[lam[:3], np.zeros((1, 4))]), mu, NV, K)[1])  # unloaded
+    # the simulator's R path is untouched: the same forces through cone_angle / inv_H give the same value
+    alpha_s, loaded = metrics.cone_angle(jnp.asarray(f))
+    np.testing.assert_allclose(metrics.inv_H(alpha_s, loaded, mu), hand, rtol=1e-5)
+    assert not bool(metrics.at_cone(alpha_s, loaded, mu))
+    assert bool(metrics.at_cone(alpha_s.at[3].set(th + 0.1), loaded, mu))
+    assert not bool(metrics.at_cone(alpha_s.at[3].set(th + 0.1), loaded.at[0].set(False), mu))  # unloaded first
+
+
 def _accum(**kw):
     z = np.zeros(2)
     base = dict(min_trunk_z=np.array([0.45, 0.45]), max_slip=z, max_lift=z, nonfoot_floor=np.zeros(2, bool),
@@ -59,7 +111,8 @@ def _accum(**kw):
                 off_steps=np.zeros(2, int), max_off_s=z, sum_invH=z, sum_acc=z, n_boundary=np.zeros(2, int),
                 first_contact_t=np.full(2, np.nan), first_contact_k=np.full(2, -1), overflow=np.zeros(2, bool),
                 t_end=np.full(2, np.inf), n_win=np.array([1000, 1000]), min_clear=np.full(2, np.inf),
-                min_clear_t=np.full(2, np.nan), min_clear_k=np.full(2, -1))
+                min_clear_t=np.full(2, np.nan), min_clear_k=np.full(2, -1), n_boundary_cone=np.zeros(2, int),
+                sum_invH_plan=z, n_boundary_plan=np.zeros(2, int), n_boundary_plan_cone=np.zeros(2, int))
     base.update(kw)
     return Accum(**base)
 
@@ -68,13 +121,19 @@ def test_finalize_by_hand():
     dt = 1e-3  # 1000 steps -> T_run = 1 s
     acc = _accum(sum_invH=np.array([0.3, 0.1]), sum_track=np.array([0.002, 0.004]), sum_acc=np.array([0.5, 2.0]),
                  max_slip=np.array([0.004, 0.012]), n_flag=np.array([0, 20]), n_boundary=np.array([0, 100]),
-                 wall_contact=np.array([False, True]))
+                 wall_contact=np.array([False, True]), n_boundary_cone=np.array([0, 40]),
+                 sum_invH_plan=np.array([0.25, 0.2]), n_boundary_plan=np.array([10, 500]),
+                 n_boundary_plan_cone=np.array([0, 100]))
     r = metrics.finalize(acc, dt, np.array([0.7, 0.7]), course=False, final_err=np.array([0.001, 0.002]))
     np.testing.assert_allclose(r["R"], [0.3, 0.1])
     np.testing.assert_allclose(r["T"], [0.002, 0.004])
     np.testing.assert_allclose(r["S"], [1 / 0.5, 1 / 2.0])  # T_run / int ||a|| dt
     np.testing.assert_allclose(r["max_slip_mm"], [4.0, 12.0])
     np.testing.assert_allclose(r["boundary_fraction"], [0.0, 0.1])
+    np.testing.assert_allclose(r["boundary_cone_fraction"], [0.0, 0.04])
+    np.testing.assert_allclose(r["R_plan"], [0.25, 0.2])
+    np.testing.assert_allclose(r["boundary_fraction_plan"], [0.01, 0.5])  # of the control steps
+    np.testing.assert_allclose(r["boundary_cone_fraction_plan"], [0.0, 0.1])
     assert r["slid"].tolist() == [False, True]
     assert r["hit_wall"].tolist() == [False, True]
     assert r["qp_flagged"].tolist() == [False, True]  # 2 % > 1 %

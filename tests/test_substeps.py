@@ -101,6 +101,15 @@ def test_substep_monitors_equal_hand_stepping(setup, step):
             expect_off = np.where(off[:, k], expect_off + 1, 0)
         np.testing.assert_array_equal(a1.off_steps, expect_off)
         np.testing.assert_array_equal(a1.n_steps, np.asarray(a0.n_steps) + 1)  # control steps
+        assert np.all(np.asarray(a1.n_boundary_cone - a0.n_boundary_cone) <= np.asarray(a1.n_boundary - a0.n_boundary))
+        # R of the QP's planned object forces: once per control step, by hand from the solution's Lambda_b
+        inv_h_plan, fn_plan = _planned_by_hand(np.asarray(rs_next.cs.warm.x, float), np.asarray(b.om.mu, float))
+        np.testing.assert_allclose(a1.sum_invH_plan - a0.sum_invH_plan, inv_h_plan * sim.dt_control, rtol=1e-4,
+                                   atol=1e-10)
+        np.testing.assert_array_equal(a1.n_boundary_plan - a0.n_boundary_plan, inv_h_plan <= 0)
+        assert np.all(np.asarray(a1.n_boundary_plan_cone - a0.n_boundary_plan_cone) <= (inv_h_plan <= 0))
+        # the slice holds the object's multipliers: their normal forces carry about the object's weight
+        np.testing.assert_allclose(fn_plan, np.asarray(b.om.mass) * 9.81, rtol=0.5)
         total_acc += (a * h).sum()
         # one sample per control period, ||v(t + 2h) - v(t)|| / (2h) x 2h, would have given this instead
         coarse_gap = max(coarse_gap, float(np.max(np.abs(d_acc - np.linalg.norm(dv, axis=1)) / d_acc)))
@@ -112,6 +121,26 @@ def test_substep_monitors_equal_hand_stepping(setup, step):
     acc = jax.device_get(rs.acc)
     np.testing.assert_allclose(res["R"], np.asarray(acc.sum_invH) / (PERIODS * sim.dt_control), rtol=1e-6)
     np.testing.assert_allclose(res["boundary_fraction"], np.asarray(acc.n_boundary) / (PERIODS * N_SUB))
+    np.testing.assert_allclose(res["R_plan"], np.asarray(acc.sum_invH_plan) / (PERIODS * sim.dt_control), rtol=1e-6)
+    np.testing.assert_allclose(res["boundary_fraction_plan"], np.asarray(acc.n_boundary_plan) / PERIODS)
+
+
+def _planned_by_hand(x, mu, nv=24, k=4):
+    """numpy, per run: 1/H of the planned object forces in QP solutions x (B, n) (layout [vdot (nv), Lambda_gr
+    (4k), Lambda_b (4k), gamma]; edge j = Rz(2 pi j / k) Ry(atan mu) z in the tray frame, the paper's H with the
+    boundary rule) and the planned total normal force [N]."""
+    out, fn = [], []
+    for xi, m in zip(x, mu):
+        th = np.arctan(m)
+        a = 2 * np.pi * np.arange(1, k + 1) / k
+        E = np.stack([np.sin(th) * np.cos(a), np.sin(th) * np.sin(a), np.cos(th) * np.ones(k)])  # (3, k)
+        f = xi[nv + 4 * k: nv + 8 * k].reshape(4, k) @ E.T  # (4, 3) tray frame
+        alpha = np.arctan2(np.linalg.norm(f[:, :2], axis=1), np.where(f[:, 2] > metrics.LOAD_EPS, f[:, 2], 1.0))
+        g = (th - alpha) * (th + alpha)
+        ok = np.all(f[:, 2] > metrics.LOAD_EPS) and np.all(g > 0)
+        out.append(4.0 / np.sum(1.0 / g) if ok else 0.0)
+        fn.append(f[:, 2].sum())
+    return np.array(out), np.array(fn)
 
 
 def test_make_sim_rejects_inconsistent_period():

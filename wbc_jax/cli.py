@@ -153,10 +153,10 @@ def _cmd_trot(args: argparse.Namespace) -> int:
     except ValueError:
         raise WbcJaxError(f"--mass-errors = {args.mass_errors!r}: expected comma-separated numbers, "
                           "e.g. --mass-errors=-0.2,0,0.2") from None
-    validate(args.seconds, args.stride, args.step_time, args.four_foot, errors, args.iters)
+    validate(args.seconds, args.stride, args.step_time, args.four_foot, errors, args.iters, args.snapshots)
     _check_out(args)
     run_trot(out=args.out, seconds=args.seconds, stride=args.stride, step_time=args.step_time, t_four=args.four_foot,
-             mass_errors=errors, carry_object=not args.no_object, iters=args.iters)
+             mass_errors=errors, carry_object=not args.no_object, iters=args.iters, snapshots=args.snapshots)
     return 0
 
 
@@ -314,6 +314,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="controller model mass errors, comma-separated fractions; write --mass-errors=-0.2,0,0.2")
     t.add_argument("--no-object", action="store_true", help="take the cube off the tray")
     t.add_argument("--iters", type=int, default=40, help="ADMM iterations per control step")
+    t.add_argument("--snapshots", type=int, default=6, help="frames of the Fig. 9 snapshot strip over one gait "
+                                                            "cycle (default 6; 0: none)")
     t.set_defaults(func=_cmd_trot)
     for cmd in (r, d, c, u, t):
         cmd.add_argument("--force", action="store_true", help="replace --out when it holds an earlier run of this "

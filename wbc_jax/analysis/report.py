@@ -10,6 +10,8 @@ Reads the CSV, checks it, runs :func:`wbc_jax.analysis.stats.analyze`, and write
   ``f_tests_reliable``, ``significant``, ``assumptions``, ``simple_effects`` and
   ``warnings``; plus ``alpha``, ``ss_type``, ``factors`` (levels), table-wide ``warnings``,
   ``design`` and ``manifest``. NaN is written as null.
+- for a campaign's table with ``R_plan``: a section (and ``anova.json`` ``r_sources``) with R from the simulator's
+  and from the QP's planned object forces per cell and the boundary rule's share of each (:func:`r_sources`).
 - ``design.csv``, ``cell_means.csv`` (mean, sd, n per cell and metric; CI baselines).
 - ``manifest.json``: input path and SHA-256, arguments, package versions, wall time.
 - ``figures/means.png`` (metric means +- SD per factor level), ``figures/interactions.png``
@@ -61,6 +63,11 @@ COMMAND = "wbc-jax report"
 CAMPAIGN_METRICS = ("R", "T", "S")
 QP_FLAG = "qp_flag_fraction"  # a campaign's results.csv column: the report's QP convergence section
 QP_FLAG_LINE = 0.01  # wbc_jax.sim.metrics.QP_FLAG_FRACTION (not imported: the report stays JAX-free)
+R_PLAN = "R_plan"  # a campaign's results.csv column: the report's "R: simulator vs planned forces" section
+R_SOURCE_COLUMNS = (("R", "R (simulator)"), ("R_plan", "R (QP plan)"), ("boundary_fraction", "rule share, simulator [%]"),
+                    ("boundary_cone_fraction", "of which on/outside the cone [%]"),
+                    ("boundary_fraction_plan", "rule share, plan [%]"),
+                    ("boundary_cone_fraction_plan", "of which on/outside the cone, plan [%]"))
 CLEARANCE = "min_clearance_mm"  # a campaign's results.csv column: the report's clearance section  # the metrics of a campaign's report (its results.csv has more columns)
 FIGURE_CAPTIONS = {
     "means.png": "Mean ± SD of each metric per factor level (rows: metrics, columns: factors).",
@@ -136,7 +143,8 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
         "alpha": alpha, "factors": factors, "metrics": metrics, "ss_type": stats.SS_NAMES[ss_type], "order": order,
         "versions": _versions(), "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
-    summary = _clean(dict(_summary(res, data, factors, metrics, alpha, manifest), **_extra_json(extra)))
+    r_json = {"r_sources": r_sources(df, factors).to_dict("records")} if R_PLAN in df.columns else {}
+    summary = _clean(dict(_summary(res, data, factors, metrics, alpha, manifest), **_extra_json(extra), **r_json))
     doc = _document(res, summary, factors, metrics, alpha, list(images), df, extra)
     manifest["wall_s"] = summary["manifest"]["wall_s"] = round(time.perf_counter() - t0, 3)
     files = {
@@ -550,6 +558,8 @@ def _document(res: dict, summary: dict, factors, metrics, alpha: float, images: 
         for name in images:
             d.img(name, FIGURE_CAPTIONS[name])
 
+    if df is not None and R_PLAN in df.columns:
+        _r_sources_section(d, df, factors)
     if df is not None and CLEARANCE in df.columns:
         _clearance_section(d, df, factors)
     if df is not None and QP_FLAG in df.columns:
@@ -574,6 +584,36 @@ def _document(res: dict, summary: dict, factors, metrics, alpha: float, images: 
         "conditioning level, all with the pooled model MSE and residual df (as SPSS EMMEANS COMPARE, R emmeans).",
     ])
     return d
+
+
+def r_sources(df: pd.DataFrame, factors) -> pd.DataFrame:
+    """Per cell (successful runs), the means of R from the simulator's and from the QP's planned object forces and
+    the boundary rule's shares (columns of :data:`R_SOURCE_COLUMNS` present in ``df``; shares as fractions)."""
+    ok = stats.successful(df)
+    cols = [c for c, _ in R_SOURCE_COLUMNS if c in ok.columns]
+    num = ok[list(factors)].join(ok[cols].apply(pd.to_numeric, errors="coerce"))
+    out = num.groupby(list(factors), sort=True)[cols].mean().reset_index()
+    out.insert(len(factors), "n", num.groupby(list(factors), sort=True).size().to_numpy())
+    return out
+
+
+def _r_sources_section(d: _Doc, df: pd.DataFrame, factors) -> None:
+    """R from the simulator's contact forces next to R from the QP's planned object forces, with the boundary
+    rule's share of each (the fraction of the window's samples whose 1/H the rule set to 0)."""
+    t = r_sources(df, factors)
+    d.h(2, "R: simulator forces vs the QP's planned forces (successful runs)")
+    d.p("R (simulator): the paper's robustness metric of the contact forces MuJoCo applies to the object (every "
+        "physics step); R (QP plan): the same metric of the object contact forces the whole-body QP planned "
+        "(F_c = E_c Lambda_b per contact, every control step). Rule share: the fraction of the metric window's "
+        "samples whose integrand 1/H the boundary rule set to 0 (a contact without load, or a force on or outside "
+        "the circular cone); 'on/outside the cone' is the part of a share with every contact loaded. "
+        "Means per cell.")
+    shown = t[list(factors)].map(lambda v: _f(v, "g"))
+    shown["n"] = t["n"]
+    for c, name in R_SOURCE_COLUMNS:
+        if c in t.columns:
+            shown[name] = t[c].map(lambda v: _f(100 * v, ".2f")) if "[%]" in name else t[c].map(_f)
+    d.table(shown)
 
 
 def _clearance_section(d: _Doc, df: pd.DataFrame, factors) -> None:

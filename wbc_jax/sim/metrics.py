@@ -14,6 +14,20 @@ cheap: four contact forces and a few norms):
   this is a guard for solver slack rather than a regular case) counts as *at the cone boundary*: its term 1/((theta-alpha)(theta+alpha)) is +inf, so H = inf and 1/H(t) = 0 at that step.
   1/H is therefore in [0, lambda / (n_c / theta^2)] = [0, theta^2] for n_c = 4 = lambda: a cube resting
   still on a level tray scores theta^2 = atan(mu)^2.
+* **Robustness of the planned forces** (``R_plan``): the same integrand 1/H, boundary rule included, of the
+  object contact forces the transport QP *planned* at that control step: F_c,i = E_c Lambda_b,i per object contact
+  point i, Lambda_b the QP solution's pyramid-edge multipliers (``zeta = [vdot, Lambda_gr, Lambda_b, gamma]``,
+  ``wbc_jax.control.transport``), E_c = ``cone_edges(mu, k)`` in the tray frame (normal = tray z), so alpha_i =
+  atan2(||F_t||, F_n) there (:func:`planned_contact_forces`). Sampled once per control step (the QP's rate) from
+  the ADMM solution ``x`` the torques were computed from, as it is: a multiplier slightly below 0 (ADMM's
+  tolerance) can put a force outside the pyramid, which the boundary rule then counts like the simulator's. The
+  pyramid is inscribed in the circular cone, so a planned force reaches alpha = theta only along an edge (one
+  multiplier > 0 at that contact, the others 0). With the ablation variant ``no_tray_cone`` (Lambda_b pinned to 0)
+  every contact is unloaded: R_plan = 0.
+* **The boundary rule's share**: the fraction of the window's integrand samples (physics steps for R, control
+  steps for R_plan) whose 1/H the rule set to 0 instead of the formula: ``boundary_fraction`` and
+  ``boundary_fraction_plan``; ``boundary_cone_fraction`` (``boundary_cone_fraction_plan``) is the part of it with
+  every contact loaded and a force on or outside the circular cone (the rest: a contact carried no load).
 * **Tracking** integrand ||p_b,ref(t) - p_b(t)|| (object CoM vs the planned object path).
 * **Smoothness** integrand ||vdot_b(t)||: the object CoM's linear acceleration over the physics step,
   (v(t + dt) - v(t)) / dt with dt the physics timestep, from the free joint's linear velocity (world frame).
@@ -93,6 +107,41 @@ def inv_H(alpha, loaded, mu, lam: float = LAMBDA) -> jax.Array:
     return jnp.where(ok, lam / s, 0.0)
 
 
+def at_cone(alpha, loaded, mu) -> jax.Array:
+    """() bool: every contact is loaded and some force lies on or outside the circular cone (alpha >= theta): the
+    second trigger of the boundary rule (the first: a contact without load). alpha, loaded (n,); mu scalar."""
+    theta = jnp.arctan(mu)
+    return jnp.all(loaded) & jnp.any((theta - alpha) * (theta + alpha) <= 0)
+
+
+def planned_contact_forces(lam_b, mu, k: int) -> jax.Array:
+    """The transport QP's planned object contact forces in the tray's contact frame, normal first: (n_c, 3) [N].
+
+    Args:
+        lam_b: (n_c, k) pyramid-edge multipliers Lambda_b per object contact point [N]; mu: () tray friction;
+            k: edges per pyramid (static). F_c,i = E_c lam_b[i] with E_c = ``cone_edges(mu, k)`` (tray frame, z =
+            the contact normal, as ``wbc_jax.control.transport.build_qp`` builds it with the tray's rotation).
+    """
+    from wbc_jax.control.dynamics import cone_edges
+
+    f = lam_b @ cone_edges(mu, k).T  # (n_c, 3) x, y tangential, z normal
+    return jnp.concatenate([f[:, 2:3], f[:, 0:2]], axis=1)
+
+
+def object_multipliers(x, nv: int, k: int, n_feet: int = 4, n_obj: int = 4) -> jax.Array:
+    """Lambda_b (n_obj, k) from a transport QP solution x = [vdot (nv), Lambda_gr (k n_feet), Lambda_b (k n_obj),
+    gamma (3 n_feet)] (``wbc_jax.control.transport``'s variable layout)."""
+    return x[nv + k * n_feet: nv + k * (n_feet + n_obj)].reshape(n_obj, k)
+
+
+def planned_inv_H(x, mu, nv: int, k: int) -> tuple[jax.Array, jax.Array]:
+    """1/H [rad^2] of the object contact forces planned in the transport QP solution ``x`` (boundary rule included;
+    0 if not finite), and () bool :func:`at_cone` of those forces (every contact loaded, one on/outside the cone)."""
+    alpha, loaded = cone_angle(planned_contact_forces(object_multipliers(x, nv, k), mu, k))
+    v = inv_H(alpha, loaded, mu)
+    return jnp.where(jnp.isfinite(v), v, 0.0), at_cone(alpha, loaded, mu)
+
+
 def step_integrands(f_obj, mu, v_obj_before, v_obj_after, dt):
     """Per-step integrands (1/H, ||vdot||) of one run (T's integrand ||p_ref - p|| is the rollout's
     ``sum_track``).
@@ -117,7 +166,11 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
 
     Returns:
         dict of (B,) arrays: R [rad^2], T [m], S [s^2/m] (time averages over the metric window, acc.n_win x dt),
-        max_slip_mm, boundary_fraction (of the window's physics steps), window_s (the window's duration [s]),
+        R_plan [rad^2] (R of the QP's planned object forces), max_slip_mm, boundary_fraction (of the window's
+        physics steps: the boundary rule's share of R), boundary_cone_fraction (the part of it with a loaded force
+        on/outside the cone), boundary_fraction_plan (of the window's control steps: the rule's share of R_plan),
+        boundary_cone_fraction_plan (its part with a loaded planned force on/outside the cone),
+        window_s (the window's duration [s]),
         min_clearance_mm (non-foot robot geom vs floor, terrain, wall; +inf: none reported) and min_clearance_s
         (its time; NaN: none), flags fell (= trunk_low or body_contact),
         trunk_low, body_contact, dropped, slid, hit_wall, qp_flag_fraction (of the control steps), qp_flagged,
@@ -138,10 +191,14 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
         S = np.where(np.asarray(acc.sum_acc) > 0, dur / np.asarray(acc.sum_acc), np.nan)
     out = dict(
         R=np.asarray(acc.sum_invH) / dur,
+        R_plan=np.asarray(acc.sum_invH_plan) / dur,
         T=np.asarray(acc.sum_track) / dur,
         S=S,
         max_slip_mm=np.asarray(acc.max_slip) * 1e3,
         boundary_fraction=np.asarray(acc.n_boundary) / np.maximum(n_win * substeps, 1),
+        boundary_cone_fraction=np.asarray(acc.n_boundary_cone) / np.maximum(n_win * substeps, 1),
+        boundary_fraction_plan=np.asarray(acc.n_boundary_plan) / np.maximum(n_win, 1),
+        boundary_cone_fraction_plan=np.asarray(acc.n_boundary_plan_cone) / np.maximum(n_win, 1),
         window_s=n_win * dt,
         min_clearance_mm=np.asarray(acc.min_clear, float) * 1e3,
         min_clearance_s=np.asarray(acc.min_clear_t, float),

@@ -101,6 +101,12 @@ class Accum(NamedTuple):
     min_clear_t: jax.Array  # [s] start of the physics step of min_clear (the contacts' time); NaN if none
     min_clear_k: jax.Array  # int32, its pair: index into Sim.nonfoot_slots, or len(nonfoot_slots) + index into
     #                         Sim.wall_slots (:func:`clearance_name`); -1 if none
+    n_boundary_cone: jax.Array  # int32, the part of n_boundary with every contact loaded and a force on/outside
+    #                             the circular cone (physics rate)
+    sum_invH_plan: jax.Array  # integral of 1/H of the QP's planned object forces [rad^2 s] (control rate,
+    #                           :func:`wbc_jax.sim.metrics.planned_inv_H`)
+    n_boundary_plan: jax.Array  # int32, control steps with that 1/H = 0 (the boundary rule)
+    n_boundary_plan_cone: jax.Array  # int32, the part of n_boundary_plan with a loaded planned force on/outside the cone
 
 
 class RunState(NamedTuple):
@@ -209,7 +215,8 @@ def init_state(sim: Sim, m, qpos0, qvel0=None, n_runs: int = 1) -> RunState:
                 first_contact_k=jnp.full((), -1, jnp.int32), overflow=jnp.bool_(False),
                 t_end=jnp.full((), jnp.inf, z.dtype), n_win=jnp.zeros((), jnp.int32),
                 min_clear=jnp.full((), jnp.inf, z.dtype), min_clear_t=jnp.full((), jnp.nan, z.dtype),
-                min_clear_k=jnp.full((), -1, jnp.int32))
+                min_clear_k=jnp.full((), -1, jnp.int32), n_boundary_cone=jnp.zeros((), jnp.int32), sum_invH_plan=z,
+                n_boundary_plan=jnp.zeros((), jnp.int32), n_boundary_plan_cone=jnp.zeros((), jnp.int32))
     return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids), acc=acc)
 
 
@@ -237,6 +244,7 @@ class SubstepMonitors(NamedTuple):
     the step. Contacts and constraint forces are those of the step's start (``wbc_jax.sim.physics`` docstring)."""
 
     inv_h: jax.Array  # 1/H of the simulator's forces on the object's contact slots [rad^2]; 0 if not finite
+    cone: jax.Array  # bool, those forces all loaded and one on/outside the circular cone (boundary rule, 2nd case)
     acc: jax.Array  # ||object CoM linear acceleration|| over the step, (v_after - v_before) / dt_physics [m/s^2]
     nonfoot_floor: jax.Array  # bool, a non-foot robot part penetrates the floor or terrain (dist < 0)
     nonfoot_k: jax.Array  # int32, index into Sim.nonfoot_slots of the deepest such contact (-1: none)
@@ -258,10 +266,11 @@ def substep_monitors(sim: Sim, m, om: ObjectModel, tau, d, d_after) -> SubstepMo
         inv_h, acc_norm = metrics.step_integrands(f_obj, om.mu, d.qvel[oa:oa + 3], d_after.qvel[oa:oa + 3],
                                                   sim.dt_physics)
         inv_h, acc_norm = jnp.where(finite, inv_h, 0.0), jnp.where(finite, acc_norm, 0.0)
+        cone = finite & metrics.at_cone(*metrics.cone_angle(f_obj), om.mu)
         off = jnp.all(obj_dist > CONTACT_DIST)
     else:
         inv_h = acc_norm = jnp.zeros(())
-        off = jnp.bool_(False)
+        off = cone = jnp.bool_(False)
     wall_d = contacts.wall_dist(sim, d_after) if sim.wall_slots.size else None
     nf_dist = contacts.nonfoot_dist(sim, d_after) if sim.nonfoot_slots.size else None
     wall = jnp.any(wall_d < 0.0) if wall_d is not None else jnp.bool_(False)
@@ -271,7 +280,7 @@ def substep_monitors(sim: Sim, m, om: ObjectModel, tau, d, d_after) -> SubstepMo
     else:
         nonfoot, nonfoot_k = jnp.bool_(False), jnp.full((), -1, jnp.int32)
     clear, clear_k = clearance(sim, d_after, nf_dist, wall_d)
-    return SubstepMonitors(inv_h=inv_h, acc=acc_norm, nonfoot_floor=nonfoot, nonfoot_k=nonfoot_k, t=d.time,
+    return SubstepMonitors(inv_h=inv_h, cone=cone, acc=acc_norm, nonfoot_floor=nonfoot, nonfoot_k=nonfoot_k, t=d.time,
                            wall=wall, off=off, finite=finite, overflow=physics.overflow(d_after), clear=clear,
                            clear_k=clear_k)
 
@@ -375,6 +384,7 @@ def _fold(sim: Sim, a: Accum, s: SubstepMonitors, w) -> Accum:
         sum_invH=a.sum_invH + jnp.where(w, s.inv_h * h, 0.0),
         sum_acc=a.sum_acc + jnp.where(w, s.acc * h, 0.0),
         n_boundary=a.n_boundary + (w & (s.inv_h <= 0.0)).astype(jnp.int32),
+        n_boundary_cone=a.n_boundary_cone + (w & (s.inv_h <= 0.0) & s.cone).astype(jnp.int32),
     )
 
 
@@ -426,6 +436,7 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     lift = rel[2] - rs.rel0[2]
     p_obj = d.xpos[ids.obj_body]
     w = in_window(sim, a)  # a.n_steps is still this period's index
+    inv_h_plan, cone_plan = metrics.planned_inv_H(cs.warm.x, om.mu, ids.nv_robot, sim.cfg.k)  # the QP's planned forces
     acc = a._replace(
         min_trunk_z=jnp.minimum(a.min_trunk_z, dyn.p_base[2]),
         max_slip=jnp.maximum(a.max_slip, slip),
@@ -437,6 +448,9 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
         n_steps=a.n_steps + 1,
         n_win=a.n_win + w.astype(jnp.int32),
         sum_track=a.sum_track + jnp.where(w, jnp.linalg.norm(ref.p_obj - p_obj) * sim.dt_control, 0.0),
+        sum_invH_plan=a.sum_invH_plan + jnp.where(w, inv_h_plan * sim.dt_control, 0.0),
+        n_boundary_plan=a.n_boundary_plan + (w & (inv_h_plan <= 0.0)).astype(jnp.int32),
+        n_boundary_plan_cone=a.n_boundary_plan_cone + (w & (inv_h_plan <= 0.0) & cone_plan).astype(jnp.int32),
     )
     # a run that went non-finite is frozen (its state no longer advances) so it cannot poison others
     d_next = rs.d.where(finite, d_next)  # Data.where: Warp's shared contact list is not per run

@@ -322,8 +322,9 @@ def results_table(spec: Spec, dz: Design, res: dict):
     extra = {k: v for k, v in dz.levels.items() if k not in ("m", "mu", "d", "push_N")}
     df = pd.DataFrame(dict(run=np.arange(dz.n), m=dz.m, mu=dz.mu, d=dz.d, **extra, rep=dz.rep, seed=dz.seed,
                            success=res["success"]))
-    for k in ("R", "T", "S", "max_slip_mm", "fell", "trunk_low", "body_contact", "dropped", "slid", "hit_wall",
-              "qp_flagged", "qp_flag_fraction", "nonfinite", "overflow", "boundary_fraction", "final_err_mm", "fail_reason", "first_contact_s",
+    for k in ("R", "T", "S", "R_plan", "max_slip_mm", "fell", "trunk_low", "body_contact", "dropped", "slid", "hit_wall",
+              "qp_flagged", "qp_flag_fraction", "nonfinite", "overflow", "boundary_fraction", "boundary_cone_fraction",
+              "boundary_fraction_plan", "boundary_cone_fraction_plan", "final_err_mm", "fail_reason", "first_contact_s",
               "first_contact", "window_s", "min_clearance_mm", "min_clearance_s", "min_clearance_pair"):
         df[k] = res[k]
     df["obj_dx_mm"] = dz.obj_dx * 1e3

@@ -9,7 +9,9 @@ walking pattern (:func:`wbc_jax.planner.capture_point.cp_walk_reference`) -> cen
 Writes into DIR (atomically): ``summary.json`` (per run: mean forward speed, roll/pitch/yaw oscillation
 amplitudes, max |torque| per joint against its limit, CP tracking error; plus the acceptance checks of
 the nominal run and a manifest) and the figures ``fig6_capture_point.png``, ``fig7_speed.png``,
-``fig8_attitude.png``, ``fig10_torques.png``, ``fig11_phase.png``, ``fig12_mass_error.png``.
+``fig8_attitude.png``, ``fig9_snapshots.png`` (the nominal run trotting: N frames side by side over one gait cycle
+in the middle of the walk, :func:`snapshot_times`; rendered offscreen, so without an OpenGL backend it is left out
+and ``summary.json`` ``snapshots`` says why), ``fig10_torques.png``, ``fig11_phase.png``, ``fig12_mass_error.png``.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import json
 import platform
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import NamedTuple
 
 import jax
@@ -42,6 +45,7 @@ SPEED_TARGET, SPEED_TOL = 0.4, 0.05  # [m/s] acceptance of the nominal run
 ATTITUDE_TARGET = 0.02  # [rad] oscillation amplitude target (paper: < 0.01 on its lighter robot)
 STEADY_MARGIN = 1.0  # [s] start-up and stop excluded from the steady-state window
 PROGRESS_MIN = 0.8  # a run "walks" when it stays up and covers this fraction of the planned distance
+SNAPSHOT_SIZE = (240, 320)  # [px] (height, width) of one frame of fig9_snapshots.png
 
 
 @dataclass(frozen=True)
@@ -92,6 +96,7 @@ class TrotLog(NamedTuple):
     qd_leg: jax.Array  # (12,) leg joint velocities [rad/s]
     swing: jax.Array  # (4,) bool
     prim_res: jax.Array
+    qpos: jax.Array  # (nq,) the full configuration (robot and cube), for the snapshots
 
 
 def trunk_rpy(R0, R):
@@ -152,7 +157,7 @@ def control_step(sim: TrotSim, m, rs: TrotRun, plan: CPWalkPlan, R0, gains: Cent
     legs_v, legs_q = jnp.asarray(ids.act_dof[:12]), jnp.asarray(ids.act_qpos[:12])
     log = TrotLog(t=d.time, com=dyn.com, com_vel=dyn.com_vel, xi_d=wr.cp.xi, P=wr.cp.P, v_des=wr.v_xy,
                   rpy=trunk_rpy(R0, dyn.R_base), trunk_z=dyn.p_base[2], tau=tau, tau_grf=dg.tau_grf,
-                  q_leg=d.qpos[legs_q], qd_leg=d.qvel[legs_v], swing=wr.swing, prim_res=dg.prim_res)
+                  q_leg=d.qpos[legs_q], qd_leg=d.qvel[legs_v], swing=wr.swing, prim_res=dg.prim_res, qpos=d.qpos)
     p_lift = jnp.where(wr.swing[:, None], rs.p_lift, dyn.p_foot)
     return TrotRun(d=d_next, cs=cs, p_lift=p_lift, acc=acc), log
 
@@ -192,7 +197,15 @@ def simulate(sim: TrotSim, rs: TrotRun, plan: CPWalkPlan, R0, gains: CentroidalG
     return rs, jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=1), *out)
 
 
-def validate(seconds, stride, step_time, t_four, mass_errors, iters):
+def snapshot_times(t_start: float, t_end: float, step_time: float, n: int) -> np.ndarray:
+    """(n,) times [s] of the Fig. 9 strip: one gait cycle (two steps, both diagonal pairs swinging) in n equal
+    parts, starting at the first step boundary at or after the middle of the walk [t_start, t_end]."""
+    k = np.ceil(((t_start + t_end) / 2 - t_start) / step_time - 1e-9)
+    t0 = min(t_start + k * step_time, max(t_start, t_end - 2 * step_time))
+    return t0 + 2 * step_time * np.arange(n) / max(n, 1)
+
+
+def validate(seconds, stride, step_time, t_four, mass_errors, iters, snapshots: int = 6):
     """Raise WbcJaxError on values the study cannot run with."""
     if not 0 < seconds <= 600:  # finite and bounded: a day of simulated walking would not fit in memory
         raise WbcJaxError(f"--seconds = {seconds}: expected 0 < value <= 600 [s]")
@@ -206,11 +219,14 @@ def validate(seconds, stride, step_time, t_four, mass_errors, iters):
         raise WbcJaxError(f"--mass-errors = {list(mass_errors)}: expected one or more values in (-0.5, 1.0)")
     if not 1 <= iters <= 1000:
         raise WbcJaxError(f"--iters = {iters}: expected 1 <= value <= 1000")
+    if not 0 <= snapshots <= 24:
+        raise WbcJaxError(f"--snapshots = {snapshots}: expected 0 <= value <= 24")
 
 
 def run_trot(out: str, seconds: float = 10.0, stride: float = 0.10, step_time: float = 0.25, t_four: float = 0.08,
              mass_errors=MASS_ERRORS, carry_object: bool = True, iters: int = 40, log_every: int = 5,
-             gains: CentroidalGains | None = None, t_start: float = 0.5, t_settle: float = 0.5) -> dict:
+             gains: CentroidalGains | None = None, t_start: float = 0.5, t_settle: float = 0.5,
+             snapshots: int = 6) -> dict:
     """Run the study (one batch over ``mass_errors``) and write DIR.
 
     Args:
@@ -221,9 +237,10 @@ def run_trot(out: str, seconds: float = 10.0, stride: float = 0.10, step_time: f
         carry_object: keep the cube on the tray (the controller knows its mass); otherwise the cube is
             moved off the robot (it falls freely, touching nothing) and the controller assumes no payload.
         iters: ADMM iterations per control step; log_every: control steps per log sample.
+        snapshots: frames of ``fig9_snapshots.png`` (0: none).
     """
     mass_errors = tuple(float(e) for e in mass_errors)
-    validate(seconds, stride, step_time, t_four, mass_errors, iters)
+    validate(seconds, stride, step_time, t_four, mass_errors, iters, snapshots)
     t_wall = time.perf_counter()
     robot = Robot("flat")
     ids = robot.ids
@@ -276,6 +293,8 @@ def run_trot(out: str, seconds: float = 10.0, stride: float = 0.10, step_time: f
                       jax=jax.__version__, mujoco=mujoco.__version__, python=platform.python_version()),
     )
     with atomic_dir(out, command="wbc-jax trot") as tmp:
+        summary["snapshots"] = write_snapshots(tmp / "fig9_snapshots.png", robot, logs, i0, plan, t_start, t_end,
+                                               step_time, snapshots)
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2))
         plot_figures(tmp, logs, plan, mass_errors, i0, ids, t_start, t_end)
     for r in runs:
@@ -283,8 +302,27 @@ def run_trot(out: str, seconds: float = 10.0, stride: float = 0.10, step_time: f
               f"CP x-error rms {1e3 * r['cp_x_error_rms_m']:.1f} mm, attitude amp "
               + ", ".join(f"{k} {v:.4f}" for k, v in r["attitude_amplitude_rad"].items())
               + f" rad, max |tau|/limit {r['max_tau_ratio']:.2f}")
+    if summary["snapshots"]["written"] is None:
+        print(f"  {summary['snapshots']['reason']}")
     print(f"acceptance: {acceptance}; written to {out}")
     return summary
+
+
+def write_snapshots(path, robot: Robot, logs: TrotLog, i: int, plan: CPWalkPlan, t_start, t_end, step_time,
+                    n: int) -> dict:
+    """Fig. 9: ``n`` frames of run ``i`` side by side at :func:`snapshot_times`, a side view from the robot's right
+    (camera tracking the trunk). Returns ``summary.json``'s ``snapshots``: file written (or None), the frame times
+    [s] and the reason when nothing was written (no frames asked for, or no offscreen OpenGL backend)."""
+    from wbc_jax.analysis.video import render_strip
+
+    at = snapshot_times(t_start, t_end, step_time, n)
+    if n == 0:
+        return dict(written=None, times_s=[], reason="no snapshots: --snapshots 0")
+    h = np.asarray(plan.heading)
+    azimuth = float(np.degrees(np.arctan2(h[1], h[0]))) + 120.0  # looks across the walking direction, from ahead-right
+    why = render_strip(path, robot.mj_model, np.asarray(logs.qpos[i]), np.asarray(logs.t[i]), at, size=SNAPSHOT_SIZE,
+                       track_body=robot.ids.trunk_body, azimuth=azimuth)
+    return dict(written=None if why else Path(path).name, times_s=[round(float(t), 4) for t in at], reason=why or "")
 
 
 def _forward(xy, heading):
