@@ -56,11 +56,11 @@ NV, K = 24, 4  # the transport QP's vdot size and pyramid edges (TransportConfig
 
 def _x_with(lam_b, seed=0):
     """A transport QP solution vector x (TransportConfig().n_var) with Lambda_b = lam_b (4, K) and random other
-    entries (vdot, ground multipliers, slack: must not matter)."""
+    entries (vdot, ground multipliers: must not matter)."""
     from wbc_jax.control.transport import N_FEET, N_OBJ, TransportConfig
 
     n = TransportConfig().n_var
-    assert n == NV + K * (N_FEET + N_OBJ) + 3 * N_FEET  # the layout object_multipliers reads
+    assert n == NV + K * (N_FEET + N_OBJ)  # the layout object_multipliers reads
     x = np.random.default_rng(seed).uniform(-50, 50, n)
     x[NV + K * N_FEET: NV + K * (N_FEET + N_OBJ)] = np.asarray(lam_b, float).ravel()
     return jnp.asarray(x)
@@ -107,7 +107,8 @@ def _accum(**kw):
     z = np.zeros(2)
     base = dict(min_trunk_z=np.array([0.45, 0.45]), max_slip=z, max_lift=z, nonfoot_floor=np.zeros(2, bool),
                 wall_contact=np.zeros(2, bool), max_tau_ratio=z, max_tau_excess=z, sum_prim_res=z,
-                n_flag=np.zeros(2, int), n_steps=np.array([1000, 1000]), sum_track=z, nonfinite=np.zeros(2, bool),
+                n_flag=np.zeros(2, int), sum_qp_iters=np.array([10000, 15000]), max_qp_iters=np.array([10, 60]),
+                n_steps=np.array([1000, 1000]), sum_track=z, nonfinite=np.zeros(2, bool),
                 off_steps=np.zeros(2, int), max_off_s=z, sum_invH=z, sum_acc=z, n_boundary=np.zeros(2, int),
                 first_contact_t=np.full(2, np.nan), first_contact_k=np.full(2, -1), overflow=np.zeros(2, bool),
                 t_end=np.full(2, np.inf), n_win=np.array([1000, 1000]), min_clear=np.full(2, np.inf),
@@ -120,7 +121,7 @@ def _accum(**kw):
 def test_finalize_by_hand():
     dt = 1e-3  # 1000 steps -> T_run = 1 s
     acc = _accum(sum_invH=np.array([0.3, 0.1]), sum_track=np.array([0.002, 0.004]), sum_acc=np.array([0.5, 2.0]),
-                 max_slip=np.array([0.004, 0.012]), n_flag=np.array([0, 20]), n_boundary=np.array([0, 100]),
+                 max_slip=np.array([0.004, 0.012]), n_flag=np.array([1, 20]), n_boundary=np.array([0, 100]),
                  wall_contact=np.array([False, True]), n_boundary_cone=np.array([0, 40]),
                  sum_invH_plan=np.array([0.25, 0.2]), n_boundary_plan=np.array([10, 500]),
                  n_boundary_plan_cone=np.array([0, 100]))
@@ -136,8 +137,10 @@ def test_finalize_by_hand():
     np.testing.assert_allclose(r["boundary_cone_fraction_plan"], [0.0, 0.1])
     assert r["slid"].tolist() == [False, True]
     assert r["hit_wall"].tolist() == [False, True]
-    assert r["qp_flagged"].tolist() == [False, True]  # 2 % > 1 %
-    np.testing.assert_allclose(r["qp_flag_fraction"], [0.0, 0.02])  # 20 of 1000 control steps
+    assert r["qp_flagged"].tolist() == [False, True]  # 0.1 % is the line: 2 % > 0.1 % >= 0.1 %
+    np.testing.assert_allclose(r["qp_flag_fraction"], [0.001, 0.02])  # 1 and 20 of 1000 control steps
+    np.testing.assert_allclose(r["qp_iters_mean"], [10.0, 15.0])
+    assert r["qp_iters_max"].tolist() == [10, 60]
     assert r["success"].tolist() == [True, True]  # sliding, wall contact and QP flags are flags, not failures
 
 

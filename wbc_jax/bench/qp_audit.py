@@ -40,7 +40,8 @@ OBJ_TOL = 1e-3  # relative objective error (issue 22, float32)
 VIOL_TOL = 1e-4  # max violation relative to max(1, |Ax|_inf)
 ACCEPT_FRAC = 0.999  # fraction of sampled QPs within both
 CELLS = ((0.2, 0.4, 0.06), (0.4, 1.0, 0.10), (0.3, 0.7, 0.08), (0.4, 0.4, 0.10))
-_PARTS = {"pol": "polish_passes", "rho": "rho", "a": "adapt_every", "b": "adapt_bias", "r": "ruiz_iters"}  # longest prefix first
+_PARTS = {"tol": "tol", "pol": "polish_passes", "rho": "rho", "a": "adapt_every", "b": "adapt_bias", "r": "ruiz_iters",
+          "e": "eq_rows", "m": "max_iters"}  # longest prefix first
 DEFAULT_VARIANTS = ("it20",)
 
 
@@ -48,19 +49,23 @@ def variants(names=None) -> dict:
     """Named control-loop settings: ``it<N>`` (N warm-started iterations, otherwise :func:`control_qp_settings`),
     ``..._a<K>`` (rho adapted every K iterations, 0: never, one factorization per step), ``..._r<R>`` (R Ruiz
     equilibration passes), ``..._b<B>`` (rho adaptation bias B), ``..._rho<R>`` (initial rho R), ``..._pol<P>`` (P active-set polishing passes
-    after the iterations, 0: none)."""
+    after the iterations, 0: none), ``..._e<E>`` (the first E rows held exactly, ``QPSettings.eq_rows``), ``..._m<M>`` (continue
+    while unconverged up to M iterations, ``QPSettings.max_iters``), ``..._tol<E>`` (flag tolerance 10^-E, abs
+    and rel)."""
     out = {}
     for name in names or DEFAULT_VARIANTS:
         parts = name.split("_")
         if not (parts[0].startswith("it") and parts[0][2:].isdigit()):
-            raise ValueError(f"variant {name!r}: expected it<N>[_a<K>][_b<B>][_rho<R>][_r<R>][_pol<P>]")
+            raise ValueError(f"variant {name!r}: expected it<N>[_a<K>][_b<B>][_rho<R>][_r<R>][_pol<P>][_e<E>][_m<M>][_tol<E>]")
         iters = int(parts[0][2:])
         kw = {}
         for p in parts[1:]:
             key = next((k for k in _PARTS if p.startswith(k)), None)
             if key is None or not p[len(key):].isdigit():
-                raise ValueError(f"variant {name!r}: unknown part {p!r} (expected a<K>, b<B>, rho<R>, r<R> or pol<P>)")
+                raise ValueError(f"variant {name!r}: unknown part {p!r} (expected a<K>, b<B>, rho<R>, r<R>, pol<P>, e<E>, m<M> or tol<E>)")
             kw[_PARTS[key]] = (float if key == "rho" else int)(p[len(key):])
+        if "tol" in kw:
+            kw["eps_abs"] = kw["eps_rel"] = 10.0 ** -kw.pop("tol")
         if "polish_passes" in kw:
             kw["polish"] = kw["polish_passes"] > 0
         out[name] = control_qp_settings(iters, **kw)
@@ -114,6 +119,8 @@ def audit(names=None, scene: str = "transport", seconds: float = 3.0, sample_eve
         acc = state.acc
         run_flag = np.asarray(acc.n_flag) / np.maximum(np.asarray(acc.n_steps), 1)
         ok = (np.asarray(obj_err) <= OBJ_TOL) & (np.asarray(viol) <= VIOL_TOL)
+        worst = [dict(sample=int(i), rel_obj_err=obj_err[i], violation=viol[i], tau_err_Nm=float(tau_err[i]))
+                 for i in np.nonzero(~ok)[0][:20]]
         q3 = lambda a: [float(np.median(a)), float(np.quantile(a, 0.95)), float(np.max(a))]  # noqa: E731
         row = dict(iters=qs.iters, adapt_every=qs.adapt_every, polish_passes=qs.polish_passes if qs.polish else 0,
                    dtype=str(jax.numpy.asarray(1.0).dtype), n_qps=len(tau_err),
@@ -124,6 +131,7 @@ def audit(names=None, scene: str = "transport", seconds: float = 3.0, sample_eve
                    trunk_min_m=float(np.min(np.asarray(acc.min_trunk_z))),
                    flag_frac=float(np.sum(np.asarray(acc.n_flag)) / np.sum(np.asarray(acc.n_steps))),
                    flag_frac_worst_run=float(np.max(run_flag)), n_steps=int(np.sum(np.asarray(acc.n_steps))),
+                   rejected=worst,
                    wall_s=time.perf_counter() - t0)
         rows[name] = row
         print(f"{name:10s} accept {row['accept_frac']:.4f} ({'>=' if row['accepted'] else '<'} {ACCEPT_FRAC}) "

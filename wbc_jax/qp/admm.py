@@ -143,14 +143,46 @@ class State(NamedTuple):
     bad: jax.Array  # () bool, a non-finite step was rejected
 
 
-def _row_weights(eq, free, act, s: QPSettings):
+def _row_weights(eq, free, ex, act, s: QPSettings):
     """(m,) per-row rho factors: equality rows ``rho_eq_scale``, inequality rows 1, free
-    rows 0 (they use ``rho_min``); when warm (``act`` given), inequality rows active at
-    the warm point (nonzero dual) ``warm_active_scale``."""
+    rows 0 (they use ``rho_min``), rows held exactly in the x-update (``ex``) 0; when warm
+    (``act`` given), inequality rows active at the warm point (nonzero dual)
+    ``warm_active_scale``."""
     w = jnp.where(eq, s.rho_eq_scale, 1.0)
     if act is not None:
         w = jnp.where(eq, w, jnp.where(act, s.warm_active_scale, 1.0))
-    return jnp.where(free, 0.0, w)
+    return jnp.where(free | ex, 0.0, w)
+
+
+class KKT(NamedTuple):
+    """The x-update's linear operator (one per segment).
+
+    ``fac`` factors ``K = P + sigma I + A' diag(rho) A`` (ADMM rows only); with exact rows
+    (``QPSettings.eq_rows > 0``) also ``Ae`` (ne, n) their rows (zero for rows not held),
+    ``W = K^-1 Ae'`` (n, ne) and ``Sf``, the factor of the Schur complement ``S = Ae W``
+    (ne, ne; identity on rows not held, so their multiplier stays 0)."""
+
+    fac: Any
+    Ae: Any = None
+    W: Any = None
+    Sf: Any = None
+
+
+def _kkt_factor(K, Ae, ex_e, linsolve: str) -> KKT:
+    """Factor the x-update's KKT system ``[[K, Ae'], [Ae, 0]]`` (:class:`KKT`).
+
+    ``S`` gets a regularization of the dtype's epsilon times its largest diagonal entry (dependent
+    equality rows); the residual form of the step corrects what it leaves.
+    """
+    fac = factor(K, linsolve)
+    if Ae is None:
+        return KKT(fac)
+    W = solve(fac, Ae.T, linsolve)
+    S = mv(Ae, W)
+    S = 0.5 * (S + S.T)
+    reg = jnp.finfo(S.dtype).eps * jnp.max(jnp.abs(jnp.diagonal(S)), initial=0.0) + jnp.finfo(S.dtype).tiny
+    S = S + jnp.diag(jnp.where(ex_e, reg, 1.0))
+    return KKT(fac, Ae, W, factor(S, linsolve))
 
 
 def _rho_vec(rho, w, free, s: QPSettings):
@@ -171,23 +203,55 @@ def _gram(sp: Scaled, w, free, s: QPSettings):
     return K0, G
 
 
-def _step(sp: Scaled, fac, rho_v, s: QPSettings, st: State) -> State:
+def _step(sp: Scaled, kkt: KKT, rho_v, ex, free, s: QPSettings, st: State) -> State:
     """One OSQP iteration in the scaled problem; rejects a non-finite result.
 
     The x-update is ``x~ = x - K^-1 (P x + q + A'(y + rho (A x - z)))``: OSQP's step in
     exact arithmetic, but its fixed point does not depend on the solve's rounding.
+    With exact rows (``ex``, rho 0, ``y`` their multiplier) the step ``(dx, dnu)`` solves
+    ``[[K, Ae'], [Ae, 0]] [dx; dnu] = [-r; b - Ae x]`` (Schur complement), so ``Ae x~ = b``
+    and the fixed point is again independent of the factors' rounding.
     """
-    r = mv(sp.P, st.x) + sp.q + mv(sp.A.T, st.y + rho_v * (mv(sp.A, st.x) - st.z))
-    xt = st.x - solve(fac, r, s.linsolve)
+    ax = mv(sp.A, st.x)
+    r = mv(sp.P, st.x) + sp.q + mv(sp.A.T, st.y + rho_v * (ax - st.z))
+    t = solve(kkt.fac, r, s.linsolve)
+    if kkt.Ae is not None:
+        ne = kkt.Ae.shape[0]
+        e = jnp.where(ex[:ne], sp.l[:ne] - ax[:ne], 0.0)
+        dnu = -solve(kkt.Sf, e + mv(kkt.Ae, t), s.linsolve)
+        xt = st.x - t - mv(kkt.W, dnu)
+    else:
+        xt = st.x - t
     zt = mv(sp.A, xt)
     x = s.alpha * xt + (1.0 - s.alpha) * st.x
     zr = s.alpha * zt + (1.0 - s.alpha) * st.z
-    z = jnp.clip(zr + st.y / rho_v, sp.l, sp.u)
+    z = jnp.clip(zr + st.y / jnp.where(ex, 1.0, rho_v), sp.l, sp.u)  # exact rows: l == u
     y = st.y + rho_v * (zr - z)
+    # rows without bounds carry no constraint: z = A x exactly (not the relaxed z, which would lag behind A x by
+    # a factor |1 - alpha| per iteration after a row turns free, e.g. a foot lifting off), y = 0
+    z = jnp.where(free, s.alpha * zt + (1.0 - s.alpha) * ax, z)
+    y = jnp.where(free, 0.0, y)
+    if kkt.Ae is not None:
+        y = y.at[:ne].add(jnp.where(ex[:ne], dnu, 0.0))
     ok = all_finite(x, z, y)
     new = State(x, z, y, x - st.x, y - st.y, st.bad)
     old = st._replace(bad=jnp.ones((), bool))
     return jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), new, old)
+
+
+def _project(sp: Scaled, kkt: KKT, ex, st: State, linsolve: str) -> State:
+    """Move ``x`` onto the exact rows (``Ae x = b``) by the smallest correction in ``K``'s norm.
+
+    Over-relaxation keeps an affine constraint only when both points satisfy it, so a warm point that violates
+    a row just turned into an equality (a foot touching down) would otherwise see its error shrink only by a
+    factor ``|1 - alpha|`` per iteration. No-op without exact rows.
+    """
+    if kkt.Ae is None:
+        return st
+    ne = kkt.Ae.shape[0]
+    e = jnp.where(ex[:ne], sp.l[:ne] - mv(kkt.Ae, st.x), 0.0)
+    x = st.x + mv(kkt.W, solve(kkt.Sf, e, linsolve))
+    return st._replace(x=jnp.where(all_finite(x), x, st.x))
 
 
 def _adapt(sp: Scaled, st: State, rho, s: QPSettings):
@@ -199,33 +263,67 @@ def _adapt(sp: Scaled, st: State, rho, s: QPSettings):
     return jnp.where(change & jnp.isfinite(est), est, rho)
 
 
-def _run(sp, st, rho, w, free, s: QPSettings, iters: int):
-    """``iters`` iterations in segments of ``adapt_every`` with refactor in between."""
+def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
+    """``iters`` iterations in segments of ``adapt_every`` with refactor in between.
+
+    Returns:
+        ``(st, rho, cont)``: the iterate, the (adapted) rho for the next solve, and ``cont(st, length)``, which
+        runs ``length`` more iterations with the last segment's factorization (for the convergence-checked
+        extension, ``QPSettings.max_iters``).
+    """
     k = s.adapt_every if 0 < s.adapt_every < iters else iters
+    ne = min(s.eq_rows, sp.A.shape[0])
     with jax.named_scope("qp_factor"):
         K0, G = _gram(sp, w, free, s)
+        Ae = sp.A[:ne] * ex[:ne, None] if ne > 0 else None
 
-    def segment(length):
-        def seg(carry, _):
-            st, rho = carry
-            rho_v = _rho_vec(rho, w, free, s)
-            with jax.named_scope("qp_factor"):
-                fac = factor(K0 + rho * G, s.linsolve)
-            st, _ = lax.scan(lambda c, _: (_step(sp, fac, rho_v, s, c), None), st, None,
-                             length=length, unroll=s.unroll)
+    def make_kkt(rho):
+        with jax.named_scope("qp_factor"):
+            return _kkt_factor(K0 + rho * G, Ae, ex[:ne], s.linsolve), _rho_vec(rho, w, free, s) * (~ex)
+
+    def iterate(st, kkt, rho_v, length):
+        st = _project(sp, kkt, ex, st, s.linsolve)
+        st, _ = lax.scan(lambda c, _: (_step(sp, kkt, rho_v, ex, free, s, c), None), st, None,
+                         length=length, unroll=s.unroll)
+        return st
+
+    with jax.named_scope("qp_iterations"):
+        if k == iters:  # one factorization per solve (the control loops' setting)
+            kkt, rho_v = make_kkt(rho)
+            st = iterate(st, kkt, rho_v, iters)
             if s.adapt_every > 0:
                 rho = _adapt(sp, st, rho, s)
-            return (st, rho), None
-        return seg
+            return st, rho, lambda st, length: iterate(st, kkt, rho_v, length)
 
-    carry = (st, rho)
-    n_full, rem = divmod(iters, k) if k > 0 else (0, 0)
-    with jax.named_scope("qp_iterations"):
-        if n_full > 0:
-            carry, _ = lax.scan(segment(k), carry, None, length=n_full, unroll=s.unroll)
+        def seg(carry, _, length=k):
+            st, rho = carry
+            st = iterate(st, *make_kkt(rho), length)
+            return (st, _adapt(sp, st, rho, s)), None
+
+        n_full, rem = divmod(iters, k)
+        carry, _ = lax.scan(seg, (st, rho), None, length=n_full, unroll=s.unroll)
         if rem > 0:
-            carry, _ = segment(rem)(carry, None)
-    return carry
+            carry, _ = seg(carry, None, rem)
+        st, rho = carry
+        return st, rho, lambda st, length: iterate(st, *make_kkt(rho), length)
+
+
+def _unscaled(P, q, A, sp: Scaled, st: State, s: QPSettings):
+    """The iterate in the user's units and OSQP's convergence test.
+
+    Returns:
+        ``(x, z, y, prim, dual, converged)``: (n,), (m,), (m,), ``||A x - z||_inf``, ``||P x + q + A'y||_inf``
+        and () bool, both within ``eps_abs + eps_rel * scale``.
+    """
+    x = sp.D * st.x
+    z = st.z / sp.E
+    y = sp.E * st.y / sp.c
+    ax, px, aty = mv(A, x), mv(P, x), mv(A.T, y)
+    prim = inf_norm(ax - z)
+    dual = inf_norm(px + q + aty)
+    prim_tol = s.eps_abs + s.eps_rel * jnp.maximum(inf_norm(ax), inf_norm(z))
+    dual_tol = s.eps_abs + s.eps_rel * jnp.maximum(jnp.maximum(inf_norm(px), inf_norm(aty)), inf_norm(q))
+    return x, z, y, prim, dual, (prim <= prim_tol) & (dual <= dual_tol)
 
 
 def _certificates(P, q, A, l, u, dx, dy, s: QPSettings):
@@ -260,6 +358,7 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
         sp = equilibrate(P, q, A, l, u, s.ruiz_iters, s.unroll)
     free = (l <= -BIG) & (u >= BIG)
     eq = jnp.abs(sp.u - sp.l) < _EQ_TOL
+    ex = (jnp.arange(m) < s.eq_rows) & eq & ~free  # held exactly in the x-update
     # Scaled start: x = D xb, z = zb / E, y = E yb / c.
     if warm is None:
         xb, zb, yb = jnp.zeros(n, dt), jnp.zeros(m, dt), jnp.zeros(m, dt)
@@ -276,29 +375,34 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     if warm is not None and s.warm_active_scale != 1.0:
         # ADMM's y is zero on rows inside their bounds up to rounding of y - rho (y / rho).
         act = jnp.abs(yb) > 100 * jnp.finfo(dt).eps * inf_norm(yb)
-    w = _row_weights(eq, free, act, s)
-    zb = jnp.clip(zb, sp.l, sp.u)
+    w = _row_weights(eq, free, ex, act, s)
+    zb = jnp.where(free, mv(sp.A, xb), jnp.clip(zb, sp.l, sp.u))
+    yb = jnp.where(free, 0.0, yb)
     st = State(xb, zb, yb, jnp.zeros(n, dt), jnp.zeros(m, dt), jnp.zeros((), bool))
-    st, rho = _run(sp, st, rho, w, free, s, iters)
+    st, rho, cont = _run(sp, st, rho, w, free, ex, s, iters)
+    n_it = jnp.asarray(iters, jnp.int32)
+    if s.max_iters > iters:
+        # convergence-checked extension: blocks of check_every iterations while outside tolerance
+        def unconverged(c):
+            st, k = c
+            return (k < s.max_iters) & ~_unscaled(P, q, A, sp, st, s)[5] & ~st.bad
+
+        def more(c):
+            st, k = c
+            return cont(st, s.check_every), k + s.check_every
+
+        with jax.named_scope("qp_iterations"):
+            st, n_it = lax.while_loop(unconverged, more, (st, n_it))
     if s.polish:
         x, z, y = polish(sp, st.x, st.z, st.y, eq, free, s)
         st = st._replace(x=x, z=z, y=y)
     with jax.named_scope("qp_residuals"):
         # Unscale and evaluate in the user's units.
-        x = sp.D * st.x
-        z = st.z / sp.E
-        y = sp.E * st.y / sp.c
+        x, z, y, prim, dual, converged = _unscaled(P, q, A, sp, st, s)
         dx = sp.D * st.dx
         dy = sp.E * st.dy / sp.c
-        ax, px, aty = mv(A, x), mv(P, x), mv(A.T, y)
-        prim = inf_norm(ax - z)
-        dual = inf_norm(px + q + aty)
-        prim_tol = s.eps_abs + s.eps_rel * jnp.maximum(inf_norm(ax), inf_norm(z))
-        dual_tol = s.eps_abs + s.eps_rel * jnp.maximum(jnp.maximum(inf_norm(px), inf_norm(aty)),
-                                                       inf_norm(q))
         pinf, dinf = _certificates(P, q, A, l, u, dx, dy, s)
         finite = all_finite(x, y, z, prim, dual) & ~st.bad
-        converged = (prim <= prim_tol) & (dual <= dual_tol)
         flag = jnp.where(~finite, FLAG_NONFINITE,
                          jnp.where(empty | pinf, FLAG_PRIMAL_INFEASIBLE,
                                    jnp.where(dinf, FLAG_DUAL_INFEASIBLE,
@@ -309,7 +413,7 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
         return QPResult(
             x=clean(x), y=clean(y), z=clean(z),
             prim_res=res_clean(prim), dual_res=res_clean(dual),
-            flag=flag.astype(jnp.int32), iters=jnp.asarray(iters, jnp.int32),
+            flag=flag.astype(jnp.int32), iters=n_it,
             rho=jnp.nan_to_num(rho, nan=s.rho).astype(dt))
 
 

@@ -72,6 +72,17 @@ class QPSettings(NamedTuple):
         polish_passes: active-set passes (one n x n Cholesky each).
         polish_delta: regularization of the KKT system (scaled problem).
         polish_refine: iterative-refinement steps per pass.
+        eq_rows: the first ``eq_rows`` rows are held exactly in every x-update instead of through ADMM's
+            rho: those of them with ``l == u`` (equalities) enter the x-update's KKT system, solved through the
+            Schur complement of the equality block (:func:`wbc_jax.qp.admm._kkt_factor`); those with no bound
+            (free, e.g. a swing foot's stance row) are ignored; any other of them stays an ADMM row. Their
+            ``y`` is the KKT multiplier. 0: OSQP's scheme for every row (equalities through
+            ``rho * rho_eq_scale``).
+        max_iters: 0: exactly ``iters`` iterations. Larger: after ``iters``, blocks of ``check_every`` more
+            iterations (same factorization) while the residuals are outside tolerance, up to ``max_iters``.
+            Under ``vmap`` the block loop runs until the batch's slowest problem converges (converged problems
+            keep their result), so its cost is paid only at steps where some problem needs it (contact events).
+        check_every: iterations per block of the extension (one convergence test each).
     """
 
     iters: int = 100
@@ -96,6 +107,9 @@ class QPSettings(NamedTuple):
     polish_passes: int = 6
     polish_delta: float = 1e-6
     polish_refine: int = 3
+    eq_rows: int = 0
+    max_iters: int = 0
+    check_every: int = 10
 
 
 class QPResult(NamedTuple):
@@ -108,7 +122,7 @@ class QPResult(NamedTuple):
         prim_res: () ``||A x - z||_inf`` (units of the rows).
         dual_res: () ``||P x + q + A'y||_inf`` (units of the cost gradient).
         flag: () int32, ``FLAG_*`` (0 = converged to tolerance).
-        iters: () int32, iterations run.
+        iters: () int32, iterations run (``iters`` plus the extension's, ``QPSettings.max_iters``).
         rho: () final (adapted) rho of the scaled problem; a warm start reuses it.
     """
 

@@ -72,7 +72,7 @@ MAX_OFF_S = 0.05  # [s] object touching nothing on the tray for longer than this
 FALL_Z_FLAT = 0.3  # [m] trunk below this on flat ground sets `fell`
 FALL_Z_COURSE = 0.15  # [m] the same on the obstacle course (the robot crouches under the wall)
 DONE_TOL = 0.05  # [m] final object error above this: transport not completed
-QP_FLAG_FRACTION = 0.01  # more than this fraction of flagged QPs sets `qp_flagged`
+QP_FLAG_FRACTION = 0.001  # more than this fraction of flagged QPs sets `qp_flagged` (issue 22's line: 0.1 %)
 
 
 def contact_forces(m, d, slots) -> jax.Array:
@@ -129,8 +129,8 @@ def planned_contact_forces(lam_b, mu, k: int) -> jax.Array:
 
 
 def object_multipliers(x, nv: int, k: int, n_feet: int = 4, n_obj: int = 4) -> jax.Array:
-    """Lambda_b (n_obj, k) from a transport QP solution x = [vdot (nv), Lambda_gr (k n_feet), Lambda_b (k n_obj),
-    gamma (3 n_feet)] (``wbc_jax.control.transport``'s variable layout)."""
+    """Lambda_b (n_obj, k) from a transport QP solution x = [vdot (nv), Lambda_gr (k n_feet), Lambda_b (k n_obj)]
+    (``wbc_jax.control.transport``'s variable layout)."""
     return x[nv + k * n_feet: nv + k * (n_feet + n_obj)].reshape(n_obj, k)
 
 
@@ -174,6 +174,7 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
         min_clearance_mm (non-foot robot geom vs floor, terrain, wall; +inf: none reported) and min_clearance_s
         (its time; NaN: none), flags fell (= trunk_low or body_contact),
         trunk_low, body_contact, dropped, slid, hit_wall, qp_flag_fraction (of the control steps), qp_flagged,
+        qp_iters_mean and qp_iters_max (ADMM iterations per control step: mean and most),
         nonfinite, overflow (Warp's contact or
         constraint capacity reached), success (no fall, no drop, finite, no overflow,
         final object error <= DONE_TOL) and fail_reason (text, "" for a success).
@@ -209,6 +210,8 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
         slid=np.asarray(acc.max_slip) > SLIP_LIMIT,
         hit_wall=np.asarray(acc.wall_contact),
         qp_flag_fraction=np.asarray(acc.n_flag) / np.maximum(n, 1),
+        qp_iters_mean=np.asarray(acc.sum_qp_iters) / np.maximum(n, 1),
+        qp_iters_max=np.asarray(acc.max_qp_iters),
         qp_flagged=np.asarray(acc.n_flag) / np.maximum(n, 1) > QP_FLAG_FRACTION,
         nonfinite=nonfinite,
         overflow=np.asarray(acc.overflow),

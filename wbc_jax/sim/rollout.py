@@ -79,6 +79,8 @@ class Accum(NamedTuple):
     max_tau_excess: jax.Array  # [N m] largest unclipped-torque excess over the limit
     sum_prim_res: jax.Array
     n_flag: jax.Array  # steps whose QP was flagged
+    sum_qp_iters: jax.Array  # int32, ADMM iterations over the control steps (QPSettings.max_iters: varies per step)
+    max_qp_iters: jax.Array  # int32, most iterations one control step took
     n_steps: jax.Array  # int32, control steps
     sum_track: jax.Array  # integral of ||p_obj,ref - p_obj|| [m s]
     nonfinite: jax.Array  # bool (physics rate)
@@ -209,7 +211,8 @@ def init_state(sim: Sim, m, qpos0, qvel0=None, n_runs: int = 1) -> RunState:
     z = jnp.zeros(())
     acc = Accum(min_trunk_z=dyn.p_base[2], max_slip=z, max_lift=z, nonfoot_floor=jnp.bool_(False),
                 wall_contact=jnp.bool_(False), max_tau_ratio=z, max_tau_excess=jnp.full((), -jnp.inf, z.dtype), sum_prim_res=z,
-                n_flag=jnp.zeros((), jnp.int32), n_steps=jnp.zeros((), jnp.int32), sum_track=z,
+                n_flag=jnp.zeros((), jnp.int32), sum_qp_iters=jnp.zeros((), jnp.int32),
+                max_qp_iters=jnp.zeros((), jnp.int32), n_steps=jnp.zeros((), jnp.int32), sum_track=z,
                 nonfinite=jnp.bool_(False), off_steps=jnp.zeros((), jnp.int32), max_off_s=z,
                 sum_invH=z, sum_acc=z, n_boundary=jnp.zeros((), jnp.int32), first_contact_t=jnp.full((), jnp.nan, z.dtype),
                 first_contact_k=jnp.full((), -1, jnp.int32), overflow=jnp.bool_(False),
@@ -445,6 +448,8 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
         max_tau_excess=jnp.maximum(a.max_tau_excess, qd.tau_excess),
         sum_prim_res=a.sum_prim_res + qd.prim_res,
         n_flag=a.n_flag + (qd.flag != 0).astype(jnp.int32),
+        sum_qp_iters=a.sum_qp_iters + qd.iters,
+        max_qp_iters=jnp.maximum(a.max_qp_iters, qd.iters),
         n_steps=a.n_steps + 1,
         n_win=a.n_win + w.astype(jnp.int32),
         sum_track=a.sum_track + jnp.where(w, jnp.linalg.norm(ref.p_obj - p_obj) * sim.dt_control, 0.0),

@@ -323,7 +323,7 @@ def results_table(spec: Spec, dz: Design, res: dict):
     df = pd.DataFrame(dict(run=np.arange(dz.n), m=dz.m, mu=dz.mu, d=dz.d, **extra, rep=dz.rep, seed=dz.seed,
                            success=res["success"]))
     for k in ("R", "T", "S", "R_plan", "max_slip_mm", "fell", "trunk_low", "body_contact", "dropped", "slid", "hit_wall",
-              "qp_flagged", "qp_flag_fraction", "nonfinite", "overflow", "boundary_fraction", "boundary_cone_fraction",
+              "qp_flagged", "qp_flag_fraction", "qp_iters_mean", "qp_iters_max", "nonfinite", "overflow", "boundary_fraction", "boundary_cone_fraction",
               "boundary_fraction_plan", "boundary_cone_fraction_plan", "final_err_mm", "fail_reason", "first_contact_s",
               "first_contact", "window_s", "min_clearance_mm", "min_clearance_s", "min_clearance_pair"):
         df[k] = res[k]
