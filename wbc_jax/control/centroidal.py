@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from wbc_jax.control.centroidal_dynamics import centroidal_terms
-from wbc_jax.control.dynamics import GRAVITY, DynTerms, rot_error
+from wbc_jax.control.dynamics import GRAVITY, DynTerms, full_precision, rot_error
 from wbc_jax.control.transport import control_qp_settings
 from wbc_jax.sim.model import RobotIds, mjx
 from wbc_jax.qp import QPResult, QPSettings, solve_qp
@@ -288,6 +288,7 @@ def swing_leg_feedback(dyn: DynTerms, ref: CentroidalRef, gains: CentroidalGains
     return jnp.where(ref.swing[:, None], fb, 0.0).reshape(12)
 
 
+@full_precision
 def centroidal_control(m, d, dyn: DynTerms, ref: CentroidalRef, gains: CentroidalGains, cs: CentroidalState,
                        ids: RobotIds, cfg: CentroidalConfig):
     """One control step: momentum references, QP, torques (eqs. 34-36).

@@ -9,6 +9,8 @@ body-frame angular velocity of the trunk, which the Jacobians already account fo
 
 from __future__ import annotations
 
+import functools
+
 from typing import NamedTuple
 
 import jax
@@ -98,6 +100,22 @@ def mass_matrix(m, d) -> jax.Array:
     return L + jnp.tril(L, -1).T
 
 
+def full_precision(fn):
+    """``fn`` traced with float32 matrix products at full precision.
+
+    On Ampere and later GPUs JAX's default float32 matmul rounds its inputs to TF32 (about 1e-3 relative): the
+    controller's QP data would then carry errors of that size, and ``H' Q H`` would not even be symmetric, so a
+    QP residual could not go below ~1e-3 of its scale (issue 22: on an H100 27 % of the control steps ran into the
+    iteration cap at tolerance 1e-4, 0 % on the CPU). Same results on the CPU.
+    """
+    @functools.wraps(fn)
+    def wrapped(*args, **kwargs):
+        with jax.default_matmul_precision("highest"):
+            return fn(*args, **kwargs)
+    return wrapped
+
+
+@full_precision
 def dyn_terms(m, d, ids: RobotIds) -> DynTerms:
     """Gather :class:`DynTerms` from sensed MJX data (:func:`wbc_jax.sim.physics.sense`)."""
     nvr = ids.nv_robot

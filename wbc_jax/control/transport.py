@@ -35,7 +35,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from wbc_jax.control.dynamics import GRAVITY, DynTerms, cone_edges, point_jacobians, rot_error, wrench_map
+from wbc_jax.control.dynamics import (GRAVITY, DynTerms, cone_edges, full_precision, point_jacobians, rot_error,
+                                      wrench_map)
 from wbc_jax.control.variants import FULL, Variant
 from wbc_jax.sim.model import RobotIds
 from wbc_jax.qp import QPResult, QPSettings, solve_qp
@@ -414,6 +415,7 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     return P, q, A, l, u, A_tau, h_a, H_net
 
 
+@full_precision
 def assemble(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gains: TransportGains, cs: ControlState,
              ids: RobotIds, cfg: TransportConfig, mu_ground=1.0):
     """Observer step and the QP of this control step: (new ObserverState, :func:`build_qp`'s outputs)."""
@@ -425,6 +427,7 @@ def assemble(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gains: Transp
     return obs, build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, obs.r, ids, cfg, mu_ground, cs.q_post, cs.variant)
 
 
+@full_precision
 def transport_control(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gains: TransportGains,
                       cs: ControlState, ids: RobotIds, cfg: TransportConfig, mu_ground=1.0):
     """One control step: observer, QP, torques.

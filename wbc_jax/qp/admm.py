@@ -349,6 +349,7 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     if not jnp.issubdtype(dt, jnp.floating):
         dt = jnp.result_type(float)
     P, q, A, l, u = (jnp.asarray(a, dt) for a in (P, q, A, l, u))
+    P = 0.5 * (P + P.T)  # the problem solved and tested (an asymmetric P's dual residual has a floor)
     n, m = P.shape[-1], A.shape[0]
     big = jnp.asarray(BIG, dt)
     l = jnp.clip(jnp.nan_to_num(l, nan=-BIG, neginf=-BIG), -big, big)
