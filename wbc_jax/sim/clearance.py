@@ -1,0 +1,247 @@
+"""Exact clearance between the robot's non-foot geoms and the scene's static geoms (issue 24), from the geoms' world
+poses (``d.geom_xpos``, ``d.geom_xmat``, which both MJX backends fill) and the model's sizes.
+
+Why not MJX's contact slots: the JAX backend's capsule-box collider reports the distance of its candidate contact
+points, which is not the pair's distance when the box's closest feature is an edge and the pair does not touch
+(a crouched shank 2.8 mm above block2's far edge reads 5.0 mm; 24.1 mm reads 27.8 mm), and a pair beyond the
+collision margin reads 1 m; on Warp a pair's distance is reported only while it penetrates. The distances here
+are the same on both backends and exact when positive:
+
+* **capsule / plane** (and box / plane, sphere / plane): the lowest segment end (box vertex, sphere centre) along
+  the plane normal, minus the radius: exact, signed (the plane is a half-space).
+* **capsule / box**: the smallest signed distance (box SDF) of a point of the capsule's segment, minus the radius.
+  The SDF along the segment is convex, and its minimum is at one of 29 closed-form candidate points, all
+  evaluated at once (no iteration): the two ends; per box edge, the segment's point closest to that edge
+  (segment-segment closest points), which covers every minimum outside the box (the closest box feature is a
+  vertex, an edge, or a face whose minimum along the segment is at an end or where the segment's projection leaves
+  the face, i.e. at an edge); inside the box the SDF is max_i(|p_i| - h_i), piecewise linear, with its breakpoints
+  where a coordinate crosses 0 (3) or two face terms are equal (3 axis pairs x 4 signs). Exact when positive;
+  when the segment enters the box it is the depth of the segment's deepest point below the nearest face, minus
+  the radius. MuJoCo's capsule-box depth is a different measure of a penetration (its contact points'
+  depth; e.g. -19.0 mm where this reads -25.0 mm for a shank well into a block's top), so only the sign and the
+  order of magnitude of a penetration compare.
+* **sphere / box**: the box SDF at the centre, minus the radius (exact, signed).
+* **box / box** (trunk or tray vs a wall; trunk vs a block): separated, the smallest of the 8 + 8 vertex-to-box
+  SDFs and the 144 edge-edge distances (exact: a closest pair is a vertex against the other box, two edges, or
+  face/face, face/edge contacts whose closest sets end at vertices or edge crossings); overlapping (no separating
+  axis among the 15 of the separating-axis test), minus the smallest overlap over those axes, which is the exact
+  penetration depth (minimum translation distance) of two boxes.
+
+Which pairs (:func:`clearance_pairs`): every robot geom (not a foot, not the carried object) that the scene pairs
+with the floor or the terrain, against the floor and every terrain block; and every robot geom that the scene pairs
+with a wall part, against every wall part. A pair the scene does not list (e.g. a thigh against a block) is
+measured too, at no physics cost (the clearance is not a contact). Sizes are the scene's (static); poses are per
+run. Other geom types raise :class:`wbc_jax.errors.SceneError` when the pairs are built.
+"""
+
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from wbc_jax.errors import SceneError
+
+_PLANE, _SPHERE, _CAPSULE, _BOX = (int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_SPHERE),
+                                   int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_BOX))
+_ROBOT_TYPES = {_SPHERE: "sphere", _CAPSULE: "capsule", _BOX: "box"}
+_ENV_TYPES = {_PLANE: "plane", _BOX: "box"}
+KINDS = ("capsule_plane", "capsule_box", "sphere_plane", "sphere_box", "box_plane", "box_box")  # pair order
+
+# unit box: 8 corners, 12 edges (axis i from -1 to +1 at the 4 sign combinations of the other two)
+_CORNERS = np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
+_EDGES = np.array([[np.insert([s1, s2], i, -1.0), np.insert([s1, s2], i, 1.0)]
+                   for i in range(3) for s1 in (-1.0, 1.0) for s2 in (-1.0, 1.0)])  # (12, 2, 3)
+_SIGNS = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
+_AXIS_PAIRS = np.array([[0, 1], [0, 2], [1, 2]])
+
+
+@dataclass(frozen=True, eq=False)
+class ClearancePairs:
+    """The measured pairs of a scene, in :data:`KINDS` order (a pair's index is its position here).
+
+    Attributes:
+        robot, env: (n,) geom ids of each pair's robot geom and scene geom.
+        kind: (n,) index into :data:`KINDS`.
+        size: (n, 3) the robot geom's size (capsule: radius, half-length; sphere: radius; box: half-sizes).
+        env_size: (n, 3) the scene geom's size (box: half-sizes; plane: unused).
+    """
+
+    robot: np.ndarray
+    env: np.ndarray
+    kind: np.ndarray
+    size: np.ndarray
+    env_size: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.robot.size)
+
+
+_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def clearance_pairs(robot) -> ClearancePairs:
+    """The pairs measured for ``robot``'s scene (module docstring; computed once per Robot)."""
+    if robot not in _CACHE:
+        _CACHE[robot] = _build_pairs(robot.mj_model, robot.ids)
+    return _CACHE[robot]
+
+
+def _build_pairs(m: mujoco.MjModel, ids) -> ClearancePairs:
+    g1, g2 = np.asarray(m.pair_geom1), np.asarray(m.pair_geom2)
+    fp = np.asarray(ids.foot_pair, int).ravel()
+    ground = np.unique(np.concatenate([[ids.floor_geom], np.where(np.isin(g1[fp], ids.foot_geom), g2[fp], g1[fp])]))
+    wall = np.array([i for i in range(m.ngeom) if (m.geom(i).name or "").startswith("wall")], int)
+
+    def robot_side(pairs, env):
+        p = np.asarray(pairs, int)
+        r = np.where(np.isin(g1[p], env), g2[p], g1[p])
+        keep = ~np.isin(r, ids.foot_geom) & (m.geom_bodyid[r] != ids.obj_body) & (m.geom_bodyid[r] != 0)
+        return np.unique(r[keep])
+
+    cand = [(r, e) for r in robot_side(ids.nonfoot_floor_pair, ground) for e in ground]
+    cand += [(r, e) for r in robot_side(ids.wall_pair, wall) for e in wall]
+    rows = []
+    for r, e in cand:
+        tr, te = int(m.geom_type[r]), int(m.geom_type[e])
+        if tr not in _ROBOT_TYPES or te not in _ENV_TYPES:
+            raise SceneError(f"clearance: geom pair {m.geom(int(r)).name!r} ({tr}) / {m.geom(int(e)).name!r} ({te}): "
+                             "robot geoms must be capsules, spheres or boxes, scene geoms planes or boxes")
+        rows.append((KINDS.index(f"{_ROBOT_TYPES[tr]}_{_ENV_TYPES[te]}"), int(r), int(e)))
+    rows.sort(key=lambda x: x[0])  # stable: pairs keep their order within a kind
+    k = np.array([x[0] for x in rows], int).reshape(-1)
+    r = np.array([x[1] for x in rows], int).reshape(-1)
+    e = np.array([x[2] for x in rows], int).reshape(-1)
+    return ClearancePairs(robot=r, env=e, kind=k, size=np.asarray(m.geom_size[r], float).reshape(-1, 3),
+                          env_size=np.asarray(m.geom_size[e], float).reshape(-1, 3))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# primitives (one pair; vmapped over the pairs of a kind)
+
+def box_sdf(p, h):
+    """Signed distance of point(s) ``p`` (..., 3) (box frame) to the box of half-sizes ``h`` (3,)."""
+    q = jnp.abs(p) - h
+    return jnp.linalg.norm(jnp.maximum(q, 0.0), axis=-1) + jnp.minimum(jnp.max(q, axis=-1), 0.0)
+
+
+def _seg_seg(p1, q1, p2, q2):
+    """Closest points of segments p1-q1 and p2-q2 (both of nonzero length; Ericson, Real-Time Collision Detection
+    5.1.9, parallel case included): (s, t) parameters on each."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a, e, f = d1 @ d1, d2 @ d2, d2 @ r
+    c, b = d1 @ r, d1 @ d2
+    den = a * e - b * b
+    s = jnp.where(den > 1e-10 * a * e, jnp.clip((b * f - c * e) / jnp.where(den > 0, den, 1.0), 0.0, 1.0), 0.0)
+    t = (b * s + f) / e
+    s = jnp.where(t < 0.0, jnp.clip(-c / a, 0.0, 1.0), jnp.where(t > 1.0, jnp.clip((b - c) / a, 0.0, 1.0), s))
+    return s, jnp.clip(t, 0.0, 1.0)
+
+
+def segment_box(a, b, h):
+    """Smallest box SDF over the segment a-b (box frame; box half-sizes ``h``): exact (module docstring)."""
+    D = b - a
+    edges = jnp.asarray(_EDGES) * h  # (12, 2, 3)
+    s_edge = jax.vmap(lambda e: _seg_seg(a, b, e[0], e[1])[0])(edges)  # (12,)
+
+    def ratio(num, den):
+        ok = jnp.abs(den) > 1e-12
+        return jnp.clip(jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0), 0.0, 1.0)
+
+    s_zero = ratio(-a, D)  # (3,) p_i = 0
+    i, j = _AXIS_PAIRS[:, 0], _AXIS_PAIRS[:, 1]
+    si, sj = _SIGNS[:, None, 0], _SIGNS[:, None, 1]  # (4, 1)
+    # s_i (a_i + t D_i) - h_i = s_j (a_j + t D_j) - h_j
+    s_face = ratio(h[i] - h[j] - si * a[i] + sj * a[j], si * D[i] - sj * D[j]).ravel()  # (12,)
+    t = jnp.concatenate([jnp.array([0.0, 1.0], a.dtype), s_edge, s_zero, s_face])
+    return jnp.min(box_sdf(a + t[:, None] * D, h))
+
+
+def _capsule_ends(pos, R, half):
+    axis = R[:, 2] * half
+    return pos - axis, pos + axis
+
+
+def capsule_plane(pos, R, size, ppos, pR, _):
+    a, b = _capsule_ends(pos, R, size[1])
+    n = pR[:, 2]
+    return jnp.minimum(n @ (a - ppos), n @ (b - ppos)) - size[0]
+
+
+def capsule_box(pos, R, size, bpos, bR, bsize):
+    a, b = _capsule_ends(pos, R, size[1])
+    return segment_box(bR.T @ (a - bpos), bR.T @ (b - bpos), bsize) - size[0]
+
+
+def sphere_plane(pos, R, size, ppos, pR, _):
+    return pR[:, 2] @ (pos - ppos) - size[0]
+
+
+def sphere_box(pos, R, size, bpos, bR, bsize):
+    return box_sdf(bR.T @ (pos - bpos), bsize) - size[0]
+
+
+def box_plane(pos, R, size, ppos, pR, _):
+    v = pos + (jnp.asarray(_CORNERS) * size) @ R.T  # (8, 3)
+    return jnp.min((v - ppos) @ pR[:, 2])
+
+
+def box_box(pos, R, size, bpos, bR, bsize):
+    """Signed distance of box (pos, R, size) to box (bpos, bR, bsize) (module docstring)."""
+    Rab = bR.T @ R  # A's axes in B's frame (columns)
+    t = bR.T @ (pos - bpos)  # A's centre in B's frame
+    va = t + (jnp.asarray(_CORNERS) * size) @ Rab.T  # A's vertices in B's frame
+    vb = (jnp.asarray(_CORNERS) * bsize - t) @ Rab  # B's vertices in A's frame
+    ea = t + (jnp.asarray(_EDGES) * size) @ Rab.T  # (12, 2, 3) A's edges in B's frame
+    eb = jnp.asarray(_EDGES) * bsize
+
+    def edge_edge(e1, e2):
+        s, u = _seg_seg(e1[0], e1[1], e2[0], e2[1])
+        return jnp.linalg.norm(e1[0] + s * (e1[1] - e1[0]) - e2[0] - u * (e2[1] - e2[0]))
+
+    ee = jax.vmap(lambda e1: jax.vmap(lambda e2: edge_edge(e1, e2))(eb))(ea)
+    sep = jnp.minimum(jnp.minimum(jnp.min(box_sdf(va, bsize)), jnp.min(box_sdf(vb, size))), jnp.min(ee))
+    # separating-axis test in B's frame: B's axes, A's axes, their 9 cross products
+    eye = jnp.eye(3, dtype=t.dtype)
+    cross = jnp.cross(eye[:, None, :], Rab.T[None, :, :]).reshape(9, 3)
+    L = jnp.concatenate([eye, Rab.T, cross])  # (15, 3)
+    n = jnp.linalg.norm(L, axis=1)
+    ok = n > 1e-6
+    L = L / jnp.where(ok, n, 1.0)[:, None]
+    gap = jnp.abs(L @ t) - jnp.abs(L) @ bsize - jnp.abs(L @ Rab) @ size
+    gap = jnp.max(jnp.where(ok, gap, -jnp.inf))
+    return jnp.where(gap < 0.0, gap, sep)
+
+
+_FNS = {"capsule_plane": capsule_plane, "capsule_box": capsule_box, "sphere_plane": sphere_plane,
+        "sphere_box": sphere_box, "box_plane": box_plane, "box_box": box_box}
+
+
+def pair_distances(pairs: ClearancePairs, d) -> jax.Array:
+    """(len(pairs),) signed distance [m] of each pair at the geom poses of ``d`` (one run; vmap for a batch)."""
+    out = []
+    for k, name in enumerate(KINDS):
+        sel = np.where(pairs.kind == k)[0]
+        if sel.size == 0:
+            continue
+        r, e = pairs.robot[sel], pairs.env[sel]
+        dt = d.geom_xpos.dtype
+        out.append(jax.vmap(_FNS[name])(d.geom_xpos[r], d.geom_xmat[r].reshape(-1, 3, 3),
+                                        jnp.asarray(pairs.size[sel], dt), d.geom_xpos[e],
+                                        d.geom_xmat[e].reshape(-1, 3, 3), jnp.asarray(pairs.env_size[sel], dt)))
+    if not out:
+        return jnp.zeros((0,))
+    return jnp.concatenate(out)
+
+
+def min_clearance(pairs: ClearancePairs, d):
+    """(() smallest signed distance [m] over ``pairs`` (+inf: no pairs), () int32 its pair index (-1: none))."""
+    if len(pairs) == 0:
+        return jnp.full((), jnp.inf), jnp.full((), -1, jnp.int32)
+    dist = pair_distances(pairs, d)
+    k = jnp.argmin(dist)
+    return dist[k], k.astype(jnp.int32)
