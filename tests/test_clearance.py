@@ -215,3 +215,27 @@ def test_mjx_slot_distance_overstates_edge_clearance():
     exact = float(CL.pair_distances(pairs, d)[_k(robot, pairs, "FR_shank", "block2")])
     assert 0.0 < ref < 0.004 and mjx_d > ref + 0.002  # measured: 2.82 mm vs 5.00 mm
     assert exact == pytest.approx(ref, abs=POS_TOL)
+
+
+def test_same_on_the_warp_backend():
+    """The clearance reads only geom poses, which both MJX backends fill: Warp's forward pass gives the JAX
+    backend's distances (measured: 2e-8 m over the 54 pairs), separated pairs included (Warp's contact sensors
+    report only penetrations)."""
+    pytest.importorskip("warp")
+    from wbc_jax.sim import physics
+
+    out = {}
+    for backend in ("jax", "warp"):
+        robot = Robot("transport", backend=backend)
+        m = robot.mj_model
+        jq = lambda n: m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)]  # noqa: E731
+        q = robot.home_qpos(0.08)
+        dy, dz, pitch, knee = CROUCH[0]
+        q[1] += dy
+        q[2] += dz
+        q[jq("FR_pitch")], q[jq("FR_knee")] = pitch, knee
+        d = physics.make_data(robot, 1).replace(qpos=jnp.asarray(q))
+        pairs = CL.clearance_pairs(robot)
+        out[backend] = np.asarray(jax.jit(lambda d: CL.pair_distances(pairs, physics.sense(robot.mjx_model, d)))(d))
+    np.testing.assert_allclose(out["warp"], out["jax"], atol=1e-6)
+    assert np.sum(out["warp"] > 0.0) > 40
