@@ -290,7 +290,7 @@ def clearance(sim: Sim, d):
 
     Returns:
         (() distance [m], +inf when the scene has no such pair; () int32 pair: index into
-        ``clearance_pairs(sim.robot)`` (:func:`clearance_name`); -1 when the distance is +inf).
+        ``clearance_pairs(sim.robot)`` (:func:`clearance_name`); -1 when the distance is not finite).
     """
     from wbc_jax.sim import clearance as _clearance
 
@@ -455,10 +455,9 @@ def _pair_name(sim: Sim, g1, g2) -> str:
     return f"{name(robot_g)} (body {m.body(int(m.geom_bodyid[robot_g])).name}) / {name(env_g)}"
 
 
-def clearance_name(sim: Sim, k: int, wall_geoms=None) -> str:
+def clearance_name(sim: Sim, k: int) -> str:
     """Readable pair of clearance index ``k`` (Accum.min_clear_k, an index into
-    ``wbc_jax.sim.clearance.clearance_pairs(sim.robot)``; -1: ""), e.g. ``"FL_shank (body FL_calf) / block3"``.
-    ``wall_geoms``: unused (kept for callers of the slot-based clearance)."""
+    ``wbc_jax.sim.clearance.clearance_pairs(sim.robot)``; -1: ""), e.g. ``"FL_shank (body FL_calf) / block3"``."""
     if k < 0:
         return ""
     from wbc_jax.sim.clearance import clearance_pairs
