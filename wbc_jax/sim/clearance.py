@@ -127,8 +127,8 @@ def _build_pairs(m: mujoco.MjModel, ids) -> ClearancePairs:
 # ---------------------------------------------------------------------------------------------------------------
 # primitives (one pair; vmapped over the pairs of a kind). Written per coordinate (no ``@``, no reductions over a
 # last axis of 3, candidate points as x, y, z arrays): XLA on the CPU fuses that into a few loops; measured in a
-# lax.scan at batch 4, 142 us per physics step for the 54 pairs of the course, against 304 us with 3-vector
-# products and (..., 3) points.
+# lax.scan at batch 4, 143 us per physics step for the 54 pairs of the course (36 capsule/box 31 us, 9 box/box
+# 116 us: 12 x 22 candidate points per pair), against 304 us with 3-vector products and (..., 3) points.
 
 def _dot(x, y):
     return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1] + x[..., 2] * y[..., 2]
@@ -136,12 +136,12 @@ def _dot(x, y):
 
 def _mul_t(X, M):
     """``X @ M.T`` for rows X (..., 3) and a 3x3 M."""
-    return jnp.sum(X[..., None, :] * M, axis=-1)
+    return jnp.stack([X[..., 0] * M[i, 0] + X[..., 1] * M[i, 1] + X[..., 2] * M[i, 2] for i in range(3)], axis=-1)
 
 
 def _mul(X, M):
     """``X @ M`` for rows X (..., 3) and a 3x3 M."""
-    return jnp.sum(X[..., :, None] * M, axis=-2)
+    return jnp.stack([X[..., 0] * M[0, j] + X[..., 1] * M[1, j] + X[..., 2] * M[2, j] for j in range(3)], axis=-1)
 
 
 def box_sdf(p, h):
