@@ -88,13 +88,21 @@ def test_tail_after_the_window_is_excluded(windowed):
     assert np.all(tail.sum_track > acc[2].sum_track)
 
 
+def _pairs(sim):
+    """The clearance's pairs (robot geom, scene geom), in its index order."""
+    from wbc_jax.sim.clearance import clearance_pairs
+
+    p = clearance_pairs(sim.robot)
+    return [(int(a), int(b)) for a, b in zip(p.robot, p.env)]
+
+
 def _c_clearance(sim, qpos):
-    """Smallest mj_geomDistance over the non-foot ground pairs at ``qpos`` (MuJoCo C): (distance [m], pair index)."""
+    """Smallest mj_geomDistance over the clearance's pairs at ``qpos`` (MuJoCo C): (distance [m], pair)."""
     m = sim.robot.mj_model
     d = mujoco.MjData(m)
     d.qpos[:] = qpos
     mujoco.mj_forward(m, d)
-    pairs = [tuple(int(g) for g in p) for p in sim.nonfoot_geoms]
+    pairs = _pairs(sim)
     dist = [mujoco.mj_geomDistance(m, d, g1, g2, DISTMAX, None) for g1, g2 in pairs]
     k = int(np.argmin(dist))
     return dist[k], pairs[k]
@@ -102,8 +110,9 @@ def _c_clearance(sim, qpos):
 
 @pytest.mark.parametrize("drop", [0.0, 0.03])
 def test_clearance_equals_mujoco_geom_distance(windowed, drop):
-    """Home poses (about 1 cm clearance) and the robot lowered 3 cm (shanks into the floor): the MJX clearance and
-    its pair equal MuJoCo C's smallest geom distance over the same pairs."""
+    """Home poses (about 1 cm clearance) and the robot lowered 3 cm (shanks into the floor): the clearance
+    (exact geometry, wbc_jax.sim.clearance) and its pair equal MuJoCo C's smallest geom distance over the same
+    pairs."""
     from wbc_jax.sim.batch import _init_fn
 
     sim, dz, b, *_ = windowed
@@ -115,10 +124,10 @@ def test_clearance_equals_mujoco_geom_distance(windowed, drop):
     for i in range(dz.n):
         ref, pair = _c_clearance(sim, np.asarray(st.d.qpos[i], float))
         assert abs(c[i] - ref) < CLEAR_TOL, (i, c[i], ref)
-        got = tuple(int(g) for g in sim.nonfoot_geoms[k[i]])
+        got = _pairs(sim)[k[i]]
         # the same pair, or a tie (left and right legs are symmetric)
         assert got == pair or abs(_c_dist(sim, qpos[i], got) - ref) < CLEAR_TOL
-        assert clearance_name(sim, int(k[i]), np.zeros((0, 2))).endswith("/ floor")
+        assert clearance_name(sim, int(k[i])).endswith("/ floor")
     assert (np.all(c < 0) if drop else np.all(c > 0))
 
 

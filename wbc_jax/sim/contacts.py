@@ -22,6 +22,11 @@ part's and the wall's penetration (falls, grazes). The two MJX implementations k
 ``obj_slots``, ``nonfoot_slots``, ``wall_slots``): contact slots on JAX, sensordata addresses on Warp; the
 readers below take a Sim and dispatch on ``sim.robot.backend`` (static). A distance that the backend does not
 report (no contact listed) reads as ``+inf``.
+
+The run's clearance (``wbc_jax.sim.rollout.clearance``) does not read contacts: neither backend reports a
+separated pair's distance exactly (JAX: a capsule/box slot reads its candidate points' distance, not the edge's;
+a pair beyond the margin reads 1 m; Warp: penetrations only), so it is measured from the geoms' poses
+(:mod:`wbc_jax.sim.clearance`). The non-foot and wall readers here serve the contact flags (dist < 0).
 """
 
 from __future__ import annotations

@@ -52,8 +52,9 @@ R = (1/T_win) int 1/H dt [rad^2]; T = (1/T_win) int ||p_ref - p|| dt [m]; S = T_
 
 **Clearance** (``wbc_jax.sim.rollout.clearance``, every physics step): the smallest signed distance between a
 non-foot robot geom and the floor, the terrain blocks or a wall over the whole run, with its time and pair. Exact
-(MJX contact-slot distances, also when not touching) on the JAX backend; on Warp a distance is reported only
-while a pair penetrates, so there it is only a penetration depth (<= 0) or +inf ("none").
+geometry from the geoms' poses (``wbc_jax.sim.clearance``: capsules and boxes vs planes and boxes; exact when
+positive, the deepest point's depth when penetrating), the same on both backends; +inf only for a scene with no
+such pair.
 """
 
 from __future__ import annotations

@@ -7,8 +7,7 @@ with the held torques included) and :func:`finish` is ``mjx.step`` with the new 
 step, both exact (the controller reads the state it acts on, no delay). :func:`resolve_backend` turns "auto" into
 JAX for now, by measurement (H100, 2026-11-25): the paper campaign gives the same outcome on both (268/270, the
 same two runs failing), but at its batch of 270 the whole-body QP dominates a control step, so Warp is not faster
-end to end (physics + WBC 84 k vs 87 k env-steps/s; physics alone 433 k vs 187 k), and the clearance metric on
-Warp sees only penetrating contacts (its contact sensors list contacts, not distances). The earlier Warp failure
+end to end (physics + WBC 84 k vs 87 k env-steps/s; physics alone 433 k vs 187 k). The earlier Warp failure
 on the course (a front foot sliding off block1 at 5.8 s in 259/270 runs) was the controller planning the floor's
 friction on block1, fixed in ``wbc_jax.sim.contacts.foot_ground``. Warp is chosen explicitly (``--backend warp``).
 

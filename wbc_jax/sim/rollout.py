@@ -99,10 +99,10 @@ class Accum(NamedTuple):
     #                   the control periods whose midpoint lies in the window; the flags and extremes count all
     n_win: jax.Array  # int32, control steps inside the metric window (the duration of R, T, S)
     min_clear: jax.Array  # [m] smallest signed distance of a non-foot robot geom to the floor, terrain or a wall
-    #                       over the run (:func:`clearance`; +inf: none reported) (physics rate)
+    #                       over the run (:func:`clearance`, exact geometry; +inf: no such pair) (physics rate)
     min_clear_t: jax.Array  # [s] start of the physics step of min_clear (the contacts' time); NaN if none
-    min_clear_k: jax.Array  # int32, its pair: index into Sim.nonfoot_slots, or len(nonfoot_slots) + index into
-    #                         Sim.wall_slots (:func:`clearance_name`); -1 if none
+    min_clear_k: jax.Array  # int32, its pair: index into wbc_jax.sim.clearance.clearance_pairs(robot)
+    #                         (:func:`clearance_name`); -1 if none
     n_boundary_cone: jax.Array  # int32, the part of n_boundary with every contact loaded and a force on/outside
     #                             the circular cone (physics rate)
     sum_invH_plan: jax.Array  # integral of 1/H of the QP's planned object forces [rad^2 s] (control rate,
@@ -256,7 +256,7 @@ class SubstepMonitors(NamedTuple):
     off: jax.Array  # bool, every object contact sphere farther than CONTACT_DIST from the tray
     finite: jax.Array  # bool, positions after the step and the held torques are finite
     overflow: jax.Array  # bool, the step's contacts or constraint rows may not all have fit (Warp)
-    clear: jax.Array  # [m] :func:`clearance` after the step (+inf: none reported)
+    clear: jax.Array  # [m] :func:`clearance` after the step (+inf: no such pair)
     clear_k: jax.Array  # int32, its pair (Accum.min_clear_k numbering; -1: none)
 
 
@@ -282,56 +282,31 @@ def substep_monitors(sim: Sim, m, om: ObjectModel, tau, d, d_after) -> SubstepMo
         nonfoot_k = jnp.where(nonfoot, jnp.argmin(nf_dist), -1).astype(jnp.int32)
     else:
         nonfoot, nonfoot_k = jnp.bool_(False), jnp.full((), -1, jnp.int32)
-    clear, clear_k = clearance(sim, d_after, nf_dist, wall_d)
+    clear, clear_k = clearance(sim, d_after)
     return SubstepMonitors(inv_h=inv_h, cone=cone, acc=acc_norm, nonfoot_floor=nonfoot, nonfoot_k=nonfoot_k, t=d.time,
                            wall=wall, off=off, finite=finite, overflow=physics.overflow(d_after), clear=clear,
                            clear_k=clear_k)
 
 
-def _wall_robot_mask(sim: Sim, d) -> jax.Array:
-    """(len(wall_slots),) bool: the wall slot's (JAX) or pair's (Warp) other geom is a robot geom (not the object)."""
-    m = sim.robot.mj_model
-    obj = sim.robot.ids.obj_body
-    if sim.robot.backend == "warp":  # sensors in RobotIds.wall_pair order: static
-        p = np.asarray(sim.robot.ids.wall_pair, int)
-        g = np.stack([m.pair_geom1[p], m.pair_geom2[p]], axis=1)
-        return jnp.asarray(np.all(m.geom_bodyid[g] != obj, axis=1))
-    g = d._impl.contact.geom[sim.wall_slots]  # (w, 2) the slots' geoms (MJX fills them at collision)
-    return jnp.all(jnp.asarray(m.geom_bodyid)[g] != obj, axis=1)
-
-
-def clearance(sim: Sim, d, nf_dist=None, wall_d=None):
+def clearance(sim: Sim, d):
     """Smallest signed distance [m] between a non-foot robot geom and the floor, the terrain blocks or a wall, and
-    its pair, from the contacts of ``d`` (after a physics step).
+    its pair, at the geom poses of ``d`` (after a physics step: those of the step's start, like its contacts).
 
-    The pairs are the non-foot ground slots (``Sim.nonfoot_slots``) and the wall slots whose other geom is a robot
-    geom (the object's wall pairs left out). On the JAX backend these are MJX contact-slot distances, reported
-    whether or not the pair touches, so the clearance is the geometric distance (of the pair's collision function)
-    also when positive; on Warp a pair's distance is reported only while it penetrates (``+inf`` otherwise), so
-    the clearance there is only a penetration depth (<= 0) or ``+inf``.
-
-    Args:
-        nf_dist, wall_d: :func:`wbc_jax.sim.contacts.nonfoot_dist` and ``wall_dist`` of ``d`` when the caller
-            already has them (None: read here).
+    Exact geometry (:mod:`wbc_jax.sim.clearance`), not the contact slots: every robot geom (not a foot, not the
+    object) that the scene pairs with the floor or terrain against the floor and every block, and every robot geom
+    it pairs with a wall part against every wall part (:func:`wbc_jax.sim.clearance.clearance_pairs`).
+    Capsule/plane, box/plane, capsule/box and box/box distances are exact when positive (MuJoCo C's
+    ``mj_geomDistance``); a penetration is the depth of the robot geom's deepest point (capsule/box: of its
+    segment, minus the radius; box/box: the separating-axis depth), which may differ from MuJoCo's contact depth.
+    The same on both backends (it reads ``d.geom_xpos`` and ``d.geom_xmat`` only).
 
     Returns:
-        (() distance [m], +inf when nothing is reported; () int32 pair: index into ``sim.nonfoot_slots``, or
-        ``len(sim.nonfoot_slots)`` + index into ``sim.wall_slots``; -1 when the distance is +inf).
+        (() distance [m], +inf when the scene has no such pair; () int32 pair: index into
+        ``clearance_pairs(sim.robot)`` (:func:`clearance_name`); -1 when the distance is not finite).
     """
-    parts = []
-    if sim.nonfoot_slots.size:
-        parts.append(contacts.nonfoot_dist(sim, d) if nf_dist is None else nf_dist)
-    else:
-        parts.append(jnp.zeros((0,)))
-    if sim.wall_slots.size:
-        wall_d = contacts.wall_dist(sim, d) if wall_d is None else wall_d
-        parts.append(jnp.where(_wall_robot_mask(sim, d), wall_d, jnp.inf))
-    dist = jnp.concatenate(parts)
-    if dist.size == 0:
-        return jnp.full((), jnp.inf), jnp.full((), -1, jnp.int32)
-    k = jnp.argmin(dist)
-    c = dist[k]
-    return c, jnp.where(jnp.isfinite(c), k, -1).astype(jnp.int32)
+    from wbc_jax.sim import clearance as _clearance
+
+    return _clearance.min_clearance(_clearance.clearance_pairs(sim.robot), d)
 
 
 def physics_substep(sim: Sim, m, om: ObjectModel, tau, d):
@@ -484,20 +459,8 @@ def final_results(sim: Sim, state: RunState, p_goal, mu, n: int | None = None) -
                            final_err=np.linalg.norm(p_obj - p_goal, axis=1), substeps=sim.n_substeps)
     out["first_contact_s"] = np.asarray(acc.first_contact_t, float)
     out["first_contact"] = np.array([contact_name(sim, k) for k in np.asarray(acc.first_contact_k)], dtype=object)
-    wall_geoms = _wall_geoms(sim, state.d)
-    out["min_clearance_pair"] = np.array([clearance_name(sim, k, wall_geoms) for k in np.asarray(acc.min_clear_k)],
-                                         dtype=object)
+    out["min_clearance_pair"] = np.array([clearance_name(sim, k) for k in np.asarray(acc.min_clear_k)], dtype=object)
     return out
-
-
-def _wall_geoms(sim: Sim, d) -> np.ndarray:
-    """(len(wall_slots), 2) geom ids of each wall slot (JAX: from a sensed batched ``d``) or pair (Warp)."""
-    m = sim.robot.mj_model
-    if sim.robot.backend == "warp":
-        p = np.asarray(sim.robot.ids.wall_pair, int)
-        return np.stack([m.pair_geom1[p], m.pair_geom2[p]], axis=1).reshape(-1, 2)
-    g = np.asarray(d._impl.contact.geom)
-    return g.reshape(-1, *g.shape[-2:])[0][sim.wall_slots].reshape(-1, 2)
 
 
 def _pair_name(sim: Sim, g1, g2) -> str:
@@ -511,14 +474,15 @@ def _pair_name(sim: Sim, g1, g2) -> str:
     return f"{name(robot_g)} (body {m.body(int(m.geom_bodyid[robot_g])).name}) / {name(env_g)}"
 
 
-def clearance_name(sim: Sim, k: int, wall_geoms: np.ndarray) -> str:
-    """Readable pair of clearance index ``k`` (Accum.min_clear_k; -1: ""): a non-foot ground slot as
-    :func:`contact_name`, or a wall slot ``k - len(sim.nonfoot_slots)`` with ``wall_geoms`` (:func:`_wall_geoms`)."""
-    n = len(sim.nonfoot_slots)
-    if k < n:
-        return contact_name(sim, k)
-    g1, g2 = wall_geoms[int(k) - n]
-    return _pair_name(sim, g1, g2)
+def clearance_name(sim: Sim, k: int) -> str:
+    """Readable pair of clearance index ``k`` (Accum.min_clear_k, an index into
+    ``wbc_jax.sim.clearance.clearance_pairs(sim.robot)``; -1: ""), e.g. ``"FL_shank (body FL_calf) / block3"``."""
+    if k < 0:
+        return ""
+    from wbc_jax.sim.clearance import clearance_pairs
+
+    p = clearance_pairs(sim.robot)
+    return _pair_name(sim, p.robot[int(k)], p.env[int(k)])
 
 
 def contact_name(sim: Sim, k: int) -> str:
