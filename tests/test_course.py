@@ -222,8 +222,8 @@ def test_far_edge_rule_by_hand():
         hip = np.array([-0.187, -hip_s, hz])
         return -float(clear_of_edges(geo.terrain, np.array([-0.187, -foot_s]), u, 0.038, hip, zf, leg)[1])
 
-    def hand(hip_s, foot_s):
-        return _hand_clearance((hip_s, hz - HIP_DROP), (foot_s, zf), edge, *leg)[1]
+    def hand(hip_s, foot_s):  # the worst of the hip at its plan, HIP_DROP / 2 and HIP_DROP lower
+        return min(_hand_clearance((hip_s, hz - f * HIP_DROP), (foot_s, zf), edge, *leg)[1] for f in (0.0, 0.5, 1.0))
 
     # hip 56 mm past the edge, foot under it: by hand the capsules miss the edge by less than the margin
     assert hand(1.956, 1.957) < SHIN_MARGIN
@@ -237,3 +237,8 @@ def test_far_edge_rule_by_hand():
     first = next(s for s in 1.938 + 0.005 * np.arange(80) if hand(2.0, s) >= SHIN_MARGIN)
     assert first - 1.945 < 1.945 - (1.9 - 0.038)  # nearer than the block side
     assert rule(2.0, 1.945) == pytest.approx(first, abs=1e-6)  # float32
+    # far out (218 mm past the edge, hip 89 mm past): the dropped hip clears but the planned one does not (a lower
+    # hip bends the knee more and lifts the shank): the rule takes the worst of the three heights
+    at = [_hand_clearance((1.989, hz - f * HIP_DROP), (2.118, zf), edge, *leg)[1] for f in (0.0, 0.5, 1.0)]
+    assert at[0] < SHIN_MARGIN <= at[2]
+    assert rule(1.989, 2.118) != pytest.approx(2.118)

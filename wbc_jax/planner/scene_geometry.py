@@ -82,10 +82,12 @@ def terrain_height(terrain, xy):
 
 
 SHIN_MARGIN = 0.010  # [m] clearance kept between a shank capsule and a box's far edge at touchdown (issue 24's bound)
-HIP_DROP = 0.05  # [m] the stepping leg's hip is checked this much below its planned height: just after the front-right
+HIP_DROP = 0.07  # [m] the stepping leg's hip is checked this much below its planned height: just after the front-right
 #                  foot steps down from block2 in the crouch, its hip sits 21 mm (before touchdown) to 52 mm (after:
 #                  trunk pitched 5.7 deg nose-down and rolled towards the leg) below the plan's CoM + hip offset
-#                  (CPU run 268 of sweeps/paper_campaign.toml, 2026-11-26)
+#                  (CPU run 268 of sweeps/paper_campaign.toml); with 50 mm the 270-run campaign on an H100 measured
+#                  (exact clearance) 8.86 mm for the FL shank over block2's far edge (run 113, d = 0.10; planned
+#                  20.5 mm, 11.7 mm at 50 mm), i.e. a sag of about 66 mm at the clearance's 0.18 mm per mm of drop
 CANDIDATE_STEP = 0.005  # [m] spacing of the landing candidates searched beyond a far edge
 CANDIDATE_SPAN = 0.40  # [m] how far beyond a far edge they go (at least a shank's length: :func:`leg_geometry`)
 
@@ -173,8 +175,8 @@ def clear_of_edges(terrain, xy, direction, clearance, hip=None, foot_z=None, leg
     The far edge of a box (the one the robot steps down from): the shin slopes up backwards from the foot to the
     knee and passes over that edge, at an angle set by where the hip is: low and flat in a crouch, and flatter
     the further the foot lands ahead of the hip. With ``hip`` and ``leg`` given, a landing beyond a far edge is
-    kept only where the shank capsule of the planar leg (:func:`shin_clearance`, the hip ``hip_drop`` below its
-    planned height) clears the edge by ``margin``; otherwise the nearest such landing beyond the edge (candidates
+    kept only where the shank capsule of the planar leg (:func:`shin_clearance`, the hip at its planned height,
+    ``hip_drop / 2`` and ``hip_drop`` below it) clears the edge by ``margin``; otherwise the nearest such landing beyond the edge (candidates
     every ``CANDIDATE_STEP`` out to one shank length) or, if nearer or none exists, the foot stays on the box
     (``clearance`` before its edge) and steps down at a later step, when the hip is further past the edge.
     Without ``hip``: every edge, far ones included, only keeps ``clearance``.
@@ -197,7 +199,9 @@ def clear_of_edges(terrain, xy, direction, clearance, hip=None, foot_z=None, leg
     c = xy @ across
     if hip is not None:
         leg = jnp.asarray(leg)
-        hip_sz = jnp.stack([hip[:2] @ u, hip[2] - hip_drop])
+        # the hip anywhere between its plan and hip_drop below (the clearance is not monotone in the drop: a lower
+        # hip bends the knee more): checked at the plan, half-way and the full drop
+        hips_sz = [jnp.stack([hip[:2] @ u, hip[2] - f * hip_drop]) for f in (0.0, 0.5, 1.0)]
     for b in range(terrain.shape[0]):
         lo, hi = terrain[b, 0, :2], terrain[b, 1, :2]
         e_in, e_out = jnp.sort(jnp.array([lo @ u, hi @ u]))
@@ -216,7 +220,8 @@ def clear_of_edges(terrain, xy, direction, clearance, hip=None, foot_z=None, leg
             """Landing at sc (beyond the edge) clears it with the shin."""
             ground = terrain_height(terrain, sc[..., None] * u + c * across)
             foot = jnp.stack([sc, ground + foot_z], axis=-1)
-            return (sc >= e_out + clearance) & (shin_clearance(hip_sz, foot, edge, leg) >= margin)
+            worst = jnp.min(jnp.stack([shin_clearance(h, foot, edge, leg) for h in hips_sz]), axis=0)
+            return (sc >= e_out + clearance) & (worst >= margin)
 
         reach_out = e_out + leg[2] + leg[3]  # beyond this the shank cannot be over the edge
         considered = in_lane & (s > box_side) & (s < reach_out)
