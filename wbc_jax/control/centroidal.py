@@ -152,8 +152,9 @@ class CentroidalDiag(NamedTuple):
 
 def centroidal_qp_settings(iters: int = 40) -> QPSettings:
     """ADMM settings of the centroidal controller's measured trot study: ``iters`` warm-started iterations, rho
-    adapted every 10 from an initial 1, 5 Ruiz passes (the transport loop's :func:`control_qp_settings` otherwise)."""
-    return control_qp_settings(iters, adapt_every=10, ruiz_iters=5, rho=1.0)
+    adapted every 10 from an initial 1, 5 Ruiz passes, the 18 equality rows (28)-(30) held exactly (the transport
+    loop's :func:`control_qp_settings` otherwise: tolerance 1e-4, continued while unconverged up to 200)."""
+    return control_qp_settings(iters, adapt_every=10, ruiz_iters=5, rho=1.0, eq_rows=6 + 3 * N_FEET)
 
 
 @dataclass(frozen=True)
