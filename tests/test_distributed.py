@@ -29,7 +29,8 @@ from wbc_jax.sim.distributed import DEFAULT_PORT, Layout, first_host, resolve
 TIMEOUT_S = 900  # the 2-process campaign compiles in both processes at once (2 cores: measured ~4 min)
 CLEARANCE_ATOL_MM = 0.05  # [mm] rounding of the 2-process run's clearance (measured 5e-4 mm)
 ROLLOUT_COLS = ["R", "T", "S", "max_slip_mm", "boundary_fraction", "final_err_mm", "first_contact_s",
-                "min_clearance_mm", "min_clearance_s"]  # rounding
+                "min_clearance_mm", "min_clearance_s", "R_plan", "boundary_cone_fraction", "boundary_fraction_plan",
+                "boundary_cone_fraction_plan", "qp_flag_fraction", "qp_iters_mean", "qp_iters_max"]  # rounding
 
 
 # ---------------------------------------------------------------- settings

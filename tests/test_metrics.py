@@ -4,7 +4,6 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-import pytest
 
 from wbc_jax.sim import metrics
 from wbc_jax.sim.model import mjx
