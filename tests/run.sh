@@ -5,8 +5,16 @@ cd "$(dirname "$0")/.."
 python3 -m venv .venv
 .venv/bin/pip install -q --upgrade pip
 .venv/bin/pip install -q -e '.[test]'
-# The persistent compilation cache stays off in the suite's own processes unless asked for: in the full suite (one
-# long process, ~350 tests) XLA's CPU executable serialization for the cache crashed twice on 2026-11-25 (segfault /
-# abort in compilation_cache.put_executable_and_time, at a different test each time; each test passes alone).
-export WBC_JAX_CACHE="${WBC_JAX_CACHE:-off}"
-exec .venv/bin/python -m pytest -q "$@"
+export WBC_JAX_CACHE="${WBC_JAX_CACHE:-$PWD/.venv/jax-cache}"
+if [ "$#" -gt 0 ]; then
+  exec .venv/bin/python -m pytest -q "$@"
+fi
+# The whole suite in three processes (sharing the persistent compilation cache): in one process of ~350 tests XLA's
+# CPU compiler aborted three times on 2026-11-25 near the end of the suite (in compile or in the cache's executable
+# serialization, at test_window / test_transport), while each of those tests passes alone.
+mapfile -t files < <(ls tests/test_*.py | sort)
+n=${#files[@]}
+a=$(( n / 3 )); b=$(( 2 * n / 3 ))
+.venv/bin/python -m pytest -q "${files[@]:0:a}"
+.venv/bin/python -m pytest -q "${files[@]:a:b-a}"
+.venv/bin/python -m pytest -q "${files[@]:b}"
