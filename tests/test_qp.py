@@ -344,3 +344,13 @@ def test_convergence_checked_extension():
     assert np.mean(ok) >= 0.95  # ... the extension converges (nearly) every problem
     assert np.all((it >= 10) & (it <= 400) & (it % 10 == 0)) and len(np.unique(it[ok])) > 1
     assert np.all(it[~ok] == 400)  # only the cap stops an unconverged problem
+
+
+
+def test_extension_stops_at_the_cap():
+    """The extension's last block is cut at max_iters when the blocks do not reach it exactly (25 = 10 + 10 + 5)."""
+    b = pr.make_batch(3, 8, "wbc")
+    data = [jnp.asarray(a, jnp.float32) for a in b[:5]]
+    s = QPSettings(iters=10, eps_abs=1e-9, eps_rel=1e-9, max_iters=25, check_every=10)  # unreachable tolerance
+    it = np.asarray(solve_qp(*data, settings=s).iters)
+    assert np.all(it == 25)

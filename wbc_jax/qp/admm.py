@@ -203,6 +203,12 @@ def _gram(sp: Scaled, w, free, s: QPSettings):
     return K0, G
 
 
+def _exact_gap(sp: Scaled, ex, ae_x):
+    """(ne,) ``b - Ae x`` of the exact rows (``ae_x`` their ``A x``, ``b = l = u``), 0 on rows not held."""
+    ne = ae_x.shape[0]
+    return jnp.where(ex[:ne], sp.l[:ne] - ae_x, 0.0)
+
+
 def _step(sp: Scaled, kkt: KKT, rho_v, ex, free, s: QPSettings, st: State) -> State:
     """One OSQP iteration in the scaled problem; rejects a non-finite result.
 
@@ -217,8 +223,7 @@ def _step(sp: Scaled, kkt: KKT, rho_v, ex, free, s: QPSettings, st: State) -> St
     t = solve(kkt.fac, r, s.linsolve)
     if kkt.Ae is not None:
         ne = kkt.Ae.shape[0]
-        e = jnp.where(ex[:ne], sp.l[:ne] - ax[:ne], 0.0)
-        dnu = -solve(kkt.Sf, e + mv(kkt.Ae, t), s.linsolve)
+        dnu = -solve(kkt.Sf, _exact_gap(sp, ex, ax[:ne]) + mv(kkt.Ae, t), s.linsolve)
         xt = st.x - t - mv(kkt.W, dnu)
     else:
         xt = st.x - t
@@ -248,9 +253,7 @@ def _project(sp: Scaled, kkt: KKT, ex, st: State, linsolve: str) -> State:
     """
     if kkt.Ae is None:
         return st
-    ne = kkt.Ae.shape[0]
-    e = jnp.where(ex[:ne], sp.l[:ne] - mv(kkt.Ae, st.x), 0.0)
-    x = st.x + mv(kkt.W, solve(kkt.Sf, e, linsolve))
+    x = st.x + mv(kkt.W, solve(kkt.Sf, _exact_gap(sp, ex, mv(kkt.Ae, st.x)), linsolve))
     return st._replace(x=jnp.where(all_finite(x), x, st.x))
 
 
@@ -267,8 +270,8 @@ def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
     """``iters`` iterations in segments of ``adapt_every`` with refactor in between.
 
     Returns:
-        ``(st, rho, cont)``: the iterate, the (adapted) rho for the next solve, and ``cont(st, length)``, which
-        runs ``length`` more iterations with the last segment's factorization (for the convergence-checked
+        ``(st, rho, cont)``: the iterate, the (adapted) rho for the next solve, and ``cont(st, length, active)``,
+        which runs ``active`` (<= ``length``) more iterations with the last segment's factorization (for the convergence-checked
         extension, ``QPSettings.max_iters``).
     """
     k = s.adapt_every if 0 < s.adapt_every < iters else iters
@@ -279,12 +282,19 @@ def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
 
     def make_kkt(rho):
         with jax.named_scope("qp_factor"):
-            return _kkt_factor(K0 + rho * G, Ae, ex[:ne], s.linsolve), _rho_vec(rho, w, free, s) * (~ex)
+            return _kkt_factor(K0 + rho * G, Ae, ex[:ne], s.linsolve), _rho_vec(rho, w, free, s)  # w = 0 on exact rows
 
-    def iterate(st, kkt, rho_v, length):
+    def iterate(st, kkt, rho_v, length, active=None):
+        # active: () int, run only the first `active` of the `length` iterations (the extension's last block)
         st = _project(sp, kkt, ex, st, s.linsolve)
-        st, _ = lax.scan(lambda c, _: (_step(sp, kkt, rho_v, ex, free, s, c), None), st, None,
-                         length=length, unroll=s.unroll)
+
+        def body(c, i):
+            nxt = _step(sp, kkt, rho_v, ex, free, s, c)
+            if active is None:
+                return nxt, None
+            return jax.tree_util.tree_map(lambda a, b: jnp.where(i < active, a, b), nxt, c), None
+
+        st, _ = lax.scan(body, st, jnp.arange(length), unroll=s.unroll)
         return st
 
     with jax.named_scope("qp_iterations"):
@@ -293,7 +303,7 @@ def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
             st = iterate(st, kkt, rho_v, iters)
             if s.adapt_every > 0:
                 rho = _adapt(sp, st, rho, s)
-            return st, rho, lambda st, length: iterate(st, kkt, rho_v, length)
+            return st, rho, lambda st, length, active: iterate(st, kkt, rho_v, length, active)
 
         def seg(carry, _, length=k):
             st, rho = carry
@@ -305,7 +315,7 @@ def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
         if rem > 0:
             carry, _ = seg(carry, None, rem)
         st, rho = carry
-        return st, rho, lambda st, length: iterate(st, *make_kkt(rho), length)
+        return st, rho, lambda st, length, active: iterate(st, *make_kkt(rho), length, active)
 
 
 def _unscaled(P, q, A, sp: Scaled, st: State, s: QPSettings):
@@ -388,9 +398,10 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
             st, k = c
             return (k < s.max_iters) & ~_unscaled(P, q, A, sp, st, s)[5] & ~st.bad
 
-        def more(c):
+        def more(c):  # the last block stops at max_iters
             st, k = c
-            return cont(st, s.check_every), k + s.check_every
+            active = jnp.minimum(s.check_every, s.max_iters - k)
+            return cont(st, s.check_every, active), k + active
 
         with jax.named_scope("qp_iterations"):
             st, n_it = lax.while_loop(unconverged, more, (st, n_it))
@@ -466,5 +477,7 @@ def solve_qp(P, q, A, l, u, *, iters: int | None = None, warm: Any = None,
     it = int(s.iters if iters is None else iters)
     if it < 1:
         raise ValueError(f"iters must be >= 1, got {it}")
+    if s.max_iters > it and s.check_every < 1:
+        raise ValueError(f"QPSettings.check_every must be >= 1 with max_iters > iters, got {s.check_every}")
     P = jnp.asarray(P)
     return _solve_jit(P, q, A, l, u, _warm_tuple(warm), iters=it, settings=s)
