@@ -354,3 +354,31 @@ def test_extension_stops_at_the_cap():
     s = QPSettings(iters=10, eps_abs=1e-9, eps_rel=1e-9, max_iters=25, check_every=10)  # unreachable tolerance
     it = np.asarray(solve_qp(*data, settings=s).iters)
     assert np.all(it == 25)
+
+
+@pytest.mark.parametrize("eq_rows,max_iters", [(24, 200), (0, 0)])
+def test_fused_kernel_equals_xla_iterations(eq_rows, max_iters):
+    """QPSettings.kernel='fused' (one Pallas kernel for the iterations and the extension; here in the Pallas
+    interpreter) gives the XLA path's iterate, iteration count and flag, float64 (6 cold WBC problems; with the
+    extension some converge at 90 or 150 iterations, some reach the cap)."""
+    from wbc_jax.control.transport import control_qp_settings
+
+    b = pr.make_batch(3, 6, "wbc")
+    with jax.enable_x64(True):
+        _fused_equals_xla(b, eq_rows, max_iters, control_qp_settings)
+
+
+def _fused_equals_xla(b, eq_rows, max_iters, control_qp_settings):
+    data = [jnp.asarray(a, jnp.float64) for a in b[:5]]
+    s = control_qp_settings(10, eq_rows=eq_rows, eps_abs=1e-6, eps_rel=1e-6, linsolve="inv", max_iters=max_iters)
+    ref = solve_qp(*data, settings=s)
+    fus = solve_qp(*data, settings=s._replace(kernel="fused"))
+    np.testing.assert_array_equal(np.asarray(fus.iters), np.asarray(ref.iters))
+    np.testing.assert_array_equal(np.asarray(fus.flag), np.asarray(ref.flag))
+    for f in ("x", "y", "z"):
+        a, c = np.asarray(getattr(ref, f)), np.asarray(getattr(fus, f))
+        assert np.max(np.abs(a - c)) <= 1e-9 * np.max(np.abs(a)), f
+    if max_iters:
+        assert len(np.unique(np.asarray(ref.iters))) > 1  # problems stopped at different counts
+    with pytest.raises(ValueError, match="kernel"):
+        solve_qp(*data, settings=s._replace(kernel="fused", adapt_every=5))

@@ -99,8 +99,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from wbc_jax.bench.trace import run_trace
 
         batch = sizes[-1] if sizes else (4 if args.quick else CPU_BATCHES["trace"] if cpu else 270)
-        run_trace(batch=batch, steps=args.steps, scene=args.scene, qp=args.qp or "it20_a0_r2",
-                  substeps=args.substeps, json_path=args.json)
+        run_trace(batch=batch, steps=args.steps, scene=args.scene, qp=args.qp, substeps=args.substeps,
+                  json_path=args.json, backend=(args.backend or "jax").split(",")[0], warmup_s=args.warmup)
         return 0
     if args.what == "qp-rollout":
         from wbc_jax.bench.qp_audit import audit
@@ -241,6 +241,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--campaign", default=None, help="rollout: also run this campaign spec end to end twice in fresh "
                                                     "processes with a new compilation cache (wall time, compile "
                                                     "cold and warm), e.g. sweeps/paper_campaign.toml")
+    b.add_argument("--warmup", type=float, default=0.0,
+                   help="trace: simulated seconds run untraced first, so that the traced steps come from the walk "
+                        "(default 0: the first standing steps)")
     b.add_argument("--quick", action="store_true", help="small sizes (CPU smoke run)")
     b.add_argument("--json", default=None, help="also write the results as JSON here")
     b.set_defaults(func=_cmd_bench)

@@ -78,7 +78,8 @@ def device_ops(trace: dict) -> list[tuple[str, float, float, str]]:
         op = a.get("hlo_op")
         if not op or (gpu_pids and e.get("pid") not in gpu_pids) or str(op).startswith(_CONTAINERS):
             continue
-        out.append((str(op), float(e.get("ts", 0.0)), float(e.get("dur", 0.0)), str(a.get("tf_op", ""))))
+        tf_op = str(a.get("tf_op", ""))  # a scope path on the CPU; on a GPU only "XlaModule:" (then the HLO's wins)
+        out.append((str(op), float(e.get("ts", 0.0)), float(e.get("dur", 0.0)), tf_op if "/" in tf_op else ""))
     return out
 
 
@@ -164,10 +165,16 @@ def print_summary(label: str, s: dict) -> None:
               "XLA_FLAGS=--xla_gpu_enable_command_buffer= for a per-kernel attribution)", flush=True)
 
 
-def run_trace(batch: int = 270, steps: int = 50, scene: str = "transport", qp: str | None = "it20_a0_r2",
-              substeps: int = 1, json_path: str | None = None) -> dict:
+def run_trace(batch: int = 270, steps: int = 50, scene: str = "transport", qp: str | None = None,
+              substeps: int = 1, json_path: str | None = None, backend: str = "jax",
+              warmup_s: float = 0.0) -> dict:
     """Trace ``steps`` control steps of the transport rollout at ``batch`` runs (random factor cells) and of
-    physics only (``mjx.step``) on the same batch; print and return both summaries."""
+    physics only (``mjx.step``) on the same batch; print and return both summaries.
+
+    ``qp``: a control-loop ADMM variant (:func:`wbc_jax.bench.qp_audit.variants`), None: the control loop's.
+    ``backend``: the MJX physics implementation. ``warmup_s``: simulated seconds run (untraced) before the traced
+    steps, so that they come from the walk rather than the first standing steps (the QP's convergence-checked
+    extension costs most at contact events)."""
     from wbc_jax.bench.rollout import physics_only_fn, random_batch, wbc_chunk_fn
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
     from wbc_jax.sim.model import Robot
@@ -177,20 +184,28 @@ def run_trace(batch: int = 270, steps: int = 50, scene: str = "transport", qp: s
     # The persistent cache's key leaves out op metadata: an executable cached from an edit with other scopes would
     # carry stale scope names. Compile afresh.
     jax.config.update("jax_enable_compilation_cache", False)
-    robot = Robot(scene)
-    qs = variants([qp])[qp] if qp else control_qp_settings(20)
+    from wbc_jax.sim.physics import resolve_backend
+
+    backend = resolve_backend(backend)
+    robot = Robot(scene, backend=backend)
+    qs = variants([qp])[qp] if qp else control_qp_settings(10)
     sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=qs),
                    n_substeps=substeps, log_every=steps)
     b = random_batch(sim, batch)
     chunk, args = wbc_chunk_fn(sim, b)
+    n_warm = int(round(warmup_s / sim.dt_control / steps))
+    for _ in range(n_warm):  # advance the state, one chunk of `steps` control steps at a time
+        args = (args[0], jax.block_until_ready(chunk(*args))[0]) + tuple(args[2:])
     f_phys = physics_only_fn(b, steps * substeps)
     device = jax.devices()[0].device_kind
-    out = dict(device=device, scene=robot.path.name, batch=batch, steps=steps, qp=qp, substeps=substeps)
+    out = dict(device=device, backend=backend, scene=robot.path.name, batch=batch, steps=steps, qp=qp or "control",
+               substeps=substeps, warmup_s=n_warm * steps * sim.dt_control)
     out["wbc"] = trace_call(chunk, args, steps)
-    print_summary(f"{device}, {robot.path.name}, batch {batch}, physics + WBC ({qp}, substeps {substeps})",
+    print_summary(f"{device}, {backend}, {robot.path.name}, batch {batch}, after {out['warmup_s']:.2f} s, physics + WBC "
+                  f"({qp or 'control loop QP'}, substeps {substeps})",
                   out["wbc"])
     out["physics_only"] = trace_call(f_phys, (b.model, b.state.d), steps)
-    print_summary(f"{device}, {robot.path.name}, batch {batch}, physics only ({substeps} mjx.step per control step)",
+    print_summary(f"{device}, {backend}, {robot.path.name}, batch {batch}, physics only ({substeps} mjx.step per control step)",
                   out["physics_only"])
     if json_path:
         with open(json_path, "w") as fh:

@@ -218,7 +218,8 @@ def control_qp_settings(iters: int = 10, **kw) -> QPSettings:
     residual), and a warm point is projected onto the exact rows before iterating.
     """
     return QPSettings(**{**dict(iters=iters, eps_abs=1e-4, eps_rel=1e-4, linsolve="auto", adapt_every=0,
-                                rho=3.0, ruiz_iters=2, eq_rows=N_EQ_ROWS, max_iters=200), **kw})
+                                rho=3.0, ruiz_iters=2, eq_rows=N_EQ_ROWS, max_iters=200, kernel="auto"),
+                          **kw})
 
 
 @dataclass(frozen=True)

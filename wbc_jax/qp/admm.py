@@ -127,7 +127,7 @@ from jax import lax
 from wbc_jax.qp.polish import polish
 from wbc_jax.qp.scaling import Scaled, all_finite, equilibrate, factor, inf_norm, mv, rel_residuals, solve
 from wbc_jax.qp.settings import (BIG, FLAG_DUAL_INFEASIBLE, FLAG_MAX_ITER, FLAG_NONFINITE, FLAG_PRIMAL_INFEASIBLE,
-                                 FLAG_SOLVED, LINSOLVES, QPResult, QPSettings)
+                                 FLAG_SOLVED, KERNELS, LINSOLVES, QPResult, QPSettings)
 
 _EQ_TOL = 1e-4  # scaled |u - l| below this marks an equality row (OSQP's RHO_TOL)
 
@@ -318,6 +318,32 @@ def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
         return st, rho, lambda st, length, active: iterate(st, *make_kkt(rho), length, active)
 
 
+def _run_fused(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
+    """``_run`` and the convergence-checked extension in one Pallas kernel (:mod:`wbc_jax.qp.fused`).
+
+    Returns:
+        ``(st, rho, n_it)``: the iterate, rho for the next solve (re-estimated from the final iterate when
+        ``adapt_every > 0``) and () int32 the iterations run.
+    """
+    from wbc_jax.qp.fused import fused_iterations
+
+    m = sp.A.shape[0]
+    ne = max(min(s.eq_rows, m), 1)  # one all-zero exact row stands for none
+    with jax.named_scope("qp_factor"):
+        K0, G = _gram(sp, w, free, s)
+        Ae = sp.A[:ne] * ex[:ne, None]
+        kkt = _kkt_factor(K0 + rho * G, Ae, ex[:ne], "inv")
+    with jax.named_scope("qp_iterations"):
+        out = fused_iterations(sp.P, sp.A, Ae, kkt.fac, kkt.W, kkt.Sf, sp.q, sp.l, sp.u, _rho_vec(rho, w, free, s),
+                               ex, free, sp.E, 1.0 / (sp.c * sp.D), st.x, st.z, st.y, iters=iters,
+                               max_iters=max(s.max_iters, iters), check_every=max(s.check_every, 1),
+                               alpha=s.alpha, eps_abs=s.eps_abs, eps_rel=s.eps_rel)
+    st = State(out.x, out.z, out.y, out.dx, out.dy, out.bad)
+    if s.adapt_every > 0:
+        rho = _adapt(sp, st, rho, s)
+    return st, rho, out.iters
+
+
 def _unscaled(P, q, A, sp: Scaled, st: State, s: QPSettings):
     """The iterate in the user's units and OSQP's convergence test.
 
@@ -390,9 +416,12 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     zb = jnp.where(free, mv(sp.A, xb), jnp.clip(zb, sp.l, sp.u))
     yb = jnp.where(free, 0.0, yb)
     st = State(xb, zb, yb, jnp.zeros(n, dt), jnp.zeros(m, dt), jnp.zeros((), bool))
-    st, rho, cont = _run(sp, st, rho, w, free, ex, s, iters)
-    n_it = jnp.asarray(iters, jnp.int32)
-    if s.max_iters > iters:
+    if s.kernel == "fused":
+        st, rho, n_it = _run_fused(sp, st, rho, w, free, ex, s, iters)
+    else:
+        st, rho, cont = _run(sp, st, rho, w, free, ex, s, iters)
+        n_it = jnp.asarray(iters, jnp.int32)
+    if s.kernel != "fused" and s.max_iters > iters:
         # convergence-checked extension: blocks of check_every iterations while outside tolerance
         def unconverged(c):
             st, k = c
@@ -477,6 +506,14 @@ def solve_qp(P, q, A, l, u, *, iters: int | None = None, warm: Any = None,
     it = int(s.iters if iters is None else iters)
     if it < 1:
         raise ValueError(f"iters must be >= 1, got {it}")
+    if s.kernel not in KERNELS:
+        raise ValueError(f"QPSettings.kernel must be one of {KERNELS}, not {s.kernel!r}")
+    one_factor = s.adapt_every == 0 or s.adapt_every >= it
+    if s.kernel == "auto":
+        s = s._replace(kernel="fused" if jax.default_backend() != "cpu" and one_factor else "xla")
+    if s.kernel == "fused" and not one_factor:
+        raise ValueError(f"QPSettings.kernel='fused' needs one factorization per solve (adapt_every 0 or >= iters), "
+                         f"got adapt_every={s.adapt_every}, iters={it}")
     if s.max_iters > it and s.check_every < 1:
         raise ValueError(f"QPSettings.check_every must be >= 1 with max_iters > iters, got {s.check_every}")
     P = jnp.asarray(P)

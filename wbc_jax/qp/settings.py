@@ -26,6 +26,7 @@ FLAG_NONFINITE = 4
 BIG = 1e20  # stands for an infinite bound inside the solver
 
 LINSOLVES = ("chol", "inv", "auto")
+KERNELS = ("xla", "fused", "auto")
 
 
 class QPSettings(NamedTuple):
@@ -83,6 +84,10 @@ class QPSettings(NamedTuple):
             Under ``vmap`` the block loop runs until the batch's slowest problem converges (converged problems
             keep their result), so its cost is paid only at steps where some problem needs it (contact events).
         check_every: iterations per block of the extension (one convergence test each).
+        kernel: ``"xla"`` (the iterations as XLA ops), ``"fused"`` (the iterations and the extension in one Pallas
+            kernel per problem, :mod:`wbc_jax.qp.fused`; needs one factorization per solve, ``adapt_every`` 0 or
+            ``>= iters``; rho is then re-estimated from the final iterate) or ``"auto"`` (fused on a GPU where
+            that holds, else XLA).
     """
 
     iters: int = 100
@@ -110,6 +115,7 @@ class QPSettings(NamedTuple):
     eq_rows: int = 0
     max_iters: int = 0
     check_every: int = 10
+    kernel: str = "xla"
 
 
 class QPResult(NamedTuple):
