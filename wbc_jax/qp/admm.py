@@ -102,14 +102,17 @@ optimum by ~50 % (20-35 activity changes); those problems were the warm failures
 Warm points solved further (400 instead of 100 iterations) do not help (.80 at 37: the
 rho kept from a long solve is less suited).
 
-The control loop's settings (warm start, one factorization per step, rho fixed at 10, 20 iterations) and their
-closed-loop evidence on the course (issue 22) are in :func:`wbc_jax.control.transport.control_qp_settings`.
+The control loop's settings (warm start, one factorization per step, rho fixed at 3, 10 iterations then blocks of
+10 to tolerance 1e-4) and their closed-loop evidence on the course (issue 22) are in
+:func:`wbc_jax.control.transport.control_qp_settings`. On a GPU the iterations and the extension run in one Pallas
+kernel per problem (``QPSettings.kernel``, :mod:`wbc_jax.qp.fused`; H100, course, Warp physics: paper campaign
+171.0 s -> 133.2 s, physics + WBC at batch 16384 431,605 -> 530,978 env-steps/s, docs/performance.md).
 
 Removed settings (git has them), each measured without an advantage for the product:
 Anderson acceleration (above: -20 % iterations at +50-70 % per iteration), the x-update
 in OSQP's right-hand-side form (``residual_form=False``, stalls in float32), OSQP's and
 no cost scaling (:mod:`wbc_jax.qp.scaling`), rho reset / re-estimated on a warm start
-(table above), and the fused Pallas segment kernel (``qp/fused.py``: +12 % env-steps/s
+(table above), and an earlier fused kernel of fixed-length segments (+12 % env-steps/s
 at batch 16384 on an H100 but a slower paper campaign, 192.6 s vs 175.0 s, from its
 compile). Polishing is in :mod:`wbc_jax.qp.polish`, scaling in :mod:`wbc_jax.qp.scaling`,
 settings, result and flags in :mod:`wbc_jax.qp.settings`.
