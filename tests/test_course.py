@@ -126,6 +126,7 @@ def test_foot_ground_surface_and_friction_match_mujoco_c():
     placed over block1, hind feet over the floor; distances and friction vs MuJoCo C (mj_geomDistance over each
     foot's pairs, pair_friction of the nearest)."""
     import jax
+    import jax.numpy as jnp
 
     from wbc_jax.sim import contacts, physics
     from wbc_jax.sim.model import mjx
@@ -242,3 +243,34 @@ def test_far_edge_rule_by_hand():
     at = [_hand_clearance((1.989, hz - f * HIP_DROP), (2.118, zf), edge, *leg)[1] for f in (0.0, 0.5, 1.0)]
     assert at[0] < SHIN_MARGIN <= at[2]
     assert rule(1.989, 2.118) != pytest.approx(2.118)
+
+
+def test_blind_terrain_lands_at_floor_height():
+    """course_plan(terrain="blind"): the planner does not see the blocks, so every planned landing is at the
+    floor's height (the touchdown rules handle the blocks); "known" lands on block2's top (0.035 m) somewhere.
+    The object's path is the same in both."""
+    import jax
+    import jax.numpy as jnp
+
+    from wbc_jax.planner.gait import gait_phase
+    from wbc_jax.planner.transport import reference
+
+    robot = Robot("transport")
+    qpos0 = robot.home_qpos(0.08)
+    z_end = {}
+    for terrain in ("known", "blind"):
+        plan = course_plan(robot, qpos0, side=0.08, terrain=terrain)
+        t = jnp.arange(0.0, float(plan.gait.t_stop), 0.005)
+
+        def landing_z(tt, plan=plan):  # planned foot height at the end of each swing, else -inf
+            ref = reference(plan, tt, jnp.zeros((4, 3)))
+            g = gait_phase(plan.gait, tt)
+            return jnp.where(g.swing & (g.swing_phase > 0.97), ref.p_sw[:, 2], -jnp.inf)
+
+        z_end[terrain] = np.asarray(jax.jit(jax.vmap(landing_z))(t))
+        assert plan.terrain.shape[0] == (3 if terrain == "known" else 0)
+    floor = float(np.max(z_end["blind"]))
+    assert np.all(z_end["blind"][np.isfinite(z_end["blind"])] <= floor + 1e-3)
+    assert float(np.max(z_end["known"])) == pytest.approx(floor + 0.035, abs=2e-3)
+    with pytest.raises(ValueError, match="terrain"):
+        course_plan(robot, qpos0, side=0.08, terrain="dark")

@@ -276,3 +276,14 @@ def test_ground_friction_and_speed_campaign_end_to_end(variants_run, tmp_path):
     assert list(df.columns[:6]) == ["run", "m", "mu", "d", "ground_mu", "speed"]
     assert list(df["ground_mu"]) == [0.5, 0.5, 1.2, 1.2] and list(df["speed"]) == [0.05, 0.2] * 2
     assert man["n_cells"] == 4 and np.isfinite(df["R"]).all()
+
+
+def test_terrain_key():
+    """campaign.terrain: "known" (the default, hash-neutral) or "blind"; anything else is a SpecError naming it."""
+    base = dict(factors=dict(m=[0.2, 0.4]), campaign=dict(reps=1))
+    known = parse_spec(base)
+    assert known.campaign["terrain"] == "known"
+    assert parse_spec(dict(base, campaign=dict(reps=1, terrain="known"))).hash == known.hash
+    assert parse_spec(dict(base, campaign=dict(reps=1, terrain="blind"))).hash != known.hash
+    with pytest.raises(SpecError, match="campaign.terrain"):
+        parse_spec(dict(base, campaign=dict(reps=1, terrain="dark")))

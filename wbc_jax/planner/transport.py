@@ -93,6 +93,9 @@ def _start_state(robot, qpos0):
             d.xmat[ids.obj_body].reshape(3, 3).copy(), d.xmat[ids.trunk_body].reshape(3, 3).copy(), hips.copy())
 
 
+TERRAINS = ("known", "blind")  # what the planner knows of the ground (course_plan)
+
+
 def _make_plan(robot, qpos0, path: CubicPath, gait: GaitParams, swing_height, t_ramp, com_dip_share,
                terrain, heading) -> TransportPlan:
     p_obj, com, feet, R_obj, R_base, hips = _start_state(robot, qpos0)
@@ -112,12 +115,15 @@ def _make_plan(robot, qpos0, path: CubicPath, gait: GaitParams, swing_height, t_
 
 def straight_plan(robot, qpos0: np.ndarray, distance: float = 3.4, speed: float = 0.13, ramp: float = 1.0,
                   gait: GaitParams = GaitParams(), swing_height: float = 0.05, t_ramp: float = 0.06,
-                  direction=(0.0, -1.0, 0.0)) -> TransportPlan:
+                  direction=(0.0, -1.0, 0.0), terrain: str = "known") -> TransportPlan:
     """Plan a straight transport of ``distance`` metres along ``direction`` at ``speed`` (flat ground).
 
     Args:
         robot: wbc_jax.sim.model.Robot; qpos0: (nq,) initial configuration (object on the tray).
+        terrain: as :func:`course_plan` (on flat ground both give the same plan).
     """
+    if terrain not in TERRAINS:
+        raise ValueError(f"terrain = {terrain!r}: expected one of {TERRAINS}")
     p_obj = _start_state(robot, qpos0)[0]
     u = np.asarray(direction, float) / np.linalg.norm(direction)
     path = straight_path(jnp.asarray(p_obj), jnp.asarray(p_obj + distance * u), speed, t0=gait.t_start, ramp=ramp)
@@ -136,7 +142,7 @@ def _time_law(length: float, speed: float, t0: float, ramp: float):
 def course_plan(robot, qpos0: np.ndarray, side: float, distance: float = 3.4, speed: float = 0.13,
                 ramp: float = 1.0, gait: GaitParams = GaitParams(), swing_height: float = 0.05,
                 t_ramp: float = 0.06, direction=(0.0, -1.0, 0.0), com_dip_share: float = 0.4,
-                apf: APFParams = APFParams(), max_accel_z: float = GRAVITY) -> TransportPlan:
+                apf: APFParams = APFParams(), max_accel_z: float = GRAVITY, terrain: str = "known") -> TransportPlan:
     """Plan the transport through the scene's obstacles (the transport paper's course).
 
     The object's height along the straight horizontal path comes from :func:`.apf.plan_dip` over the
@@ -148,7 +154,14 @@ def course_plan(robot, qpos0: np.ndarray, side: float, distance: float = 3.4, sp
     Args:
         side: object side d [m] (the carried top is d / 2 above the object centre).
         com_dip_share: fraction of the object's dip the CoM follows; the arm folds for the rest.
+        terrain: ``"known"``: footholds on the blocks' tops, moved off their edges (:func:`clear_of_edges`), as the
+            scene file gives them; ``"blind"``: the planner does not see the blocks (footholds at the floor's
+            height, no edge rule, swing apex above the higher end point as measured at liftoff); the touchdown
+            rules of :func:`reference` (early contact ends the swing, a late one descends until contact) do the work.
+            The object's path over the wall is planned in both.
     """
+    if terrain not in TERRAINS:
+        raise ValueError(f"terrain = {terrain!r}: expected one of {TERRAINS}")
     geo = scene_geometry(robot)
     p_obj = _start_state(robot, qpos0)[0]
     u = np.asarray(direction, float) / np.linalg.norm(direction)
@@ -170,7 +183,8 @@ def course_plan(robot, qpos0: np.ndarray, side: float, distance: float = 3.4, sp
     if az >= max_accel_z:
         raise PlanError(f"object path vertical acceleration {az:.2f} m/s^2 exceeds {max_accel_z:.2f} m/s^2; "
                         "lower the speed")
-    return _make_plan(robot, qpos0, path, gait, swing_height, t_ramp, com_dip_share, geo.terrain, u)
+    seen = geo.terrain if terrain == "known" else geo.terrain[:0]
+    return _make_plan(robot, qpos0, path, gait, swing_height, t_ramp, com_dip_share, seen, u)
 
 
 def plan_duration(plan: TransportPlan) -> float:

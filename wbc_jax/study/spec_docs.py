@@ -48,6 +48,9 @@ CAMPAIGN_MEANING = {
                  "shipped scenes)",
     "variant": "controller variant of every run when `variant` is not a factor (docs/method.md, \"Controller "
                "variants\")",
+    "terrain": "what the planner knows of the ground: `known` (footholds on the blocks' tops, off their edges, "
+               "from the scene file) or `blind` (footholds at the floor's height; the touchdown rules handle the "
+               "blocks; the object's path over the wall is planned in both)",
 }
 FACTOR_MEANING = {
     "m": "object mass",
