@@ -126,7 +126,6 @@ def test_foot_ground_surface_and_friction_match_mujoco_c():
     placed over block1, hind feet over the floor; distances and friction vs MuJoCo C (mj_geomDistance over each
     foot's pairs, pair_friction of the nearest)."""
     import jax
-    import jax.numpy as jnp
 
     from wbc_jax.sim import contacts, physics
     from wbc_jax.sim.model import mjx
