@@ -13,7 +13,7 @@ its planned path, the integrand of T) into:
 per phase: standing, walking (the path's motion), settling (after the path ends). Usage::
 
     PYTHONPATH=$PWD python tools/t_cause.py [--stand 1.0] [--distance 0.2] [--iters 20] [--object-lever]
-        [--wrench] [--scale w_obj_f=100,w_obj_t=100] [--out DIR]
+        [--wrench] [--scale w_obj_f=100,w_obj_t=100] [--course] [--out DIR]
 
 ``--object-lever`` runs the controller as before issue 23; ``--wrench`` adds the trace of the object wrench the QP
 plans vs the one the cube's motion needs (``wrench_trace``), the mechanism (docs/method.md, "T's dependence on m,
@@ -44,8 +44,10 @@ def one_at_a_time():
     return cells
 
 
-def run(cells, stand=1.0, distance=0.2, speed=0.13, settle=0.5, iters=20, log_every=10, gains=None, lever=False):
-    """Simulate the cells (list of (m, mu, d)) and return (logs dict of host arrays, info dict)."""
+def run(cells, stand=1.0, distance=0.2, speed=0.13, settle=0.5, iters=20, log_every=10, gains=None, lever=False,
+        course=False):
+    """Simulate the cells (list of (m, mu, d)) and return (logs dict of host arrays, info dict). ``course``: the
+    obstacle course (its full plan, ``distance`` unused) instead of flat ground."""
     import jax
     import jax.numpy as jnp
 
@@ -57,12 +59,13 @@ def run(cells, stand=1.0, distance=0.2, speed=0.13, settle=0.5, iters=20, log_ev
     from wbc_jax.sim.model import Robot
     from wbc_jax.sim.rollout import final_results, make_sim, simulate, with_metric_window
 
-    robot = Robot("flat")
+    robot = Robot("transport" if course else "flat")
     cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=control_qp_settings(iters), object_lever=lever)
     sim = make_sim(robot, cfg, log_every=log_every)
     m, mu, d = (np.array(x, float) for x in zip(*cells))
     b = prepare_batch(sim, m, mu, d, gains=gains,
-                      plan_kwargs=dict(distance=distance, speed=speed, gait=GaitParams(t_start=stand)))
+                      plan_kwargs=dict(speed=speed, gait=GaitParams(t_start=stand), **({} if course else
+                                                                                      dict(distance=distance))))
     T_plan = plan_duration(b.plan)
     t_end = T_plan + settle
     state = with_metric_window(b.state, np.full(len(cells), t_end))
@@ -96,7 +99,7 @@ def wrench_trace(cells, stand=1.0, distance=0.2, speed=0.13, settle=0.5, iters=2
     from wbc_jax.sim.model import Robot
     from wbc_jax.sim.rollout import control_step, controller_inputs, make_sim
 
-    robot = Robot("flat")
+    robot = Robot("transport" if course else "flat")
     ids = robot.ids
     cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=control_qp_settings(iters), object_lever=lever)
     sim = make_sim(robot, cfg)
@@ -177,8 +180,11 @@ def decompose(robot, logs, info):
     out = []
     for b in range(p.shape[0]):
         row = {}
-        for ph, (a, z) in phases.items():
-            k = (t >= a) & (t < z)
+        # on the course: the walk split where the object's reference dips under the wall (> 1 mm below its start)
+        dip = pr[b, :, 2] < pr[b, 0, 2] - 1e-3
+        for ph, (a, z) in list(phases.items()) + ([("level", phases["walk"]), ("dip", phases["walk"])]
+                                                  if dip.any() else []):
+            k = (t >= a) & (t < z) & {"level": ~dip, "dip": dip}.get(ph, True)
             E, Et, Er = comps(e[b, k]), comps(e_tray[b, k]), comps(e_rel[b, k])
             mean = E.mean(0)
             row[ph] = dict(
@@ -207,8 +213,11 @@ def main(argv=None):
     ap.add_argument("--wrench", action="store_true",
                     help="also trace the planned vs needed object wrench every control step (a second compile)")
     ap.add_argument("--out", type=Path, default=None, help="write decomposition.json and logs.npz here")
+    ap.add_argument("--course", action="store_true",
+                    help="the obstacle course's full plan, d varied only (m 0.3, mu 0.7); the walk also split into "
+                         "'level' and 'dip' (the object's reference under the wall)")
     a = ap.parse_args(argv)
-    cells = one_at_a_time()
+    cells = [(0.3, 0.7, d) for d in (0.06, 0.08, 0.10)] if a.course else one_at_a_time()
     gains = None
     if a.scale:
         from wbc_jax.control.transport import default_gains
@@ -218,7 +227,7 @@ def main(argv=None):
             k, v = kv.split("=")
             gains = gains._replace(**{k: getattr(gains, k) * float(v)})
     robot, logs, info = run(cells, a.stand, a.distance, a.speed, iters=a.iters, log_every=a.log_every, gains=gains,
-                            lever=a.object_lever)
+                            lever=a.object_lever, course=a.course)
     rows = decompose(robot, logs, info)
     print(f"plan end {info['T_plan']:.2f} s, window {info['t_end']:.2f} s, rollout {info['wall_s']:.1f} s")
     hdr = "m    mu   d    | phase  | T [mm] | offset along/lat/vert [mm] | dyn [mm] | tray offset a/l/v | on-tray a/l/v"
