@@ -53,6 +53,18 @@ def test_device_ops_prefers_gpu_process():
     assert [o[0] for o in kt.device_ops(dict(traceEvents=events))] == ["fusion.2"]
 
 
+def test_gpu_module_name_is_not_a_scope_path():
+    """GPU traces carry tf_op "XlaModule:" (no scope path): the HLO's op_name must attribute the op (on 2026-11-25
+    every H100 op fell into 'other' before this)."""
+    events = [dict(ph="M", name="process_name", pid=2, args=dict(name="/device:GPU:0")),
+              _x("fusion.2", 0.0, 3.0, pid=2, tf_op="XlaModule:"),
+              _x("fusion.3", 5.0, 1.0, pid=2, tf_op="jit(f)/vmap()/sense/add")]
+    ops = kt.device_ops(dict(traceEvents=events))
+    assert [o[3] for o in ops] == ["", "jit(f)/vmap()/sense/add"]
+    s = kt.summarize(ops, {"fusion_2": "jit(f)/qp_factor/cholesky"}, wall_s=10e-6, n_steps=1)
+    assert s["stages"]["qp_factor"]["ops_per_step"] == 1 and s["stages"]["sense"]["ops_per_step"] == 1
+
+
 def test_real_cpu_trace_attributes_both_scopes():
     """A jitted function with two independent scoped parts, traced by jax.profiler on the CPU: each part's ops
     (a wrapped elementwise op and a dot fusion on XLA CPU) land in its own stage, none in 'other'."""
