@@ -346,7 +346,6 @@ def test_convergence_checked_extension():
     assert np.all(it[~ok] == 400)  # only the cap stops an unconverged problem
 
 
-
 def test_extension_stops_at_the_cap():
     """The extension's last block is cut at max_iters when the blocks do not reach it exactly (25 = 10 + 10 + 5)."""
     b = pr.make_batch(3, 8, "wbc")
@@ -364,15 +363,13 @@ def test_fused_kernel_equals_xla_iterations(eq_rows, max_iters):
     from wbc_jax.control.transport import control_qp_settings
 
     b = pr.make_batch(3, 6, "wbc")
-    with jax.enable_x64(True):
-        _fused_equals_xla(b, eq_rows, max_iters, control_qp_settings)
-
-
-def _fused_equals_xla(b, eq_rows, max_iters, control_qp_settings):
-    data = [jnp.asarray(a, jnp.float64) for a in b[:5]]
     s = control_qp_settings(10, eq_rows=eq_rows, eps_abs=1e-6, eps_rel=1e-6, linsolve="inv", max_iters=max_iters)
-    ref = solve_qp(*data, settings=s)
-    fus = solve_qp(*data, settings=s._replace(kernel="fused"))
+    with jax.enable_x64(True):
+        data = [jnp.asarray(a, jnp.float64) for a in b[:5]]
+        ref = solve_qp(*data, settings=s)
+        fus = solve_qp(*data, settings=s._replace(kernel="fused"))
+        with pytest.raises(ValueError, match="kernel"):
+            solve_qp(*data, settings=s._replace(kernel="fused", adapt_every=5))
     np.testing.assert_array_equal(np.asarray(fus.iters), np.asarray(ref.iters))
     np.testing.assert_array_equal(np.asarray(fus.flag), np.asarray(ref.flag))
     for f in ("x", "y", "z"):
@@ -380,5 +377,3 @@ def _fused_equals_xla(b, eq_rows, max_iters, control_qp_settings):
         assert np.max(np.abs(a - c)) <= 1e-9 * np.max(np.abs(a)), f
     if max_iters:
         assert len(np.unique(np.asarray(ref.iters))) > 1  # problems stopped at different counts
-    with pytest.raises(ValueError, match="kernel"):
-        solve_qp(*data, settings=s._replace(kernel="fused", adapt_every=5))

@@ -44,6 +44,24 @@ def one_at_a_time():
     return cells
 
 
+def _batch(cells, stand, distance, speed, iters, gains, lever, course, log_every=20):
+    """(robot, cfg, sim, batch) of the cells: flat ground (a ``distance`` walk) or the course's full plan."""
+    from wbc_jax.control.transport import TransportConfig, control_qp_settings
+    from wbc_jax.planner.gait import GaitParams
+    from wbc_jax.sim.batch import prepare_batch
+    from wbc_jax.sim.model import Robot
+    from wbc_jax.sim.rollout import make_sim
+
+    robot = Robot("transport" if course else "flat")
+    cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=control_qp_settings(iters), object_lever=lever)
+    sim = make_sim(robot, cfg, log_every=log_every)
+    m, mu, d = (np.array(x, float) for x in zip(*cells))
+    walk = {} if course else dict(distance=distance)
+    b = prepare_batch(sim, m, mu, d, gains=gains,
+                      plan_kwargs=dict(speed=speed, gait=GaitParams(t_start=stand), **walk))
+    return robot, cfg, sim, b
+
+
 def run(cells, stand=1.0, distance=0.2, speed=0.13, settle=0.5, iters=20, log_every=10, gains=None, lever=False,
         course=False):
     """Simulate the cells (list of (m, mu, d)) and return (logs dict of host arrays, info dict). ``course``: the
@@ -51,21 +69,12 @@ def run(cells, stand=1.0, distance=0.2, speed=0.13, settle=0.5, iters=20, log_ev
     import jax
     import jax.numpy as jnp
 
-    from wbc_jax.control.transport import TransportConfig, control_qp_settings
-    from wbc_jax.planner.gait import GaitParams
     from wbc_jax.planner.spline import eval_path
     from wbc_jax.planner.transport import plan_duration
-    from wbc_jax.sim.batch import prepare_batch
-    from wbc_jax.sim.model import Robot
-    from wbc_jax.sim.rollout import final_results, make_sim, simulate, with_metric_window
+    from wbc_jax.sim.rollout import final_results, simulate, with_metric_window
 
-    robot = Robot("transport" if course else "flat")
-    cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=control_qp_settings(iters), object_lever=lever)
-    sim = make_sim(robot, cfg, log_every=log_every)
-    m, mu, d = (np.array(x, float) for x in zip(*cells))
-    b = prepare_batch(sim, m, mu, d, gains=gains,
-                      plan_kwargs=dict(speed=speed, gait=GaitParams(t_start=stand), **({} if course else
-                                                                                      dict(distance=distance))))
+    robot, cfg, sim, b = _batch(cells, stand, distance, speed, iters, gains, lever, course, log_every)
+    mu = np.array([c[1] for c in cells], float)
     T_plan = plan_duration(b.plan)
     t_end = T_plan + settle
     state = with_metric_window(b.state, np.full(len(cells), t_end))
@@ -82,7 +91,8 @@ def run(cells, stand=1.0, distance=0.2, speed=0.13, settle=0.5, iters=20, log_ev
     return robot, {k: np.asarray(v) for k, v in logs._asdict().items()}, info
 
 
-def wrench_trace(cells, stand=1.0, distance=0.2, speed=0.13, settle=0.5, iters=20, gains=None, lever=False):
+def wrench_trace(cells, stand=1.0, distance=0.2, speed=0.13, settle=0.5, iters=20, gains=None, lever=False,
+                 course=False):
     """Every control step of the cells: the object wrench the QP plans (W = G F_c of its Lambda_b), the one the
     object's motion needs (F_b,ref = [m (a_b + g); I alpha_b], the cost's target) and the force the simulated
     object actually receives (m (a + g), a its CoM acceleration over the period), plus how close the planned
@@ -91,21 +101,12 @@ def wrench_trace(cells, stand=1.0, distance=0.2, speed=0.13, settle=0.5, iters=2
     import jax.numpy as jnp
 
     from wbc_jax.control.dynamics import GRAVITY, cone_edges, wrench_map
-    from wbc_jax.control.transport import (N_FEET, TransportConfig, assemble, contact_points, control_qp_settings,
-                                           object_state)
-    from wbc_jax.planner.gait import GaitParams
+    from wbc_jax.control.transport import N_FEET, assemble, contact_points, object_state
     from wbc_jax.planner.transport import plan_duration
-    from wbc_jax.sim.batch import prepare_batch
-    from wbc_jax.sim.model import Robot
-    from wbc_jax.sim.rollout import control_step, controller_inputs, make_sim
+    from wbc_jax.sim.rollout import control_step, controller_inputs
 
-    robot = Robot("transport" if course else "flat")
+    robot, cfg, sim, b = _batch(cells, stand, distance, speed, iters, gains, lever, course)
     ids = robot.ids
-    cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=control_qp_settings(iters), object_lever=lever)
-    sim = make_sim(robot, cfg)
-    m, mu, d = (np.array(x, float) for x in zip(*cells))
-    b = prepare_batch(sim, m, mu, d, gains=gains,
-                      plan_kwargs=dict(distance=distance, speed=speed, gait=GaitParams(t_start=stand)))
     n_steps = int(round((plan_duration(b.plan) + settle) / cfg.dt))
     k, nv = cfg.k, ids.nv_robot
     ib = slice(nv + k * N_FEET, nv + k * N_FEET + 4 * k)
@@ -241,7 +242,8 @@ def main(argv=None):
         print(f"  T (rollout metric) = {Tm:.3f} mm, R {info['R'][i]:.4f}, S {info['S'][i]:.3f}, "
               f"max slip {info['max_slip_mm'][i]:.2f} mm, success {info['success'][i]}")
     if a.wrench:
-        wr = wrench_trace(cells, a.stand, a.distance, a.speed, iters=a.iters, gains=gains, lever=a.object_lever)
+        wr = wrench_trace(cells, a.stand, a.distance, a.speed, iters=a.iters, gains=gains, lever=a.object_lever,
+                          course=a.course)
         print("walk phase: planned object wrench G F_c minus the needed F_b,ref; tray acceleration error")
         print("m    mu   d    | mean dF x/y/z [N] | rms |dF| [N] | rms |dtau| [N mm] | mean a - a_b along [m/s^2]")
         t = wr["t"]

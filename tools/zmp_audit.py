@@ -49,9 +49,9 @@ def main(argv=None):
     def one(tt):
         ref = reference(plan, tt, jnp.zeros((4, 3)))
         g = gait_phase(plan.gait, tt)
-        return ref.p_com, ref.a_com, ref.p_sw, g.swing, g.swing_phase, g.step_index
+        return ref.p_com, ref.a_com, ref.p_sw, g.swing, g.step_index
 
-    p_com, a_com, p_sw, swing, phase, step = (np.asarray(x) for x in jax.jit(jax.vmap(one))(jnp.asarray(t)))
+    p_com, a_com, p_sw, swing, step = (np.asarray(x) for x in jax.jit(jax.vmap(one))(jnp.asarray(t)))
     zmp = np.asarray(jax.vmap(zmp_xy)(jnp.asarray(p_com), jnp.asarray(a_com)))
     # each foot's planned foothold: where its last swing ended (the start stance before the first)
     foot = np.empty((len(t), 4, 2))

@@ -179,13 +179,12 @@ def run_trace(batch: int = 270, steps: int = 50, scene: str = "transport", qp: s
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
     from wbc_jax.sim.model import Robot
     from wbc_jax.bench.qp_audit import variants
+    from wbc_jax.sim.physics import resolve_backend
     from wbc_jax.sim.rollout import make_sim
 
     # The persistent cache's key leaves out op metadata: an executable cached from an edit with other scopes would
     # carry stale scope names. Compile afresh.
     jax.config.update("jax_enable_compilation_cache", False)
-    from wbc_jax.sim.physics import resolve_backend
-
     backend = resolve_backend(backend)
     robot = Robot(scene, backend=backend)
     qs = variants([qp])[qp] if qp else control_qp_settings(10)

@@ -269,19 +269,25 @@ def _adapt(sp: Scaled, st: State, rho, s: QPSettings):
     return jnp.where(change & jnp.isfinite(est), est, rho)
 
 
+def _factor_parts(sp: Scaled, w, free, ex, s: QPSettings, ne: int):
+    """``(K0, G, Ae)``: :func:`_gram`'s parts of the x-update's matrix and the exact rows ``Ae`` (ne, n), the first
+    ``ne`` rows of ``A`` masked by ``ex`` (None for ``ne = 0``)."""
+    with jax.named_scope("qp_factor"):
+        K0, G = _gram(sp, w, free, s)
+        return K0, G, (sp.A[:ne] * ex[:ne, None] if ne > 0 else None)
+
+
 def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
     """``iters`` iterations in segments of ``adapt_every`` with refactor in between.
 
     Returns:
         ``(st, rho, cont)``: the iterate, the (adapted) rho for the next solve, and ``cont(st, length, active)``,
-        which runs ``active`` (<= ``length``) more iterations with the last segment's factorization (for the convergence-checked
-        extension, ``QPSettings.max_iters``).
+        which runs ``active`` (<= ``length``) more iterations with the last segment's factorization (for the
+        convergence-checked extension, :func:`_extend`).
     """
     k = s.adapt_every if 0 < s.adapt_every < iters else iters
     ne = min(s.eq_rows, sp.A.shape[0])
-    with jax.named_scope("qp_factor"):
-        K0, G = _gram(sp, w, free, s)
-        Ae = sp.A[:ne] * ex[:ne, None] if ne > 0 else None
+    K0, G, Ae = _factor_parts(sp, w, free, ex, s, ne)
 
     def make_kkt(rho):
         with jax.named_scope("qp_factor"):
@@ -321,6 +327,30 @@ def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
         return st, rho, lambda st, length, active: iterate(st, *make_kkt(rho), length, active)
 
 
+def _extend(P, q, A, sp: Scaled, st: State, cont, s: QPSettings, iters: int):
+    """The convergence-checked extension (``QPSettings.max_iters``): blocks of ``check_every`` iterations
+    (``cont`` from :func:`_run`) while outside tolerance, the last block cut at ``max_iters``.
+
+    Returns:
+        ``(st, n_it)``: the iterate and () int32 the iterations run in all.
+    """
+    n_it = jnp.asarray(iters, jnp.int32)
+    if s.max_iters <= iters:
+        return st, n_it
+
+    def unconverged(c):
+        st, k = c
+        return (k < s.max_iters) & ~_unscaled(P, q, A, sp, st, s)[5] & ~st.bad
+
+    def more(c):
+        st, k = c
+        active = jnp.minimum(s.check_every, s.max_iters - k)
+        return cont(st, s.check_every, active), k + active
+
+    with jax.named_scope("qp_iterations"):
+        return lax.while_loop(unconverged, more, (st, n_it))
+
+
 def _run_fused(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
     """``_run`` and the convergence-checked extension in one Pallas kernel (:mod:`wbc_jax.qp.fused`).
 
@@ -330,11 +360,9 @@ def _run_fused(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
     """
     from wbc_jax.qp.fused import fused_iterations
 
-    m = sp.A.shape[0]
-    ne = max(min(s.eq_rows, m), 1)  # one all-zero exact row stands for none
+    ne = max(min(s.eq_rows, sp.A.shape[0]), 1)  # one all-zero exact row stands for none
+    K0, G, Ae = _factor_parts(sp, w, free, ex, s, ne)
     with jax.named_scope("qp_factor"):
-        K0, G = _gram(sp, w, free, s)
-        Ae = sp.A[:ne] * ex[:ne, None]
         kkt = _kkt_factor(K0 + rho * G, Ae, ex[:ne], "inv")
     with jax.named_scope("qp_iterations"):
         out = fused_iterations(sp.P, sp.A, Ae, kkt.fac, kkt.W, kkt.Sf, sp.q, sp.l, sp.u, _rho_vec(rho, w, free, s),
@@ -423,20 +451,7 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
         st, rho, n_it = _run_fused(sp, st, rho, w, free, ex, s, iters)
     else:
         st, rho, cont = _run(sp, st, rho, w, free, ex, s, iters)
-        n_it = jnp.asarray(iters, jnp.int32)
-    if s.kernel != "fused" and s.max_iters > iters:
-        # convergence-checked extension: blocks of check_every iterations while outside tolerance
-        def unconverged(c):
-            st, k = c
-            return (k < s.max_iters) & ~_unscaled(P, q, A, sp, st, s)[5] & ~st.bad
-
-        def more(c):  # the last block stops at max_iters
-            st, k = c
-            active = jnp.minimum(s.check_every, s.max_iters - k)
-            return cont(st, s.check_every, active), k + active
-
-        with jax.named_scope("qp_iterations"):
-            st, n_it = lax.while_loop(unconverged, more, (st, n_it))
+        st, n_it = _extend(P, q, A, sp, st, cont, s, iters)
     if s.polish:
         x, z, y = polish(sp, st.x, st.z, st.y, eq, free, s)
         st = st._replace(x=x, z=z, y=y)
