@@ -269,14 +269,6 @@ def _adapt(sp: Scaled, st: State, rho, s: QPSettings):
     return jnp.where(change & jnp.isfinite(est), est, rho)
 
 
-def _factor_parts(sp: Scaled, w, free, ex, s: QPSettings, ne: int):
-    """``(K0, G, Ae)``: :func:`_gram`'s parts of the x-update's matrix and the exact rows ``Ae`` (ne, n), the first
-    ``ne`` rows of ``A`` masked by ``ex`` (None for ``ne = 0``)."""
-    with jax.named_scope("qp_factor"):
-        K0, G = _gram(sp, w, free, s)
-        return K0, G, (sp.A[:ne] * ex[:ne, None] if ne > 0 else None)
-
-
 def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
     """``iters`` iterations in segments of ``adapt_every`` with refactor in between.
 
@@ -287,7 +279,9 @@ def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
     """
     k = s.adapt_every if 0 < s.adapt_every < iters else iters
     ne = min(s.eq_rows, sp.A.shape[0])
-    K0, G, Ae = _factor_parts(sp, w, free, ex, s, ne)
+    with jax.named_scope("qp_factor"):
+        K0, G = _gram(sp, w, free, s)
+        Ae = sp.A[:ne] * ex[:ne, None] if ne > 0 else None  # (ne, n) the exact rows
 
     def make_kkt(rho):
         with jax.named_scope("qp_factor"):
@@ -352,23 +346,21 @@ def _extend(P, q, A, sp: Scaled, st: State, cont, s: QPSettings, iters: int):
 
 
 def _run_fused(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
-    """``_run`` and the convergence-checked extension in one Pallas kernel (:mod:`wbc_jax.qp.fused`).
+    """The factorization, ``_run`` and the convergence-checked extension in one Pallas kernel
+    (:mod:`wbc_jax.qp.fused`).
 
     Returns:
         ``(st, rho, n_it)``: the iterate, rho for the next solve (re-estimated from the final iterate when
         ``adapt_every > 0``) and () int32 the iterations run.
     """
-    from wbc_jax.qp.fused import fused_iterations
+    from wbc_jax.qp.fused import fused_solve
 
     ne = max(min(s.eq_rows, sp.A.shape[0]), 1)  # one all-zero exact row stands for none
-    K0, G, Ae = _factor_parts(sp, w, free, ex, s, ne)
-    with jax.named_scope("qp_factor"):
-        kkt = _kkt_factor(K0 + rho * G, Ae, ex[:ne], "inv")
     with jax.named_scope("qp_iterations"):
-        out = fused_iterations(sp.P, sp.A, Ae, kkt.fac, kkt.W, kkt.Sf, sp.q, sp.l, sp.u, _rho_vec(rho, w, free, s),
-                               ex, free, sp.E, 1.0 / (sp.c * sp.D), st.x, st.z, st.y, iters=iters,
-                               max_iters=max(s.max_iters, iters), check_every=max(s.check_every, 1),
-                               alpha=s.alpha, eps_abs=s.eps_abs, eps_rel=s.eps_rel)
+        out = fused_solve(sp.P, sp.A, sp.q, sp.l, sp.u, _rho_vec(rho, w, free, s), ex, free, sp.E,
+                          1.0 / (sp.c * sp.D), st.x, st.z, st.y, ne=ne, sigma=s.sigma, iters=iters,
+                          max_iters=max(s.max_iters, iters), check_every=max(s.check_every, 1), alpha=s.alpha,
+                          eps_abs=s.eps_abs, eps_rel=s.eps_rel)
     st = State(out.x, out.z, out.y, out.dx, out.dy, out.bad)
     if s.adapt_every > 0:
         rho = _adapt(sp, st, rho, s)
