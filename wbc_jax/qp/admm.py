@@ -114,7 +114,12 @@ in OSQP's right-hand-side form (``residual_form=False``, stalls in float32), OSQ
 no cost scaling (:mod:`wbc_jax.qp.scaling`), rho reset / re-estimated on a warm start
 (table above), and an earlier fused kernel of fixed-length segments (+12 % env-steps/s
 at batch 16384 on an H100 but a slower paper campaign, 192.6 s vs 175.0 s, from its
-compile). Polishing is in :mod:`wbc_jax.qp.polish`, scaling in :mod:`wbc_jax.qp.scaling`,
+compile), and the x-update's factorization inside the fused kernel (``K`` by one float32 dot, its inverse and the
+Schur complement's by Gauss-Jordan sweeps in registers; commit 9dfbbbf): H100, 512 cold WBC problems of this
+shape, the solve took 4.63 ms against 2.33 ms with the factorization in XLA, as the kernel's registers held more
+per problem; a separate Pallas factorization kernel took 4.2 ms at batch 16384 against XLA's 4.9 ms (the sweep
+inverse alone 1.5 ms), too little to pay for another kernel; splitting the constraint rows into the exact block
+and the rest (no padding to 128 rows, no selection matrix) was slower again (5.16 ms). Polishing is in :mod:`wbc_jax.qp.polish`, scaling in :mod:`wbc_jax.qp.scaling`,
 settings, result and flags in :mod:`wbc_jax.qp.settings`.
 """
 
@@ -269,6 +274,14 @@ def _adapt(sp: Scaled, st: State, rho, s: QPSettings):
     return jnp.where(change & jnp.isfinite(est), est, rho)
 
 
+def _factor_parts(sp: Scaled, w, free, ex, s: QPSettings, ne: int):
+    """``(K0, G, Ae)``: :func:`_gram`'s parts of the x-update's matrix and the exact rows ``Ae`` (ne, n), the first
+    ``ne`` rows of ``A`` masked by ``ex`` (None for ``ne = 0``)."""
+    with jax.named_scope("qp_factor"):
+        K0, G = _gram(sp, w, free, s)
+        return K0, G, (sp.A[:ne] * ex[:ne, None] if ne > 0 else None)
+
+
 def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
     """``iters`` iterations in segments of ``adapt_every`` with refactor in between.
 
@@ -279,9 +292,7 @@ def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
     """
     k = s.adapt_every if 0 < s.adapt_every < iters else iters
     ne = min(s.eq_rows, sp.A.shape[0])
-    with jax.named_scope("qp_factor"):
-        K0, G = _gram(sp, w, free, s)
-        Ae = sp.A[:ne] * ex[:ne, None] if ne > 0 else None  # (ne, n) the exact rows
+    K0, G, Ae = _factor_parts(sp, w, free, ex, s, ne)
 
     def make_kkt(rho):
         with jax.named_scope("qp_factor"):
@@ -346,21 +357,23 @@ def _extend(P, q, A, sp: Scaled, st: State, cont, s: QPSettings, iters: int):
 
 
 def _run_fused(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
-    """The factorization, ``_run`` and the convergence-checked extension in one Pallas kernel
-    (:mod:`wbc_jax.qp.fused`).
+    """``_run`` and the convergence-checked extension in one Pallas kernel (:mod:`wbc_jax.qp.fused`).
 
     Returns:
         ``(st, rho, n_it)``: the iterate, rho for the next solve (re-estimated from the final iterate when
         ``adapt_every > 0``) and () int32 the iterations run.
     """
-    from wbc_jax.qp.fused import fused_solve
+    from wbc_jax.qp.fused import fused_iterations
 
     ne = max(min(s.eq_rows, sp.A.shape[0]), 1)  # one all-zero exact row stands for none
+    K0, G, Ae = _factor_parts(sp, w, free, ex, s, ne)
+    with jax.named_scope("qp_factor"):
+        kkt = _kkt_factor(K0 + rho * G, Ae, ex[:ne], "inv")
     with jax.named_scope("qp_iterations"):
-        out = fused_solve(sp.P, sp.A, sp.q, sp.l, sp.u, _rho_vec(rho, w, free, s), ex, free, sp.E,
-                          1.0 / (sp.c * sp.D), st.x, st.z, st.y, ne=ne, sigma=s.sigma, iters=iters,
-                          max_iters=max(s.max_iters, iters), check_every=max(s.check_every, 1), alpha=s.alpha,
-                          eps_abs=s.eps_abs, eps_rel=s.eps_rel)
+        out = fused_iterations(sp.P, sp.A, Ae, kkt.fac, kkt.W, kkt.Sf, sp.q, sp.l, sp.u, _rho_vec(rho, w, free, s),
+                               ex, free, sp.E, 1.0 / (sp.c * sp.D), st.x, st.z, st.y, iters=iters,
+                               max_iters=max(s.max_iters, iters), check_every=max(s.check_every, 1),
+                               alpha=s.alpha, eps_abs=s.eps_abs, eps_rel=s.eps_rel)
     st = State(out.x, out.z, out.y, out.dx, out.dy, out.bad)
     if s.adapt_every > 0:
         rho = _adapt(sp, st, rho, s)

@@ -65,73 +65,16 @@ def _finite(*vs):  # () bool, every entry finite (Triton-friendly: x - x is 0 on
     return (tot - tot) == 0.0
 
 
-def sweep_inverse(T):
-    """``T^-1`` of a symmetric positive definite ``T`` (N, N) by Gauss-Jordan elimination without pivoting, in the
-    symmetric form of Beaton's sweep operator (each of the N sweeps reads one row, which is also the column).
-
-    No pivoting is needed for a positive definite matrix (each pivot is a Schur complement's diagonal entry, > 0);
-    the ADMM step's residual form corrects what rounding leaves. Plain ``jnp`` on register tiles (masked
-    reductions instead of dynamic indexing), so it runs inside the Triton kernel and outside it (tests).
-    """
-    N = T.shape[0]
-    ri = jax.lax.broadcasted_iota(jnp.int32, (N, N), 0)
-    ci = jax.lax.broadcasted_iota(jnp.int32, (N, N), 1)
-    vi = jax.lax.broadcasted_iota(jnp.int32, (N,), 0)
-
-    def sweep(k, T):
-        rk = jnp.sum(jnp.where(ri == k, T, 0.0), axis=0)  # row k = column k
-        d = jnp.sum(jnp.where(vi == k, rk, 0.0))
-        v = jnp.where(vi == k, -1.0, rk) / d
-        return jnp.where(ri == k, v[None, :], jnp.where(ci == k, v[:, None], T - rk[:, None] * (rk[None, :] / d)))
-
-    return -jax.lax.fori_loop(0, N, sweep, T)
-
-
-def _dot(a, b, contract):  # full-precision matrix product (IEEE float32 on Triton, no TF32)
-    return jax.lax.dot_general(a, b, (contract, ((), ())), precision=jax.lax.Precision.HIGHEST)
-
-
-def _factor(P, A, Ae, rho, exe, n: int, sigma: float):
-    """The x-update's operators, ``admm._kkt_factor`` with ``linsolve="inv"``, from the scaled problem.
-
-    Args:
-        P: (N, N), A: (M, N) padded; Ae: (NE, N) the exact rows (zero where not held); rho: (M,) per-row rho;
-            exe: (NE,) 1 on held rows; n: real variables; sigma: the proximal term.
-
-    Returns:
-        ``(Kinv, W, Sinv)``: (N, N) inverse of ``K = P + sigma I + A' diag(rho) A`` (zero on padded variables),
-        (N, NE) ``Kinv Ae'``, (NE, NE) inverse of the Schur complement ``Ae W`` (regularized by the dtype's
-        epsilon times its largest diagonal entry; zero on rows not held).
-    """
-    N, NE = P.shape[0], Ae.shape[0]
-    ri = jax.lax.broadcasted_iota(jnp.int32, (N, N), 0)
-    ci = jax.lax.broadcasted_iota(jnp.int32, (N, N), 1)
-    K = P + _dot(A * rho[:, None], A, ((0,), (0,)))
-    K = 0.5 * (K + K.T) + jnp.where(ri == ci, jnp.where(ci < n, sigma, 1.0), 0.0)  # padded: identity
-    Ki = jnp.where((ri < n) & (ci < n), sweep_inverse(K), 0.0)
-    W = _dot(Ki, Ae, ((1,), (1,)))
-    S = _dot(Ae, W, ((1,), (0,)))
-    S = 0.5 * (S + S.T)
-    eye = (jax.lax.broadcasted_iota(jnp.int32, (NE, NE), 0) == jax.lax.broadcasted_iota(jnp.int32, (NE, NE), 1))
-    info = jnp.finfo(P.dtype)
-    reg = float(info.eps) * jnp.max(jnp.abs(jnp.sum(jnp.where(eye, S, 0.0), axis=1))) + float(info.tiny)
-    S = S + jnp.where(eye, jnp.where(exe > 0.5, reg, 1.0)[:, None], 0.0)
-    return Ki, W, sweep_inverse(S) * (exe[:, None] * exe[None, :])
-
-
-def _kernel(P_ref, A_ref, q_ref, l_ref, u_ref, le_ref, rho_ref, rdiv_ref, exm_ref, free_ref, exe_ref, Ei_ref,
-            Dc_ref, x_ref, z_ref, y_ref,
+def _kernel(P_ref, A_ref, Ae_ref, Ki_ref, W_ref, Si_ref, q_ref, l_ref, u_ref, le_ref, rho_ref, rdiv_ref, exm_ref,
+            free_ref, exe_ref, Ei_ref, Dc_ref, x_ref, z_ref, y_ref,
             xo_ref, zo_ref, yo_ref, dxo_ref, dyo_ref, info_ref, *,
-            n: int, sigma: float, iters: int, max_iters: int, check_every: int, alpha: float, eps_abs: float,
-            eps_rel: float):
-    P, A = P_ref[...], A_ref[...]
+            iters: int, max_iters: int, check_every: int, alpha: float, eps_abs: float, eps_rel: float):
+    P, A, Ae, Ki, W, Si = P_ref[...], A_ref[...], Ae_ref[...], Ki_ref[...], W_ref[...], Si_ref[...]
     q, lo, hi, le = q_ref[...], l_ref[...], u_ref[...], le_ref[...]
     rho, rdiv, exm, free, exe = rho_ref[...], rdiv_ref[...], exm_ref[...], free_ref[...] > 0.5, exe_ref[...]
     Ei, Dc = Ei_ref[...], Dc_ref[...]
-    ne, m = exe.shape[0], A.shape[0]
-    Ae = A_ref[0:ne, :] * exe[:, None]  # the exact rows are the first ones
-    Ki, W, Si = _factor(P, A, Ae, rho, exe, n, sigma)
-    # (ne, m) selection: exact row i is constraint row i
+    ne, m = Ae.shape[0], A.shape[0]
+    # (ne, m) selection: exact row i is constraint row i (the exact rows are the first ones)
     sel = (jax.lax.broadcasted_iota(jnp.int32, (ne, m), 0) == jax.lax.broadcasted_iota(jnp.int32, (ne, m), 1))
     sel = sel.astype(P.dtype)
 
@@ -193,37 +136,37 @@ def _kernel(P_ref, A_ref, q_ref, l_ref, u_ref, le_ref, rho_ref, rdiv_ref, exm_re
     info_ref[...] = jnp.where(i == 0, bad, jnp.where(i == 1, k.astype(x.dtype), 0.0)).astype(info_ref.dtype)
 
 
-@functools.partial(jax.jit, static_argnames=("ne", "sigma", "iters", "max_iters", "check_every", "alpha",
-                                             "eps_abs", "eps_rel", "num_warps"))
-def fused_solve(P, A, q, l, u, rho_v, ex, free, E, Dc, x, z, y, *, ne: int, sigma: float, iters: int,
-                max_iters: int, check_every: int, alpha: float, eps_abs: float, eps_rel: float,
-                num_warps: int = 8) -> FusedOut:
-    """Factor the x-update, then ``iters`` ADMM iterations of one scaled problem and blocks of ``check_every``
-    while unconverged, in one kernel.
+@functools.partial(jax.jit, static_argnames=("iters", "max_iters", "check_every", "alpha", "eps_abs", "eps_rel",
+                                             "num_warps"))
+def fused_iterations(P, A, Ae, Kinv, W, Sinv, q, l, u, rho_v, ex, free, E, Dc, x, z, y, *, iters: int,
+                     max_iters: int, check_every: int, alpha: float, eps_abs: float, eps_rel: float,
+                     num_warps: int = 8) -> FusedOut:
+    """``iters`` ADMM iterations of one scaled problem, then blocks of ``check_every`` while unconverged.
 
     Args:
-        P: (n, n), A: (m, n) the scaled problem; its first ``ne`` rows are the exact rows where ``ex`` says so.
+        P: (n, n), A: (m, n) the scaled problem; Ae: (ne, n) its exact rows (``A[:ne]`` masked by ``ex``).
+        Kinv: (n, n) inverse of ``P + sigma I + A' diag(rho_v) A``; W: (n, ne) ``Kinv Ae'``; Sinv: (ne, ne) inverse
+            of the Schur complement (``admm.KKT``; identity on rows not held).
         q: (n,), l, u: (m,) finite (``+-BIG``); rho_v: (m,) per-row rho (0 on exact rows); ex, free: (m,) bool.
         E: (m,) row scaling; Dc: (n,) ``1 / (c D)`` (column and cost scaling), for the convergence test.
-        x: (n,), z, y: (m,) start (scaled). ne: exact rows (>= 1; an all-False ``ex[:ne]`` stands for none).
-        sigma: proximal term. iters / max_iters / check_every: as ``QPSettings`` (``max_iters <= iters``: no
-        extension). alpha: over-relaxation. eps_abs, eps_rel: the test's tolerances.
+        x: (n,), z, y: (m,) start (scaled). iters / max_iters / check_every: as ``QPSettings`` (``max_iters <=
+            iters``: no extension). alpha: over-relaxation. eps_abs, eps_rel: the test's tolerances.
         num_warps: Triton warps per program.
 
     Returns:
         :class:`FusedOut`.
     """
-    n, m = P.shape[0], A.shape[0]
+    n, m, ne = P.shape[0], A.shape[0], Ae.shape[0]
     N, M, NE = _pow2(n), _pow2(m), _pow2(ne)
     dt = P.dtype
     pn, pm, pe = (0, N - n), (0, M - m), (0, NE - ne)
-    ex_e = ex[:ne]
-    le = jnp.where(ex_e, l[:ne], 0.0)
+    le = jnp.where(ex[:ne], l[:ne], 0.0)
     ex_f, free_f = ex.astype(dt), free.astype(dt)
-    args = (jnp.pad(P, (pn, pn)), jnp.pad(A, (pm, pn)), jnp.pad(q, pn), jnp.pad(l, pm), jnp.pad(u, pm),
-            jnp.pad(le, pe), jnp.pad(rho_v, pm), jnp.pad(jnp.where(ex, 1.0, rho_v), pm, constant_values=1.0),
-            jnp.pad(ex_f, pm), jnp.pad(free_f, pm), jnp.pad(ex_e.astype(dt), pe),
-            jnp.pad(1.0 / E, pm, constant_values=1.0), jnp.pad(Dc, pn, constant_values=1.0),
+    args = (jnp.pad(P, (pn, pn)), jnp.pad(A, (pm, pn)), jnp.pad(Ae, (pe, pn)), jnp.pad(Kinv, (pn, pn)),
+            jnp.pad(W, (pn, pe)), jnp.pad(Sinv * (ex_f[:ne, None] * ex_f[None, :ne]), (pe, pe)),
+            jnp.pad(q, pn), jnp.pad(l, pm), jnp.pad(u, pm), jnp.pad(le, pe), jnp.pad(rho_v, pm),
+            jnp.pad(jnp.where(ex, 1.0, rho_v), pm, constant_values=1.0), jnp.pad(ex_f, pm), jnp.pad(free_f, pm),
+            jnp.pad(ex_f[:ne], pe), jnp.pad(1.0 / E, pm, constant_values=1.0), jnp.pad(Dc, pn, constant_values=1.0),
             jnp.pad(x, pn), jnp.pad(z, pm), jnp.pad(y, pm))
     shapes = [jax.ShapeDtypeStruct(s, dt) for s in ((N,), (M,), (M,), (N,), (M,), (16,))]
     interpret = jax.default_backend() == "cpu"
@@ -232,8 +175,8 @@ def fused_solve(P, A, q, l, u, rho_v, ex, free, E, Dc, x, z, y, *, ne: int, sigm
         from jax.experimental.pallas import triton as plgpu
 
         params = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
-    kern = functools.partial(_kernel, n=n, sigma=sigma, iters=iters, max_iters=max_iters, check_every=check_every,
-                             alpha=alpha, eps_abs=eps_abs, eps_rel=eps_rel)
+    kern = functools.partial(_kernel, iters=iters, max_iters=max_iters, check_every=check_every, alpha=alpha,
+                             eps_abs=eps_abs, eps_rel=eps_rel)
     xo, zo, yo, dxo, dyo, info = pl.pallas_call(kern, out_shape=shapes, interpret=interpret, compiler_params=params,
-                                                name="admm_solve")(*args)
+                                                name="admm_iterations")(*args)
     return FusedOut(xo[:n], zo[:m], yo[:m], dxo[:n], dyo[:m], info[0] > 0, info[1].astype(jnp.int32))
