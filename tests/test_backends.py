@@ -2,7 +2,8 @@
 
 References: MuJoCo C's ``mj_fullM`` for the dense mass matrix rebuilt from Warp's CSR storage; MJX's own collision
 distances (JAX backend, every pair's slot) for the geometric sphere distances the Warp path computes; the JAX
-backend's closed loop for the Warp backend's (same model, same controller, a short loaded stand and first steps).
+backend's closed loop for the Warp backend's (same model, same controller, a short loaded stand and first steps);
+MuJoCo Warp's own forward pass for the state the delayed sensing says the controller read.
 """
 
 from __future__ import annotations
@@ -30,15 +31,17 @@ FACTORS = (np.array([0.3, 0.4]), np.array([0.7, 0.4]), np.array([0.08, 0.06]))  
 
 @pytest.fixture(scope="module")
 def walks():
-    """Both backends' batch-2 closed loops over SECONDS on the flat scene: (sim, batch, final state, results)."""
+    """Both backends' batch-2 closed loops over SECONDS on the flat scene, and Warp's with delayed sensing
+    ("warp:delayed"): (sim, batch, final state, results)."""
     out = {}
-    for backend in ("jax", "warp"):
-        sim = make_sim(Robot("flat", backend=backend), log_every=20)
+    for key in ("jax", "warp", "warp:delayed"):
+        backend, _, sensing = key.partition(":")
+        sim = make_sim(Robot("flat", backend=backend), log_every=20, sensing=sensing or "exact")
         b = prepare_batch(sim, *FACTORS)
         st, _ = simulate(sim, b.model, b.in_axes, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground,
                          seconds=SECONDS, chunk_seconds=SECONDS)
         res = final_results(sim, st, np.zeros((2, 3)), FACTORS[1])
-        out[backend] = (sim, b, jax.device_get(st), res)
+        out[key] = (sim, b, jax.device_get(st), res)
     return out
 
 
@@ -46,7 +49,9 @@ def test_warp_mass_matrix_and_distances_match_references(walks):
     """At the Warp walk's final configurations: M rebuilt from Warp's CSR vs MuJoCo C; foot and object-sphere
     distances (geometric on Warp) and the object's total normal force vs the JAX backend at the same positions."""
     out = {}
-    for backend, (sim, b, st, _) in walks.items():
+    for backend in ("jax", "warp"):
+        sim, b, st, _ = walks[backend]
+
         def one(m, d, sim=sim):
             ds = physics.sense(m, d)
             dist = contacts.object_contacts(sim, m, ds)[1]
@@ -84,6 +89,30 @@ def test_short_loaded_walk_agrees_between_backends(walks):
     assert np.all(wr["success"] == jr["success"])
     assert not np.any(ws.acc.overflow) and not np.any(ws.acc.nonfinite)
     assert np.all(np.asarray(ws.acc.n_steps) == np.asarray(js.acc.n_steps))
+
+
+def test_delayed_sensing_reads_the_last_steps_start(walks):
+    """Sensing "delayed": the data's derived fields after a step are Warp's forward pass of the state ``prev``
+    records (the step's start), so the controller's view is that state, consistently; the walk agrees with the
+    exact-sensing one to the backends' tolerance; the option is refused where it saves nothing."""
+    sim, b, st, res = walks["warp:delayed"]
+    qpos, qvel, t = (np.asarray(v) for v in st.prev)
+    assert np.all(np.abs(t - np.asarray(st.d.time) + sim.dt_physics) < 1e-6)  # one physics step old
+    assert np.max(np.abs(qpos - np.asarray(st.d.qpos))) > 1e-5  # the robot moved in that step (the test can fail)
+    d = b.state.d.replace(qpos=jax.numpy.asarray(qpos), qvel=jax.numpy.asarray(qvel),
+                          ctrl=jax.numpy.asarray(st.d.ctrl))
+    fwd = jax.device_get(jax.jit(jax.vmap(physics.sense, in_axes=(b.in_axes, 0)))(b.model, d))
+    np.testing.assert_allclose(np.asarray(st.d.xpos), fwd.xpos, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(st.d.sensordata), fwd.sensordata, atol=1e-4, rtol=1e-4)
+    _, _, ws, wr = walks["warp"]
+    a = sim.robot.ids.obj_qpos_adr
+    for sl in (slice(0, 3), slice(a, a + 3)):
+        np.testing.assert_allclose(np.asarray(st.d.qpos[:, sl]), np.asarray(ws.d.qpos[:, sl]), atol=POS_TOL)
+    for k in ("R", "T"):
+        np.testing.assert_allclose(res[k], wr[k], rtol=METRIC_RTOL)
+    assert np.all(res["success"] == wr["success"])
+    with pytest.raises(ValueError, match="sensing = 'delayed' needs the Warp backend"):
+        make_sim(walks["jax"][0].robot, sensing="delayed")
 
 
 def test_backend_choice():

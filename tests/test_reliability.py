@@ -53,6 +53,9 @@ def _setup(t: Path) -> dict:
     (t / "spec.toml").write_bytes(TINY.read_bytes())
     (t / "huge.toml").write_text(HUGE_SPEC)
     (t / "backend.toml").write_text(TINY.read_text().replace("[campaign]", '[campaign]\nbackend = "bullet"', 1))
+    (t / "sensing.toml").write_text(TINY.read_text().replace("[campaign]", '[campaign]\nsensing = "late"', 1))
+    (t / "delayed.toml").write_text(TINY.read_text().replace("[campaign]", '[campaign]\nbackend = "jax"\n'
+                                                             'sensing = "delayed"', 1))
     (t / "factor.toml").write_text(TINY.read_text().replace("[factors]", "[factors]\nwind = [1.0, 2.0]", 1))
     (t / "variant.toml").write_text(TINY.read_text().replace("[factors]", '[factors]\nvariant = ["full", "no_arm"]', 1))
     full = t / "full"
@@ -86,6 +89,11 @@ BAD_INPUTS = [
     ("campaign_spec_bad_variant", ["campaign", "--spec", "variant.toml", "--out", "new_v"],
      "variant.toml: factors.variant: level 'no_arm': expected one of full, no_tray_cone, no_observer, no_posture"),
     ("bench_backend", ["bench", "rollout", "--backend", "bullet"], "--backend 'bullet'"),
+    ("bench_sensing", ["bench", "rollout", "--backend", "jax:delayed"], "'delayed' with warp only"),
+    ("campaign_spec_sensing", ["campaign", "--spec", "sensing.toml", "--out", "new_s"],
+     "campaign.sensing: = 'late': expected one of exact, delayed"),
+    ("campaign_spec_delayed_jax", ["campaign", "--spec", "delayed.toml", "--out", "new_d"],
+     "campaign.sensing = 'delayed': needs campaign.backend 'warp' (here 'jax')"),
     # 1. --out never deletes what the command did not create
     ("campaign_out_nonempty", ["campaign", "--spec", "spec.toml", "--out", "full"], "folder is not empty"),
     ("campaign_out_nonempty_force", ["campaign", "--spec", "spec.toml", "--out", "full", "--force"],

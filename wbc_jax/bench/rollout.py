@@ -66,7 +66,8 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
 
     Args:
         backends: MJX physics implementations to measure, each at every batch size ("jax", "warp"; "auto"
-            resolved), in this one process, so their ratios are read from one run.
+            resolved; "warp:delayed": with ``Sim.sensing`` "delayed"), in this one process, so their ratios are read
+            from one run.
         qp: control-loop ADMM variant name (``wbc_jax.bench.qp_audit.variants``, e.g. ``"it20_a0"``); None: ``iters``
             iterations with the control loop's default settings.
         campaign: a campaign spec (e.g. ``sweeps/paper_campaign.toml``) also run end to end, twice, in fresh
@@ -90,10 +91,12 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
     device = jax.devices()[0].device_kind
     n_env = steps * substeps  # env-steps per run per timed call
     rows = []
-    for backend, B in [(resolve_backend(k), B) for k in backends for B in batches]:
+    for k, B in [(k, B) for k in backends for B in batches]:
+        name, _, sensing = k.partition(":")  # "warp:delayed": campaign.sensing
+        backend, sensing = resolve_backend(name), sensing or "exact"
         robot = Robot(scene, backend=backend)
         sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=qs),
-                       n_substeps=substeps, log_every=steps)
+                       n_substeps=substeps, log_every=steps, sensing=sensing)
         b = random_batch(sim, B)
         f_phys = physics_only_fn(b, n_env)
         d0 = b.state.d
@@ -102,12 +105,13 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         f_wbc, args = wbc_chunk_fn(sim, b)
         _, c_wbc = _timed(f_wbc, *args)
         _, t_wbc = _timed(f_wbc, *args)
-        row = dict(device=device, backend=backend, scene=robot.path.name, batch=B, steps=steps, substeps=substeps, qp_iters=iters,
+        row = dict(device=device, backend=backend, sensing=sensing, scene=robot.path.name, batch=B, steps=steps, substeps=substeps, qp_iters=iters,
                    qp=qp or f"it{iters}", adapt_every=qs.adapt_every, ruiz_iters=qs.ruiz_iters,
                    peak_device_bytes=_peak_bytes(), physics_steps_per_s=B * n_env / t_phys,
                    wbc_steps_per_s=B * n_env / t_wbc, ratio=t_phys / t_wbc, compile_physics_s=c_phys - t_phys,
                    compile_wbc_s=c_wbc - t_wbc)
-        print(f"{device} {backend:4s} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   physics+WBC "
+        label = backend if sensing == "exact" else f"{backend}:{sensing}"
+        print(f"{device} {label:4s} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   physics+WBC "
               f"{row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   compile {row['compile_wbc_s']:.1f} s"
               + (f"   peak memory {row['peak_device_bytes'] / 2**30:.2f} GiB" if row["peak_device_bytes"] else ""),
               flush=True)

@@ -18,7 +18,7 @@ kept. Per-step quantities are reduced online (max, min, sums; :class:`Accum`) an
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -119,6 +119,8 @@ class RunState(NamedTuple):
     p_lift: jax.Array  # (4, 3)
     rel0: jax.Array  # (3,) object position in the tray frame at t = 0
     acc: Accum
+    prev: Any = None  # Sim.sensing "delayed": (qpos (nq,), qvel (nv,), time ()) of the state d's derived fields
+    #                   (kinematics, M, contacts, sensors) belong to, the start of the last physics step; else None
 
 
 class Log(NamedTuple):
@@ -136,6 +138,15 @@ class Log(NamedTuple):
     tau: jax.Array
     qpos: jax.Array
 
+
+SENSING = ("exact", "delayed")
+"""What the controller reads on the Warp backend. "exact": a ``forward`` call (Warp) computes the kinematics, mass
+matrix, bias forces, contacts and sensors of the current state before the controller acts (two Warp calls per
+control step). "delayed": no such call; the controller reads the fields Warp's ``step`` left, which belong to the
+state at the start of that step, so the controller sees the state one physics step (1 ms) old and its torques act
+on the current one; control-rate metrics and the log are taken at that (consistent) older state; with sensor noise,
+the noise reaches the velocities the controller reads but not its bias forces (computed by the step with the true
+velocities). Measured on the course: docs/performance.md."""
 
 
 @dataclass(frozen=True)
@@ -156,6 +167,7 @@ class Sim:
     foot_slots: np.ndarray
     obj_slots: np.ndarray
     sensor_noise: bool = False  # the controller sees qvel + noise (Push.qvel_noise_std); costs a velocity pass
+    sensing: str = "exact"  # Warp: "exact" (a forward call for the controller) or "delayed" (:data:`SENSING`)
 
     @property
     def dt_control(self) -> float:
@@ -169,20 +181,26 @@ class Sim:
 
 
 def make_sim(robot: Robot, cfg: TransportConfig | None = None, n_substeps: int = 1, log_every: int = 20,
-             sensor_noise: bool = False) -> Sim:
+             sensor_noise: bool = False, sensing: str = "exact") -> Sim:
     """The Sim of ``robot``. ``cfg.dt`` (the controller's period) must equal ``n_substeps`` x the model's
-    timestep; ``cfg`` None: default controller settings with that period."""
+    timestep; ``cfg`` None: default controller settings with that period. ``sensing``: :data:`SENSING`."""
     h = float(robot.mj_model.opt.timestep)
     n_substeps = int(n_substeps)
     if n_substeps < 1:
         raise ValueError(f"n_substeps = {n_substeps}: expected >= 1")
+    if sensing not in SENSING:
+        raise ValueError(f"sensing = {sensing!r}: expected one of {', '.join(SENSING)}")
+    if sensing == "delayed" and (robot.backend != "warp" or n_substeps != 1):
+        raise ValueError(f"sensing = 'delayed' needs the Warp backend and one physics step per control step (got "
+                         f"backend {robot.backend!r}, {n_substeps} substeps): it drops Warp's forward call, which the "
+                         f"JAX backend does not make")
     cfg = cfg or TransportConfig(dt=h * n_substeps)
     if abs(cfg.dt - h * n_substeps) > 1e-9 * h:
         raise ValueError(f"control period cfg.dt = {cfg.dt} s != n_substeps ({n_substeps}) x the model's timestep "
                          f"({h} s)")
     nf, wl, ft, ob, nfg = contacts.sim_indices(robot)
     return Sim(robot=robot, cfg=cfg, n_substeps=n_substeps, log_every=log_every, nonfoot_slots=nf, nonfoot_geoms=nfg,
-               wall_slots=wl, foot_slots=ft, obj_slots=ob, sensor_noise=sensor_noise)
+               wall_slots=wl, foot_slots=ft, obj_slots=ob, sensor_noise=sensor_noise, sensing=sensing)
 
 
 def seen_qvel(sim: Sim, d, push: Push, step):
@@ -220,7 +238,9 @@ def init_state(sim: Sim, m, qpos0, qvel0=None, n_runs: int = 1) -> RunState:
                 min_clear=jnp.full((), jnp.inf, z.dtype), min_clear_t=jnp.full((), jnp.nan, z.dtype),
                 min_clear_k=jnp.full((), -1, jnp.int32), n_boundary_cone=jnp.zeros((), jnp.int32), sum_invH_plan=z,
                 n_boundary_plan=jnp.zeros((), jnp.int32), n_boundary_plan_cone=jnp.zeros((), jnp.int32))
-    return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids), acc=acc)
+    prev = (d.qpos, d.qvel, d.time) if sim.sensing == "delayed" else None
+    return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids), acc=acc,
+                    prev=prev)
 
 
 def controller_inputs(sim: Sim, m, rs: RunState, plan: TransportPlan, push: Push, mu_ground):
@@ -234,7 +254,12 @@ def controller_inputs(sim: Sim, m, rs: RunState, plan: TransportPlan, push: Push
         physics then also uses for every foot pair)).
     """
     with jax.named_scope("sense"):
-        d, d_ctl = physics.sense_with_view(m, rs.d, seen_qvel(sim, rs.d, push, rs.acc.n_steps))
+        if sim.sensing == "delayed":  # the state the derived fields belong to: no physics call
+            d = rs.d.replace(qpos=rs.prev[0], qvel=rs.prev[1], time=rs.prev[2])
+            qvel_seen = seen_qvel(sim, d, push, rs.acc.n_steps)
+            d_ctl = d if qvel_seen is None else d.replace(qvel=qvel_seen)
+        else:
+            d, d_ctl = physics.sense_with_view(m, rs.d, seen_qvel(sim, rs.d, push, rs.acc.n_steps))
     with jax.named_scope("dynamics_reference"):
         dyn = dyn_terms(m, d_ctl, sim.robot.ids)
         dist, mu_feet = contacts.foot_ground(sim, m, d)  # (4,), (4,)
@@ -402,10 +427,11 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     d, d_ctl, dyn, ref, mu = controller_inputs(sim, m, rs, plan, push, mu_ground)
     t = d.time
     tau, cs, qd = transport_control(m, d_ctl, dyn, ref, om, gains, rs.cs, ids, sim.cfg, mu)
-    on = (t >= push.t0) & (t < push.t0 + push.duration)
+    d_phys = rs.d if sim.sensing == "delayed" else d  # delayed: d is one physics step old, the torques act now
+    on = (d_phys.time >= push.t0) & (d_phys.time < push.t0 + push.duration)
     xfrc = jnp.zeros_like(d.xfrc_applied).at[ids.trunk_body, 0:3].set(jnp.where(on, push.force, 0.0))
     with jax.named_scope("physics"):
-        d_next, a, finite = physics_period(sim, m, om, d.replace(xfrc_applied=xfrc), tau, rs.acc)
+        d_next, a, finite = physics_period(sim, m, om, d_phys.replace(xfrc_applied=xfrc), tau, rs.acc)
     p_lift = jnp.where(ref.swing[:, None], rs.p_lift, dyn.p_foot)
 
     # control-rate metrics (from the sensed state d at time t)
@@ -434,9 +460,13 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     )
     # a run that went non-finite is frozen (its state no longer advances) so it cannot poison others
     d_next = rs.d.where(finite, d_next)  # Data.where: Warp's shared contact list is not per run
+    prev = None
+    if sim.sensing == "delayed":  # d_next's derived fields belong to the state the step started from
+        prev = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), (d_phys.qpos, d_phys.qvel, d_phys.time),
+                                      rs.prev)
     log = Log(t=t, p_obj=p_obj, p_obj_ref=ref.p_obj, com=dyn.com, com_ref=ref.p_com, slip=slip,
               trunk_z=dyn.p_base[2], prim_res=qd.prim_res, tau=tau, qpos=d.qpos)
-    return RunState(d=d_next, cs=cs, p_lift=p_lift, rel0=rs.rel0, acc=acc), log
+    return RunState(d=d_next, cs=cs, p_lift=p_lift, rel0=rs.rel0, acc=acc, prev=prev), log
 
 
 def final_results(sim: Sim, state: RunState, p_goal, mu, n: int | None = None) -> dict[str, np.ndarray]:

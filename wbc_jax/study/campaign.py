@@ -87,17 +87,18 @@ def with_backend(spec: Spec, backend: str | None) -> Spec:
 
 
 def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, backend: str = "jax",
-         solver_iterations: int = 0):
+         solver_iterations: int = 0, sensing: str = "exact"):
     """The (cached) Sim of a scene: ``iters`` ADMM iterations, control period ``substeps`` x the scene's timestep."""
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
     from wbc_jax.sim.model import Robot
     from wbc_jax.sim.rollout import make_sim
 
-    key = (scene, iters, sensor_noise, substeps, backend, solver_iterations)
+    key = (scene, iters, sensor_noise, substeps, backend, solver_iterations, sensing)
     if key not in _SIMS:
         robot = Robot(scene, backend=backend, solver_iterations=solver_iterations)
         cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=control_qp_settings(iters))
-        _SIMS[key] = make_sim(robot, cfg, n_substeps=substeps, log_every=LOG_EVERY, sensor_noise=sensor_noise)
+        _SIMS[key] = make_sim(robot, cfg, n_substeps=substeps, log_every=LOG_EVERY, sensor_noise=sensor_noise,
+                              sensing=sensing)
     return _SIMS[key]
 
 
@@ -168,8 +169,12 @@ def build(spec: Spec, gains=None):
 
     c = spec.campaign
     dz = design(spec)
+    backend = backend_of(spec)
+    if c["sensing"] == "delayed" and (backend != "warp" or c["control_substeps"] != 1):
+        raise SpecError(f"{spec.path}: campaign.sensing = 'delayed': needs campaign.backend 'warp' (here {backend!r}) "
+                        f"and control_substeps 1 (here {c['control_substeps']})")
     sim = _sim(c["scene"], c["qp_iters"], bool(np.any(dz.qvel_noise_std > 0)), c["control_substeps"],
-               backend_of(spec), c["solver_iterations"])
+               backend, c["solver_iterations"], c["sensing"])
     qpos0, qvel0 = initial_configuration(sim.robot, dz)
     b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=run_gains(gains, dz),
                       plan_kwargs=dict(distance=c["distance"], speed=c["speed"], terrain=c["terrain"]),

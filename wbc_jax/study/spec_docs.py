@@ -51,6 +51,10 @@ CAMPAIGN_MEANING = {
     "terrain": "what the planner knows of the ground: `known` (footholds on the blocks' tops, off their edges, "
                "from the scene file) or `blind` (footholds at the floor's height; the touchdown rules handle the "
                "blocks; the object's path over the wall is planned in both)",
+    "sensing": "what the controller reads on the Warp backend: `exact` (a Warp `forward` call gives it the current "
+               "state: two Warp calls per control step) or `delayed` (it reads the fields Warp's `step` left, which "
+               "belong to the state one physics step old: one call per step; needs `backend = \"warp\"` and "
+               "`control_substeps = 1`; measured in docs/performance.md)",
 }
 FACTOR_MEANING = {
     "m": "object mass",
