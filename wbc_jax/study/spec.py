@@ -25,6 +25,8 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     variant = "full"
     terrain = "known"          # "known": footholds on the blocks' tops from the scene file; "blind": at the
                                # floor's height, the touchdown rules handle the blocks (wbc_jax.planner.transport)
+    com_plan = "spline"        # "spline": the CoM follows the object (+ start offset); "zmp": replanned per
+                               # footstep, ZMP on the stance pair's line (wbc_jax.planner.transport.zmp_com_path)
 
     [factors]                  # 1 to 5 factors of wbc_jax.study.factors, at least 2 levels each: here the
     m = [0.2, 0.3, 0.4]        # paper's 3 x 3 x 3: object mass [kg], 0 < m <= 20
@@ -99,6 +101,9 @@ CAMPAIGN = {
     "terrain": (str, "known", None, None, False,
                 '"known" (footholds on the blocks, from the scene file) or "blind" (footholds at the floor\'s '
                 'height; the touchdown rules handle the blocks)'),
+    "com_plan": (str, "spline", None, None, False,
+                 '"spline" (the CoM follows the object) or "zmp" (replanned per footstep: ZMP on the stance pair\'s '
+                 'line)'),
 }
 # the factors a spec may vary: wbc_jax.study.factors (name -> FactorDef; plus gain.<leaf> multipliers)
 FACTORS = factors_mod.REGISTRY
@@ -119,11 +124,13 @@ ANALYSIS = {
 }
 SCENES = ("transport", "flat")
 TERRAINS = ("known", "blind")  # wbc_jax.planner.transport.TERRAINS (not imported: spec loading stays JAX-free)
+COM_PLANS = ("spline", "zmp")  # wbc_jax.planner.transport.COM_PLANS (not imported, as above)
 BACKENDS = ("auto", "jax", "warp")  # wbc_jax.sim.physics.BACKENDS (not imported here: spec loading stays JAX-free)
 # keys added after specs were first hashed: left out of Spec.hash at these values (which reproduce the behaviour
 # from before the key existed), so the hashes of existing baselines and checkpoints stay valid
 _HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_iterations": 0, "m": 0.3, "mu": 0.7,
-                               "d": 0.08, "ground_mu": 0.0, "variant": "full", "terrain": "known"},
+                               "d": 0.08, "ground_mu": 0.0, "variant": "full", "terrain": "known",
+                               "com_plan": "spline"},
                  "perturbations": {"push_dir_deg": 0.0}}
 
 
@@ -270,7 +277,7 @@ def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
         raise _err(path, unknown[0], "unknown table; expected campaign, factors, perturbations, analysis")
     camp = _table(path, "campaign", data.get("campaign", {}), CAMPAIGN)
     for key, allowed in (("backend", BACKENDS), ("scene", SCENES), ("variant", tuple(VARIANTS)),
-                         ("terrain", TERRAINS)):
+                         ("terrain", TERRAINS), ("com_plan", COM_PLANS)):
         if camp[key] not in allowed:
             raise _err(path, f"campaign.{key}", f"= {camp[key]!r}: expected one of {', '.join(allowed)}")
     if "factors" not in data:
