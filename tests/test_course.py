@@ -273,3 +273,63 @@ def test_blind_terrain_lands_at_floor_height():
     assert float(np.max(z_end["known"])) == pytest.approx(floor + 0.035, abs=2e-3)
     with pytest.raises(ValueError, match="terrain"):
         course_plan(robot, qpos0, side=0.08, terrain="dark")
+
+
+ZMP_LINE_TOL = 0.010  # [m] replanned ZMP off the stance pair's segment on the course (the object-following plan:
+#                       median 37.5 mm; 10 mm is a third of the foot sphere's 28 mm radius)
+
+
+def test_zmp_com_plan_keeps_the_zmp_on_the_support():
+    """course_plan(com_plan="zmp"): over the walk, the reference's cart-table ZMP (planner.zmp.zmp_xy over the
+    ground under the stance feet) lies within ZMP_LINE_TOL of the stance pair's segment in every two-foot phase
+    and inside the four feet's polygon in the four-foot phases (planner.zmp.support_margin, the footholds read
+    from the plan in mid-swing); the object-following plan's does not (median > 3 ZMP_LINE_TOL). Footholds and
+    the object's path are the same in both; the end is the same at rest. A bad com_plan names the option."""
+    import jax
+    import jax.numpy as jnp
+
+    from wbc_jax.planner.gait import gait_phase
+    from wbc_jax.planner.scene_geometry import terrain_height
+    from wbc_jax.planner.transport import _landings, reference
+    from wbc_jax.planner.zmp import support_margin, zmp_xy
+
+    robot = Robot("transport")
+    qpos0 = robot.home_qpos(0.08)
+    zmp_plan = course_plan(robot, qpos0, side=0.08, com_plan="zmp")
+    t = np.arange(0.0, float(zmp_plan.gait.t_stop) + 1.0, 0.005)
+    dt_mid = int(round(0.5 * float(zmp_plan.gait.t_swing) / 0.005))
+
+    def one(plan, tt):
+        ref, g = reference(plan, tt, jnp.zeros((4, 3))), gait_phase(plan.gait, tt)
+        return ref.p_com, ref.a_com, ref.p_obj, _landings(plan, tt, g), g.swing
+
+    def worst(plan):
+        p, a, p_obj, land, swing = (np.asarray(x) for x in jax.jit(jax.vmap(lambda tt: one(plan, tt)))(jnp.asarray(t)))
+        feet = np.empty((len(t), 4, 2))
+        feet[0] = p[0, :2] + np.asarray(plan.foot_offset[:, :2])
+        pending = feet[0].copy()
+        for k in range(1, len(t)):  # each foot's last landing, read in mid-swing
+            started = swing[k] & ~swing[k - 1]
+            pending[started] = land[min(k + dt_mid, len(t) - 1), started, :2]
+            feet[k] = np.where((~swing[k] & swing[k - 1])[:, None], pending, feet[k - 1])
+
+        def margin(p_k, a_k, feet_k, st):
+            ground = jnp.sum(jnp.where(st, terrain_height(plan.terrain, feet_k), 0.0)) / jnp.sum(st)
+            return support_margin(zmp_xy(p_k, a_k, z_ground=ground), feet_k, st)
+
+        m = np.asarray(jax.jit(jax.vmap(margin))(p, a, feet, ~swing))
+        two = swing.sum(1) == 2
+        H = float(plan.gait.t_stance + plan.gait.t_swing)
+        steps = np.floor((t - float(plan.gait.t_start)) / H).astype(int)  # per two-foot phase: its largest distance
+        off = np.array([-m[two & (steps == s)].min() for s in np.unique(steps[two])])
+        return off, m[~two & (t > float(plan.gait.t_start)) & (t < float(plan.gait.t_stop))], p, p_obj
+
+    off, inside, p, p_obj = worst(zmp_plan)
+    assert len(off) == 102 and off.max() < ZMP_LINE_TOL, (len(off), off.max())  # the course's 102 footsteps
+    assert inside.min() > 0.0
+    off_s, _, p_s, p_obj_s = worst(course_plan(robot, qpos0, side=0.08))
+    assert np.median(off_s) > 3 * ZMP_LINE_TOL, np.median(off_s)
+    np.testing.assert_allclose(p_obj, p_obj_s, atol=1e-6)
+    np.testing.assert_allclose(p[-1], p_s[-1], atol=1e-4)
+    with pytest.raises(ValueError, match="com_plan"):
+        course_plan(robot, qpos0, side=0.08, com_plan="preview")

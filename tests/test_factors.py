@@ -278,12 +278,16 @@ def test_ground_friction_and_speed_campaign_end_to_end(variants_run, tmp_path):
     assert man["n_cells"] == 4 and np.isfinite(df["R"]).all()
 
 
-def test_terrain_key():
-    """campaign.terrain: "known" (the default, hash-neutral) or "blind"; anything else is a SpecError naming it."""
+@pytest.mark.parametrize("key, default, other", [("terrain", "known", "blind"), ("com_plan", "spline", "zmp"),
+                                                 ("sensing", "exact", "delayed")])
+def test_option_keys(key, default, other):
+    """campaign.terrain ("known" | "blind"), campaign.com_plan ("spline" | "zmp") and campaign.sensing ("exact" |
+    "delayed"): the default is hash-neutral,
+    the other value changes the hash, anything else is a SpecError naming the key."""
     base = dict(factors=dict(m=[0.2, 0.4]), campaign=dict(reps=1))
-    known = parse_spec(base)
-    assert known.campaign["terrain"] == "known"
-    assert parse_spec(dict(base, campaign=dict(reps=1, terrain="known"))).hash == known.hash
-    assert parse_spec(dict(base, campaign=dict(reps=1, terrain="blind"))).hash != known.hash
-    with pytest.raises(SpecError, match="campaign.terrain"):
-        parse_spec(dict(base, campaign=dict(reps=1, terrain="dark")))
+    plain = parse_spec(base)
+    assert plain.campaign[key] == default
+    assert parse_spec(dict(base, campaign={"reps": 1, key: default})).hash == plain.hash
+    assert parse_spec(dict(base, campaign={"reps": 1, key: other})).hash != plain.hash
+    with pytest.raises(SpecError, match=f"campaign.{key}"):
+        parse_spec(dict(base, campaign={"reps": 1, key: "dark"}))

@@ -389,6 +389,96 @@ def test_zmp_and_com_segment():
     assert float(m) <= 0.0
 
 
+PREVIEW_ZMP_TOL = 0.005  # [m] replanned ZMP off its support line: an order below the object-following 37.5 mm
+PREVIEW_C2_ATOL = 1e-9  # [m, m/s, m/s^2] float64 continuity at the phase boundaries
+
+
+def _synthetic_trot(n_step=12, ts=0.15, tw=0.115, v=0.13, lead=0.04, h=0.45, n_s=8):
+    """A straight trot along -y at v: feet on a 0.38 x 0.6 m rectangle around the desired CoM at each foot's
+    mid-stance, the desired CoM ``lead`` ahead of the feet's centre (the arm's and object's share), the ZMP of
+    each two-foot phase asked on the stance diagonal; ends with two four-foot footsteps at rest."""
+    H = ts + tw
+    n = n_step + 2
+    T = np.tile([ts, tw], n)
+    t0 = np.repeat(H * np.arange(n), 2) + np.tile([0.0, ts], n)
+    tau = [(np.arange(n_s) + 0.5) / n_s * Ti for Ti in T]
+    t_end = n_step * H
+
+    def c_des(t):  # (.., 2) desired CoM: constant speed, then at rest
+        y = -v * np.minimum(t, t_end)
+        return np.stack([np.zeros_like(y), y], -1)
+
+    nominal = np.array([[0.19, -0.3], [-0.19, -0.3], [0.19, 0.3], [-0.19, 0.3]]) + [0.0, lead]  # FL FR BL BR
+    feet = c_des(np.zeros(1))[0] + nominal
+    line_n, line_c, two = np.zeros((2 * n, 2)), np.zeros(2 * n), np.zeros(2 * n, bool)
+    stance = []
+    for k in range(n):
+        if 1 <= k <= n_step:  # the pair that swung in k - 1 lands around the CoM of its mid-stance
+            pair = list(pl.PAIRS[(k - 1) % 2])
+            feet[pair] = c_des(np.array(k * H + 0.5 * (2 * ts + tw)))[None] + nominal[pair]
+        if k < n_step:
+            a, b = feet[list(pl.PAIRS[(k + 1) % 2])]
+            d = (b - a) / np.linalg.norm(b - a)
+            line_n[2 * k + 1], two[2 * k + 1] = (-d[1], d[0]), True
+            line_c[2 * k + 1] = line_n[2 * k + 1] @ a
+        stance.append(feet.copy())
+    args = (np.zeros((3, 2)), T, [c_des(t0[i] + tau[i]) for i in range(2 * n)],
+            [np.full(n_s, h / 9.81)] * (2 * n), line_n, line_c, two, tau)
+    x_end = np.stack([c_des(np.array(t_end)), np.zeros(2), np.zeros(2)])
+    return args, x_end, stance, h / 9.81
+
+
+def _zmp_off_lines(coef, T, kz, stance, two, n_eval=30):
+    """Largest distance of the ZMP (c - kz c'', evaluated by hand) from the stance diagonal's segment (the
+    independent hull reference), over the two-foot phases."""
+    worst = 0.0
+    for i in np.flatnonzero(two):
+        c = coef[i]
+        mask = np.zeros(4, bool)
+        mask[list(pl.PAIRS[(i // 2 + 1) % 2])] = True
+        for tt in np.linspace(0.0, T[i], n_eval):
+            p = c[0] + tt * c[1] + tt**2 * c[2] + tt**3 * c[3]
+            zmp = p - kz * (2.0 * c[2] + 6.0 * tt * c[3])
+            worst = max(worst, -_margin_ref(zmp, stance[i // 2], mask))
+    return worst
+
+
+def test_preview_com_xy_puts_the_zmp_on_the_support_line():
+    """pl.preview_com_xy on a synthetic trot whose desired CoM leads the feet by 4 cm (its ZMP is then ~25-40 mm
+    off every diagonal): the replanned CoM's ZMP, evaluated by hand from the returned cubics, stays within
+    PREVIEW_ZMP_TOL of the stance pair's segment (scipy-free segment distance of the hull reference); without the
+    ZMP term (w_zmp = 0) it does not. The cubics join with continuous position, velocity and acceleration and end
+    at x_end."""
+    args, x_end, stance, kz = _synthetic_trot()
+    T, two = args[1], args[6]
+    coef = pl.preview_com_xy(*args, x_end=x_end)
+    assert _zmp_off_lines(coef, T, kz, stance, two) < PREVIEW_ZMP_TOL
+    free = pl.preview_com_xy(*args, w_zmp=0.0, x_end=x_end)
+    assert _zmp_off_lines(free, T, kz, stance, two) > 4 * PREVIEW_ZMP_TOL
+    for i in range(len(T) - 1):  # C2 joins
+        c, Ti = coef[i], T[i]
+        end = [c[0] + Ti * c[1] + Ti**2 * c[2] + Ti**3 * c[3], c[1] + 2 * Ti * c[2] + 3 * Ti**2 * c[3],
+               2 * c[2] + 6 * Ti * c[3]]
+        np.testing.assert_allclose(end, [coef[i + 1, 0], coef[i + 1, 1], 2 * coef[i + 1, 2]], atol=PREVIEW_C2_ATOL)
+    c, Ti = coef[-1], T[-1]
+    np.testing.assert_allclose([c[0] + Ti * c[1] + Ti**2 * c[2] + Ti**3 * c[3], c[1] + 2 * Ti * c[2] + 3 * Ti**2 * c[3],
+                                2 * c[2] + 6 * Ti * c[3]], x_end, atol=1e-7)
+
+
+def test_pad_path_keeps_the_path():
+    """pad_path appends zero-length segments: the same values everywhere (at the last knot itself the position;
+    velocity and acceleration read the rest state there, as eval_path gives them after the end)."""
+    path = pl.cubic_path(np.array([[0.0, 0.0, 0.0], [0.1, -0.2, 0.05], [0.3, -0.1, 0.0]]), np.array([0.0, 0.4, 1.0]))
+    padded = pl.pad_path(path, 7)
+    assert padded.t_knots.shape == (7,) and padded.coef.shape == (6, 4, 3)
+    for t in (-0.1, 0.0, 0.2, 0.4, 0.77, 0.999, 1.5):
+        for a, b in zip(pl.eval_path(path, t), pl.eval_path(padded, t)):
+            np.testing.assert_allclose(np.asarray(b), np.asarray(a), atol=ATOL_POS)
+    np.testing.assert_allclose(np.asarray(pl.eval_path(padded, 1.0)[0]), [0.3, -0.1, 0.0], atol=ATOL_POS)
+    with pytest.raises(ValueError, match="pad_path"):
+        pl.pad_path(path, 2)
+
+
 # ----------------------------------------------------------------------------- capture point
 
 

@@ -11,7 +11,10 @@ reference of the obstacle course (no simulation) every 5 ms and reports, per two
 
 Usage::
 
-    PYTHONPATH=$PWD python tools/zmp_audit.py [--d 0.08]
+    PYTHONPATH=$PWD python tools/zmp_audit.py [--d 0.08] [--com-plan zmp]
+
+``--com-plan zmp`` audits the replanned reference (``course_plan(com_plan="zmp")``) instead, and adds how far it
+moves the CoM from the object-following one and the ZMP's margin in the four-foot phases.
 """
 
 from __future__ import annotations
@@ -32,37 +35,49 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--d", type=float, default=0.08, help="object side [m]")
     ap.add_argument("--dt", type=float, default=0.005, help="sampling step [s]")
+    ap.add_argument("--verbose", action="store_true", help="every phase")
+    ap.add_argument("--com-plan", default="spline", help="the planner's com_plan: spline (default) or zmp")
     a = ap.parse_args(argv)
 
     import jax
     import jax.numpy as jnp
 
     from wbc_jax.planner.gait import gait_phase
-    from wbc_jax.planner.transport import course_plan, reference
-    from wbc_jax.planner.zmp import zmp_xy
+    from wbc_jax.planner.transport import _landings, course_plan, reference
+    from wbc_jax.planner.zmp import support_margin, zmp_xy
     from wbc_jax.sim.model import Robot
 
     robot = Robot("transport")
-    plan = course_plan(robot, robot.home_qpos(a.d), side=a.d)
+    plan = course_plan(robot, robot.home_qpos(a.d), side=a.d, com_plan=a.com_plan)
+    base = plan._replace(com_xy=None)  # the object-following CoM
     t = np.arange(0.0, float(plan.gait.t_stop), a.dt)
 
     def one(tt):
-        ref = reference(plan, tt, jnp.zeros((4, 3)))
+        zero = jnp.zeros((4, 3))
+        ref = reference(plan, tt, zero)
         g = gait_phase(plan.gait, tt)
-        return ref.p_com, ref.a_com, ref.p_sw, g.swing, g.step_index
+        return ref.p_com, ref.a_com, _landings(plan, tt, g), g.swing, g.step_index, reference(base, tt, zero).p_com
 
-    p_com, a_com, p_sw, swing, step = (np.asarray(x) for x in jax.jit(jax.vmap(one))(jnp.asarray(t)))
+    p_com, a_com, land, swing, step, p_base = (np.asarray(x) for x in jax.jit(jax.vmap(one))(jnp.asarray(t)))
     zmp = np.asarray(jax.vmap(zmp_xy)(jnp.asarray(p_com), jnp.asarray(a_com)))
-    # each foot's planned foothold: where its last swing ended (the start stance before the first)
+    # each foot's planned foothold: its last swing's landing point, read in mid-swing (the start stance before the
+    # first). Not the swing reference's last sample: it is still short of the landing by up to ~1 % of the swing's
+    # length, and at a swing's last float32 sample the planner may already give the next landing.
     foot = np.empty((len(t), 4, 2))
-    home = np.asarray(plan.foot_offset[:, :2]) + p_com[0, :2]
-    last = home.copy()
+    last = np.asarray(plan.foot_offset[:, :2]) + p_com[0, :2]
+    pending = last.copy()
+    mid = int(round(0.5 * float(plan.gait.t_swing) / a.dt))
     for k in range(len(t)):
+        started = swing[k] & ((k == 0) | ~swing[k - 1])
+        pending[started] = land[min(k + mid, len(t) - 1), started, :2]
         ended = (~swing[k]) & (k > 0) & swing[k - 1]
-        last[ended] = p_sw[k - 1, ended, :2]
+        last[ended] = pending[ended]
         foot[k] = last
+    four = []  # ZMP margin in the four-foot phases of the walk (support_margin: > 0 inside the polygon)
     rows = []
     for s in np.unique(step[step >= 0]):
+        k4 = np.flatnonzero((step == s) & ~swing.any(axis=1) & (t < plan.gait.t_stop))
+        four += [float(support_margin(zmp[i], foot[i], np.ones(4, bool))) for i in k4[::4]]
         k = np.flatnonzero((step == s) & swing.any(axis=1))
         if len(k) < 2:
             continue
@@ -75,11 +90,17 @@ def main(argv=None):
         cd = _seg_dist(p_com[k[-1:], :2], fa, fb)[0]
         rows.append((t[k[0]], zd.max(), cd))
     r = np.array(rows)
+    if a.verbose:
+        for row in r:
+            print(f"  phase at {row[0]:.3f} s: ZMP {1e3 * row[1]:.1f} mm, CoM at end {1e3 * row[2]:.1f} mm")
     print(f"course plan, d = {a.d}: {len(r)} two-foot support phases")
     print(f"ZMP of the planned CoM, largest distance from the support segment per phase [mm]: median "
           f"{1e3 * np.median(r[:, 1]):.1f}, p95 {1e3 * np.percentile(r[:, 1], 95):.1f}, max {1e3 * r[:, 1].max():.1f}")
     print(f"planned CoM at the phase's end, distance from the segment (replan_com's goal clamp) [mm]: median "
           f"{1e3 * np.median(r[:, 2]):.1f}, p95 {1e3 * np.percentile(r[:, 2], 95):.1f}, max {1e3 * r[:, 2].max():.1f}")
+    dev = np.linalg.norm(p_com[:, :2] - p_base[:, :2], axis=1)
+    print(f"CoM reference minus the object-following one, horizontal [mm]: max {1e3 * dev.max():.1f}, "
+          f"mean {1e3 * dev.mean():.1f}; ZMP margin in the four-foot phases [mm]: min {1e3 * min(four):.1f}")
     return 0
 
 

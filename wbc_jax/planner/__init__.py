@@ -48,10 +48,11 @@ from .spline import (
     eval_path,
     max_abs_accel_z,
     offset_path,
+    pad_path,
     path_end_time,
     poly_eval,
     straight_path,
     waypoint_times,
 )
 from .swing import quintic, raibert_foothold, swing_reference
-from .zmp import clamp_to_support, min_zmp_margin, replan_com, support_margin, zmp_xy
+from .zmp import clamp_to_support, min_zmp_margin, preview_com_xy, replan_com, support_margin, zmp_xy

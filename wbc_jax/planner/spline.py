@@ -223,6 +223,25 @@ def offset_path(path: CubicPath, offset) -> CubicPath:
     return CubicPath(path.t_knots, path.coef.at[..., 0, :].add(jnp.asarray(offset)))
 
 
+def pad_path(path: CubicPath, n_knots: int) -> CubicPath:
+    """The same path with ``n_knots`` knots (host-side): zero-length segments at the end, holding the end point
+    at rest (what :func:`eval_path` returns after the last knot anyway), so that paths of different lengths stack.
+
+    Args:
+        path: CubicPath (unbatched) with K <= n_knots knots.
+        n_knots: knot count of the result.
+    """
+    tk, coef = np.asarray(path.t_knots), np.asarray(path.coef)
+    extra = int(n_knots) - len(tk)
+    if extra < 0:
+        raise ValueError(f"pad_path: the path has {len(tk)} knots, more than {n_knots}")
+    T = tk[-1] - tk[-2]
+    end = coef[-1, 0] + T * (coef[-1, 1] + T * (coef[-1, 2] + T * coef[-1, 3]))
+    rest = np.zeros((extra,) + coef.shape[1:], coef.dtype)
+    rest[:, 0] = end
+    return CubicPath(jnp.asarray(np.append(tk, np.full(extra, tk[-1]))), jnp.asarray(np.concatenate([coef, rest])))
+
+
 def path_end_time(path: CubicPath):
     """Time of the last knot [s] (scalar; traceable)."""
     return path.t_knots[-1]

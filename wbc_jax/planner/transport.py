@@ -9,6 +9,10 @@ at their nominal offset from the CoM reference at mid-stance, on the terrain hei
 block edges (and, beyond a block's far edge, only where the shin clears that edge from the planned hip at
 touchdown: :func:`.scene_geometry.clear_of_edges`).
 
+With ``com_plan="zmp"`` the CoM's horizontal reference is instead replanned at the start of every footstep so
+that the cart-table ZMP stays on the support of each two-foot phase (the transport paper's Sec. IV-B):
+:func:`zmp_com_path`, precomputed at plan time (footholds and the trunk's height still follow the object).
+
 Plans: :func:`straight_plan` (flat ground) and :func:`course_plan` (the obstacle course: the object's
 height profile from the artificial-potential planner over the scene's wall, :mod:`.apf`).
 """
@@ -24,17 +28,20 @@ import mujoco
 import numpy as np
 
 from wbc_jax.control.transport import Reference
-from wbc_jax.planner.gait import FOOT_NAMES, GaitParams, foot_stance_time, gait_phase
+from wbc_jax.planner.gait import FOOT_NAMES, PAIRS, GaitParams, foot_stance_time, gait_phase, half_cycle
 from wbc_jax.planner.apf import APFParams, overhead, plan_dip
 from wbc_jax.planner.scene_geometry import clear_of_edges, leg_geometry, scene_geometry, terrain_height
 from wbc_jax.planner.spline import (CubicPath, cubic_path, eval_path, max_abs_accel_z, path_end_time,
                                     straight_path)
 from wbc_jax.planner.swing import swing_reference
+from wbc_jax.planner.zmp import preview_com_xy
 
 GRAVITY = 9.81
 EDGE_MARGIN = 0.01  # [m] footholds keep foot radius + this from a block's edge
 LATE_WINDOW = 0.08  # [s] how long a foot may look for a late touchdown
 LATE_SPEED = 0.2  # [m/s] descent speed of a foot looking for a late touchdown
+ZMP_SAMPLES = 8  # samples per support phase of the ZMP replanning's least squares
+ZMP_HORIZON = 3  # footsteps per preview window of the ZMP replanning (the first one is kept)
 
 
 class TransportPlan(NamedTuple):
@@ -57,6 +64,8 @@ class TransportPlan(NamedTuple):
         hip_offset: (4, 3) each leg's hip pitch axis minus the CoM at the start [m] (the trunk keeps its
             orientation): the planned hip at touchdown, for the shin's clearance over a block's far edge.
         leg: (5,) :class:`.scene_geometry.LegGeometry` values (thigh, shank, shank_len, shank_r, thigh_r) [m].
+        com_xy: horizontal CoM reference replanned per footstep (:func:`zmp_com_path`; a CubicPath of (K-1, 4, 2)
+            coefficients, one cubic per support phase), or None: the CoM follows the object (``com_plan="spline"``).
     """
 
     obj_path: CubicPath
@@ -74,6 +83,7 @@ class TransportPlan(NamedTuple):
     heading: jax.Array
     hip_offset: jax.Array
     leg: jax.Array
+    com_xy: CubicPath | None = None
 
 
 class PlanError(ValueError):
@@ -94,40 +104,49 @@ def _start_state(robot, qpos0):
 
 
 TERRAINS = ("known", "blind")  # what the planner knows of the ground (course_plan)
+COM_PLANS = ("spline", "zmp")  # the CoM's horizontal reference: the object's + offset, or replanned per footstep
+
+
+def _check_options(terrain, com_plan):
+    if terrain not in TERRAINS:
+        raise ValueError(f"terrain = {terrain!r}: expected one of {TERRAINS}")
+    if com_plan not in COM_PLANS:
+        raise ValueError(f"com_plan = {com_plan!r}: expected one of {COM_PLANS}")
 
 
 def _make_plan(robot, qpos0, path: CubicPath, gait: GaitParams, swing_height, t_ramp, com_dip_share,
-               terrain, heading) -> TransportPlan:
+               terrain, heading, com_plan="spline") -> TransportPlan:
     p_obj, com, feet, R_obj, R_base, hips = _start_state(robot, qpos0)
     gait = gait._replace(t_stop=float(path_end_time(path)))
     foot_off = feet.copy()
     foot_off[:, :2] -= com[:2]
     foot_off[:, 2] -= np.asarray(terrain_height(terrain, jnp.asarray(feet[:, :2])))  # height above the ground
     f = lambda x: jnp.asarray(x, float)  # noqa: E731
-    return TransportPlan(
+    plan = TransportPlan(
         obj_path=path, com_offset=f(com - p_obj), R_obj=f(R_obj), R_base=f(R_base), foot_offset=f(foot_off),
         gait=GaitParams(*(f(x) for x in gait)), swing_height=f(swing_height), t_ramp=f(t_ramp),
         z_obj0=f(p_obj[2]), com_dip_share=f(com_dip_share), terrain=f(terrain),
         foot_clear=f(robot.ids.foot_radius + EDGE_MARGIN), heading=f(heading[:2] / np.linalg.norm(heading[:2])),
         hip_offset=f(hips - com), leg=f(leg_geometry(robot)),
     )
+    return plan._replace(com_xy=zmp_com_path(plan)) if com_plan == "zmp" else plan
 
 
 def straight_plan(robot, qpos0: np.ndarray, distance: float = 3.4, speed: float = 0.13, ramp: float = 1.0,
                   gait: GaitParams = GaitParams(), swing_height: float = 0.05, t_ramp: float = 0.06,
-                  direction=(0.0, -1.0, 0.0), terrain: str = "known") -> TransportPlan:
+                  direction=(0.0, -1.0, 0.0), terrain: str = "known", com_plan: str = "spline") -> TransportPlan:
     """Plan a straight transport of ``distance`` metres along ``direction`` at ``speed`` (flat ground).
 
     Args:
         robot: wbc_jax.sim.model.Robot; qpos0: (nq,) initial configuration (object on the tray).
         terrain: as :func:`course_plan` (on flat ground both give the same plan).
+        com_plan: as :func:`course_plan`.
     """
-    if terrain not in TERRAINS:
-        raise ValueError(f"terrain = {terrain!r}: expected one of {TERRAINS}")
+    _check_options(terrain, com_plan)
     p_obj = _start_state(robot, qpos0)[0]
     u = np.asarray(direction, float) / np.linalg.norm(direction)
     path = straight_path(jnp.asarray(p_obj), jnp.asarray(p_obj + distance * u), speed, t0=gait.t_start, ramp=ramp)
-    return _make_plan(robot, qpos0, path, gait, swing_height, t_ramp, 1.0, np.zeros((0, 2, 3)), u)
+    return _make_plan(robot, qpos0, path, gait, swing_height, t_ramp, 1.0, np.zeros((0, 2, 3)), u, com_plan)
 
 
 def _time_law(length: float, speed: float, t0: float, ramp: float):
@@ -142,7 +161,8 @@ def _time_law(length: float, speed: float, t0: float, ramp: float):
 def course_plan(robot, qpos0: np.ndarray, side: float, distance: float = 3.4, speed: float = 0.13,
                 ramp: float = 1.0, gait: GaitParams = GaitParams(), swing_height: float = 0.05,
                 t_ramp: float = 0.06, direction=(0.0, -1.0, 0.0), com_dip_share: float = 0.4,
-                apf: APFParams = APFParams(), max_accel_z: float = GRAVITY, terrain: str = "known") -> TransportPlan:
+                apf: APFParams = APFParams(), max_accel_z: float = GRAVITY, terrain: str = "known",
+                com_plan: str = "spline") -> TransportPlan:
     """Plan the transport through the scene's obstacles (the transport paper's course).
 
     The object's height along the straight horizontal path comes from :func:`.apf.plan_dip` over the
@@ -159,9 +179,10 @@ def course_plan(robot, qpos0: np.ndarray, side: float, distance: float = 3.4, sp
             height, no edge rule, swing apex above the higher end point as measured at liftoff); the touchdown
             rules of :func:`reference` (early contact ends the swing, a late one descends until contact) do the work.
             The object's path over the wall is planned in both.
+        com_plan: ``"spline"``: the CoM reference is the object's plus the start offset (its dip scaled by
+            ``com_dip_share``); ``"zmp"``: its horizontal part replanned per footstep (:func:`zmp_com_path`).
     """
-    if terrain not in TERRAINS:
-        raise ValueError(f"terrain = {terrain!r}: expected one of {TERRAINS}")
+    _check_options(terrain, com_plan)
     geo = scene_geometry(robot)
     p_obj = _start_state(robot, qpos0)[0]
     u = np.asarray(direction, float) / np.linalg.norm(direction)
@@ -184,7 +205,7 @@ def course_plan(robot, qpos0: np.ndarray, side: float, distance: float = 3.4, sp
         raise PlanError(f"object path vertical acceleration {az:.2f} m/s^2 exceeds {max_accel_z:.2f} m/s^2; "
                         "lower the speed")
     seen = geo.terrain if terrain == "known" else geo.terrain[:0]
-    return _make_plan(robot, qpos0, path, gait, swing_height, t_ramp, com_dip_share, seen, u)
+    return _make_plan(robot, qpos0, path, gait, swing_height, t_ramp, com_dip_share, seen, u, com_plan)
 
 
 def plan_duration(plan: TransportPlan) -> float:
@@ -198,6 +219,82 @@ def _com_from_object(plan: TransportPlan, p_o, v_o, a_o):
     p_c = p_o + plan.com_offset
     p_c = p_c.at[2].add((plan.com_dip_share - 1.0) * (p_o[2] - plan.z_obj0))
     return p_c, k * v_o, k * a_o
+
+
+def _landings(plan: TransportPlan, t, g):
+    """(4, 3) each foot's next planned landing point at time t (gait state g): its nominal offset from the CoM
+    the object's path gives at its mid-stance, on the terrain there, moved off block edges."""
+    t_mid = t + g.t_to_touchdown + 0.5 * foot_stance_time(plan.gait)  # (4,) mid-stance after touchdown
+    t_mid = jnp.where(jnp.isfinite(t_mid), t_mid, t)
+    com_mid = jax.vmap(lambda tt: _com_from_object(plan, *eval_path(plan.obj_path, tt))[0])(t_mid)
+    xy = com_mid[:, :2] + plan.foot_offset[:, :2]
+    # the hips at touchdown (planned CoM + start offset): the shin's clearance over a far edge depends on them
+    t_td = jnp.where(jnp.isfinite(g.t_to_touchdown), t + g.t_to_touchdown, t)
+    com_td = jax.vmap(lambda tt: _com_from_object(plan, *eval_path(plan.obj_path, tt))[0])(t_td)
+    hip_td = com_td + plan.hip_offset
+    xy = jax.vmap(clear_of_edges, in_axes=(None, 0, None, None, 0, 0, None))(
+        plan.terrain, xy, plan.heading, plan.foot_clear, hip_td, plan.foot_offset[:, 2], plan.leg)
+    z = terrain_height(plan.terrain, xy) + plan.foot_offset[:, 2]
+    return jnp.concatenate([xy, z[:, None]], axis=1)
+
+
+def zmp_com_path(plan: TransportPlan) -> CubicPath:
+    """The horizontal CoM reference replanned at the start of every footstep (the transport paper, Sec. IV-B).
+
+    Each footstep of the trot (a four-foot phase, then a two-foot phase: :mod:`.gait`) is one cubic per phase,
+    continuous in position, velocity and acceleration. At each footstep's start the next ``ZMP_HORIZON``
+    footsteps are solved by least squares from the reference state reached so far and the first is kept
+    (:func:`.zmp.preview_com_xy`): the CoM follows the object's CoM trajectory (object path + start offset)
+    while the cart-table ZMP, ``c - (z - z_ground) c'' / (g + z'')`` with the object's planned height profile,
+    stays on the line through the two stance feet of each two-foot phase (their planned footholds, from the
+    object's path as in :func:`reference`; the ground under them). After the last footstep, four-foot phases
+    bring the CoM to rest at the object's end + offset. Host-side, once per plan.
+
+    Returns:
+        CubicPath with (K,) knots (phase starts and the end) and (K-1, 4, 2) coefficients.
+    """
+    ts, tw, t0, t_stop = (float(x) for x in plan.gait)
+    H = ts + tw
+    n_step = int(np.floor((t_stop - t0 + 1e-4) / H))  # stepped footsteps (gait._stepped)
+    n_tail = max(2, int(np.ceil((t_stop - (t0 + n_step * H)) / H)) + 1)  # four-foot footsteps to come to rest
+    starts = t0 + H * np.arange(n_step + n_tail)
+    T = np.tile([ts, tw], n_step + n_tail)
+    t_phase = np.stack([starts, starts + ts], 1).reshape(-1)  # (M,)
+    tau = (np.arange(ZMP_SAMPLES) + 0.5) / ZMP_SAMPLES * T[:, None]  # (M, ns)
+
+    def com(tt):
+        return _com_from_object(plan, *eval_path(plan.obj_path, tt))
+
+    c_p, _, c_a = (np.asarray(x) for x in jax.jit(jax.vmap(com))(jnp.asarray(t_phase[:, None] + tau).reshape(-1)))
+    c_p, c_a = c_p.reshape(tau.shape + (3,)), c_a.reshape(tau.shape + (3,))
+    # footholds: every foot's landing of footstep k's swing (evaluated in mid-swing), the start's before
+    t_mid = starts[:n_step] + ts + 0.5 * tw
+    land = np.asarray(jax.jit(jax.vmap(lambda tt: _landings(plan, tt, gait_phase(plan.gait, tt))))(
+        jnp.asarray(t_mid)))  # (n_step, 4, 3)
+    c0 = np.asarray(com(jnp.asarray(t0))[0])
+    feet = np.asarray(plan.foot_offset[:, :2]) + c0[:2]
+    feet = np.concatenate([feet, np.asarray(terrain_height(plan.terrain, jnp.asarray(feet)))[:, None]], 1)
+    line_n, line_c = np.zeros((len(T), 2)), np.zeros(len(T))
+    kz = np.empty(tau.shape)
+    two_foot = np.zeros(len(T), bool)
+    for k in range(n_step + n_tail):
+        if k >= 1 and k - 1 < n_step:  # the pair that swung in footstep k - 1 has landed
+            pair = list(PAIRS[(k - 1) % 2])
+            feet[pair] = land[k - 1, pair]
+        ground = float(np.mean(np.asarray(terrain_height(plan.terrain, jnp.asarray(feet[:, :2])))))
+        if k < n_step:
+            a, b = feet[list(PAIRS[(k + 1) % 2]), :2]  # the stance pair of the two-foot phase
+            d = (b - a) / np.linalg.norm(b - a)
+            line_n[2 * k + 1] = (-d[1], d[0])
+            line_c[2 * k + 1] = line_n[2 * k + 1] @ a
+            two_foot[2 * k + 1] = True
+            ground = float(np.mean(np.asarray(terrain_height(plan.terrain, jnp.asarray(np.stack([a, b]))))))
+        kz[2 * k:2 * k + 2] = (c_p[2 * k:2 * k + 2, :, 2] - ground) / (GRAVITY + c_a[2 * k:2 * k + 2, :, 2])
+    x0 = np.stack([c0[:2], np.zeros(2), np.zeros(2)])
+    x_end = np.stack([np.asarray(com(jnp.asarray(starts[-1] + H))[0])[:2], np.zeros(2), np.zeros(2)])
+    coef = preview_com_xy(x0, T, list(c_p[..., :2]), list(kz), line_n, line_c, two_foot, list(tau),
+                          horizon=ZMP_HORIZON, x_end=x_end)
+    return CubicPath(jnp.asarray(np.append(t_phase, t_phase[-1] + T[-1])), jnp.asarray(coef))
 
 
 def reference(plan: TransportPlan, t, p_lift, contact=None, p_foot=None) -> Reference:
@@ -219,19 +316,11 @@ def reference(plan: TransportPlan, t, p_lift, contact=None, p_foot=None) -> Refe
     """
     p_o, v_o, a_o = eval_path(plan.obj_path, t)
     p_c, v_c, a_c = _com_from_object(plan, p_o, v_o, a_o)
+    if plan.com_xy is not None:  # replanned per footstep (zmp_com_path); the height still follows the object
+        p_xy, v_xy, a_xy = eval_path(plan.com_xy, t)
+        p_c, v_c, a_c = p_c.at[:2].set(p_xy), v_c.at[:2].set(v_xy), a_c.at[:2].set(a_xy)
     g = gait_phase(plan.gait, t)
-    t_mid = t + g.t_to_touchdown + 0.5 * foot_stance_time(plan.gait)  # (4,) mid-stance after touchdown
-    t_mid = jnp.where(jnp.isfinite(t_mid), t_mid, t)
-    com_mid = jax.vmap(lambda tt: _com_from_object(plan, *eval_path(plan.obj_path, tt))[0])(t_mid)
-    xy = com_mid[:, :2] + plan.foot_offset[:, :2]
-    # the hips at touchdown (planned CoM + start offset): the shin's clearance over a far edge depends on them
-    t_td = jnp.where(jnp.isfinite(g.t_to_touchdown), t + g.t_to_touchdown, t)
-    com_td = jax.vmap(lambda tt: _com_from_object(plan, *eval_path(plan.obj_path, tt))[0])(t_td)
-    hip_td = com_td + plan.hip_offset
-    xy = jax.vmap(clear_of_edges, in_axes=(None, 0, None, None, 0, 0, None))(
-        plan.terrain, xy, plan.heading, plan.foot_clear, hip_td, plan.foot_offset[:, 2], plan.leg)
-    z = terrain_height(plan.terrain, xy) + plan.foot_offset[:, 2]
-    p_land = jnp.concatenate([xy, z[:, None]], axis=1)
+    p_land = _landings(plan, t, g)
     # quintic pieces: the acceleration is continuous at liftoff, apex and touchdown (cubic pieces jump by
     # ~200 m/s^2 at the apex for a 0.06 m step in 0.115 s, a jolt the whole body and the tray feel)
     swing_fn = functools.partial(swing_reference, kind="quintic")

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .spline import cubic_hermite, eval_cubic
 
@@ -29,6 +30,7 @@ __all__ = [
     "clamp_to_support",
     "min_zmp_margin",
     "replan_com",
+    "preview_com_xy",
 ]
 
 _TOL = 1e-6  # [m] collinearity tolerance
@@ -248,3 +250,118 @@ def replan_com(p0, v0, p_goal, v_goal, T, feet_xy, stance, margin=0.0, g=9.81, z
     goal_xy = clamp_to_support(p_goal[:2], feet_xy, stance, margin)
     coef = cubic_hermite(p0, v0, p_goal.at[:2].set(goal_xy), v_goal, T)
     return coef, min_zmp_margin(coef, T, feet_xy, stance, g=g, z_ground=z_ground)
+
+
+# ----------------------------------------------------------------------------- per-footstep replanning (setup time)
+
+
+def _phase_rows(T, tau):
+    """Rows mapping (state at the phase start (3,), the phase's jerk) to p, a at local times tau (n,)."""
+    one, zero = np.ones_like(tau), np.zeros_like(tau)
+    p_x = np.stack([one, tau, 0.5 * tau**2], 1)  # (n, 3) on (p, v, a) at the phase start
+    a_x = np.stack([zero, zero, one], 1)
+    return p_x, tau**3 / 6.0, a_x, tau
+
+
+def _propagate(T):
+    """Triple integrator over T: x' = F x + G j, x = (p, v, a)."""
+    F = np.array([[1.0, T, 0.5 * T**2], [0.0, 1.0, T], [0.0, 0.0, 1.0]])
+    return F, np.array([T**3 / 6.0, 0.5 * T**2, T])
+
+
+def _solve_window(x0, T, c_des, kz, line_n, line_c, two_foot, tau, w_track, w_zmp, w_jerk, x_end=None):
+    """Jerks (n, 2) of the phases of one preview window (see :func:`preview_com_xy`)."""
+    n = len(T)
+    # Phi[i] (3, 3) and Gam[i] (3, n): state at the start of phase i = Phi x0 + Gam j (per axis)
+    Phi, Gam = [np.eye(3)], [np.zeros((3, n))]
+    for i in range(n):
+        F, G = _propagate(T[i])
+        g = F @ Gam[-1]
+        g[:, i] += G
+        Phi.append(F @ Phi[-1])
+        Gam.append(g)
+    rows, rhs = [], []
+    for i in range(n):
+        p_x, p_j, a_x, a_j = _phase_rows(T[i], tau[i])
+        w = T[i] / len(tau[i])  # quadrature weight of one sample [s]
+        P = p_x @ Gam[i]  # (ns, n) position rows on the jerks
+        P[:, i] += p_j
+        A = a_x @ Gam[i]
+        A[:, i] += a_j
+        p0 = p_x @ Phi[i] @ x0  # (ns, 2) position from the initial state
+        a0 = a_x @ Phi[i] @ x0
+        s = np.sqrt(w_track * w)
+        for ax in range(2):  # tracking of the desired CoM, per axis
+            r = np.zeros((len(tau[i]), 2 * n))
+            r[:, ax * n:(ax + 1) * n] = s * P
+            rows.append(r)
+            rhs.append(s * (c_des[i][:, ax] - p0[:, ax]))
+        if two_foot[i]:  # the ZMP's distance from the support line
+            s = np.sqrt(w_zmp * w)
+            Z = P - kz[i][:, None] * A  # (ns, n)
+            z0 = p0 - kz[i][:, None] * a0
+            r = s * np.concatenate([line_n[i, 0] * Z, line_n[i, 1] * Z], axis=1)
+            rows.append(r)
+            rhs.append(s * (line_c[i] - z0 @ line_n[i]))
+        r = np.zeros((2, 2 * n))
+        r[0, i] = r[1, n + i] = np.sqrt(w_jerk * T[i])
+        rows.append(r)
+        rhs.append(np.zeros(2))
+    A_ls, b_ls = np.concatenate(rows), np.concatenate(rhs)
+    if x_end is None:
+        u = np.linalg.lstsq(A_ls, b_ls, rcond=None)[0]
+    else:  # the last state held: KKT of min |A u - b|^2 s.t. E u = e
+        E = np.zeros((6, 2 * n))
+        E[0:3, :n] = E[3:6, n:] = Gam[n]
+        e = np.concatenate([x_end[:, ax] - Phi[n] @ x0[:, ax] for ax in range(2)])
+        K = np.block([[A_ls.T @ A_ls, E.T], [E, np.zeros((6, 6))]])
+        u = np.linalg.lstsq(K, np.concatenate([A_ls.T @ b_ls, e]), rcond=None)[0][:2 * n]
+    return np.stack([u[:n], u[n:]], 1)
+
+
+def preview_com_xy(x0, T, c_des, kz, line_n, line_c, two_foot, tau, per_step=2, horizon=3, w_track=1.0,
+                   w_zmp=1e3, w_jerk=1e-7, x_end=None):
+    """Horizontal CoM reference replanned at the start of every footstep (numpy, setup time).
+
+    The CoM moves with piecewise constant jerk, one cubic per support phase, continuous in position, velocity
+    and acceleration. At the start of each footstep (``per_step`` phases) the jerks of the next ``horizon``
+    footsteps are chosen by least squares from the reference state reached so far, and the first footstep's
+    are kept (a receding preview): the cost is the integral of ``w_track |c - c_des|^2`` over every phase,
+    ``w_zmp (n . zmp - c)^2`` over the phases with a support line (two-foot support: the ZMP of the
+    cart-table model, ``zmp = c - kz c''``, on the stance feet's line ``n . x = c``) and ``w_jerk |j|^2``.
+    The last window also ends at ``x_end`` exactly (a hard constraint).
+
+    Args:
+        x0: (3, 2) position, velocity, acceleration at the first phase's start [m, m/s, m/s^2].
+        T: (M,) phase durations [s], M a multiple of ``per_step``.
+        c_des: M arrays (n_i, 2) desired CoM at the samples [m].
+        kz: M arrays (n_i,) cart-table factor (CoM height above the ground) / (g + a_z) at the samples [s^2].
+        line_n: (M, 2) unit normal of each phase's support line; line_c: (M,) its offset [m].
+        two_foot: (M,) bool, the phase has a support line (its ZMP term is used).
+        tau: M arrays (n_i,) sample times since each phase's start [s].
+        per_step: phases per footstep; horizon: footsteps per preview window.
+        w_track [1/(m^2 s)], w_zmp [1/(m^2 s)], w_jerk [s^5/m^2 / s]: weights.
+        x_end: (3, 2) state at the end of the last phase (None: free).
+
+    Returns:
+        (M, 4, 2) power-basis coefficients of each phase's cubic in its local time (``coef[i, j]`` multiplies
+        ``tau**j``), for :class:`.spline.CubicPath`.
+    """
+    T = np.asarray(T, float)
+    M = len(T)
+    x = np.asarray(x0, float).copy()
+    coef = np.empty((M, 4, 2))
+    i = 0
+    while i < M:
+        stop = min(i + horizon * per_step, M)
+        last = stop == M
+        sl = slice(i, stop)
+        jerk = _solve_window(x, T[sl], c_des[sl], kz[sl], line_n[sl], line_c[sl], two_foot[sl], tau[sl],
+                             w_track, w_zmp, w_jerk, x_end if last else None)
+        keep = stop - i if last else per_step
+        for k in range(keep):
+            coef[i + k] = np.stack([x[0], x[1], 0.5 * x[2], jerk[k] / 6.0])
+            F, G = _propagate(T[i + k])
+            x = F @ x + G[:, None] * jerk[k][None, :]
+        i += keep
+    return coef

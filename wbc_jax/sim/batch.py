@@ -16,6 +16,7 @@ import numpy as np
 from wbc_jax.sim import aot, scenario
 from wbc_jax.control.transport import ObjectModel, TransportGains, default_gains
 from wbc_jax.planner.scene_geometry import scene_geometry
+from wbc_jax.planner.spline import pad_path
 from wbc_jax.planner.transport import TransportPlan, course_plan, straight_plan
 from wbc_jax.sim.rollout import Push, RunState, Sim, init_state, no_push
 
@@ -103,6 +104,9 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
     kws = [kw if speed is None else dict(kw, speed=float(key[1])) for key in levels]
     unique = [course_plan(robot, q, side=float(key[0]), **k) if course else straight_plan(robot, q, **k)
               for q, key, k in zip(q_levels, levels, kws)]
+    if unique[0].com_xy is not None:  # per-footstep CoM paths: as many knots as the longest plan's
+        n = max(len(p.com_xy.t_knots) for p in unique)
+        unique = [p._replace(com_xy=pad_path(p.com_xy, n)) for p in unique]
     plans = stack(unique, index=inverse)
     state = _init_fn(sim, in_axes, B)(bm, jnp.asarray(qpos0, float), jnp.asarray(qvel0, float))
     om = ObjectModel(mass=jnp.asarray(f.m), side=jnp.asarray(f.d), mu=jnp.asarray(f.mu),

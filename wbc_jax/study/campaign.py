@@ -177,7 +177,8 @@ def build(spec: Spec, gains=None):
                backend, c["solver_iterations"], c["sensing"])
     qpos0, qvel0 = initial_configuration(sim.robot, dz)
     b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=run_gains(gains, dz),
-                      plan_kwargs=dict(distance=c["distance"], speed=c["speed"], terrain=c["terrain"]),
+                      plan_kwargs=dict(distance=c["distance"], speed=c["speed"], terrain=c["terrain"],
+                                       com_plan=c["com_plan"]),
                       qpos0=qpos0, qvel0=qvel0,
                       speed=dz.speed if "speed" in spec.factors else None,
                       ground_mu=dz.ground_mu if np.all(dz.ground_mu > 0) else None)

@@ -25,6 +25,8 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     variant = "full"
     terrain = "known"          # "known": footholds on the blocks' tops from the scene file; "blind": at the
                                # floor's height, the touchdown rules handle the blocks (wbc_jax.planner.transport)
+    com_plan = "spline"        # "spline": the CoM follows the object (+ start offset); "zmp": replanned per
+                               # footstep, ZMP on the stance pair's line (wbc_jax.planner.transport.zmp_com_path)
     sensing = "exact"          # Warp: "exact" (a forward call gives the controller the current state) or "delayed"
                                # (it reads what Warp's step left: the state one physics step old; one call fewer)
 
@@ -101,6 +103,9 @@ CAMPAIGN = {
     "terrain": (str, "known", None, None, False,
                 '"known" (footholds on the blocks, from the scene file) or "blind" (footholds at the floor\'s '
                 'height; the touchdown rules handle the blocks)'),
+    "com_plan": (str, "spline", None, None, False,
+                 '"spline" (the CoM follows the object) or "zmp" (replanned per footstep: ZMP on the stance pair\'s '
+                 'line)'),
     "sensing": (str, "exact", None, None, False,
                 '"exact" or "delayed" (Warp only: the controller reads the state one physics step old and Warp\'s '
                 'forward call is saved; wbc_jax.sim.rollout.SENSING)'),
@@ -125,11 +130,13 @@ ANALYSIS = {
 SCENES = ("transport", "flat")
 SENSING = ("exact", "delayed")  # wbc_jax.sim.rollout.SENSING (not imported: spec loading stays JAX-free)
 TERRAINS = ("known", "blind")  # wbc_jax.planner.transport.TERRAINS (not imported: spec loading stays JAX-free)
+COM_PLANS = ("spline", "zmp")  # wbc_jax.planner.transport.COM_PLANS (not imported, as above)
 BACKENDS = ("auto", "jax", "warp")  # wbc_jax.sim.physics.BACKENDS (not imported here: spec loading stays JAX-free)
 # keys added after specs were first hashed: left out of Spec.hash at these values (which reproduce the behaviour
 # from before the key existed), so the hashes of existing baselines and checkpoints stay valid
 _HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_iterations": 0, "m": 0.3, "mu": 0.7,
-                               "d": 0.08, "ground_mu": 0.0, "variant": "full", "terrain": "known", "sensing": "exact"},
+                               "d": 0.08, "ground_mu": 0.0, "variant": "full", "terrain": "known",
+                               "com_plan": "spline", "sensing": "exact"},
                  "perturbations": {"push_dir_deg": 0.0}}
 
 
@@ -276,7 +283,7 @@ def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
         raise _err(path, unknown[0], "unknown table; expected campaign, factors, perturbations, analysis")
     camp = _table(path, "campaign", data.get("campaign", {}), CAMPAIGN)
     for key, allowed in (("backend", BACKENDS), ("scene", SCENES), ("variant", tuple(VARIANTS)),
-                         ("terrain", TERRAINS), ("sensing", SENSING)):
+                         ("terrain", TERRAINS), ("com_plan", COM_PLANS), ("sensing", SENSING)):
         if camp[key] not in allowed:
             raise _err(path, f"campaign.{key}", f"= {camp[key]!r}: expected one of {', '.join(allowed)}")
     if "factors" not in data:

@@ -51,6 +51,9 @@ CAMPAIGN_MEANING = {
     "terrain": "what the planner knows of the ground: `known` (footholds on the blocks' tops, off their edges, "
                "from the scene file) or `blind` (footholds at the floor's height; the touchdown rules handle the "
                "blocks; the object's path over the wall is planned in both)",
+    "com_plan": "the CoM's horizontal reference: `spline` (the object's path + the start offset) or `zmp` (replanned "
+                "at the start of every footstep, one cubic per support phase, so that the cart-table ZMP stays on the "
+                "stance pair's line in two-foot support; docs/method.md, \"ZMP-based CoM replanning\")",
     "sensing": "what the controller reads on the Warp backend: `exact` (a Warp `forward` call gives it the current "
                "state: two Warp calls per control step) or `delayed` (it reads the fields Warp's `step` left, which "
                "belong to the state one physics step old: one call per step; needs `backend = \"warp\"` and "
