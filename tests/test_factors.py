@@ -279,9 +279,9 @@ def test_ground_friction_and_speed_campaign_end_to_end(variants_run, tmp_path):
 
 
 @pytest.mark.parametrize("key, default, other", [("terrain", "known", "blind"), ("com_plan", "spline", "zmp"),
-                                                 ("sensing", "exact", "delayed")])
+                                                 ("sensing", "auto", "delayed")])
 def test_option_keys(key, default, other):
-    """campaign.terrain ("known" | "blind"), campaign.com_plan ("spline" | "zmp") and campaign.sensing ("exact" |
+    """campaign.terrain ("known" | "blind"), campaign.com_plan ("spline" | "zmp") and campaign.sensing ("auto" |
     "delayed"): the default is hash-neutral,
     the other value changes the hash, anything else is a SpecError naming the key."""
     base = dict(factors=dict(m=[0.2, 0.4]), campaign=dict(reps=1))

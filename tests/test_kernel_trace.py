@@ -93,6 +93,8 @@ def test_real_cpu_trace_attributes_both_scopes():
     (["--batches", "4,x"], "--batches"),
     (["--steps", "0"], "--steps"),
     (["--substeps", "0"], "--substeps"),
+    (["--backend", "warp,jax"], "trace takes one backend"),
+    (["--backend", "jax:delayed"], "'delayed' needs the Warp backend"),
 ])
 def test_bench_rejects_bad_arguments(argv, needle, capsys):
     """Bad bench arguments: one line naming the flag and the expected range, exit 2, before any compile."""

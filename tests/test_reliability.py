@@ -89,9 +89,9 @@ BAD_INPUTS = [
     ("campaign_spec_bad_variant", ["campaign", "--spec", "variant.toml", "--out", "new_v"],
      "variant.toml: factors.variant: level 'no_arm': expected one of full, no_tray_cone, no_observer, no_posture"),
     ("bench_backend", ["bench", "rollout", "--backend", "bullet"], "--backend 'bullet'"),
-    ("bench_sensing", ["bench", "rollout", "--backend", "jax:delayed"], "'delayed' with warp only"),
+    ("bench_sensing", ["bench", "rollout", "--backend", "jax:delayed"], "sensing = 'delayed' needs the Warp backend"),
     ("campaign_spec_sensing", ["campaign", "--spec", "sensing.toml", "--out", "new_s"],
-     "campaign.sensing: = 'late': expected one of exact, delayed"),
+     "campaign.sensing: = 'late': expected one of auto, exact, delayed"),
     ("campaign_spec_delayed_jax", ["campaign", "--spec", "delayed.toml", "--out", "new_d"],
      "campaign.sensing = 'delayed': needs campaign.backend 'warp' (here 'jax')"),
     # 1. --out never deletes what the command did not create

@@ -49,23 +49,22 @@ def _check_bench_args(args: argparse.Namespace) -> list[int] | None:
             variants([args.qp])
         except ValueError as e:
             raise InputError(f"--qp: {e}") from None
-    if args.what == "rollout":
+    if args.what in ("rollout", "trace"):
         from wbc_jax.sim.physics import BACKENDS, resolve_backend
-        from wbc_jax.sim.rollout import SENSING
+        from wbc_jax.sim.rollout import resolve_sensing
 
         names = [x for x in str(args.backend).split(",") if x]
         try:
             if not names:
                 raise ValueError("empty list")
+            if args.what == "trace" and len(names) > 1:
+                raise ValueError("trace takes one backend")
             for x in names:
                 name, _, sensing = x.partition(":")
-                resolve_backend(name)
-                if sensing and (sensing not in SENSING or (sensing == "delayed" and name != "warp")):
-                    raise ValueError(f"{x!r}: the sensing after ':' must be one of {', '.join(SENSING)}, "
-                                     f"'delayed' with warp only")
+                resolve_sensing(sensing or "auto", resolve_backend(name), args.substeps)
         except ValueError as e:
             raise InputError(f"--backend {args.backend!r}: {e} (expected a comma-separated list of "
-                             f"{', '.join(BACKENDS)}, each optionally with :exact or :delayed)") from None
+                             f"{', '.join(BACKENDS)}, each optionally with :auto, :exact or :delayed)") from None
     return sizes
 
 
@@ -238,8 +237,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--substeps", type=int, default=1, help="rollout: physics steps per control step (default 1)")
     b.add_argument("--backend", default="jax",
                    help="rollout: MJX physics implementation(s), comma-separated, each measured in this one run: "
-                        "'jax' (default), 'warp', 'auto', e.g. jax,warp; 'warp:delayed': Warp with the controller "
-                        "reading the state one physics step old (campaign.sensing)")
+                        "'jax' (default), 'warp', 'auto', e.g. jax,warp; each with campaign.sensing's default "
+                        "('auto': delayed on Warp) or ':exact' / ':delayed', e.g. warp:exact,warp")
     b.add_argument("--scene", default="flat", help="rollout: 'flat' (default), 'transport' or a scene XML path")
     b.add_argument("--variants", default=None, help="profile: comma-separated variants (default wbc_1,wbc_n,"
                                                     "wbc_n_norefactor,wbc_n_chol,wbc_n_pallas; also wbc_n_inv, "

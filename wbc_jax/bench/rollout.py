@@ -17,7 +17,7 @@ import numpy as np
 from wbc_jax.sim.batch import prepare_batch
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
 from wbc_jax.sim.model import Robot, mjx
-from wbc_jax.sim.rollout import make_chunk_fn, make_sim
+from wbc_jax.sim.rollout import make_chunk_fn, make_sim, resolve_sensing
 from wbc_jax.sim.sharding import shard_batch
 
 
@@ -66,8 +66,8 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
 
     Args:
         backends: MJX physics implementations to measure, each at every batch size ("jax", "warp"; "auto"
-            resolved; "warp:delayed": with ``Sim.sensing`` "delayed"), in this one process, so their ratios are read
-            from one run.
+            resolved; with ``:exact`` / ``:delayed`` / ``:auto`` (the default): ``campaign.sensing``), in this one
+            process, so their ratios are read from one run.
         qp: control-loop ADMM variant name (``wbc_jax.bench.qp_audit.variants``, e.g. ``"it20_a0"``); None: ``iters``
             iterations with the control loop's default settings.
         campaign: a campaign spec (e.g. ``sweeps/paper_campaign.toml``) also run end to end, twice, in fresh
@@ -92,8 +92,9 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
     n_env = steps * substeps  # env-steps per run per timed call
     rows = []
     for k, B in [(k, B) for k in backends for B in batches]:
-        name, _, sensing = k.partition(":")  # "warp:delayed": campaign.sensing
-        backend, sensing = resolve_backend(name), sensing or "exact"
+        name, _, sensing = k.partition(":")  # "warp:exact": campaign.sensing
+        backend = resolve_backend(name)
+        sensing = resolve_sensing(sensing or "auto", backend, substeps)
         robot = Robot(scene, backend=backend)
         sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=qs),
                        n_substeps=substeps, log_every=steps, sensing=sensing)
@@ -110,7 +111,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
                    peak_device_bytes=_peak_bytes(), physics_steps_per_s=B * n_env / t_phys,
                    wbc_steps_per_s=B * n_env / t_wbc, ratio=t_phys / t_wbc, compile_physics_s=c_phys - t_phys,
                    compile_wbc_s=c_wbc - t_wbc)
-        label = backend if sensing == "exact" else f"{backend}:{sensing}"
+        label = f"{backend}:{sensing}"
         print(f"{device} {label:4s} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   physics+WBC "
               f"{row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   compile {row['compile_wbc_s']:.1f} s"
               + (f"   peak memory {row['peak_device_bytes'] / 2**30:.2f} GiB" if row["peak_device_bytes"] else ""),

@@ -172,7 +172,8 @@ def run_trace(batch: int = 270, steps: int = 50, scene: str = "transport", qp: s
     physics only (``mjx.step``) on the same batch; print and return both summaries.
 
     ``qp``: a control-loop ADMM variant (:func:`wbc_jax.bench.qp_audit.variants`), None: the control loop's.
-    ``backend``: the MJX physics implementation. ``warmup_s``: simulated seconds run (untraced) before the traced
+    ``backend``: the MJX physics implementation, optionally with ``:exact`` / ``:delayed`` / ``:auto`` (the default;
+    ``campaign.sensing``). ``warmup_s``: simulated seconds run (untraced) before the traced
     steps, so that they come from the walk rather than the first standing steps (the QP's convergence-checked
     extension costs most at contact events)."""
     from wbc_jax.bench.rollout import physics_only_fn, random_batch, wbc_chunk_fn
@@ -180,16 +181,18 @@ def run_trace(batch: int = 270, steps: int = 50, scene: str = "transport", qp: s
     from wbc_jax.sim.model import Robot
     from wbc_jax.bench.qp_audit import variants
     from wbc_jax.sim.physics import resolve_backend
-    from wbc_jax.sim.rollout import make_sim
+    from wbc_jax.sim.rollout import make_sim, resolve_sensing
 
     # The persistent cache's key leaves out op metadata: an executable cached from an edit with other scopes would
     # carry stale scope names. Compile afresh.
     jax.config.update("jax_enable_compilation_cache", False)
-    backend = resolve_backend(backend)
+    name, _, sensing = backend.partition(":")
+    backend = resolve_backend(name)
+    sensing = resolve_sensing(sensing or "auto", backend, substeps)
     robot = Robot(scene, backend=backend)
     qs = variants([qp])[qp] if qp else control_qp_settings(10)
     sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=qs),
-                   n_substeps=substeps, log_every=steps)
+                   n_substeps=substeps, log_every=steps, sensing=sensing)
     b = random_batch(sim, batch)
     chunk, args = wbc_chunk_fn(sim, b)
     n_warm = int(round(warmup_s / sim.dt_control / steps))
@@ -197,10 +200,10 @@ def run_trace(batch: int = 270, steps: int = 50, scene: str = "transport", qp: s
         args = (args[0], jax.block_until_ready(chunk(*args))[0]) + tuple(args[2:])
     f_phys = physics_only_fn(b, steps * substeps)
     device = jax.devices()[0].device_kind
-    out = dict(device=device, backend=backend, scene=robot.path.name, batch=batch, steps=steps, qp=qp or "control",
+    out = dict(device=device, backend=backend, sensing=sensing, scene=robot.path.name, batch=batch, steps=steps, qp=qp or "control",
                substeps=substeps, warmup_s=n_warm * steps * sim.dt_control)
     out["wbc"] = trace_call(chunk, args, steps)
-    print_summary(f"{device}, {backend}, {robot.path.name}, batch {batch}, after {out['warmup_s']:.2f} s, physics + WBC "
+    print_summary(f"{device}, {backend}:{sensing}, {robot.path.name}, batch {batch}, after {out['warmup_s']:.2f} s, physics + WBC "
                   f"({qp or 'control loop QP'}, substeps {substeps})",
                   out["wbc"])
     out["physics_only"] = trace_call(f_phys, (b.model, b.state.d), steps)

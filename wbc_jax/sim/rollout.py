@@ -139,14 +139,30 @@ class Log(NamedTuple):
     qpos: jax.Array
 
 
-SENSING = ("exact", "delayed")
-"""What the controller reads on the Warp backend. "exact": a ``forward`` call (Warp) computes the kinematics, mass
+SENSING = ("auto", "exact", "delayed")
+"""What the controller reads on the Warp backend (:func:`resolve_sensing`; "auto": "delayed" on Warp with one
+physics step per control step, else "exact"). "exact": a ``forward`` call (Warp) computes the kinematics, mass
 matrix, bias forces, contacts and sensors of the current state before the controller acts (two Warp calls per
 control step). "delayed": no such call; the controller reads the fields Warp's ``step`` left, which belong to the
 state at the start of that step, so the controller sees the state one physics step (1 ms) old and its torques act
 on the current one; control-rate metrics and the log are taken at that (consistent) older state; with sensor noise,
 the noise reaches the velocities the controller reads but not its bias forces (computed by the step with the true
 velocities). Measured on the course: docs/performance.md."""
+
+
+def resolve_sensing(sensing: str, backend: str, n_substeps: int = 1) -> str:
+    """``sensing`` (:data:`SENSING`) for a resolved physics ``backend``: "auto" -> "delayed" on Warp with one
+    physics step per control step (H100, paper campaign: the same outcome and statistics, 103.0 s vs 125.2 s),
+    else "exact". Raises ValueError for an unknown value or "delayed" where it saves nothing."""
+    if sensing not in SENSING:
+        raise ValueError(f"sensing = {sensing!r}: expected one of {', '.join(SENSING)}")
+    if sensing == "auto":
+        return "delayed" if backend == "warp" and n_substeps == 1 else "exact"
+    if sensing == "delayed" and (backend != "warp" or n_substeps != 1):
+        raise ValueError(f"sensing = 'delayed' needs the Warp backend and one physics step per control step (got "
+                         f"backend {backend!r}, {n_substeps} substeps): it drops Warp's forward call, which the "
+                         f"JAX backend does not make")
+    return sensing
 
 
 @dataclass(frozen=True)
@@ -167,7 +183,7 @@ class Sim:
     foot_slots: np.ndarray
     obj_slots: np.ndarray
     sensor_noise: bool = False  # the controller sees qvel + noise (Push.qvel_noise_std); costs a velocity pass
-    sensing: str = "exact"  # Warp: "exact" (a forward call for the controller) or "delayed" (:data:`SENSING`)
+    sensing: str = "exact"  # "exact" (Warp: a forward call for the controller) or "delayed" (:data:`SENSING`)
 
     @property
     def dt_control(self) -> float:
@@ -183,17 +199,13 @@ class Sim:
 def make_sim(robot: Robot, cfg: TransportConfig | None = None, n_substeps: int = 1, log_every: int = 20,
              sensor_noise: bool = False, sensing: str = "exact") -> Sim:
     """The Sim of ``robot``. ``cfg.dt`` (the controller's period) must equal ``n_substeps`` x the model's
-    timestep; ``cfg`` None: default controller settings with that period. ``sensing``: :data:`SENSING`."""
+    timestep; ``cfg`` None: default controller settings with that period. ``sensing``: :data:`SENSING`
+    (:func:`resolve_sensing`)."""
     h = float(robot.mj_model.opt.timestep)
     n_substeps = int(n_substeps)
     if n_substeps < 1:
         raise ValueError(f"n_substeps = {n_substeps}: expected >= 1")
-    if sensing not in SENSING:
-        raise ValueError(f"sensing = {sensing!r}: expected one of {', '.join(SENSING)}")
-    if sensing == "delayed" and (robot.backend != "warp" or n_substeps != 1):
-        raise ValueError(f"sensing = 'delayed' needs the Warp backend and one physics step per control step (got "
-                         f"backend {robot.backend!r}, {n_substeps} substeps): it drops Warp's forward call, which the "
-                         f"JAX backend does not make")
+    sensing = resolve_sensing(sensing, robot.backend, n_substeps)
     cfg = cfg or TransportConfig(dt=h * n_substeps)
     if abs(cfg.dt - h * n_substeps) > 1e-9 * h:
         raise ValueError(f"control period cfg.dt = {cfg.dt} s != n_substeps ({n_substeps}) x the model's timestep "

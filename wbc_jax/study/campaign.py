@@ -86,6 +86,19 @@ def with_backend(spec: Spec, backend: str | None) -> Spec:
     return dataclasses.replace(spec, campaign={**spec.campaign, "backend": backend})
 
 
+def sensing_of(spec: Spec) -> str:
+    """The spec's ``campaign.sensing`` resolved for its backend (:func:`wbc_jax.sim.rollout.resolve_sensing`)."""
+    from wbc_jax.sim.rollout import resolve_sensing
+
+    c = spec.campaign
+    backend = backend_of(spec)
+    try:
+        return resolve_sensing(c["sensing"], backend, c["control_substeps"])
+    except ValueError:
+        raise SpecError(f"{spec.path}: campaign.sensing = {c['sensing']!r}: needs campaign.backend 'warp' (here "
+                        f"{backend!r}) and control_substeps 1 (here {c['control_substeps']})") from None
+
+
 def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, backend: str = "jax",
          solver_iterations: int = 0, sensing: str = "exact"):
     """The (cached) Sim of a scene: ``iters`` ADMM iterations, control period ``substeps`` x the scene's timestep."""
@@ -170,11 +183,8 @@ def build(spec: Spec, gains=None):
     c = spec.campaign
     dz = design(spec)
     backend = backend_of(spec)
-    if c["sensing"] == "delayed" and (backend != "warp" or c["control_substeps"] != 1):
-        raise SpecError(f"{spec.path}: campaign.sensing = 'delayed': needs campaign.backend 'warp' (here {backend!r}) "
-                        f"and control_substeps 1 (here {c['control_substeps']})")
     sim = _sim(c["scene"], c["qp_iters"], bool(np.any(dz.qvel_noise_std > 0)), c["control_substeps"],
-               backend, c["solver_iterations"], c["sensing"])
+               backend, c["solver_iterations"], sensing_of(spec))
     qpos0, qvel0 = initial_configuration(sim.robot, dz)
     b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=run_gains(gains, dz),
                       plan_kwargs=dict(distance=c["distance"], speed=c["speed"], terrain=c["terrain"],
@@ -391,6 +401,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     spec = load_spec(spec_path if spec_path is not None else default_spec_path(has_accelerator()))
     spec = with_backend(spec, backend)
     physics_backend = backend_of(spec)
+    sensing_of(spec)  # a bad combination fails here, before anything is written
     writer = distributed.is_writer()
     identity = run_identity(spec, gains, backend=physics_backend)
     out_p = ck = problem = None
@@ -519,6 +530,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         command="wbc-jax campaign", spec_path=str(spec.path), spec_hash=spec.hash, spec_file_sha256=spec.text_sha256,
         spec=spec.canonical(), default_gains=gains is None, gains_hash=identity["gains_hash"], versions=_versions(), git_commit=_git_commit(),
         physics_backend=physics_backend,
+        sensing=sensing_of(spec),
         device=dict(backend=jax.default_backend(), kind=jax.devices()[0].device_kind, count=jax.device_count(),
                     host=platform.node(), cpu_count=os.cpu_count()),
         layout=distributed.layout_record(),

@@ -27,8 +27,9 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
                                # floor's height, the touchdown rules handle the blocks (wbc_jax.planner.transport)
     com_plan = "spline"        # "spline": the CoM follows the object (+ start offset); "zmp": replanned per
                                # footstep, ZMP on the stance pair's line (wbc_jax.planner.transport.zmp_com_path)
-    sensing = "exact"          # Warp: "exact" (a forward call gives the controller the current state) or "delayed"
-                               # (it reads what Warp's step left: the state one physics step old; one call fewer)
+    sensing = "auto"           # Warp: "exact" (a forward call gives the controller the current state) or "delayed"
+                               # (it reads what Warp's step left: the state one physics step old; one call fewer);
+                               # "auto": delayed on Warp (same statistics, measured), exact on JAX
 
     [factors]                  # 1 to 5 factors of wbc_jax.study.factors, at least 2 levels each: here the
     m = [0.2, 0.3, 0.4]        # paper's 3 x 3 x 3: object mass [kg], 0 < m <= 20
@@ -106,9 +107,9 @@ CAMPAIGN = {
     "com_plan": (str, "spline", None, None, False,
                  '"spline" (the CoM follows the object) or "zmp" (replanned per footstep: ZMP on the stance pair\'s '
                  'line)'),
-    "sensing": (str, "exact", None, None, False,
-                '"exact" or "delayed" (Warp only: the controller reads the state one physics step old and Warp\'s '
-                'forward call is saved; wbc_jax.sim.rollout.SENSING)'),
+    "sensing": (str, "auto", None, None, False,
+                '"auto" (delayed on Warp, exact on JAX), "exact" or "delayed" (Warp only: the controller reads the '
+                'state one physics step old and Warp\'s forward call is saved; wbc_jax.sim.rollout.SENSING)'),
 }
 # the factors a spec may vary: wbc_jax.study.factors (name -> FactorDef; plus gain.<leaf> multipliers)
 FACTORS = factors_mod.REGISTRY
@@ -128,7 +129,7 @@ ANALYSIS = {
     "alpha": (float, 0.05, 0.0, 0.5, True, "significance level"),
 }
 SCENES = ("transport", "flat")
-SENSING = ("exact", "delayed")  # wbc_jax.sim.rollout.SENSING (not imported: spec loading stays JAX-free)
+SENSING = ("auto", "exact", "delayed")  # wbc_jax.sim.rollout.SENSING (not imported: spec loading stays JAX-free)
 TERRAINS = ("known", "blind")  # wbc_jax.planner.transport.TERRAINS (not imported: spec loading stays JAX-free)
 COM_PLANS = ("spline", "zmp")  # wbc_jax.planner.transport.COM_PLANS (not imported, as above)
 BACKENDS = ("auto", "jax", "warp")  # wbc_jax.sim.physics.BACKENDS (not imported here: spec loading stays JAX-free)
@@ -136,7 +137,7 @@ BACKENDS = ("auto", "jax", "warp")  # wbc_jax.sim.physics.BACKENDS (not imported
 # from before the key existed), so the hashes of existing baselines and checkpoints stay valid
 _HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_iterations": 0, "m": 0.3, "mu": 0.7,
                                "d": 0.08, "ground_mu": 0.0, "variant": "full", "terrain": "known",
-                               "com_plan": "spline", "sensing": "exact"},
+                               "com_plan": "spline", "sensing": "auto"},
                  "perturbations": {"push_dir_deg": 0.0}}
 
 

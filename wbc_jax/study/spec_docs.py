@@ -57,7 +57,8 @@ CAMPAIGN_MEANING = {
     "sensing": "what the controller reads on the Warp backend: `exact` (a Warp `forward` call gives it the current "
                "state: two Warp calls per control step) or `delayed` (it reads the fields Warp's `step` left, which "
                "belong to the state one physics step old: one call per step; needs `backend = \"warp\"` and "
-               "`control_substeps = 1`; measured in docs/performance.md)",
+               "`control_substeps = 1`); `auto`: `delayed` where it applies, else `exact` (the same statistics on "
+               "the paper campaign and the quick spec, 18 % less wall time: docs/performance.md)",
 }
 FACTOR_MEANING = {
     "m": "object mass",
