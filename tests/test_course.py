@@ -283,8 +283,9 @@ def test_zmp_com_plan_keeps_the_zmp_on_the_support():
     """course_plan(com_plan="zmp"): over the walk, the reference's cart-table ZMP (planner.zmp.zmp_xy over the
     ground under the stance feet) lies within ZMP_LINE_TOL of the stance pair's segment in every two-foot phase
     and inside the four feet's polygon in the four-foot phases (planner.zmp.support_margin, the footholds read
-    from the plan in mid-swing); the object-following plan's does not (median > 3 ZMP_LINE_TOL). Footholds and
-    the object's path are the same in both; the end is the same at rest. A bad com_plan names the option."""
+    from the plan in mid-swing); the object-following plan's (com_plan="spline") does not (median > 3
+    ZMP_LINE_TOL). Footholds and the object's path are the same in both; the end is the same at rest. A bad
+    com_plan names the option."""
     import jax
     import jax.numpy as jnp
 
@@ -327,7 +328,7 @@ def test_zmp_com_plan_keeps_the_zmp_on_the_support():
     off, inside, p, p_obj = worst(zmp_plan)
     assert len(off) == 102 and off.max() < ZMP_LINE_TOL, (len(off), off.max())  # the course's 102 footsteps
     assert inside.min() > 0.0
-    off_s, _, p_s, p_obj_s = worst(course_plan(robot, qpos0, side=0.08))
+    off_s, _, p_s, p_obj_s = worst(course_plan(robot, qpos0, side=0.08, com_plan="spline"))
     assert np.median(off_s) > 3 * ZMP_LINE_TOL, np.median(off_s)
     np.testing.assert_allclose(p_obj, p_obj_s, atol=1e-6)
     np.testing.assert_allclose(p[-1], p_s[-1], atol=1e-4)

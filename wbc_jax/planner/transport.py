@@ -9,7 +9,7 @@ at their nominal offset from the CoM reference at mid-stance, on the terrain hei
 block edges (and, beyond a block's far edge, only where the shin clears that edge from the planned hip at
 touchdown: :func:`.scene_geometry.clear_of_edges`).
 
-With ``com_plan="zmp"`` the CoM's horizontal reference is instead replanned at the start of every footstep so
+With ``com_plan="zmp"`` (the default) the CoM's horizontal reference is instead replanned at the start of every footstep so
 that the cart-table ZMP stays on the support of each two-foot phase (the transport paper's Sec. IV-B):
 :func:`zmp_com_path`, precomputed at plan time (footholds and the trunk's height still follow the object).
 
@@ -115,7 +115,7 @@ def _check_options(terrain, com_plan):
 
 
 def _make_plan(robot, qpos0, path: CubicPath, gait: GaitParams, swing_height, t_ramp, com_dip_share,
-               terrain, heading, com_plan="spline") -> TransportPlan:
+               terrain, heading, com_plan="zmp") -> TransportPlan:
     p_obj, com, feet, R_obj, R_base, hips = _start_state(robot, qpos0)
     gait = gait._replace(t_stop=float(path_end_time(path)))
     foot_off = feet.copy()
@@ -134,7 +134,7 @@ def _make_plan(robot, qpos0, path: CubicPath, gait: GaitParams, swing_height, t_
 
 def straight_plan(robot, qpos0: np.ndarray, distance: float = 3.4, speed: float = 0.13, ramp: float = 1.0,
                   gait: GaitParams = GaitParams(), swing_height: float = 0.05, t_ramp: float = 0.06,
-                  direction=(0.0, -1.0, 0.0), terrain: str = "known", com_plan: str = "spline") -> TransportPlan:
+                  direction=(0.0, -1.0, 0.0), terrain: str = "known", com_plan: str = "zmp") -> TransportPlan:
     """Plan a straight transport of ``distance`` metres along ``direction`` at ``speed`` (flat ground).
 
     Args:
@@ -162,7 +162,7 @@ def course_plan(robot, qpos0: np.ndarray, side: float, distance: float = 3.4, sp
                 ramp: float = 1.0, gait: GaitParams = GaitParams(), swing_height: float = 0.05,
                 t_ramp: float = 0.06, direction=(0.0, -1.0, 0.0), com_dip_share: float = 0.4,
                 apf: APFParams = APFParams(), max_accel_z: float = GRAVITY, terrain: str = "known",
-                com_plan: str = "spline") -> TransportPlan:
+                com_plan: str = "zmp") -> TransportPlan:
     """Plan the transport through the scene's obstacles (the transport paper's course).
 
     The object's height along the straight horizontal path comes from :func:`.apf.plan_dip` over the
@@ -179,8 +179,11 @@ def course_plan(robot, qpos0: np.ndarray, side: float, distance: float = 3.4, sp
             height, no edge rule, swing apex above the higher end point as measured at liftoff); the touchdown
             rules of :func:`reference` (early contact ends the swing, a late one descends until contact) do the work.
             The object's path over the wall is planned in both.
-        com_plan: ``"spline"``: the CoM reference is the object's plus the start offset (its dip scaled by
-            ``com_dip_share``); ``"zmp"``: its horizontal part replanned per footstep (:func:`zmp_com_path`).
+        com_plan: ``"zmp"`` (default): the CoM reference's horizontal part replanned per footstep
+            (:func:`zmp_com_path`); ``"spline"``: the object's plus the start offset (its dip scaled by
+            ``com_dip_share``). Evidence for the default (H100, paper campaign on Warp, 270 runs, spline -> zmp): all
+            succeed either way; T 1.47 -> 1.09 mm, max slip mean 1.57 -> 0.43 mm (largest 3.09 -> 0.72 mm),
+            minimum clearance 10.89 -> 11.52 mm, R 0.3452 -> 0.3460, S 0.5934 -> 0.5992.
     """
     _check_options(terrain, com_plan)
     geo = scene_geometry(robot)

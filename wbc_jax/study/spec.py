@@ -25,8 +25,8 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     variant = "full"
     terrain = "known"          # "known": footholds on the blocks' tops from the scene file; "blind": at the
                                # floor's height, the touchdown rules handle the blocks (wbc_jax.planner.transport)
-    com_plan = "spline"        # "spline": the CoM follows the object (+ start offset); "zmp": replanned per
-                               # footstep, ZMP on the stance pair's line (wbc_jax.planner.transport.zmp_com_path)
+    com_plan = "zmp"           # "zmp": the CoM replanned per footstep, ZMP on the stance pair's line (the paper's;
+                               # wbc_jax.planner.transport.zmp_com_path); "spline": it follows the object (+ offset)
     sensing = "auto"           # Warp: "exact" (a forward call gives the controller the current state) or "delayed"
                                # (it reads what Warp's step left: the state one physics step old; one call fewer);
                                # "auto": delayed on Warp (same statistics, measured), exact on JAX
@@ -104,7 +104,7 @@ CAMPAIGN = {
     "terrain": (str, "known", None, None, False,
                 '"known" (footholds on the blocks, from the scene file) or "blind" (footholds at the floor\'s '
                 'height; the touchdown rules handle the blocks)'),
-    "com_plan": (str, "spline", None, None, False,
+    "com_plan": (str, "zmp", None, None, False,
                  '"spline" (the CoM follows the object) or "zmp" (replanned per footstep: ZMP on the stance pair\'s '
                  'line)'),
     "sensing": (str, "auto", None, None, False,
@@ -134,7 +134,9 @@ TERRAINS = ("known", "blind")  # wbc_jax.planner.transport.TERRAINS (not importe
 COM_PLANS = ("spline", "zmp")  # wbc_jax.planner.transport.COM_PLANS (not imported, as above)
 BACKENDS = ("auto", "jax", "warp")  # wbc_jax.sim.physics.BACKENDS (not imported here: spec loading stays JAX-free)
 # keys added after specs were first hashed: left out of Spec.hash at these values (which reproduce the behaviour
-# from before the key existed), so the hashes of existing baselines and checkpoints stay valid
+# from before the key existed), so the hashes of existing baselines and checkpoints stay valid (a default that
+# differs from its neutral value, com_plan "zmp" since 2026-11-25, changes the hash of every spec that omits the key:
+# the behaviour changed)
 _HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_iterations": 0, "m": 0.3, "mu": 0.7,
                                "d": 0.08, "ground_mu": 0.0, "variant": "full", "terrain": "known",
                                "com_plan": "spline", "sensing": "auto"},

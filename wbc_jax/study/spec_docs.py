@@ -53,7 +53,8 @@ CAMPAIGN_MEANING = {
                "blocks; the object's path over the wall is planned in both)",
     "com_plan": "the CoM's horizontal reference: `spline` (the object's path + the start offset) or `zmp` (replanned "
                 "at the start of every footstep, one cubic per support phase, so that the cart-table ZMP stays on the "
-                "stance pair's line in two-foot support; docs/method.md, \"ZMP-based CoM replanning\")",
+                "stance pair's line in two-foot support; the default, as in the paper: on the paper campaign it lowered T "
+                "by a quarter and the largest slip by three quarters; docs/method.md, \"ZMP-based CoM replanning\")",
     "sensing": "what the controller reads on the Warp backend: `exact` (a Warp `forward` call gives it the current "
                "state: two Warp calls per control step) or `delayed` (it reads the fields Warp's `step` left, which "
                "belong to the state one physics step old: one call per step; needs `backend = \"warp\"` and "
