@@ -20,8 +20,9 @@ from wbc_jax.study.spec import SWEEPS, load_spec
 
 BASELINE_SPEC = SWEEPS.parent / "reports" / "baseline" / "spec.toml"
 N_CHUNKS = 2  # campaign chunks compared (2 x 40 control steps)
-N_RUNS = 3  # padded to 4: 2 runs per fake device (with 5 or more runs, 3 or more per device, the sharded program,
-#             whose vmapped MJX solver loop needs a cross-device all-reduce, hung in XLA's CPU runtime on 2 cores)
+N_RUNS = 3  # padded to 4: 2 runs per fake device (with 3 or more per device the sharded program deadlocks on
+#             2 cores: each device's batched LAPACK triangular solve waits for slices queued on the intra-op pool
+#             that both devices' programs occupy; tests/test_distributed.py's docstring)
 QPOS_TOL = 1e-3  # [m, rad] after N_CHUNKS chunks with contacts, float32 (measured 6.1e-5)
 SLIP_TOL = 1e-5  # [m] (measured 4.2e-6)
 
