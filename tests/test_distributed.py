@@ -1,7 +1,7 @@
-"""Campaigns over several processes (``wbc_jax.sim.distributed``): settings from flags, JAX_* and SLURM variables,
-one-line errors for bad ones, and a real 2-process run on this machine (localhost coordinator, one CPU device per
-process, gloo collectives) whose results.csv equals, bit for bit, the single-process run's over two CPU devices
-(the same per-device program), with only process 0 writing.
+"""Campaigns and gain searches over several processes (``wbc_jax.sim.distributed``): settings from flags, JAX_* and
+SLURM variables, one-line errors for bad ones, and a real 2-process run on this machine (localhost coordinator, one
+CPU device per process, gloo collectives) of `wbc-jax campaign` and then `wbc-jax tune` whose outputs equal, bit for
+bit, the single-process run's over two CPU devices (the same per-device program), with only process 0 writing.
 
 A one-device reference rounds differently (it compiles the rollout for all runs at once; the low-friction cells
 amplify that: S 0.530 vs 0.455 in one cell, 2026-11-25), hence the two-device one. That reference needs at most 2
@@ -91,6 +91,14 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+CAMPAIGN_THEN_TUNE = textwrap.dedent("""
+    import sys
+    from wbc_jax import cli
+    args = sys.argv[1:]
+    cut = args.index("--then")
+    sys.exit(cli.main(args[:cut]) or cli.main(args[cut + 1:]))
+""")  # one process: the tune reuses the campaign's compiled chunk function (same Sim, per-device shape and mesh)
+
 INTERRUPTED = textwrap.dedent("""
     import sys
     from wbc_jax.sim import distributed
@@ -122,15 +130,41 @@ def _run_all(cmds, envs, cwds) -> tuple[list[int], list[str]]:
     return [p.returncode for p in procs], logs
 
 
+TUNE = """
+[tune]
+name = "two-process"
+campaign = "{campaign}"
+method = "halving"
+candidates = 4
+rounds = 1
+seed = 5
+cells = [[0.2, 0.4, 0.08]]
+batch = 4
+[start]
+kp = 0.5
+[leaves]
+kp_com = [0.1, 4.0]
+kp_obj = [0.1, 4.0]
+[halving]
+eta = 3
+rungs = 2
+"""  # one cell: 4 candidates (rung 1), 2 survivors continued from their states (rung 2), then default and best
+#      confirmed; every call 4 runs (padded), 2 per device as in the campaign
+
+
 def test_two_processes_equal_one(tiny_spec, tmp_path):
     """2 processes x 1 CPU device, the run axis over both, against one process over 2 CPU devices (the same
-    per-device program, 2 runs each): results.csv equal bit for bit, every run once; process 0 writes DIR and the
-    manifest's layout, process 1 (its own --out and working folder) writes nothing. Then the same 2-process
-    campaign interrupted after its first chunk (process 0 keeps the checkpoint, process 1 writes nothing) and
-    resumed with --resume: the same results.csv again. The spec is the CI baseline's with d fixed (4 runs): with 3
-    or more runs per device the one-process reference deadlocks on 2 cores (module docstring)."""
+    per-device program, 2 runs each): `wbc-jax campaign`'s results.csv equal bit for bit, every run once; process
+    0 writes DIR and the manifest's layout, process 1 (its own --out and working folder) writes nothing. In the
+    same processes `wbc-jax tune` (successive halving: survivors continue from their gathered states) writes the
+    same leaderboard, per-run tables and best gains as the reference, from process 0 only. Then the same
+    2-process campaign interrupted after its first chunk (process 0 keeps the checkpoint, process 1 writes
+    nothing) and resumed with --resume: the same results.csv again. The spec is the CI baseline's with d fixed (4
+    runs): with 3 or more runs per device the one-process reference deadlocks on 2 cores (module docstring)."""
     spec = tmp_path / "four.toml"
     spec.write_text("\n".join(x for x in tiny_spec.read_text().splitlines() if not x.startswith("d = ")))
+    tune = tmp_path / "tune.toml"
+    tune.write_text(TUNE.format(campaign=spec))
     one = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=1", JAX_PLATFORMS="cpu")
     two = dict(one, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     dirs = [tmp_path / n for n in ("p0", "p1", "ref", "q0", "q1")]
@@ -139,13 +173,25 @@ def test_two_processes_equal_one(tiny_spec, tmp_path):
     camp = [sys.executable, "-m", "wbc_jax", "campaign", "--spec", str(spec), "--out", "out", "--no-report"]
     port = _free_port()
     mp = [[f"--coordinator=localhost:{port}", "--num-processes=2", f"--process-id={i}"] for i in range(2)]
-    codes, logs = _run_all([camp + mp[0], camp + mp[1], camp], [one, one, two], dirs[:3])
+    both = [sys.executable, "-c", CAMPAIGN_THEN_TUNE, *camp[3:]]
+    tn = ["--then", "tune", "--spec", str(tune), "--out", "tune", "--no-progress"]
+    codes, logs = _run_all([both + mp[0] + tn + mp[0], both + mp[1] + tn + mp[1], both + tn], [one, one, two],
+                           dirs[:3])
     assert codes == [0, 0, 0], "\n---\n".join(x[-3000:] for x in logs)
-    assert "process 1: done; process 0 writes" in logs[1]
+    assert logs[1].count("process 1: done; process 0 writes") == 2  # campaign and tune
     assert list(dirs[1].iterdir()) == []  # process 1: no --out, no checkpoint, no stray file
 
+    # the tune: process 0's outputs equal the one-process reference's, bit for bit
+    for name in ("leaderboard.csv", "best_runs.csv", "confirm_runs.csv", "best_gains.toml"):
+        assert (dirs[0] / "tune" / name).read_bytes() == (dirs[2] / "tune" / name).read_bytes(), name
+    board = pd.read_csv(dirs[0] / "tune" / "leaderboard.csv")
+    assert len(board) == 4 and set(np.round(board.sim_s, 6)) == {0.04, 0.12} and board["T_mm"].nunique() > 1
+    tman = json.loads((dirs[0] / "tune" / "manifest.json").read_text())
+    assert tman["layout"]["processes"] == 2 and tman["physics_backend"] == "jax"
+    assert tman["new_compilations_after_round_1"] in (0, None)
+
     out = dirs[0] / "out"
-    assert sorted(x.name for x in dirs[0].iterdir()) == ["out"]  # checkpoint removed after success
+    assert sorted(x.name for x in dirs[0].iterdir()) == ["out", "tune"]  # checkpoint removed after success
     got = pd.read_csv(out / "results.csv")
     ref = pd.read_csv(dirs[2] / "out" / "results.csv")
     assert got["run"].tolist() == list(range(4))  # every run once

@@ -117,6 +117,17 @@ def test_bad_tune_spec_names_file_and_key(tmp_path, edit, key, expect):
     assert str(p) in msg and key in msg and expect in msg and "\n" not in msg
 
 
+def test_cells_of_a_campaign_without_a_factor(tmp_path):
+    """A campaign that does not vary d: a cell's d is checked against its fixed value (0.08 by default)."""
+    camp = _write(tmp_path, "\n".join(x for x in BASELINE_SPEC.read_text().splitlines() if not x.startswith("d = ")),
+                  "camp.toml")
+    text = TINY.replace(str(BASELINE_SPEC), str(camp)).replace(f"cells = {CELLS}", "cells = [[0.2, 0.4, 0.08]]")
+    assert load_tune_spec(_write(tmp_path, text)).cells == [[0.2, 0.4, 0.08]]
+    with pytest.raises(SpecError) as e:
+        load_tune_spec(_write(tmp_path, text.replace("0.4, 0.08]", "0.4, 0.06]"), "bad.toml"))
+    assert "tune.cells[0]" in str(e.value) and "d = 0.06 is not the fixed value of the campaign ([0.08])" in str(e.value)
+
+
 def test_bad_tune_spec_cli_exit_2_nothing_written(tmp_path, capsys):
     p = _write(tmp_path, TINY.replace("rounds = 3", "rounds = 0"))
     out = tmp_path / "out"

@@ -36,6 +36,12 @@ start and the search's best on the tuning runs), ``confirm_runs.csv`` (per run: 
 
 Spec format: :mod:`wbc_jax.study.tune_spec`. With no ``--spec``: ``sweeps/gain_tuning_course.toml`` (the obstacle
 course) when an accelerator is present, else ``sweeps/gain_tuning_cpu.toml`` (minutes on a 2-core CPU).
+
+Physics backend: the campaign specs' ``campaign.backend`` (``--backend`` replaces it in both the tuning and the
+confirmation campaign); the manifest records the resolved one. Several processes (``jax.distributed`` joined by the
+command, :mod:`wbc_jax.sim.distributed`, docs/cluster.md): every process runs the same search on the same gathered
+results (the search is deterministic), each sub-batch spread over every device of every process; only process 0
+checks and writes DIR and prints the progress, the others write nothing.
 """
 
 from __future__ import annotations
@@ -107,9 +113,28 @@ def _batch_size(spec: TuneSpec, runs: int) -> int:
     return max(1, runs) if has_accelerator() else CPU_BATCH
 
 
+def _with_backend(spec: TuneSpec, backend: str | None) -> TuneSpec:
+    """``spec`` with ``campaign.backend`` of its tuning and confirmation campaigns replaced (``--backend``),
+    each checked against its sensing setting; unchanged for None."""
+    import dataclasses
+
+    from wbc_jax.study.campaign import sensing_of, with_backend
+
+    if backend is not None:
+        cc = spec.confirm_campaign
+        spec = dataclasses.replace(spec, campaign=with_backend(spec.campaign, backend),
+                                   confirm_campaign=None if cc is None else with_backend(cc, backend))
+    for camp in (spec.campaign, spec.confirm_campaign):
+        if camp is not None:
+            sensing_of(camp)  # a bad backend / sensing combination fails before anything is written
+    return spec
+
+
 def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rounds: int | None = None,
-             batch: int | None = None, progress: bool = True, force: bool = False) -> dict:
-    """Run a gain search and write DIR (module docstring). Returns the manifest.
+             batch: int | None = None, progress: bool = True, force: bool = False,
+             backend: str | None = None) -> dict | None:
+    """Run a gain search and write DIR (module docstring). Returns the manifest; None in a process other than
+    process 0 of a multi-process run (it writes nothing).
 
     Args:
         spec_path: tuning spec (None: :func:`wbc_jax.study.tune_spec.default_tune_spec_path` for this machine).
@@ -117,18 +142,29 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
         candidates, rounds, batch: override the spec's ``tune.candidates`` / ``tune.rounds`` / ``tune.batch``.
         progress: show one progress bar over the whole tuning with the time left (stderr).
         force: replace DIR when it holds an earlier tune.
+        backend: physics backend ("auto", "jax", "warp") instead of the campaign specs' ``campaign.backend``.
     """
     import jax
 
+    from wbc_jax.errors import WbcJaxError
     from wbc_jax.io_utils import atomic_dir, check_out_dir, write_json_atomic
+    from wbc_jax.sim import distributed
     from wbc_jax.study import campaign
-    from wbc_jax.study.campaign import has_accelerator
+    from wbc_jax.study.campaign import backend_of, has_accelerator, sensing_of
     from wbc_jax.study.gains import gains_toml
 
     t_start = time.perf_counter()
     path = spec_path if spec_path is not None else default_tune_spec_path(has_accelerator())
-    spec = load_tune_spec(path).with_overrides(candidates, rounds, batch)
-    check_out_dir(out, "wbc-jax tune", force=force, inputs=[spec.path])  # force: replace an earlier tune's DIR
+    spec = _with_backend(load_tune_spec(path).with_overrides(candidates, rounds, batch), backend)
+    writer = distributed.is_writer()
+    problem = None
+    try:  # process 0's output folder (the others write nothing)
+        if writer:
+            check_out_dir(out, "wbc-jax tune", force=force, inputs=[spec.path])  # force: replace an earlier tune's
+    except WbcJaxError as e:
+        problem = e
+    distributed.agree(problem)
+    say = print if writer else (lambda *a, **k: None)
     space = Space(spec.leaves, spec.start)
     search = make_search(spec, space)
     C, R, t, obj = search.C, search.rounds, spec.tune, spec.objective
@@ -140,15 +176,18 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
         evc.size = ev.size
     total = _plan(spec, search, ev, evc)
     steps_per_s = 1.0 / ev.sim.dt_physics
-    print(f"tune {t['name']!r} ({spec.path}): {t['method']}, {R} rounds x {C} candidates, {space.k} tuned leaves; "
+    say(f"tune {t['name']!r} ({spec.path}): {t['method']}, {R} rounds x {C} candidates, {space.k} tuned leaves; "
           f"each candidate on {ev.n} runs ({ev.n // t['reps']} cells x {t['reps']} reps of {spec.campaign.path}, "
           f"{ev.seconds:.2f} s simulated), {ev.size} runs per rollout call, "
-          f"{spec.campaign.campaign['qp_iters']} ADMM iterations, device {jax.devices()[0].device_kind}; "
+          f"{spec.campaign.campaign['qp_iters']} ADMM iterations, {backend_of(spec.campaign)} physics, device "
+          f"{jax.devices()[0].device_kind}"
+          + (f" x {jax.device_count()} over {jax.process_count()} processes" if distributed.is_multiprocess() else "")
+          + "; "
           f"{total:,.0f} run-seconds to simulate in all"
           + (f" (confirmation: {1 + spec.confirm['top']} gain sets x {evc.n} runs of {evc.camp.path})" if evc else ""),
           flush=True)
     bar = None
-    if progress:
+    if progress and writer:
         from tqdm import tqdm
 
         bar = tqdm(total=round(total, 3), unit="run-s", file=sys.stderr,
@@ -188,7 +227,7 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
                 f"{len(full_rows)} at the full horizon; round best J {rb['objective']:.4f} (success "
                 f"{rb['success_rate']:.0%}, T {rb['T_mm']:.2f} mm); best so far J {best[0]['objective']:.4f} "
                 f"({'feasible' if best[0]['feasible'] else 'infeasible'})")
-        (bar.write if bar is not None else print)(line)
+        (bar.write if bar is not None else say)(line)
 
     df = leaderboard(rows)
     start, top = rows[0], best[0]
@@ -220,7 +259,7 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
     round_s = float(np.median(walls[1:] if len(walls) > 1 else walls))
     new_compiles = (variants[-1] - variants[1]) if None not in (variants[1], variants[-1]) else None
     if new_compiles:
-        print(f"warning: the chunk function compiled {new_compiles} more time(s) after round 1", flush=True)
+        say(f"warning: the chunk function compiled {new_compiles} more time(s) after round 1", flush=True)
     sim_steps = ev.calls * ev.size * ev.chunk_s * steps_per_s
     confirmed = [dict(label="default", **{k: float(v[0]) for k, v in csc.items()})] + [
         dict(label=f"rank {int(df.loc[i, 'rank'])}", **{k: float(v[1 + j]) for k, v in csc.items()})
@@ -246,7 +285,8 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
         confirmation=dict(campaign=ce.camp.path, runs=ce.n, seeds=[int(s) for s in ce.seeds], wall_s=confirm_wall,
                           gain_sets=confirmed, chosen_rank=int(chosen["rank"]),
                           chosen_multipliers={n: float(chosen[f"{n}_x"]) for n in space.names}),
-        comparison=comparison)
+        comparison=comparison, physics_backend=backend_of(spec.campaign), sensing=sensing_of(spec.campaign),
+        layout=distributed.layout_record())
     if isinstance(search, CEMSearch):
         manifest["cem_history"] = search.history
     info = dict(source="wbc-jax tune", spec=spec.path, spec_hash=spec.hash,
@@ -255,6 +295,9 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
                                                                       "T_mm", "success_rate")},
                 **{f"{n}_x": float(chosen[f"{n}_x"]) for n in space.names})
     wall_tune = time.perf_counter() - t_start
+    if not writer:
+        print(f"process {jax.process_index()}: done; process 0 writes {out}", flush=True)
+        return None
     where = f"{ce.camp.path}: {ce.n} runs, seeds of its design"
     lines = [f"Spec `{spec.path}` ({t['method']}, {R} rounds x {C} candidates on {ev.n} runs of "
              f"`{spec.campaign.path}`, {ev.seconds:.2f} s simulated each); {len(rows)} candidates; wall "

@@ -8,6 +8,12 @@ confirmation, whatever the number of candidates, and the CPU never sees a batch 
 Sub-batches run one after the other, each over the requested range of chunks; a run's state can be kept and
 continued later (successive halving continues the survivors from their last rung).
 
+Several devices (one process, or several processes joined by :mod:`wbc_jax.sim.distributed`): every sub-batch is
+spread over all devices of all processes, each device stepping its own runs (the campaign's chunk function,
+:func:`wbc_jax.sim.sharding.over_runs`). With several processes each sub-batch's final states are gathered to
+every process after its last chunk (a collective), so every process scores the same runs, the search takes the
+same steps everywhere, and continued states are placed again from the host copy.
+
 :func:`score` turns per-run metrics into per-candidate aggregates (module docstring of
 :mod:`wbc_jax.study.tune`).
 """
@@ -17,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from wbc_jax.control.transport import TransportGains
+from wbc_jax.sim import distributed
 
 
 def take(tree, idx, in_axes=0):
@@ -25,16 +32,22 @@ def take(tree, idx, in_axes=0):
 
     leaves, treedef = jax.tree_util.tree_flatten(tree)
     axes = [in_axes] * len(leaves) if isinstance(in_axes, int) else treedef.flatten_up_to(in_axes)
-    return jax.tree_util.tree_unflatten(treedef, [x if a is None else x[idx] for x, a in zip(leaves, axes)])
+    host = np.asarray(idx)  # host leaves (several processes' gathered states) are indexed on the host
+    return jax.tree_util.tree_unflatten(treedef, [x if a is None else x[host] if isinstance(x, np.ndarray) else x[idx]
+                                                  for x, a in zip(leaves, axes)])
 
 
 def concat(trees: list):
-    """Leafwise concatenation of pytrees of device arrays along the run axis (stays on the device: the result
-    keeps the chunk function's input types and placement, so feeding it back does not compile again)."""
+    """Leafwise concatenation of pytrees along the run axis: device arrays stay on the device (the result keeps
+    the chunk function's input types and placement, so feeding it back does not compile again), host arrays on
+    the host."""
     import jax
     import jax.numpy as jnp
 
-    return trees[0] if len(trees) == 1 else jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *trees)
+    def cat(*xs):
+        return np.concatenate(xs) if isinstance(xs[0], np.ndarray) else jnp.concatenate(xs)
+
+    return trees[0] if len(trees) == 1 else jax.tree_util.tree_map(cat, *trees)
 
 
 class Evaluator:
@@ -66,11 +79,12 @@ class Evaluator:
         self.size = int(size)
         self.batch, self.sel = b, np.asarray(sel)
         self.mesh = None
-        if jax.device_count() > 1:  # spread every sub-batch over all devices (wbc_jax.sim.sharding)
+        if jax.device_count() > 1:  # spread every sub-batch over all devices of all processes (wbc_jax.sim.sharding)
             from wbc_jax.sim.sharding import run_mesh
 
             self.mesh = run_mesh()
-        self.fn = campaign._chunk_fn(sim, b.in_axes, logs_per_chunk)
+        self.multiprocess = distributed.is_multiprocess()
+        self.fn = campaign._chunk_fn(sim, b.in_axes, logs_per_chunk, self.mesh)
         self.calls = 0
 
     def compiled_variants(self) -> int | None:
@@ -88,13 +102,14 @@ class Evaluator:
         Args:
             gains: TransportGains with leading axis C (host numpy).
             chunks: (c0, c1): first chunk and end chunk (-1: the full horizon); c0 > 0 continues ``states``.
-            states: pytree of RunState with C n runs (candidate-major, device arrays), as returned by an earlier
-                call (None: the initial states).
+            states: pytree of RunState with C n runs (candidate-major), as returned by an earlier call (None: the
+                initial states): device arrays, or host arrays with several processes.
             bar: progress bar advanced by simulated run-seconds after every call (``update``), or None.
 
         Returns:
-            (res, states): ``wbc_jax.sim.metrics.finalize``'s per-run dict at chunk c1, every array (C, n);
-            the runs' states at chunk c1 (device pytree, C n runs, candidate-major).
+            (res, states): ``wbc_jax.sim.metrics.finalize``'s per-run dict at chunk c1, every array (C, n), the
+            same in every process; the runs' states at chunk c1 (C n runs, candidate-major; a device pytree, or
+            the host copy with several processes).
         """
         import jax
         import jax.numpy as jnp
@@ -128,7 +143,10 @@ class Evaluator:
                 self.calls += 1
                 if bar is not None:
                     bar.update(real * self.chunk_s)
-            finals.append(final_results(self.sim, state, logs.p_obj_ref[:, -1], np.tile(self.mu, C)[idx], n=real))
+            p_goal = logs.p_obj_ref[:, -1]
+            if self.multiprocess:  # every process: the whole sub-batch on the host (a collective)
+                state, p_goal = distributed.gather((state, p_goal))
+            finals.append(final_results(self.sim, state, p_goal, np.tile(self.mu, C)[idx], n=real))
             outs.append(jax.tree_util.tree_map(lambda x: x[:real], state))
         res = {k: np.concatenate([f[k] for f in finals]).reshape(C, self.n) for k in finals[0]}
         return res, concat(outs)

@@ -178,7 +178,9 @@ def default_tune_spec_path(accelerator: bool) -> Path:
     return GPU_SPEC if accelerator else CPU_SPEC
 
 
-def _cells(path, raw, factors) -> list | None:
+def _cells(path, raw, camp) -> list | None:
+    """``tune.cells`` validated against the campaign spec ``camp``: each [m, mu, d] a level of that factor, or
+    the campaign's fixed value where it is not a factor."""
     if raw == "all":
         return None
     if not isinstance(raw, list) or not raw:
@@ -190,8 +192,10 @@ def _cells(path, raw, factors) -> list | None:
             raise _err(path, key, f"expected [m, mu, d], got {c!r}")
         cell = [_number(path, key, v, float, 0.0, 1e3, False, "") for v in c]
         for name, v in zip(("m", "mu", "d"), cell):
-            if not any(math.isclose(v, lv, rel_tol=1e-9, abs_tol=1e-12) for lv in factors[name]):
-                raise _err(path, key, f"{name} = {v} is not a level of the campaign ({factors[name]})")
+            levels = camp.factors.get(name, [camp.campaign[name]])
+            if not any(math.isclose(v, lv, rel_tol=1e-9, abs_tol=1e-12) for lv in levels):
+                what = "a level" if name in camp.factors else "the fixed value"
+                raise _err(path, key, f"{name} = {v} is not {what} of the campaign ({levels})")
         if cell in out:
             raise _err(path, key, f"{cell} listed twice")
         out.append(cell)
@@ -251,7 +255,7 @@ def parse_tune_spec(data: dict, path: str = "<tune spec>", text_sha256: str = ""
     for leaf, (lo, hi) in leaves.items():
         if not lo <= start[leaf] <= hi:
             raise _err(path, f"leaves.{leaf}", f"= [{lo}, {hi}] does not contain the start scale {start[leaf]}")
-    s = TuneSpec(path=str(path), tune=tune, cells=_cells(path, raw_cells, camp.factors), start=start, leaves=leaves,
+    s = TuneSpec(path=str(path), tune=tune, cells=_cells(path, raw_cells, camp), start=start, leaves=leaves,
                  objective=_table(path, "objective", data.get("objective", {}), _OBJECTIVE),
                  cem=_table(path, "cem", data.get("cem", {}), _CEM),
                  grid=_table(path, "grid", data.get("grid", {}), _GRID),
