@@ -115,8 +115,38 @@ def test_delayed_sensing_reads_the_last_steps_start(walks):
         make_sim(walks["jax"][0].robot, sensing="delayed")
 
 
-def test_backend_choice():
+def test_solver_cap_is_counted(walks):
+    """physics.solver_capped (Accum.n_solver_cap, results.csv's solver_cap_fraction), Warp: one physics step of
+    the robot at home with random joint and base velocities (seed 0, 1 rad/s or m/s), whose contacts need a
+    constraint solve of several iterations. With a cap of 100 the solve stops at its tolerance (not capped); with
+    a cap of 2, below that count, it stops at the cap (capped). The walks' fractions: a share on Warp, NaN on JAX
+    (MJX's JAX solver does not report its iteration count)."""
+    got = {}
+    for iters in (100, 2):
+        robot = Robot("flat", backend="warp", solver_iterations=iters)
+        qpos = jax.numpy.asarray(robot.home_qpos(0.08))[None]
+        qvel = jax.numpy.asarray(np.random.default_rng(0).normal(0.0, 1.0, robot.mj_model.nv))[None]
+        d = jax.vmap(lambda q, v, robot=robot: physics.make_data(robot, 1).replace(qpos=q, qvel=v))(qpos, qvel)
+
+        def one(m, d):
+            d1 = physics.mjx.step(m, d)
+            return physics.solver_capped(m, d1), d1._impl.solver_niter, d1._impl.nefc
+
+        got[iters] = [np.asarray(x)[0] for x in jax.jit(jax.vmap(one, in_axes=(None, 0)))(robot.mjx_model, d)]
+    (cap100, n100, nefc100), (cap2, n2, nefc2) = got[100], got[2]
+    assert nefc100 > 0 and nefc2 > 0  # contacts: the solver runs
+    assert not bool(cap100) and 2 < n100 < 100  # converged, after more iterations than the other cap
+    assert bool(cap2) and n2 == 2
+    frac = walks["warp"][3]["solver_cap_fraction"]
+    assert np.all((frac >= 0) & (frac <= 1)) and np.all(np.isnan(walks["jax"][3]["solver_cap_fraction"]))
+
+
+def test_backend_choice(monkeypatch):
     assert physics.resolve_backend("jax") == "jax"
-    assert physics.resolve_backend("auto") == "jax"  # until Warp's course physics agrees (physics docstring)
+    assert physics.resolve_backend("auto") == "jax"  # a CPU: MuJoCo Warp's CPU path is for tests
+    monkeypatch.setattr(physics.jax, "default_backend", lambda: "gpu")
+    assert physics.resolve_backend("auto") == "warp"  # a CUDA GPU with warp-lang (this test's import needs it)
+    monkeypatch.setattr(physics, "warp_available", lambda: False)
+    assert physics.resolve_backend("auto") == "jax"
     with pytest.raises(ValueError, match="backend 'bullet'"):
         physics.resolve_backend("bullet")

@@ -140,12 +140,15 @@ def _check_out(args: argparse.Namespace, inputs=()) -> None:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     _check_demo_args(args)
+    from wbc_jax.study.demo import demo_backend
+
+    demo_backend(args.backend)  # a bad --backend before anything is written
     _check_out(args, [args.scene if args.scene.endswith(".xml") else None])
     from wbc_jax.study.demo import run_demo
 
     run_demo(out=args.out, scene=args.scene, seconds=args.seconds, all_cells=args.all_cells, push=args.push,
              observer=not args.no_observer, iters=args.iters, distance=args.distance, push_at=args.push_at,
-             video=not args.no_video)
+             video=not args.no_video, backend=args.backend)
     return 0
 
 
@@ -189,10 +192,11 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
 
 
 def _cmd_tune(args: argparse.Namespace) -> int:
+    _join_processes(args)
     from wbc_jax.study.tune import run_tune
 
     run_tune(args.spec, args.out, candidates=args.candidates, rounds=args.rounds, batch=args.batch,
-             progress=not args.no_progress, force=args.force)
+             progress=not args.no_progress, force=args.force, backend=args.backend)
     return 0
 
 
@@ -201,6 +205,30 @@ def _cmd_regress(args: argparse.Namespace) -> int:
 
     code, _ = run_regress(args.baseline, update=args.update)
     return code
+
+
+def _backend_flag(parser: argparse.ArgumentParser, default: str) -> None:
+    """``--backend auto|jax|warp``: the MJX physics implementation (``wbc_jax.sim.physics.resolve_backend``)."""
+    parser.add_argument("--backend", choices=("auto", "jax", "warp"), default=None,
+                        help=f"MJX physics implementation (default: {default}; 'auto' = MuJoCo Warp on a CUDA GPU "
+                             "with warp-lang installed (pip install -e '.[cuda]'), else MJX's JAX implementation)")
+
+
+def _process_flags(parser: argparse.ArgumentParser) -> None:
+    """The flags that join a multi-process run (``wbc_jax.sim.distributed``, docs/cluster.md)."""
+    parser.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                        help="several processes (one per host or GPU; docs/cluster.md): process 0's address, the "
+                             "same in every process (default: $JAX_COORDINATOR_ADDRESS, or the first node of a "
+                             "SLURM step)")
+    parser.add_argument("--num-processes", default=None, metavar="N",
+                        help="number of processes (default: $JAX_NUM_PROCESSES or SLURM's task count; none: one "
+                             "process)")
+    parser.add_argument("--process-id", default=None, metavar="I",
+                        help="this process's id, 0 to N-1; process 0 writes everything (default: $JAX_PROCESS_ID "
+                             "or $SLURM_PROCID)")
+    parser.add_argument("--local-device-ids", default=None, metavar="IDS",
+                        help="comma-separated ids of the local devices this process uses, e.g. 0 (default: all it "
+                             "sees)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -266,6 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--no-observer", action="store_true", help="disable the momentum observer")
     d.add_argument("--iters", type=int, default=20, help="ADMM iterations per control step")
     d.add_argument("--distance", type=float, default=3.4, help="transport distance [m]")
+    _backend_flag(d, "auto")
     d.set_defaults(func=_cmd_demo)
 
     c = sub.add_parser("campaign", help="a spec's factorial design (cells x repetitions) as one batched rollout; "
@@ -277,21 +306,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--no-report", action="store_true", help="skip the ANOVA report")
     c.add_argument("--gains", default=None, help="controller gains TOML (e.g. best_gains.toml of wbc-jax tune) "
                                                  "instead of the defaults")
-    c.add_argument("--backend", choices=("auto", "jax", "warp"), default=None,
-                   help="MJX physics implementation (default: the spec's campaign.backend, itself 'auto' = JAX for "
-                        "now; 'warp' runs MuJoCo Warp, NVIDIA GPUs, pip install -e '.[cuda]')")
+    _backend_flag(c, "the spec's campaign.backend")
     c.add_argument("--allow-large", action="store_true", help="run even when the memory estimate of the batch "
                                                               "exceeds the available memory")
-    c.add_argument("--coordinator", default=None, metavar="HOST:PORT",
-                   help="several processes (one per host or GPU; docs/cluster.md): process 0's address, the same in "
-                        "every process (default: $JAX_COORDINATOR_ADDRESS, or the first node of a SLURM step)")
-    c.add_argument("--num-processes", default=None, metavar="N",
-                   help="number of processes (default: $JAX_NUM_PROCESSES or SLURM's task count; none: one process)")
-    c.add_argument("--process-id", default=None, metavar="I",
-                   help="this process's id, 0 to N-1; process 0 writes everything (default: $JAX_PROCESS_ID or "
-                        "$SLURM_PROCID)")
-    c.add_argument("--local-device-ids", default=None, metavar="IDS",
-                   help="comma-separated ids of the local devices this process uses, e.g. 0 (default: all it sees)")
+    _process_flags(c)
     c.set_defaults(func=_cmd_campaign)
 
     u = sub.add_parser("tune", help="batched gain search (grid, random, cross-entropy method, successive halving) "
@@ -305,6 +323,8 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("--batch", type=int, default=None, help="runs per rollout call (overrides tune.batch; 0: all "
                                                            "of a round's runs on an accelerator, 1 on a CPU)")
     u.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _backend_flag(u, "the campaign specs' campaign.backend (tuning and confirmation)")
+    _process_flags(u)
     u.set_defaults(func=_cmd_tune)
 
     g = sub.add_parser("regress", help="CI regression: rerun a stored baseline's spec, compare per-cell metric means "

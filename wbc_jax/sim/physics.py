@@ -4,12 +4,15 @@ Two MJX implementations (``Robot(backend=...)``): **JAX** (``impl="jax"``, any d
 (``impl="warp"``, MuJoCo Warp kernels called through XLA; NVIDIA GPUs, and the CPU for tests). Warp runs only
 ``forward`` and ``step``, so on Warp :func:`sense` is ``mjx.forward`` (the whole forward pass, constraint solve
 with the held torques included) and :func:`finish` is ``mjx.step`` with the new torques: two Warp calls per control
-step, both exact (the controller reads the state it acts on, no delay). :func:`resolve_backend` turns "auto" into
-JAX for now, by measurement (H100, 2026-11-25): the paper campaign gives the same outcome on both (268/270, the
-same two runs failing), but at its batch of 270 the whole-body QP dominates a control step, so Warp is not faster
-end to end (physics + WBC 84 k vs 87 k env-steps/s; physics alone 433 k vs 187 k). The earlier Warp failure
-on the course (a front foot sliding off block1 at 5.8 s in 259/270 runs) was the controller planning the floor's
-friction on block1, fixed in ``wbc_jax.sim.contacts.foot_ground``. Warp is chosen explicitly (``--backend warp``).
+step, both exact (the controller reads the state it acts on, no delay; ``sensing = "delayed"`` drops the first,
+``wbc_jax.sim.rollout.resolve_sensing``). :func:`resolve_backend` turns "auto" into Warp on a CUDA GPU with
+warp-lang installed, else JAX, by measurement (H100, 2026-11-25, with the fused QP kernel): the paper campaign
+gives the same statistics on both (270/270 each) in 103.0 s on Warp (delayed sensing) vs 207.8-258.0 s on JAX;
+physics + WBC 80,636 vs 71,645 env-steps/s at batch 270 and 530,978 vs 273,202 at 16384 (docs/performance.md).
+(Before the QP kernel the QP dominated a step at batch 270 and Warp gained nothing end to end: 84 k vs 87 k.)
+The earlier Warp failure on the course (a front foot sliding off block1 at 5.8 s in 259/270 runs) was the
+controller planning the floor's friction on block1, fixed in ``wbc_jax.sim.contacts.foot_ground``. On the CPU
+"auto" stays JAX (MuJoCo Warp's CPU path is for tests).
 
 JAX backend: ``mjx.step`` = forward (position, velocity, actuation, acceleration, constraint solve) + integrate.
 :func:`sense` runs the position and velocity stages; the controller reads M, bias forces,
@@ -46,7 +49,7 @@ def warp_available() -> bool:
 
 
 def resolve_backend(name: str) -> str:
-    """"auto" -> "jax" (module docstring: no end-to-end gain at the campaign's batch yet); "jax", "warp" unchanged.
+    """"auto" -> "warp" on a CUDA GPU with warp-lang, else "jax" (module docstring); "jax", "warp" unchanged.
 
     Raises:
         ValueError: an unknown name, or "warp" without warp-lang.
@@ -54,7 +57,7 @@ def resolve_backend(name: str) -> str:
     if name not in BACKENDS:
         raise ValueError(f"backend {name!r}: expected one of {', '.join(BACKENDS)}")
     if name == "auto":
-        return "jax"
+        return "warp" if jax.default_backend() == "gpu" and warp_available() else "jax"
     if name == "warp" and not warp_available():
         raise ValueError("backend 'warp' needs warp-lang (pip install -e '.[cuda]', or pip install warp-lang)")
     return name
@@ -83,6 +86,22 @@ def overflow(d) -> jax.Array:
         return jnp.bool_(False)
     i = d._impl
     return (jnp.max(i.nacon) >= i.naconmax) | (i.nefc >= i.njmax)
+
+
+def solver_capped(m, d) -> jax.Array:
+    """() bool: the physics step that produced ``d`` ended its constraint solve at the iteration cap
+    (``opt.iterations``, 4 in the shipped scenes) instead of at its tolerance. Warp counts the solver's iterations
+    in ``solver_niter``; counted per run (``Accum.n_solver_cap``), since Warp's console warning for it is switched
+    off (``wbc_jax.sim.model``). MJX's JAX solver does not report its count (its ``solver_niter`` stays 0): False
+    there, and :func:`reports_solver_cap` says so."""
+    if not is_warp(d):
+        return jnp.bool_(False)
+    return d._impl.solver_niter >= m.opt.iterations
+
+
+def reports_solver_cap(robot) -> bool:
+    """Whether :func:`solver_capped` is measured on ``robot``'s backend (Warp) rather than always False (JAX)."""
+    return robot.backend == "warp"
 
 
 def sense(m, d):

@@ -24,7 +24,8 @@ from wbc_jax.io_utils import atomic_dir
 from wbc_jax.sim.model import Robot
 from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.planner.transport import plan_duration
-from wbc_jax.sim.rollout import make_push, make_sim, simulate
+from wbc_jax.sim.physics import resolve_backend
+from wbc_jax.sim.rollout import make_push, make_sim, resolve_sensing, simulate
 from wbc_jax.sim.scenario import single_run_mj_model
 from wbc_jax.analysis.video import render_gif
 
@@ -32,13 +33,26 @@ LEVELS = dict(m=(0.2, 0.3, 0.4), mu=(0.4, 0.7, 1.0), d=(0.06, 0.08, 0.10))
 DEFAULT = dict(m=0.3, mu=0.7, d=0.08)
 
 
+def demo_backend(backend: str | None) -> str:
+    """``--backend`` resolved for this machine ("auto" for None); a one-line InputError for a bad value."""
+    from wbc_jax.errors import InputError
+
+    try:
+        return resolve_backend("auto" if backend is None else backend)
+    except ValueError as e:
+        raise InputError(f"--backend: {e}") from None
+
+
 def run_demo(out: str, scene: str = "transport", seconds: float | None = None, all_cells: bool = False,
              push: bool = False, observer: bool = True, iters: int = 20, distance: float = 3.4,
-             speed: float = 0.13, push_at: float = 0.35, video: bool = True) -> dict:
+             speed: float = 0.13, push_at: float = 0.35, video: bool = True, backend: str | None = None) -> dict:
     """Run the demo and write DIR. ``push_at``: push start as a fraction of the planned duration (0.35 is
-    mid-course, before the wall)."""
-    robot = Robot(scene)
-    sim = make_sim(robot, TransportConfig(qp=control_qp_settings(iters)), log_every=20)
+    mid-course, before the wall). ``backend``: MJX physics implementation ("auto" for None; sensing as the
+    campaign's default, ``wbc_jax.sim.rollout.resolve_sensing``)."""
+    backend = demo_backend(backend)
+    robot = Robot(scene, backend=backend)
+    sim = make_sim(robot, TransportConfig(qp=control_qp_settings(iters)), log_every=20,
+                   sensing=resolve_sensing("auto", backend))
     cells = list(itertools.product(*LEVELS.values())) if all_cells else [tuple(DEFAULT.values())]
     m, mu, d = (np.array(c) for c in zip(*cells))
     gains = default_gains()
@@ -79,7 +93,8 @@ def run_demo(out: str, scene: str = "transport", seconds: float | None = None, a
             min_trunk_z_m=float(acc.min_trunk_z[i]), max_tau_ratio=float(acc.max_tau_ratio[i]),
             max_qp_tau_excess_Nm=float(acc.max_tau_excess[i]),
             qp_prim_res_median=float(np.median(logs.prim_res[i])), qp_flag_fraction=float(acc.n_flag[i] / n_steps)))
-    summary = dict(scene=str(robot.path), controller="transport WBC", push=push, observer=observer,
+    summary = dict(scene=str(robot.path), controller="transport WBC", physics_backend=backend,
+                   sensing=sim.sensing, push=push, observer=observer,
                    qp_iters=iters, simulated_s=seconds, runs=runs, wall_time_s=wall,
                    env_steps_per_s=_steps_per_s(marks, len(cells), sim.dt_control),
                    compile_and_first_chunk_s=marks[0][1],

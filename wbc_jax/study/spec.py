@@ -94,7 +94,7 @@ CAMPAIGN = {
     "chunk_seconds": (float, 2.0, 0.02, 60.0, False, "[s]"),
     "solver_iterations": (int, 0, 0, 1000, False, "MuJoCo constraint-solver iterations per physics step; 0 = the scene's"),
     "backend": (str, "auto", None, None, False,
-                '"auto" (JAX for now), "jax" or "warp": the MJX physics implementation'),
+                '"auto" (Warp on a CUDA GPU with warp-lang, else JAX), "jax" or "warp": the MJX physics implementation'),
     # a run's value of a factor the spec does not vary (wbc_jax.study.factors.REGISTRY: FactorDef.fixed)
     "m": (float, 0.3, 0.0, 20.0, True, "[kg]"),
     "mu": (float, 0.7, 0.0, 5.0, True, "[-]"),
