@@ -112,7 +112,8 @@ def _accum(**kw):
                 first_contact_t=np.full(2, np.nan), first_contact_k=np.full(2, -1), overflow=np.zeros(2, bool),
                 t_end=np.full(2, np.inf), n_win=np.array([1000, 1000]), min_clear=np.full(2, np.inf),
                 min_clear_t=np.full(2, np.nan), min_clear_k=np.full(2, -1), n_boundary_cone=np.zeros(2, int),
-                sum_invH_plan=z, n_boundary_plan=np.zeros(2, int), n_boundary_plan_cone=np.zeros(2, int))
+                sum_invH_plan=z, n_boundary_plan=np.zeros(2, int), n_boundary_plan_cone=np.zeros(2, int),
+                n_solver_cap=np.zeros(2, int))
     base.update(kw)
     return Accum(**base)
 
@@ -123,7 +124,7 @@ def test_finalize_by_hand():
                  max_slip=np.array([0.004, 0.012]), n_flag=np.array([1, 20]), n_boundary=np.array([0, 100]),
                  wall_contact=np.array([False, True]), n_boundary_cone=np.array([0, 40]),
                  sum_invH_plan=np.array([0.25, 0.2]), n_boundary_plan=np.array([10, 500]),
-                 n_boundary_plan_cone=np.array([0, 100]))
+                 n_boundary_plan_cone=np.array([0, 100]), n_solver_cap=np.array([0, 250]))
     r = metrics.finalize(acc, dt, np.array([0.7, 0.7]), course=False, final_err=np.array([0.001, 0.002]))
     np.testing.assert_allclose(r["R"], [0.3, 0.1])
     np.testing.assert_allclose(r["T"], [0.002, 0.004])
@@ -140,6 +141,7 @@ def test_finalize_by_hand():
     np.testing.assert_allclose(r["qp_flag_fraction"], [0.001, 0.02])  # 1 and 20 of 1000 control steps
     np.testing.assert_allclose(r["qp_iters_mean"], [10.0, 15.0])
     assert r["qp_iters_max"].tolist() == [10, 60]
+    np.testing.assert_allclose(r["solver_cap_fraction"], [0.0, 0.25])  # of all 1000 physics steps
     assert r["success"].tolist() == [True, True]  # sliding, wall contact and QP flags are flags, not failures
 
 

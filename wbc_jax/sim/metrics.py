@@ -177,7 +177,8 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
         trunk_low, body_contact, dropped, slid, hit_wall, qp_flag_fraction (of the control steps), qp_flagged,
         qp_iters_mean and qp_iters_max (ADMM iterations per control step: mean and most),
         nonfinite, overflow (Warp's contact or
-        constraint capacity reached), success (no fall, no drop, finite, no overflow,
+        constraint capacity reached), solver_cap_fraction (of all physics steps: the constraint solver stopped at
+        its iteration cap, opt.iterations; Warp only, ``wbc_jax.sim.physics.solver_capped``), success (no fall, no drop, finite, no overflow,
         final object error <= DONE_TOL) and fail_reason (text, "" for a success).
     """
     n = np.asarray(acc.n_steps, float)
@@ -216,6 +217,7 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
         qp_flagged=np.asarray(acc.n_flag) / np.maximum(n, 1) > QP_FLAG_FRACTION,
         nonfinite=nonfinite,
         overflow=np.asarray(acc.overflow),
+        solver_cap_fraction=np.asarray(acc.n_solver_cap) / np.maximum(n * substeps, 1),
         final_err_mm=final_err * 1e3,
     )
     bad = out["fell"] | dropped | nonfinite | out["overflow"] | ~np.isfinite(final_err) | (final_err > DONE_TOL)

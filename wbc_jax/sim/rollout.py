@@ -109,6 +109,8 @@ class Accum(NamedTuple):
     #                           :func:`wbc_jax.sim.metrics.planned_inv_H`)
     n_boundary_plan: jax.Array  # int32, control steps with that 1/H = 0 (the boundary rule)
     n_boundary_plan_cone: jax.Array  # int32, the part of n_boundary_plan with a loaded planned force on/outside the cone
+    n_solver_cap: jax.Array  # int32, physics steps whose constraint solve stopped at opt.iterations, not at its
+    #                          tolerance (wbc_jax.sim.physics.solver_capped) (physics rate)
 
 
 class RunState(NamedTuple):
@@ -249,7 +251,8 @@ def init_state(sim: Sim, m, qpos0, qvel0=None, n_runs: int = 1) -> RunState:
                 t_end=jnp.full((), jnp.inf, z.dtype), n_win=jnp.zeros((), jnp.int32),
                 min_clear=jnp.full((), jnp.inf, z.dtype), min_clear_t=jnp.full((), jnp.nan, z.dtype),
                 min_clear_k=jnp.full((), -1, jnp.int32), n_boundary_cone=jnp.zeros((), jnp.int32), sum_invH_plan=z,
-                n_boundary_plan=jnp.zeros((), jnp.int32), n_boundary_plan_cone=jnp.zeros((), jnp.int32))
+                n_boundary_plan=jnp.zeros((), jnp.int32), n_boundary_plan_cone=jnp.zeros((), jnp.int32),
+                n_solver_cap=jnp.zeros((), jnp.int32))
     prev = (d.qpos, d.qvel, d.time) if sim.sensing == "delayed" else None
     return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids), acc=acc,
                     prev=prev)
@@ -293,6 +296,7 @@ class SubstepMonitors(NamedTuple):
     off: jax.Array  # bool, every object contact sphere farther than CONTACT_DIST from the tray
     finite: jax.Array  # bool, positions after the step and the held torques are finite
     overflow: jax.Array  # bool, the step's contacts or constraint rows may not all have fit (Warp)
+    solver_cap: jax.Array  # bool, the step's constraint solve stopped at opt.iterations
     clear: jax.Array  # [m] :func:`clearance` after the step (+inf: no such pair)
     clear_k: jax.Array  # int32, its pair (Accum.min_clear_k numbering; -1: none)
 
@@ -321,8 +325,8 @@ def substep_monitors(sim: Sim, m, om: ObjectModel, tau, d, d_after) -> SubstepMo
         nonfoot, nonfoot_k = jnp.bool_(False), jnp.full((), -1, jnp.int32)
     clear, clear_k = clearance(sim, d_after)
     return SubstepMonitors(inv_h=inv_h, cone=cone, acc=acc_norm, nonfoot_floor=nonfoot, nonfoot_k=nonfoot_k, t=d.time,
-                           wall=wall, off=off, finite=finite, overflow=physics.overflow(d_after), clear=clear,
-                           clear_k=clear_k)
+                           wall=wall, off=off, finite=finite, overflow=physics.overflow(d_after),
+                           solver_cap=physics.solver_capped(m, d_after), clear=clear, clear_k=clear_k)
 
 
 def clearance(sim: Sim, d):
@@ -394,6 +398,7 @@ def _fold(sim: Sim, a: Accum, s: SubstepMonitors, w) -> Accum:
         wall_contact=a.wall_contact | s.wall,
         nonfinite=a.nonfinite | ~s.finite,
         overflow=a.overflow | s.overflow,
+        n_solver_cap=a.n_solver_cap + s.solver_cap.astype(jnp.int32),
         off_steps=off_steps,
         max_off_s=jnp.maximum(a.max_off_s, off_steps * h),
         sum_invH=a.sum_invH + jnp.where(w, s.inv_h * h, 0.0),
@@ -499,6 +504,8 @@ def final_results(sim: Sim, state: RunState, p_goal, mu, n: int | None = None) -
         p_obj, p_goal = p_obj[:n], p_goal[:n]
     out = metrics.finalize(acc, sim.dt_control, mu, course=scene_geometry(sim.robot).is_course,
                            final_err=np.linalg.norm(p_obj - p_goal, axis=1), substeps=sim.n_substeps)
+    if not physics.reports_solver_cap(sim.robot):  # MJX's JAX solver does not report its iteration count
+        out["solver_cap_fraction"] = np.full(len(out["success"]), np.nan)
     out["first_contact_s"] = np.asarray(acc.first_contact_t, float)
     out["first_contact"] = np.array([contact_name(sim, k) for k in np.asarray(acc.first_contact_k)], dtype=object)
     out["min_clearance_pair"] = np.array([clearance_name(sim, k) for k in np.asarray(acc.min_clear_k)], dtype=object)

@@ -340,7 +340,8 @@ def results_table(spec: Spec, dz: Design, res: dict):
     df = pd.DataFrame(dict(run=np.arange(dz.n), m=dz.m, mu=dz.mu, d=dz.d, **extra, rep=dz.rep, seed=dz.seed,
                            success=res["success"]))
     for k in ("R", "T", "S", "R_plan", "max_slip_mm", "fell", "trunk_low", "body_contact", "dropped", "slid", "hit_wall",
-              "qp_flagged", "qp_flag_fraction", "qp_iters_mean", "qp_iters_max", "nonfinite", "overflow", "boundary_fraction", "boundary_cone_fraction",
+              "qp_flagged", "qp_flag_fraction", "qp_iters_mean", "qp_iters_max", "nonfinite", "overflow", "solver_cap_fraction", "boundary_fraction",
+              "boundary_cone_fraction",
               "boundary_fraction_plan", "boundary_cone_fraction_plan", "final_err_mm", "fail_reason", "first_contact_s",
               "first_contact", "window_s", "min_clearance_mm", "min_clearance_s", "min_clearance_pair"):
         df[k] = res[k]
@@ -541,7 +542,10 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         first_chunk_s=first[0] if first else None, env_steps_per_s=eps,
         resumed=bool(resume and wall_before > 0), n_success=int(df.success.sum()), failures_per_cell=failures, failed_runs=failed_runs,
         warnings=warnings, metric_means={k: float(df.loc[df.success, k].mean()) if df.success.any() else None
-                                         for k in ("R", "T", "S", "max_slip_mm")})
+                                         for k in ("R", "T", "S", "max_slip_mm")},
+        constraint_solver=dict(iterations=int(sim.robot.mj_model.opt.iterations),
+                               cap_fraction_mean=_nan_none(df.solver_cap_fraction.mean()),
+                               cap_fraction_max=_nan_none(df.solver_cap_fraction.max())))
     with atomic_dir(out_p) as tmp:  # the finished simulation first: a failing report cannot lose it
         df.to_csv(tmp / "results.csv", index=False)
         manifest["wall_s_total"] = time.perf_counter() - t_import + wall_before
@@ -554,6 +558,12 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     print(f"{int(df.success.sum())}/{dz.n} runs succeeded; wall {manifest['wall_s_total']:.1f} s, "
           f"{eps:,.0f} env-steps/s; written to {out}", flush=True)
     return manifest
+
+
+def _nan_none(x) -> float | None:
+    """A float for JSON; None for NaN (e.g. a figure the JAX backend does not report)."""
+    x = float(x)
+    return None if np.isnan(x) else x
 
 
 def _plain(x):
