@@ -44,23 +44,13 @@ def spec_variant(text: str, iters: int, backend: str, reps: int, max_seconds: fl
 
 
 def moved(ref: pd.DataFrame, new: pd.DataFrame) -> list[str]:
-    """Cell means of ``new`` outside the regress band around ``ref``'s (and success count changes)."""
-    from wbc_jax.study.regress import DEFAULT_TOL, cell_means
+    """Cell means of ``new`` outside the regress band around ``ref``'s, and success count changes
+    (``wbc_jax.study.regress.compare`` with ``ref`` as the baseline and DEFAULT_TOL, no rounding noise)."""
+    from wbc_jax.study.regress import DEFAULT_TOL, cell_means, compare
 
-    a = {(c["m"], c["mu"], c["d"]): c for c in cell_means(ref)}
-    out = []
-    for c in cell_means(new):
-        key = (c["m"], c["mu"], c["d"])
-        r = a[key]
-        if c["n_success"] != r["n_success"]:
-            out.append(f"{key} success {r['n_success']} -> {c['n_success']}")
-        for k in METRICS:
-            if r[k] is None or c[k] is None:
-                continue
-            rel, ab = DEFAULT_TOL[k]
-            if abs(c[k] - r[k]) > rel * abs(r[k]) + ab:
-                out.append(f"{key} {k} {r[k]:.4g} -> {c[k]:.4g}")
-    return out
+    base = dict(tolerance={k: dict(rel=rel, abs=ab) for k, (rel, ab) in DEFAULT_TOL.items()}, cells=cell_means(ref))
+    return [f"{r['cell']} {r['metric']} {r['baseline']:.4g} -> {r['now']:.4g}" if r["metric"] in METRICS
+            else f"{r['cell']} {r['metric']} {r['baseline']} -> {r['now']}" for r in compare(base, cell_means(new))]
 
 
 def main(argv=None) -> int:

@@ -519,7 +519,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     failed_runs = [{"run": int(r.run), "push_N": float(r.push_N),  # the drawn push; a push_N factor's level agrees
                     **{k: _plain(r[k]) for k in cols}, "rep": int(r.rep), "seed": int(r.seed),
                     "reason": r.fail_reason, "first_contact": r.first_contact or None,
-                    "first_contact_s": None if np.isnan(r.first_contact_s) else float(r.first_contact_s)}
+                    "first_contact_s": _nan_none(r.first_contact_s)}
                    for _, r in df[~df.success].iterrows()]
     warnings = [w for w in [zero_noise_warning(spec)] if w]
     if failures:

@@ -177,15 +177,14 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
     total = _plan(spec, search, ev, evc)
     steps_per_s = 1.0 / ev.sim.dt_physics
     say(f"tune {t['name']!r} ({spec.path}): {t['method']}, {R} rounds x {C} candidates, {space.k} tuned leaves; "
-          f"each candidate on {ev.n} runs ({ev.n // t['reps']} cells x {t['reps']} reps of {spec.campaign.path}, "
-          f"{ev.seconds:.2f} s simulated), {ev.size} runs per rollout call, "
-          f"{spec.campaign.campaign['qp_iters']} ADMM iterations, {backend_of(spec.campaign)} physics, device "
-          f"{jax.devices()[0].device_kind}"
-          + (f" x {jax.device_count()} over {jax.process_count()} processes" if distributed.is_multiprocess() else "")
-          + "; "
-          f"{total:,.0f} run-seconds to simulate in all"
-          + (f" (confirmation: {1 + spec.confirm['top']} gain sets x {evc.n} runs of {evc.camp.path})" if evc else ""),
-          flush=True)
+        f"each candidate on {ev.n} runs ({ev.n // t['reps']} cells x {t['reps']} reps of {spec.campaign.path}, "
+        f"{ev.seconds:.2f} s simulated), {ev.size} runs per rollout call, "
+        f"{spec.campaign.campaign['qp_iters']} ADMM iterations, {backend_of(spec.campaign)} physics, device "
+        f"{jax.devices()[0].device_kind}"
+        + (f" x {jax.device_count()} over {jax.process_count()} processes" if distributed.is_multiprocess() else "")
+        + f"; {total:,.0f} run-seconds to simulate in all"
+        + (f" (confirmation: {1 + spec.confirm['top']} gain sets x {evc.n} runs of {evc.camp.path})" if evc else ""),
+        flush=True)
     bar = None
     if progress and writer:
         from tqdm import tqdm
