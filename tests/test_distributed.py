@@ -91,29 +91,34 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-CAMPAIGN_THEN_TUNE = textwrap.dedent("""
-    import sys
+ALL_IN_ONE = textwrap.dedent("""
+    import os, sys
     from wbc_jax import cli
     args = sys.argv[1:]
     cut = args.index("--then")
-    sys.exit(cli.main(args[:cut]) or cli.main(args[cut + 1:]))
-""")  # one process: the tune reuses the campaign's compiled chunk function (same Sim, per-device shape and mesh)
-
-INTERRUPTED = textwrap.dedent("""
-    import sys
-    from wbc_jax.sim import distributed
-    distributed.initialize(distributed.resolve(sys.argv[1], 2, sys.argv[2]))
+    camp, tune = args[:cut], args[cut + 1:]
+    mp = [a for a in camp if a.startswith(("--coordinator", "--num-processes", "--process-id"))]
+    if cli.main(camp):  # out: the plain campaign
+        sys.exit(1)
     from wbc_jax.study.campaign import run_campaign
-    try:
-        run_campaign(sys.argv[3], sys.argv[4], report=False, progress=False, _interrupt_after=1)
+    spec = camp[camp.index("--spec") + 1]
+    try:  # cut: the same campaign interrupted after its first chunk ...
+        run_campaign(spec, "cut", report=False, progress=False, _interrupt_after=1)
+        sys.exit("not interrupted")
     except KeyboardInterrupt:
-        sys.exit(3)
-""")
+        pass
+    kept = sorted(os.listdir("."))
+    want = [] if "--process-id=1" in mp else [".cut.campaign-ckpt", "out"]  # process 1 writes nothing
+    if kept != want:
+        sys.exit(f"after the interrupt: {kept}, expected {want}")
+    # ... resumed (the compiled chunk function reused), then the tune
+    sys.exit(cli.main(["campaign", "--spec", spec, "--out", "cut", "--no-report", "--resume", *mp]) or cli.main(tune))
+""")  # one launch for all three: every fresh process compiles the rollout again (~1 min each on 2 cores)
 
 
 def _run_all(cmds, envs, cwds) -> tuple[list[int], list[str]]:
     """Run the commands at once, each with its env and working folder: (return codes, outputs); the caller
-    checks the codes (3: interrupted on purpose)."""
+    checks the codes."""
     procs = [subprocess.Popen(c, cwd=d, env=e, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
              for c, e, d in zip(cmds, envs, cwds)]
     t0 = time.perf_counter()
@@ -154,44 +159,37 @@ rungs = 2
 
 def test_two_processes_equal_one(tiny_spec, tmp_path):
     """2 processes x 1 CPU device, the run axis over both, against one process over 2 CPU devices (the same
-    per-device program, 2 runs each): `wbc-jax campaign`'s results.csv equal bit for bit, every run once; process
-    0 writes DIR and the manifest's layout, process 1 (its own --out and working folder) writes nothing. In the
-    same processes `wbc-jax tune` (successive halving: survivors continue from their gathered states) writes the
-    same leaderboard, per-run tables and best gains as the reference, from process 0 only. Then the same
-    2-process campaign interrupted after its first chunk (process 0 keeps the checkpoint, process 1 writes
-    nothing) and resumed with --resume: the same results.csv again. The spec is the CI baseline's with d fixed (4
-    runs): with 3 or more runs per device the one-process reference deadlocks on 2 cores (module docstring)."""
+    per-device program, 2 runs each), the three launched once (ALL_IN_ONE): `wbc-jax campaign`'s results.csv equal
+    bit for bit, every run once; process 0 writes DIR and the manifest's layout, process 1 (its own --out and
+    working folder) writes nothing. Then the same campaign interrupted after its first chunk (process 0 keeps the
+    checkpoint, process 1 writes nothing: checked in the processes) and resumed with --resume: the same results.csv
+    again. Then `wbc-jax tune` (successive halving: survivors continue from their gathered states) writes the same
+    leaderboard, per-run tables and best gains as the reference, from process 0 only. The spec is the CI baseline's
+    with d fixed (4 runs): with 3 or more runs per device the one-process reference deadlocks on 2 cores (module
+    docstring)."""
     spec = tmp_path / "four.toml"
     spec.write_text("\n".join(x for x in tiny_spec.read_text().splitlines() if not x.startswith("d = ")))
     tune = tmp_path / "tune.toml"
     tune.write_text(TUNE.format(campaign=spec))
     one = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=1", JAX_PLATFORMS="cpu")
     two = dict(one, XLA_FLAGS="--xla_force_host_platform_device_count=2")
-    dirs = [tmp_path / n for n in ("p0", "p1", "ref", "q0", "q1")]
+    dirs = [tmp_path / n for n in ("p0", "p1", "ref")]
     for d in dirs:
         d.mkdir()
-    camp = [sys.executable, "-m", "wbc_jax", "campaign", "--spec", str(spec), "--out", "out", "--no-report"]
     port = _free_port()
     mp = [[f"--coordinator=localhost:{port}", "--num-processes=2", f"--process-id={i}"] for i in range(2)]
-    both = [sys.executable, "-c", CAMPAIGN_THEN_TUNE, *camp[3:]]
+    camp = [sys.executable, "-c", ALL_IN_ONE, "campaign", "--spec", str(spec), "--out", "out", "--no-report"]
     tn = ["--then", "tune", "--spec", str(tune), "--out", "tune", "--no-progress"]
-    codes, logs = _run_all([both + mp[0] + tn + mp[0], both + mp[1] + tn + mp[1], both + tn], [one, one, two],
-                           dirs[:3])
+    codes, logs = _run_all([camp + mp[0] + tn + mp[0], camp + mp[1] + tn + mp[1], camp + tn], [one, one, two],
+                           dirs)
     assert codes == [0, 0, 0], "\n---\n".join(x[-3000:] for x in logs)
-    assert logs[1].count("process 1: done; process 0 writes") == 2  # campaign and tune
+    assert logs[1].count("process 1: done; process 0 writes") == 3  # campaign, resumed campaign, tune
+    assert "interrupted after 1 of" in logs[0] and "resuming from" in logs[0]
     assert list(dirs[1].iterdir()) == []  # process 1: no --out, no checkpoint, no stray file
 
-    # the tune: process 0's outputs equal the one-process reference's, bit for bit
-    for name in ("leaderboard.csv", "best_runs.csv", "confirm_runs.csv", "best_gains.toml"):
-        assert (dirs[0] / "tune" / name).read_bytes() == (dirs[2] / "tune" / name).read_bytes(), name
-    board = pd.read_csv(dirs[0] / "tune" / "leaderboard.csv")
-    assert len(board) == 4 and set(np.round(board.sim_s, 6)) == {0.04, 0.12} and board["T_mm"].nunique() > 1
-    tman = json.loads((dirs[0] / "tune" / "manifest.json").read_text())
-    assert tman["layout"]["processes"] == 2 and tman["physics_backend"] == "jax"
-    assert tman["new_compilations_after_round_1"] in (0, None)
-
+    # the campaign: process 0's results.csv equals the one-process reference's, bit for bit
     out = dirs[0] / "out"
-    assert sorted(x.name for x in dirs[0].iterdir()) == ["out", "tune"]  # checkpoint removed after success
+    assert sorted(x.name for x in dirs[0].iterdir()) == ["cut", "out", "tune"]  # checkpoints removed after success
     got = pd.read_csv(out / "results.csv")
     ref = pd.read_csv(dirs[2] / "out" / "results.csv")
     assert got["run"].tolist() == list(range(4))  # every run once
@@ -205,16 +203,15 @@ def test_two_processes_equal_one(tiny_spec, tmp_path):
     ref_lay = json.loads((dirs[2] / "out" / "manifest.json").read_text())["layout"]
     assert ref_lay["processes"] == 1 and ref_lay["coordinator"] is None and len(ref_lay["devices"]) == 2
 
-    # interrupted after one chunk, then resumed, on the same 2-process layout
-    port = _free_port()
-    cut = [[sys.executable, "-c", INTERRUPTED, f"localhost:{port}", str(i), str(spec), "out"] for i in range(2)]
-    codes, logs = _run_all(cut, [one, one], dirs[3:])
-    assert codes == [3, 3], "\n---\n".join(x[-3000:] for x in logs)
-    assert [x.name for x in dirs[3].iterdir()] == [".out.campaign-ckpt"] and list(dirs[4].iterdir()) == []
-    port = _free_port()
-    mp = [[f"--coordinator=localhost:{port}", "--num-processes=2", f"--process-id={i}", "--resume"] for i in range(2)]
-    codes, logs = _run_all([camp + mp[0], camp + mp[1]], [one, one], dirs[3:])
-    assert codes == [0, 0], "\n---\n".join(x[-3000:] for x in logs)
-    assert "resuming from" in logs[0] and list(dirs[4].iterdir()) == []
-    assert json.loads((dirs[3] / "out" / "manifest.json").read_text())["resumed"]
-    pd.testing.assert_frame_equal(pd.read_csv(dirs[3] / "out" / "results.csv"), got, check_exact=True)
+    # interrupted after one chunk and resumed on the same 2-process layout: the same results.csv
+    assert json.loads((dirs[0] / "cut" / "manifest.json").read_text())["resumed"]
+    pd.testing.assert_frame_equal(pd.read_csv(dirs[0] / "cut" / "results.csv"), got, check_exact=True)
+
+    # the tune: process 0's outputs equal the one-process reference's, bit for bit
+    for name in ("leaderboard.csv", "best_runs.csv", "confirm_runs.csv", "best_gains.toml"):
+        assert (dirs[0] / "tune" / name).read_bytes() == (dirs[2] / "tune" / name).read_bytes(), name
+    board = pd.read_csv(dirs[0] / "tune" / "leaderboard.csv")
+    assert len(board) == 4 and set(np.round(board.sim_s, 6)) == {0.04, 0.12} and board["T_mm"].nunique() > 1
+    tman = json.loads((dirs[0] / "tune" / "manifest.json").read_text())
+    assert tman["layout"]["processes"] == 2 and tman["physics_backend"] == "jax"
+    assert tman["new_compilations_after_round_1"] in (0, None)

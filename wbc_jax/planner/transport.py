@@ -107,6 +107,31 @@ TERRAINS = ("known", "blind")  # what the planner knows of the ground (course_pl
 COM_PLANS = ("spline", "zmp")  # the CoM's horizontal reference: the object's + offset, or replanned per footstep
 
 
+# Host-side planning runs these jitted at module level, so that a process compiles each once per shape (the plan is
+# an argument, not a constant of a new closure, and nothing runs op by op): with an empty compilation cache the
+# course's three plans took 15 s of a campaign's setup eagerly (2-core CPU), most of it compiling single operations.
+_path_samples = jax.jit(jax.vmap(eval_path, in_axes=(None, 0)))  # (path, (N,) t) -> (p, v, a), each (N, 3)
+_terrain_height = jax.jit(terrain_height)
+_straight_path = jax.jit(straight_path)
+
+
+@jax.jit
+def _com_samples(plan, t):
+    """(N,) times -> the CoM reference from the object's (p, v, a), each (N, 3) [m, m/s, m/s^2]."""
+    return jax.vmap(lambda tt: _com_from_object(plan, *eval_path(plan.obj_path, tt)))(t)
+
+
+@jax.jit
+def _landing_samples(plan, t):
+    """(N,) times -> (N, 4, 3) each foot's next planned landing point (:func:`_landings`) [m]."""
+    return jax.vmap(lambda tt: _landings(plan, tt, gait_phase(plan.gait, tt)))(t)
+
+
+def _ground(terrain, xy) -> np.ndarray:
+    """Ground height under (..., 2) points [m] (host-side)."""
+    return np.asarray(_terrain_height(jnp.asarray(terrain, float), jnp.asarray(xy, float)))
+
+
 def _check_options(terrain, com_plan):
     if terrain not in TERRAINS:
         raise ValueError(f"terrain = {terrain!r}: expected one of {TERRAINS}")
@@ -120,7 +145,7 @@ def _make_plan(robot, qpos0, path: CubicPath, gait: GaitParams, swing_height, t_
     gait = gait._replace(t_stop=float(path_end_time(path)))
     foot_off = feet.copy()
     foot_off[:, :2] -= com[:2]
-    foot_off[:, 2] -= np.asarray(terrain_height(terrain, jnp.asarray(feet[:, :2])))  # height above the ground
+    foot_off[:, 2] -= _ground(terrain, feet[:, :2])  # height above the ground
     f = lambda x: jnp.asarray(x, float)  # noqa: E731
     plan = TransportPlan(
         obj_path=path, com_offset=f(com - p_obj), R_obj=f(R_obj), R_base=f(R_base), foot_offset=f(foot_off),
@@ -151,9 +176,9 @@ def straight_plan(robot, qpos0: np.ndarray, distance: float = 3.4, speed: float 
 
 def _time_law(length: float, speed: float, t0: float, ramp: float):
     """Knot-time function s -> t of the rest-to-rest speed profile of :func:`straight_path` (numpy)."""
-    prof = straight_path(jnp.zeros(3), jnp.array([length, 0.0, 0.0]), speed, t0=t0, ramp=ramp)
+    prof = _straight_path(np.zeros(3), np.array([length, 0.0, 0.0]), speed, t0, ramp)
     t = np.linspace(t0, float(path_end_time(prof)), 20001)
-    s = np.asarray(jax.vmap(lambda tt: eval_path(prof, tt)[0][0])(jnp.asarray(t)))
+    s = np.asarray(_path_samples(prof, jnp.asarray(t))[0][:, 0])
     s = np.maximum.accumulate(s)
     return lambda q: np.interp(q, s, t)
 
@@ -197,7 +222,7 @@ def course_plan(robot, qpos0: np.ndarray, side: float, distance: float = 3.4, sp
     path = cubic_path(wp, times)
     # checks on the spline actually used
     t = np.linspace(times[0], times[-1], max(int(distance / 0.005), 2))
-    p = np.asarray(jax.vmap(lambda tt: eval_path(path, tt)[0])(jnp.asarray(t)))
+    p = np.asarray(_path_samples(path, jnp.asarray(t))[0])
     under = overhead(geo.obstacles, p[:, :2], apf.footprint)
     clearance = float(np.min(under - (p[:, 2:3] + side / 2.0))) if under.size else np.inf
     if clearance < 0.5 * apf.margin:
@@ -265,18 +290,17 @@ def zmp_com_path(plan: TransportPlan) -> CubicPath:
     t_phase = np.stack([starts, starts + ts], 1).reshape(-1)  # (M,)
     tau = (np.arange(ZMP_SAMPLES) + 0.5) / ZMP_SAMPLES * T[:, None]  # (M, ns)
 
-    def com(tt):
-        return _com_from_object(plan, *eval_path(plan.obj_path, tt))
+    def com(tt: float) -> np.ndarray:
+        return np.asarray(_com_samples(plan, jnp.asarray([tt]))[0][0])
 
-    c_p, _, c_a = (np.asarray(x) for x in jax.jit(jax.vmap(com))(jnp.asarray(t_phase[:, None] + tau).reshape(-1)))
+    c_p, _, c_a = (np.asarray(x) for x in _com_samples(plan, jnp.asarray(t_phase[:, None] + tau).reshape(-1)))
     c_p, c_a = c_p.reshape(tau.shape + (3,)), c_a.reshape(tau.shape + (3,))
     # footholds: every foot's landing of footstep k's swing (evaluated in mid-swing), the start's before
     t_mid = starts[:n_step] + ts + 0.5 * tw
-    land = np.asarray(jax.jit(jax.vmap(lambda tt: _landings(plan, tt, gait_phase(plan.gait, tt))))(
-        jnp.asarray(t_mid)))  # (n_step, 4, 3)
-    c0 = np.asarray(com(jnp.asarray(t0))[0])
+    land = np.asarray(_landing_samples(plan, jnp.asarray(t_mid)))  # (n_step, 4, 3)
+    c0 = com(t0)
     feet = np.asarray(plan.foot_offset[:, :2]) + c0[:2]
-    feet = np.concatenate([feet, np.asarray(terrain_height(plan.terrain, jnp.asarray(feet)))[:, None]], 1)
+    feet = np.concatenate([feet, _ground(plan.terrain, feet)[:, None]], 1)
     line_n, line_c = np.zeros((len(T), 2)), np.zeros(len(T))
     kz = np.empty(tau.shape)
     two_foot = np.zeros(len(T), bool)
@@ -284,17 +308,17 @@ def zmp_com_path(plan: TransportPlan) -> CubicPath:
         if k >= 1 and k - 1 < n_step:  # the pair that swung in footstep k - 1 has landed
             pair = list(PAIRS[(k - 1) % 2])
             feet[pair] = land[k - 1, pair]
-        ground = float(np.mean(np.asarray(terrain_height(plan.terrain, jnp.asarray(feet[:, :2])))))
+        ground = float(np.mean(_ground(plan.terrain, feet[:, :2])))
         if k < n_step:
             a, b = feet[list(PAIRS[(k + 1) % 2]), :2]  # the stance pair of the two-foot phase
             d = (b - a) / np.linalg.norm(b - a)
             line_n[2 * k + 1] = (-d[1], d[0])
             line_c[2 * k + 1] = line_n[2 * k + 1] @ a
             two_foot[2 * k + 1] = True
-            ground = float(np.mean(np.asarray(terrain_height(plan.terrain, jnp.asarray(np.stack([a, b]))))))
+            ground = float(np.mean(_ground(plan.terrain, np.stack([a, b]))))
         kz[2 * k:2 * k + 2] = (c_p[2 * k:2 * k + 2, :, 2] - ground) / (GRAVITY + c_a[2 * k:2 * k + 2, :, 2])
     x0 = np.stack([c0[:2], np.zeros(2), np.zeros(2)])
-    x_end = np.stack([np.asarray(com(jnp.asarray(starts[-1] + H))[0])[:2], np.zeros(2), np.zeros(2)])
+    x_end = np.stack([com(starts[-1] + H)[:2], np.zeros(2), np.zeros(2)])
     coef = preview_com_xy(x0, T, list(c_p[..., :2]), list(kz), line_n, line_c, two_foot, list(tau),
                           horizon=ZMP_HORIZON, x_end=x_end)
     return CubicPath(jnp.asarray(np.append(t_phase, t_phase[-1] + T[-1])), jnp.asarray(coef))

@@ -38,8 +38,10 @@ class Batch(NamedTuple):
 
 
 def _device(x):
-    """One host -> device transfer of a numpy leaf (dtype as jnp.asarray gives it)."""
-    return jnp.asarray(np.asarray(x))
+    """One host -> device transfer of a numpy leaf (dtype as jnp.asarray gives it, converted on the host: a
+    conversion on the device compiles a program per shape)."""
+    x = np.asarray(x)
+    return jax.device_put(x.astype(jax.dtypes.canonicalize_dtype(x.dtype), copy=False))
 
 
 def stack(trees, index=None):
