@@ -85,6 +85,29 @@ def test_real_cpu_trace_attributes_both_scopes():
     assert st["qp_iterations"]["ops_per_step"] + st["physics"]["ops_per_step"] + st[kt.OTHER]["ops_per_step"] \
         == s["ops_per_step"]
     assert st["qp_iterations"]["device_us_per_step"] > 0
+    # per source line: the ops of each part come from this file's lines (a fusion carries its root's line)
+    here = {t["line"] for t in s["lines"]}
+    assert here and all(ln.startswith("tests/test_kernel_trace.py:") for ln in here)
+    assert sum(t["ops_per_step"] for t in s["lines"]) == s["ops_per_step"]
+    assert {t["stage"] for t in s["lines"]} == {"qp_iterations", "physics"}
+
+
+def test_op_sources_from_hlo_text():
+    """Both metadata forms: a stack frame id resolved through the header's tables, and source_file/source_line."""
+    hlo = ('HloModule m\n\nFileNames\n1 "/x/wbc_jax/sim/rollout.py"\n2 "/x/wbc_jax/qp/admm.py"\n\nFunctionNames\n'
+           '1 "f"\n\nFileLocations\n1 {file_name_id=2 function_name_id=1 line=7 end_line=7 column=1 end_column=2}\n'
+           '2 {file_name_id=1 function_name_id=1 line=88 end_line=88 column=1 end_column=2}\n\nStackFrames\n'
+           '1 {file_location_id=2 parent_frame_id=1}\n2 {file_location_id=1 parent_frame_id=1}\n\n'
+           '%c (p: f32[4]) -> f32[4] {\n'
+           '  %fusion.3 = f32[4]{0} fusion(f32[4]{0} %p), kind=kLoop, calls=%fc, metadata={op_name="jit(f)/add" '
+           'source_file="/x/wbc_jax/sim/rollout.py" source_line=412}\n'
+           '  %fusion.4 = f32[4]{0} fusion(f32[4]{0} %p), kind=kLoop, calls=%fd, metadata={op_name="jit(f)/mul" '
+           'stack_frame_id=2}\n'
+           '  ROOT %copy.1 = f32[4]{0} copy(f32[4]{0} %fusion.3)\n}\n')
+    src = kt.op_sources(hlo)
+    assert src["fusion_3"] == src["wrapped_fusion_3"] == "sim/rollout.py:412"
+    assert src["fusion_4"] == "qp/admm.py:7"
+    assert "copy_1" not in src
 
 
 @pytest.mark.parametrize("argv, needle", [

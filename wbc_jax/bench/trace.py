@@ -30,10 +30,14 @@ STAGES = ("sense", "dynamics_reference", "qp_assemble", "qp_equilibrate", "qp_fa
           "qp_residuals", "physics")
 OTHER = "other"  # metrics accumulation, logging, the rollout's loop bookkeeping
 TOP_OPS = 25  # heaviest ops listed per trace
+TOP_LINES = 40  # source lines listed per trace, by ops per control step
 
 # XLA CPU reports loops and calls as ops spanning their bodies' ops: not counted (their bodies are)
 _CONTAINERS = ("while", "conditional", "call")
 _META = re.compile(r'^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=.*?metadata=\{[^}]*op_name="([^"]*)"')
+_FRAME = re.compile(r'^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=.*?metadata=\{[^}]*stack_frame_id=(\d+)')
+_SRC = re.compile(r'^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=.*?metadata=\{[^}]*source_file="([^"]*)"[^}]*source_line=(\d+)')
+_TABLE_ROW = re.compile(r'^(\d+) (?:"(.*)"|\{(.*)\})$')
 
 
 def op_paths(hlo_text: str) -> dict[str, str]:
@@ -44,6 +48,52 @@ def op_paths(hlo_text: str) -> dict[str, str]:
         mt = _META.match(line)
         if mt:
             out[_norm(mt.group(1))] = out["wrapped_" + _norm(mt.group(1))] = mt.group(2)
+    return out
+
+
+def _tables(hlo_text: str) -> dict[str, dict[int, str]]:
+    """The HLO text's header tables (``FileNames``, ``FunctionNames``, ``FileLocations``, ``StackFrames``): id ->
+    the row's quoted string or its ``{...}`` fields."""
+    out: dict[str, dict[int, str]] = {}
+    cur = None
+    for line in hlo_text.splitlines():
+        if line in ("FileNames", "FunctionNames", "FileLocations", "StackFrames"):
+            cur = out.setdefault(line, {})
+        elif cur is not None and (mt := _TABLE_ROW.match(line)):
+            cur[int(mt.group(1))] = mt.group(2) if mt.group(2) is not None else mt.group(3)
+        elif line.startswith(("%", "ENTRY")):
+            break
+    return out
+
+
+def _field(row: str, key: str) -> int:
+    return int(re.search(rf"\b{key}=(\d+)", row).group(1))
+
+
+def op_sources(hlo_text: str) -> dict[str, str]:
+    """Map from HLO instruction name (as :func:`op_paths`) to the Python line that emitted it, ``"sim/rollout.py:123"``
+    (the file's last two path parts; the innermost frame, which may be a library's), from compiled HLO text: its
+    ``stack_frame_id`` through the header's frame tables, or older XLA's ``source_file`` / ``source_line``. A
+    fusion carries the metadata of its root."""
+    t = _tables(hlo_text)
+    files, locs, frames = t.get("FileNames", {}), t.get("FileLocations", {}), t.get("StackFrames", {})
+
+    def frame_src(k: int) -> str | None:
+        try:
+            loc = locs[_field(frames[k], "file_location_id")]
+            return "/".join(files[_field(loc, "file_name_id")].split("/")[-2:]) + f":{_field(loc, 'line')}"
+        except (KeyError, AttributeError):
+            return None
+
+    out = {}
+    for line in hlo_text.splitlines():
+        src = None
+        if (mt := _FRAME.match(line)) is not None:
+            src = frame_src(int(mt.group(2)))
+        elif (mt := _SRC.match(line)) is not None:
+            src = "/".join(mt.group(2).split("/")[-2:]) + ":" + mt.group(3)
+        if src is not None:
+            out[_norm(mt.group(1))] = out["wrapped_" + _norm(mt.group(1))] = src
     return out
 
 
@@ -83,8 +133,9 @@ def device_ops(trace: dict) -> list[tuple[str, float, float, str]]:
     return out
 
 
-def summarize(ops, paths: dict[str, str], wall_s: float, n_steps: int) -> dict:
-    """Per stage: ops per control step, device time per control step [us], share of the wall time.
+def summarize(ops, paths: dict[str, str], wall_s: float, n_steps: int, sources: dict[str, str] | None = None) -> dict:
+    """Per stage: ops per control step, device time per control step [us], share of the wall time; per source
+    line (``sources``, :func:`op_sources`): the same, the lines with most ops first (``lines``).
 
     Args:
         ops: :func:`device_ops` output for ``n_steps`` control steps; paths: :func:`op_paths` map (a trace's own
@@ -92,6 +143,8 @@ def summarize(ops, paths: dict[str, str], wall_s: float, n_steps: int) -> dict:
     """
     per = {k: [0, 0.0] for k in STAGES + (OTHER,)}
     top: dict[tuple[str, str], list] = {}
+    by_line: dict[tuple[str, str], list] = {}
+    sources = sources or {}
     n_inferred = 0
     last = OTHER
     for op, _, dur, path in sorted(ops, key=lambda o: o[1]):
@@ -106,6 +159,9 @@ def summarize(ops, paths: dict[str, str], wall_s: float, n_steps: int) -> dict:
         t = top.setdefault((st, op), [0, 0.0, path or ""])
         t[0] += 1
         t[1] += dur
+        ln = by_line.setdefault((st, sources.get(_norm(op), "?")), [0, 0.0])
+        ln[0] += 1
+        ln[1] += dur
     busy_us = sum(v[1] for v in per.values())
     wall_us = 1e6 * wall_s
     # device time covered by at least one op (ops on several streams may overlap)
@@ -122,6 +178,8 @@ def summarize(ops, paths: dict[str, str], wall_s: float, n_steps: int) -> dict:
                 inferred_share=n_inferred / max(len(ops), 1),
                 top_ops=[dict(stage=k[0], op=k[1], calls_per_step=v[0] / n_steps, device_us_per_step=v[1] / n_steps,
                               path=v[2]) for k, v in heavy],
+                lines=[dict(stage=k[0], line=k[1], ops_per_step=v[0] / n_steps, device_us_per_step=v[1] / n_steps)
+                       for k, v in sorted(by_line.items(), key=lambda kv: (-kv[1][0], -kv[1][1]))[:TOP_LINES]],
                 device_busy_us_per_step=busy_us / n_steps, device_idle_share=max(0.0, 1.0 - covered / wall_us)
                 if wall_us > 0 else float("nan"), stages=stages)
 
@@ -130,7 +188,8 @@ def trace_call(f, args, n_steps: int, log_dir: str | None = None) -> dict:
     """Compile ``f`` (a ``jax.jit`` function) for ``args``, run it once untimed, then trace one call covering
     ``n_steps`` control steps and summarize it (:func:`summarize`); ``log_dir`` keeps the raw trace there."""
     compiled = f.lower(*args).compile()
-    paths = op_paths(compiled.as_text())
+    hlo = compiled.as_text()
+    paths, sources = op_paths(hlo), op_sources(hlo)
     jax.block_until_ready(compiled(*args))
     with tempfile.TemporaryDirectory() as td:
         d = log_dir or td
@@ -145,7 +204,7 @@ def trace_call(f, args, n_steps: int, log_dir: str | None = None) -> dict:
         with gzip.open(files[-1], "rt") as fh:
             trace = json.load(fh)
     ops = device_ops(trace)
-    return summarize(ops, paths, wall, n_steps)
+    return summarize(ops, paths, wall, n_steps, sources)
 
 
 def print_summary(label: str, s: dict) -> None:
@@ -159,6 +218,10 @@ def print_summary(label: str, s: dict) -> None:
           f"before them; heaviest ops:)", flush=True)
     for t in s["top_ops"][:12]:
         print(f"      {t['stage']:20s} {t['op'][:40]:40s} {t['calls_per_step']:5.1f} x  {t['device_us_per_step']:8.1f} us",
+              flush=True)
+    print("    source lines with the most ops per step:", flush=True)
+    for t in s.get("lines", [])[:20]:
+        print(f"      {t['stage']:20s} {t['line'][:48]:48s} {t['ops_per_step']:5.1f} ops  {t['device_us_per_step']:8.1f} us",
               flush=True)
     if any(t["op"].startswith("command_buffer") for t in s["top_ops"]):
         print("    (kernels ran inside CUDA graphs, which the trace names by graph, not by kernel: set "

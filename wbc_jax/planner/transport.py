@@ -118,7 +118,7 @@ _straight_path = jax.jit(straight_path)
 @jax.jit
 def _com_samples(plan, t):
     """(N,) times -> the CoM reference from the object's (p, v, a), each (N, 3) [m, m/s, m/s^2]."""
-    return jax.vmap(lambda tt: _com_from_object(plan, *eval_path(plan.obj_path, tt)))(t)
+    return jax.vmap(lambda tt: _com_at(plan, tt))(t)
 
 
 @jax.jit
@@ -170,7 +170,7 @@ def straight_plan(robot, qpos0: np.ndarray, distance: float = 3.4, speed: float 
     _check_options(terrain, com_plan)
     p_obj = _start_state(robot, qpos0)[0]
     u = np.asarray(direction, float) / np.linalg.norm(direction)
-    path = straight_path(jnp.asarray(p_obj), jnp.asarray(p_obj + distance * u), speed, t0=gait.t_start, ramp=ramp)
+    path = _straight_path(p_obj, p_obj + distance * u, speed, gait.t_start, ramp)
     return _make_plan(robot, qpos0, path, gait, swing_height, t_ramp, 1.0, np.zeros((0, 2, 3)), u, com_plan)
 
 
@@ -249,16 +249,21 @@ def _com_from_object(plan: TransportPlan, p_o, v_o, a_o):
     return p_c, k * v_o, k * a_o
 
 
+def _com_at(plan: TransportPlan, t):
+    """The CoM reference (p, v, a), each (3,) [m, m/s, m/s^2], from the object's path at time ``t`` [s]."""
+    return _com_from_object(plan, *eval_path(plan.obj_path, t))
+
+
 def _landings(plan: TransportPlan, t, g):
     """(4, 3) each foot's next planned landing point at time t (gait state g): its nominal offset from the CoM
     the object's path gives at its mid-stance, on the terrain there, moved off block edges."""
     t_mid = t + g.t_to_touchdown + 0.5 * foot_stance_time(plan.gait)  # (4,) mid-stance after touchdown
     t_mid = jnp.where(jnp.isfinite(t_mid), t_mid, t)
-    com_mid = jax.vmap(lambda tt: _com_from_object(plan, *eval_path(plan.obj_path, tt))[0])(t_mid)
+    com_mid = jax.vmap(lambda tt: _com_at(plan, tt)[0])(t_mid)
     xy = com_mid[:, :2] + plan.foot_offset[:, :2]
     # the hips at touchdown (planned CoM + start offset): the shin's clearance over a far edge depends on them
     t_td = jnp.where(jnp.isfinite(g.t_to_touchdown), t + g.t_to_touchdown, t)
-    com_td = jax.vmap(lambda tt: _com_from_object(plan, *eval_path(plan.obj_path, tt))[0])(t_td)
+    com_td = jax.vmap(lambda tt: _com_at(plan, tt)[0])(t_td)
     hip_td = com_td + plan.hip_offset
     xy = jax.vmap(clear_of_edges, in_axes=(None, 0, None, None, 0, 0, None))(
         plan.terrain, xy, plan.heading, plan.foot_clear, hip_td, plan.foot_offset[:, 2], plan.leg)
