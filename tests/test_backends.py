@@ -115,6 +115,25 @@ def test_delayed_sensing_reads_the_last_steps_start(walks):
         make_sim(walks["jax"][0].robot, sensing="delayed")
 
 
+def test_nan_run_is_frozen_and_others_unchanged_on_warp(walks):
+    """Warp (one shared contact list for the batch): a run started with NaN velocities keeps its last finite state
+    (``physics.freeze``: its positions stay the start's) and is marked non-finite, while the other run's walk equals
+    the clean batch's (the same compiled chunk, so the same arithmetic)."""
+    sim, b, st, res = walks["warp:delayed"]
+    d = b.state.d
+    state = b.state._replace(d=d.replace(qvel=d.qvel.at[1].set(np.nan)))
+    bad, _ = simulate(sim, b.model, b.in_axes, state, b.plan, b.om, b.gains, b.push, b.mu_ground,
+                      seconds=SECONDS, chunk_seconds=SECONDS)
+    bad = jax.device_get(bad)
+    got = final_results(sim, bad, np.zeros((2, 3)), FACTORS[1])
+    assert got["nonfinite"][1] and not got["success"][1] and not got["nonfinite"][0]
+    np.testing.assert_array_equal(np.asarray(bad.d.qpos[1]), np.asarray(d.qpos[1]))  # frozen at the start
+    np.testing.assert_allclose(np.asarray(bad.d.qpos[0]), np.asarray(st.d.qpos[0]), atol=1e-6)
+    for k in ("R", "T", "S"):
+        np.testing.assert_allclose(got[k][0], res[k][0], rtol=1e-5, err_msg=k)
+    assert not np.any(np.asarray(bad.acc.overflow))
+
+
 def test_solver_cap_is_counted(walks):
     """physics.solver_capped (Accum.n_solver_cap, results.csv's solver_cap_fraction), Warp: one physics step of
     the robot at home with random joint and base velocities (seed 0, 1 rad/s or m/s), whose contacts need a

@@ -79,6 +79,25 @@ def make_data(robot, n_runs: int = 1):
     return mjx.make_data(m, impl="warp", naconmax=NACON_PER_RUN * max(int(n_runs), 1), njmax=njmax)
 
 
+STATE_FIELDS = ("time", "qpos", "qvel", "act", "qacc_warmstart", "history", "plugin_state")
+"""The fields of mjx.Data a physics step reads that it does not recompute (the integrated state and the solver's
+warm start); every other field is derived from them (and the inputs ``ctrl``, ``xfrc_applied``, which the rollout
+sets every step)."""
+
+
+def freeze(ok, new, old):
+    """``new`` with its :data:`STATE_FIELDS` taken from ``old`` where ``ok`` is False (per run, under ``vmap``).
+
+    A run whose step went non-finite keeps its last finite state, so its next step recomputes every derived field
+    (contacts included) from that state and cannot fill Warp's shared contact list with garbage; the derived fields
+    ``new`` holds belong to the step's start (``old``'s state) on both backends. Cheaper than ``Data.where`` over
+    every field: Warp's ``step`` updates its data in place, so each field of ``old`` still read after it would be
+    copied first (130 such copies per control step in the rollout's compiled loop, H100, 2026-11-25).
+    """
+    return new.replace(**{f: jnp.where(ok, getattr(new, f), getattr(old, f)) for f in STATE_FIELDS
+                          if hasattr(new, f)})
+
+
 def overflow(d) -> jax.Array:
     """() bool: this step's contacts or constraint rows may not all fit (Warp: the shared contact list is full,
     or this run's rows reached ``njmax``); always False on JAX (fixed slots)."""

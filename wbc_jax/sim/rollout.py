@@ -476,7 +476,7 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
         n_boundary_plan_cone=a.n_boundary_plan_cone + (w & (inv_h_plan <= 0.0) & cone_plan).astype(jnp.int32),
     )
     # a run that went non-finite is frozen (its state no longer advances) so it cannot poison others
-    d_next = rs.d.where(finite, d_next)  # Data.where: Warp's shared contact list is not per run
+    d_next = physics.freeze(finite, d_next, rs.d)
     prev = None
     if sim.sensing == "delayed":  # d_next's derived fields belong to the state the step started from
         prev = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), (d_phys.qpos, d_phys.qvel, d_phys.time),

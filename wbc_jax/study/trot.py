@@ -153,7 +153,7 @@ def control_step(sim: TrotSim, m, rs: TrotRun, plan: CPWalkPlan, R0, gains: Cent
         n_flag=a.n_flag + (dg.flag != 0).astype(jnp.int32),
         n_steps=a.n_steps + 1,
     )
-    d_next = jax.tree_util.tree_map(lambda new, old: jnp.where(finite, new, old), d_next, rs.d)  # freeze on NaN
+    d_next = physics.freeze(finite, d_next, rs.d)  # a non-finite run keeps its last finite state
     legs_v, legs_q = jnp.asarray(ids.act_dof[:12]), jnp.asarray(ids.act_qpos[:12])
     log = TrotLog(t=d.time, com=dyn.com, com_vel=dyn.com_vel, xi_d=wr.cp.xi, P=wr.cp.P, v_des=wr.v_xy,
                   rpy=trunk_rpy(R0, dyn.R_base), trunk_z=dyn.p_base[2], tau=tau, tau_grf=dg.tau_grf,
