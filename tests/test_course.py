@@ -247,12 +247,13 @@ def test_far_edge_rule_by_hand():
 def test_blind_terrain_lands_at_floor_height():
     """course_plan(terrain="blind"): the planner does not see the blocks, so every planned landing is at the
     floor's height (the touchdown rules handle the blocks); "known" lands on block2's top (0.035 m) somewhere.
-    The object's path is the same in both."""
+    The object's path is the same in both. A swinging foot's landing read from the plan's landing table equals the
+    one evaluated at that instant (``_landings``), exactly, on both terrains."""
     import jax
     import jax.numpy as jnp
 
     from wbc_jax.planner.gait import gait_phase
-    from wbc_jax.planner.transport import reference
+    from wbc_jax.planner.transport import _landings, reference
 
     robot = Robot("transport")
     qpos0 = robot.home_qpos(0.08)
@@ -267,6 +268,17 @@ def test_blind_terrain_lands_at_floor_height():
             return jnp.where(g.swing & (g.swing_phase > 0.97), ref.p_sw[:, 2], -jnp.inf)
 
         z_end[terrain] = np.asarray(jax.jit(jax.vmap(landing_z))(t))
+
+        def both(tt, plan=plan):  # the table's row and the instant's evaluation, in one program (same rounding)
+            g = gait_phase(plan.gait, tt)
+            row = plan.landing[jnp.clip(g.step_index, 0, plan.landing.shape[0] - 1)]
+            # inside the swing: at its first and last instants (time to touchdown below float32's resolution of t)
+            # the instant's evaluation can flip a foothold decision by rounding, which the table, one value per
+            # swing, does not
+            return g.swing & (g.swing_phase > 0.02) & (g.swing_phase < 0.98), row, _landings(plan, tt, g)
+
+        sw, row, now = (np.asarray(x) for x in jax.jit(jax.vmap(both))(t))
+        assert sw.sum() > 1000 and np.array_equal(row[sw], now[sw])
         assert plan.terrain.shape[0] == (3 if terrain == "known" else 0)
     floor = float(np.max(z_end["blind"]))
     assert np.all(z_end["blind"][np.isfinite(z_end["blind"])] <= floor + 1e-3)

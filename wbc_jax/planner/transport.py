@@ -66,6 +66,9 @@ class TransportPlan(NamedTuple):
         leg: (5,) :class:`.scene_geometry.LegGeometry` values (thigh, shank, shank_len, shank_r, thigh_r) [m].
         com_xy: horizontal CoM reference replanned per footstep (:func:`zmp_com_path`; a CubicPath of (K-1, 4, 2)
             coefficients, one cubic per support phase), or None: the CoM follows the object (``com_plan="spline"``).
+        landing: (S, 4, 3) each foot's landing point of every stepped half-cycle's swing (:func:`landing_table`)
+            [m]: what :func:`reference` reads for a swinging foot, computed once per plan (a foot's landing depends
+            on time only through its swing); None: evaluated at every call.
     """
 
     obj_path: CubicPath
@@ -84,6 +87,7 @@ class TransportPlan(NamedTuple):
     hip_offset: jax.Array
     leg: jax.Array
     com_xy: CubicPath | None = None
+    landing: jax.Array | None = None
 
 
 class PlanError(ValueError):
@@ -154,6 +158,7 @@ def _make_plan(robot, qpos0, path: CubicPath, gait: GaitParams, swing_height, t_
         foot_clear=f(robot.ids.foot_radius + EDGE_MARGIN), heading=f(heading[:2] / np.linalg.norm(heading[:2])),
         hip_offset=f(hips - com), leg=f(leg_geometry(robot)),
     )
+    plan = plan._replace(landing=jnp.asarray(landing_table(plan)))
     return plan._replace(com_xy=zmp_com_path(plan)) if com_plan == "zmp" else plan
 
 
@@ -254,6 +259,22 @@ def _com_at(plan: TransportPlan, t):
     return _com_from_object(plan, *eval_path(plan.obj_path, t))
 
 
+def _n_stepped(plan: TransportPlan) -> int:
+    """Number of stepped half-cycles of the plan's gait (``gait._stepped``; host-side)."""
+    ts, tw, t0, t_stop = (float(x) for x in plan.gait)
+    return int(np.floor((t_stop - t0 + 1e-4) / (ts + tw)))
+
+
+def landing_table(plan: TransportPlan) -> np.ndarray:
+    """(S, 4, 3) every foot's landing point (:func:`_landings`) of each stepped half-cycle k's swing, evaluated in
+    mid-swing (S = the stepped half-cycles, at least 1; a row's entries for the feet that do not swing in it are
+    computed the same way and not used) [m]. Row k is what :func:`_landings` gives at every instant of that swing
+    (its touchdown time, hence everything it depends on, is fixed for the swing), up to float rounding."""
+    ts, tw, t0, _ = (float(x) for x in plan.gait)
+    t_mid = t0 + (ts + tw) * np.arange(max(_n_stepped(plan), 1)) + ts + 0.5 * tw
+    return np.asarray(_landing_samples(plan, jnp.asarray(t_mid)))
+
+
 def _landings(plan: TransportPlan, t, g):
     """(4, 3) each foot's next planned landing point at time t (gait state g): its nominal offset from the CoM
     the object's path gives at its mid-stance, on the terrain there, moved off block edges."""
@@ -288,7 +309,7 @@ def zmp_com_path(plan: TransportPlan) -> CubicPath:
     """
     ts, tw, t0, t_stop = (float(x) for x in plan.gait)
     H = ts + tw
-    n_step = int(np.floor((t_stop - t0 + 1e-4) / H))  # stepped footsteps (gait._stepped)
+    n_step = _n_stepped(plan)
     n_tail = max(2, int(np.ceil((t_stop - (t0 + n_step * H)) / H)) + 1)  # four-foot footsteps to come to rest
     starts = t0 + H * np.arange(n_step + n_tail)
     T = np.tile([ts, tw], n_step + n_tail)
@@ -300,9 +321,8 @@ def zmp_com_path(plan: TransportPlan) -> CubicPath:
 
     c_p, _, c_a = (np.asarray(x) for x in _com_samples(plan, jnp.asarray(t_phase[:, None] + tau).reshape(-1)))
     c_p, c_a = c_p.reshape(tau.shape + (3,)), c_a.reshape(tau.shape + (3,))
-    # footholds: every foot's landing of footstep k's swing (evaluated in mid-swing), the start's before
-    t_mid = starts[:n_step] + ts + 0.5 * tw
-    land = np.asarray(_landing_samples(plan, jnp.asarray(t_mid)))  # (n_step, 4, 3)
+    # footholds: every foot's landing of footstep k's swing, the start's before
+    land = np.asarray(landing_table(plan) if plan.landing is None else plan.landing)  # (n_step, 4, 3)
     c0 = com(t0)
     feet = np.asarray(plan.foot_offset[:, :2]) + c0[:2]
     feet = np.concatenate([feet, _ground(plan.terrain, feet)[:, None]], 1)
@@ -352,7 +372,10 @@ def reference(plan: TransportPlan, t, p_lift, contact=None, p_foot=None) -> Refe
         p_xy, v_xy, a_xy = eval_path(plan.com_xy, t)
         p_c, v_c, a_c = p_c.at[:2].set(p_xy), v_c.at[:2].set(v_xy), a_c.at[:2].set(a_xy)
     g = gait_phase(plan.gait, t)
-    p_land = _landings(plan, t, g)
+    if plan.landing is None:
+        p_land = _landings(plan, t, g)
+    else:  # a swinging foot's row: its half-cycle's (the other feet's entries are not used)
+        p_land = plan.landing[jnp.clip(g.step_index, 0, plan.landing.shape[0] - 1)]
     # quintic pieces: the acceleration is continuous at liftoff, apex and touchdown (cubic pieces jump by
     # ~200 m/s^2 at the apex for a 0.06 m step in 0.115 s, a jolt the whole body and the tray feel)
     swing_fn = functools.partial(swing_reference, kind="quintic")

@@ -109,6 +109,9 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
     if unique[0].com_xy is not None:  # per-footstep CoM paths: as many knots as the longest plan's
         n = max(len(p.com_xy.t_knots) for p in unique)
         unique = [p._replace(com_xy=pad_path(p.com_xy, n)) for p in unique]
+    n = max(len(p.landing) for p in unique)  # landing tables: as many half-cycles as the longest plan's
+    unique = [p._replace(landing=np.pad(np.asarray(p.landing), ((0, n - len(p.landing)), (0, 0), (0, 0)), mode="edge"))
+              for p in unique]
     plans = stack(unique, index=inverse)
     state = _init_fn(sim, in_axes, B)(bm, jnp.asarray(qpos0, float), jnp.asarray(qvel0, float))
     om = ObjectModel(mass=jnp.asarray(f.m), side=jnp.asarray(f.d), mu=jnp.asarray(f.mu),

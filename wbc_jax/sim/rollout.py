@@ -550,12 +550,18 @@ def make_chunk_fn(sim: Sim, n_logs: int):
     """
 
     def run_one(m, rs, plan, om, gains, push, mu_ground):
-        def inner(rs, _):
+        def step(rs):
             return control_step(sim, m, rs, plan, om, gains, push, mu_ground)
 
+        # the log of the period's last step rides in the carry (overwritten every step) rather than as the inner
+        # scan's stacked output, of which only the last row was kept
+        log0 = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(step, rs)[1])
+
+        def inner(carry, _):
+            return step(carry[0]), None
+
         def outer(rs, _):
-            rs, logs = jax.lax.scan(inner, rs, None, length=sim.log_every)
-            return rs, jax.tree_util.tree_map(lambda x: x[-1], logs)
+            return jax.lax.scan(inner, (rs, log0), None, length=sim.log_every)[0]
 
         return jax.lax.scan(outer, rs, None, length=n_logs)
 
