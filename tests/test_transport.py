@@ -39,7 +39,7 @@ CHUNK_SECONDS = 0.1  # simulated time per jit call: a common divisor of both hor
 @pytest.fixture(scope="module")
 def setup():
     robot = Robot("flat")
-    sim = make_sim(robot, TransportConfig(dt=0.001, qp=control_qp_settings(100)), log_every=50)
+    sim = make_sim(robot, TransportConfig(dt=0.001, qp=control_qp_settings()), log_every=50)  # the control loop's QP
     # gait starts after the test horizon: the robot stands under QP torque control, loaded
     plan_kwargs = dict(gait=GaitParams(t_start=10.0), distance=0.1)
     b = prepare_batch(sim, [0.2, 0.4], [0.4, 1.0], [0.10, 0.06], plan_kwargs=plan_kwargs)
