@@ -128,6 +128,7 @@ def test_nan_run_is_frozen_and_others_unchanged_on_warp(walks):
     got = final_results(sim, bad, np.zeros((2, 3)), FACTORS[1])
     assert got["nonfinite"][1] and not got["success"][1] and not got["nonfinite"][0]
     np.testing.assert_array_equal(np.asarray(bad.d.qpos[1]), np.asarray(d.qpos[1]))  # frozen at the start
+    np.testing.assert_array_equal(np.asarray(bad.prev[0][1]), np.asarray(d.qpos[1]))  # its view: that state
     np.testing.assert_allclose(np.asarray(bad.d.qpos[0]), np.asarray(st.d.qpos[0]), atol=1e-6)
     for k in ("R", "T", "S"):
         np.testing.assert_allclose(got[k][0], res[k][0], rtol=1e-5, err_msg=k)

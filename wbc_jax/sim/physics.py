@@ -92,7 +92,7 @@ def freeze(ok, new, old):
     (contacts included) from that state and cannot fill Warp's shared contact list with garbage; the derived fields
     ``new`` holds belong to the step's start (``old``'s state) on both backends. Cheaper than ``Data.where`` over
     every field: Warp's ``step`` updates its data in place, so each field of ``old`` still read after it would be
-    copied first (130 such copies per control step in the rollout's compiled loop, H100, 2026-11-25).
+    copied first (137 such copies per control step in the rollout's compiled loop, H100, batch 270, 2026-11-26).
     """
     return new.replace(**{f: jnp.where(ok, getattr(new, f), getattr(old, f)) for f in STATE_FIELDS
                           if hasattr(new, f)})

@@ -477,10 +477,9 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     )
     # a run that went non-finite is frozen (its state no longer advances) so it cannot poison others
     d_next = physics.freeze(finite, d_next, rs.d)
-    prev = None
-    if sim.sensing == "delayed":  # d_next's derived fields belong to the state the step started from
-        prev = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), (d_phys.qpos, d_phys.qvel, d_phys.time),
-                                      rs.prev)
+    # delayed: d_next's derived fields belong to the state the step started from (a frozen run's too: it keeps that
+    # state)
+    prev = (d_phys.qpos, d_phys.qvel, d_phys.time) if sim.sensing == "delayed" else None
     log = Log(t=t, p_obj=p_obj, p_obj_ref=ref.p_obj, com=dyn.com, com_ref=ref.p_com, slip=slip,
               trunk_z=dyn.p_base[2], prim_res=qd.prim_res, tau=tau, qpos=d.qpos)
     return RunState(d=d_next, cs=cs, p_lift=p_lift, rel0=rs.rel0, acc=acc, prev=prev), log
