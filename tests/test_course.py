@@ -253,7 +253,7 @@ def test_blind_terrain_lands_at_floor_height():
     import jax.numpy as jnp
 
     from wbc_jax.planner.gait import gait_phase
-    from wbc_jax.planner.transport import _landings, reference
+    from wbc_jax.planner.transport import _landings, landing_at, reference
 
     robot = Robot("transport")
     qpos0 = robot.home_qpos(0.08)
@@ -271,7 +271,7 @@ def test_blind_terrain_lands_at_floor_height():
 
         def both(tt, plan=plan):  # the table's row and the instant's evaluation, in one program (same rounding)
             g = gait_phase(plan.gait, tt)
-            row = plan.landing[jnp.clip(g.step_index, 0, plan.landing.shape[0] - 1)]
+            row = landing_at(plan, g)  # what the reference reads
             # inside the swing: at its first and last instants (time to touchdown below float32's resolution of t)
             # the instant's evaluation can flip a foothold decision by rounding, which the table, one value per
             # swing, does not
@@ -303,7 +303,7 @@ def test_zmp_com_plan_keeps_the_zmp_on_the_support():
 
     from wbc_jax.planner.gait import gait_phase
     from wbc_jax.planner.scene_geometry import terrain_height
-    from wbc_jax.planner.transport import _landings, reference
+    from wbc_jax.planner.transport import _landings, landing_at, reference
     from wbc_jax.planner.zmp import support_margin, zmp_xy
 
     robot = Robot("transport")

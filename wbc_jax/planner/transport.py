@@ -67,8 +67,9 @@ class TransportPlan(NamedTuple):
         com_xy: horizontal CoM reference replanned per footstep (:func:`zmp_com_path`; a CubicPath of (K-1, 4, 2)
             coefficients, one cubic per support phase), or None: the CoM follows the object (``com_plan="spline"``).
         landing: (S, 4, 3) each foot's landing point of every stepped half-cycle's swing (:func:`landing_table`)
-            [m]: what :func:`reference` reads for a swinging foot, computed once per plan (a foot's landing depends
-            on time only through its swing); None: evaluated at every call.
+            [m]: what :func:`reference` reads for a swinging foot (:func:`landing_at`), computed once per plan (a
+            foot's landing depends on time only through its swing); the planners set it (None only while
+            :func:`_make_plan` builds the plan it is computed from).
     """
 
     obj_path: CubicPath
@@ -275,6 +276,12 @@ def landing_table(plan: TransportPlan) -> np.ndarray:
     return np.asarray(_landing_samples(plan, jnp.asarray(t_mid)))
 
 
+def landing_at(plan: TransportPlan, g):
+    """(4, 3) the landing table's row of gait state ``g``'s half-cycle [m]: a swinging foot's landing (the other
+    feet's entries are not used)."""
+    return plan.landing[jnp.clip(g.step_index, 0, plan.landing.shape[0] - 1)]
+
+
 def _landings(plan: TransportPlan, t, g):
     """(4, 3) each foot's next planned landing point at time t (gait state g): its nominal offset from the CoM
     the object's path gives at its mid-stance, on the terrain there, moved off block edges."""
@@ -322,7 +329,7 @@ def zmp_com_path(plan: TransportPlan) -> CubicPath:
     c_p, _, c_a = (np.asarray(x) for x in _com_samples(plan, jnp.asarray(t_phase[:, None] + tau).reshape(-1)))
     c_p, c_a = c_p.reshape(tau.shape + (3,)), c_a.reshape(tau.shape + (3,))
     # footholds: every foot's landing of footstep k's swing, the start's before
-    land = np.asarray(landing_table(plan) if plan.landing is None else plan.landing)  # (n_step, 4, 3)
+    land = np.asarray(plan.landing)  # (n_step, 4, 3)
     c0 = com(t0)
     feet = np.asarray(plan.foot_offset[:, :2]) + c0[:2]
     feet = np.concatenate([feet, _ground(plan.terrain, feet)[:, None]], 1)
@@ -372,10 +379,7 @@ def reference(plan: TransportPlan, t, p_lift, contact=None, p_foot=None) -> Refe
         p_xy, v_xy, a_xy = eval_path(plan.com_xy, t)
         p_c, v_c, a_c = p_c.at[:2].set(p_xy), v_c.at[:2].set(v_xy), a_c.at[:2].set(a_xy)
     g = gait_phase(plan.gait, t)
-    if plan.landing is None:
-        p_land = _landings(plan, t, g)
-    else:  # a swinging foot's row: its half-cycle's (the other feet's entries are not used)
-        p_land = plan.landing[jnp.clip(g.step_index, 0, plan.landing.shape[0] - 1)]
+    p_land = landing_at(plan, g)
     # quintic pieces: the acceleration is continuous at liftoff, apex and touchdown (cubic pieces jump by
     # ~200 m/s^2 at the apex for a 0.06 m step in 0.115 s, a jolt the whole body and the tray feel)
     swing_fn = functools.partial(swing_reference, kind="quintic")

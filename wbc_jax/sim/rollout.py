@@ -141,6 +141,14 @@ class Log(NamedTuple):
     qpos: jax.Array
 
 
+def empty_log(d, nu: int) -> Log:
+    """A Log of zeros shaped like one run's (``d``: that run's mjx.Data; ``nu``: actuators): the inner loop's
+    initial carry, which the first control step overwrites."""
+    z, z3 = jnp.zeros_like(d.time), jnp.zeros(3, d.qpos.dtype)
+    return Log(t=z, p_obj=z3, p_obj_ref=z3, com=z3, com_ref=z3, slip=z, trunk_z=z, prim_res=z,
+               tau=jnp.zeros(nu, d.qpos.dtype), qpos=jnp.zeros_like(d.qpos))
+
+
 SENSING = ("auto", "exact", "delayed")
 """What the controller reads on the Warp backend (:func:`resolve_sensing`; "auto": "delayed" on Warp with one
 physics step per control step, else "exact"). "exact": a ``forward`` call (Warp) computes the kinematics, mass
@@ -554,7 +562,7 @@ def make_chunk_fn(sim: Sim, n_logs: int):
 
         # the log of the period's last step rides in the carry (overwritten every step) rather than as the inner
         # scan's stacked output, of which only the last row was kept
-        log0 = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(step, rs)[1])
+        log0 = empty_log(rs.d, sim.robot.mj_model.nu)
 
         def inner(carry, _):
             return step(carry[0]), None
