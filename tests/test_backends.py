@@ -170,3 +170,30 @@ def test_backend_choice(monkeypatch):
     assert physics.resolve_backend("auto") == "jax"
     with pytest.raises(ValueError, match="backend 'bullet'"):
         physics.resolve_backend("bullet")
+
+
+def test_warp_state_run_axes_and_blocks(walks):
+    """The run axes of a batched state (``rollout.state_axes``, from ``physics.data_axes``): on Warp every leaf
+    with the run axis first is 0 and the shared contact list and its counters are None; on JAX every leaf is 0. A
+    block of the batch (``Spread`` "blocks", one per process) takes its rows of the first and keeps the second
+    whole, and the blocks joined back (``runs.concat``, ``runs.first``) are the batch's state."""
+    from wbc_jax.sim import runs
+    from wbc_jax.sim.spread import Spread
+
+    _, bj, _, _ = walks["jax"]
+    assert set(jax.tree_util.tree_leaves(bj.state_axes)) == {0}
+    _, b, _, _ = walks["warp:delayed"]
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(b.state)
+    axes = treedef.flatten_up_to(b.state_axes)
+    shared = [jax.tree_util.keystr(p) for (p, _), a in zip(leaves, axes) if a is None]
+    assert any("contact__pos" in k for k in shared) and any(k.endswith("nacon") for k in shared)
+    assert all(k.startswith(".d._impl.") and ("contact" in k or k.endswith(("nacon", "ncollision", "cdof_tri_col",
+                                                                             "cdof_tri_row"))) for k in shared)
+    assert all(np.shape(x)[0] == 2 for (_, x), a in zip(leaves, axes) if a == 0)
+    blocks = [Spread("blocks", process=i, processes=2).place(b) for i in range(2)]
+    for i, blk in enumerate(blocks):
+        for (_, x), (_, y), a in zip(leaves, jax.tree_util.tree_flatten_with_path(blk.state)[0], axes):
+            np.testing.assert_array_equal(np.asarray(y), np.asarray(x) if a is None else np.asarray(x)[i:i + 1])
+    back = runs.first(runs.concat([jax.device_get(blk.state) for blk in blocks], b.state_axes), 2, b.state_axes)
+    for x, y in zip(jax.tree_util.tree_leaves(jax.device_get(b.state)), jax.tree_util.tree_leaves(back)):
+        np.testing.assert_array_equal(x, y)

@@ -11,6 +11,7 @@ is in a batched LAPACK triangular solve (``lapack_strsm_ffi``, from the vmapped 
 ``jax::ParallelBatchMap`` queues the batch's slices on that same pool and waits for them. No collective is
 involved (the program has none). One device per process, as on a cluster, does not meet it."""
 
+import io
 import json
 import os
 import socket
@@ -112,7 +113,9 @@ ALL_IN_ONE = textwrap.dedent("""
     if kept != want:
         sys.exit(f"after the interrupt: {kept}, expected {want}")
     # ... resumed (the compiled chunk function reused), then the tune
-    sys.exit(cli.main(["campaign", "--spec", spec, "--out", "cut", "--no-report", "--resume", *mp]) or cli.main(tune))
+    sys.exit(cli.main(["campaign", "--spec", spec, "--out", "cut", "--no-report", "--resume", *mp]) or cli.main(tune)
+             or (cli.main(["campaign", "--spec", spec, "--backend", "warp", "--out", "warp", "--no-report", *mp])
+                 if mp else 0))  # Warp: the reference is computed in the test (_warp_blocks)
 """)  # one launch for all three: every fresh process compiles the rollout again (~1 min each on 2 cores)
 
 
@@ -164,7 +167,9 @@ def test_two_processes_equal_one(tiny_spec, tmp_path):
     working folder) writes nothing. Then the same campaign interrupted after its first chunk (process 0 keeps the
     checkpoint, process 1 writes nothing: checked in the processes) and resumed with --resume: the same results.csv
     again. Then `wbc-jax tune` (successive halving: survivors continue from their gathered states) writes the same
-    leaderboard, per-run tables and best gains as the reference, from process 0 only. The spec is the CI baseline's
+    leaderboard, per-run tables and best gains as the reference, from process 0 only. Then the campaign on Warp
+    physics (a block of runs per process, ``wbc_jax.sim.spread``) against its two blocks stepped in this process
+    one after the other, bit for bit. The spec is the CI baseline's
     with d fixed (4 runs): with 3 or more runs per device the one-process reference deadlocks on 2 cores (module
     docstring)."""
     spec = tmp_path / "four.toml"
@@ -183,13 +188,13 @@ def test_two_processes_equal_one(tiny_spec, tmp_path):
     codes, logs = _run_all([camp + mp[0] + tn + mp[0], camp + mp[1] + tn + mp[1], camp + tn], [one, one, two],
                            dirs)
     assert codes == [0, 0, 0], "\n---\n".join(x[-3000:] for x in logs)
-    assert logs[1].count("process 1: done; process 0 writes") == 3  # campaign, resumed campaign, tune
+    assert logs[1].count("process 1: done; process 0 writes") == 4  # campaign, resumed campaign, tune, Warp campaign
     assert "interrupted after 1 of" in logs[0] and "resuming from" in logs[0]
     assert list(dirs[1].iterdir()) == []  # process 1: no --out, no checkpoint, no stray file
 
     # the campaign: process 0's results.csv equals the one-process reference's, bit for bit
     out = dirs[0] / "out"
-    assert sorted(x.name for x in dirs[0].iterdir()) == ["cut", "out", "tune"]  # checkpoints removed after success
+    assert sorted(x.name for x in dirs[0].iterdir()) == ["cut", "out", "tune", "warp"]  # checkpoints removed
     got = pd.read_csv(out / "results.csv")
     ref = pd.read_csv(dirs[2] / "out" / "results.csv")
     assert got["run"].tolist() == list(range(4))  # every run once
@@ -215,3 +220,38 @@ def test_two_processes_equal_one(tiny_spec, tmp_path):
     tman = json.loads((dirs[0] / "tune" / "manifest.json").read_text())
     assert tman["layout"]["processes"] == 2 and tman["physics_backend"] == "jax"
     assert tman["new_compilations_after_round_1"] in (0, None)
+
+    # Warp physics: a block of runs per process (wbc_jax.sim.spread), equal bit for bit to the same two blocks
+    # stepped here one after the other with the single-device program
+    warp = pd.read_csv(dirs[0] / "warp" / "results.csv")
+    assert warp["run"].tolist() == list(range(4)) and warp["success"].all()
+    ref = pd.read_csv(io.StringIO(_warp_blocks(spec, 2).to_csv(index=False)))  # as the campaign writes it
+    pd.testing.assert_frame_equal(warp, ref, check_exact=True)
+    wman = json.loads((dirs[0] / "warp" / "manifest.json").read_text())
+    assert wman["physics_backend"] == "warp" and wman["layout"]["processes"] == 2
+
+
+def _warp_blocks(spec_path, n_blocks: int) -> pd.DataFrame:
+    """results.csv of ``spec_path`` on Warp physics computed as ``n_blocks`` processes compute it, in this one
+    process: each block (``Spread.place``) stepped alone by the campaign's single-device chunk function."""
+    import jax
+
+    from wbc_jax.sim import runs
+    from wbc_jax.sim.rollout import final_results
+    from wbc_jax.sim.spread import Spread
+    from wbc_jax.study import campaign as C
+    from wbc_jax.study.spec import load_spec
+
+    spec = C.with_backend(load_spec(spec_path), "warp")
+    sim, dz, b, _, logs_per_chunk, n_chunks = C.build(spec)
+    fn = C._chunk_fn(sim, b.in_axes, logs_per_chunk, None, b.state_axes)
+    states, goals = [], []
+    for i in range(n_blocks):
+        sub = Spread("blocks", process=i, processes=n_blocks).place(b)
+        st = sub.state
+        for _ in range(n_chunks):
+            st, logs = fn(sub.model, st, sub.plan, sub.om, sub.gains, sub.push, sub.mu_ground)
+        states.append(jax.device_get(st))
+        goals.append(np.asarray(logs.p_obj_ref[:, -1]))
+    state = runs.first(runs.concat(states, b.state_axes), dz.n, b.state_axes)
+    return C.results_table(spec, dz, final_results(sim, state, np.concatenate(goals)[:dz.n], dz.mu))

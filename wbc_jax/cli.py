@@ -70,6 +70,7 @@ def _check_bench_args(args: argparse.Namespace) -> list[int] | None:
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     sizes = _check_bench_args(args)
+    _join_processes(args)  # rollout: one process per device (wbc_jax.bench.rollout)
     import jax
 
     cpu = jax.default_backend() == "cpu"  # GPU-sized default batches would run for hours on a CPU
@@ -279,6 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default 0: the first standing steps)")
     b.add_argument("--quick", action="store_true", help="small sizes (CPU smoke run)")
     b.add_argument("--json", default=None, help="also write the results as JSON here")
+    _process_flags(b)
     b.set_defaults(func=_cmd_bench)
 
     d = sub.add_parser("demo", help="the transport course, one run at default factors or all 27 cells; summary, "

@@ -3,6 +3,12 @@
 Both are measured in the same process on the current device, on the flat scene (or ``scene``) with the object,
 excluding compile time (reported separately); the ratio WBC / physics-only is printed next to the
 absolute figures. The WBC runs the loaded stand-and-walk plan from t = 0.
+
+Several devices: one process with several (JAX physics) also times the same batch with its runs over every
+device (:func:`sharded_chunk_fn`, as a campaign runs it). Several processes (``--coordinator`` etc., one device
+each; the layout of Warp physics on several GPUs, ``wbc_jax.sim.spread``): process 0 first times the whole batch
+alone on its device, then every process times a block of batch / processes runs on its own device, all starting
+together; the slowest process's time gives the aggregate figure and the speed-up over the one-device time.
 """
 
 from __future__ import annotations
@@ -18,7 +24,8 @@ from wbc_jax.sim.batch import prepare_batch
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
 from wbc_jax.sim.model import Robot, mjx
 from wbc_jax.sim.rollout import make_chunk_fn, make_sim, resolve_sensing
-from wbc_jax.sim.sharding import shard_batch
+from wbc_jax.sim import distributed
+from wbc_jax.sim.sharding import over_runs, run_mesh, shard_batch
 
 
 def _timed(f, *args):
@@ -44,15 +51,37 @@ def physics_only_fn(b, n_steps: int):
     return jax.jit(jax.vmap(phys, in_axes=(b.in_axes, 0)))
 
 
+def _vmapped_chunk(sim, b):
+    """vmap over ``b``'s runs of one chunk of ``sim.log_every`` control steps (MJX batches the Warp data whole)."""
+    return jax.vmap(make_chunk_fn(sim, 1), in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0))
+
+
 def wbc_chunk_fn(sim, b):
     """(f, args): jit(vmap) of one chunk of ``sim.log_every`` control steps per run, and its arguments from ``b``."""
-    f = jax.jit(jax.vmap(make_chunk_fn(sim, 1), in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0)))
-    return f, (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+    return jax.jit(_vmapped_chunk(sim, b)), (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+
+
+def sharded_chunk_fn(sim, b):
+    """(f, args): :func:`wbc_chunk_fn` with the run axis over every device, each device stepping its own runs
+    (``wbc_jax.sim.sharding.over_runs``, as a campaign on several devices), and ``b``'s arguments placed so."""
+    f = over_runs(_vmapped_chunk(sim, b), run_mesh(), (b.in_axes, b.state_axes, 0, 0, 0, 0, 0),
+                  (b.state_axes, 0))
+    bs, _ = shard_batch(b)
+    return f, (bs.model, bs.state, bs.plan, bs.om, bs.gains, bs.push, bs.mu_ground)
+
+
+def _timed_together(f, *args):
+    """:func:`_timed` in every process at once (a barrier first): (output, the slowest process's seconds)."""
+    from jax.experimental import multihost_utils
+
+    multihost_utils.sync_global_devices("bench rollout")
+    out, t = _timed(f, *args)
+    return out, float(np.max(multihost_utils.process_allgather(np.array([t]))))
 
 
 def _peak_bytes() -> int | None:
     """Peak device memory in use so far [bytes] (None where the backend does not report it, e.g. the CPU)."""
-    stats = jax.devices()[0].memory_stats() or {}
+    stats = jax.local_devices()[0].memory_stats() or {}
     return stats.get("peak_bytes_in_use")
 
 
@@ -91,6 +120,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
     device = jax.devices()[0].device_kind
     n_env = steps * substeps  # env-steps per run per timed call
     rows = []
+    n_proc, writer = jax.process_count(), distributed.is_writer()
     for k, B in [(k, B) for k in backends for B in batches]:
         name, _, sensing = k.partition(":")  # "warp:exact": campaign.sensing
         backend = resolve_backend(name)
@@ -98,36 +128,56 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         robot = Robot(scene, backend=backend)
         sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=qs),
                        n_substeps=substeps, log_every=steps, sensing=sensing)
-        b = random_batch(sim, B)
-        f_phys = physics_only_fn(b, n_env)
-        d0 = b.state.d
-        _, c_phys = _timed(f_phys, b.model, d0)
-        _, t_phys = _timed(f_phys, b.model, d0)
-        f_wbc, args = wbc_chunk_fn(sim, b)
-        _, c_wbc = _timed(f_wbc, *args)
-        _, t_wbc = _timed(f_wbc, *args)
-        row = dict(device=device, backend=backend, sensing=sensing, scene=robot.path.name, batch=B, steps=steps, substeps=substeps, qp_iters=iters,
-                   qp=qp or f"it{iters}", adapt_every=qs.adapt_every, ruiz_iters=qs.ruiz_iters,
-                   peak_device_bytes=_peak_bytes(), physics_steps_per_s=B * n_env / t_phys,
-                   wbc_steps_per_s=B * n_env / t_wbc, ratio=t_phys / t_wbc, compile_physics_s=c_phys - t_phys,
-                   compile_wbc_s=c_wbc - t_wbc)
+        row = dict(device=device, backend=backend, sensing=sensing, scene=robot.path.name, batch=B, steps=steps,
+                   substeps=substeps, qp_iters=iters, qp=qp or f"it{iters}", adapt_every=qs.adapt_every,
+                   ruiz_iters=qs.ruiz_iters)
         label = f"{backend}:{sensing}"
-        print(f"{device} {label:4s} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   physics+WBC "
-              f"{row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   compile {row['compile_wbc_s']:.1f} s"
-              + (f"   peak memory {row['peak_device_bytes'] / 2**30:.2f} GiB" if row["peak_device_bytes"] else ""),
-              flush=True)
-        n_dev = len(jax.devices())
-        if n_dev > 1 and backend == "jax":  # the same batch with the run axis sharded over every local device
-            bs, _ = shard_batch(b)
-            sargs = (bs.model, bs.state, bs.plan, bs.om, bs.gains, bs.push, bs.mu_ground)
-            _timed(f_wbc, *sargs)
-            _, t_sh = _timed(f_wbc, *sargs)
+        t_wbc = None
+        if writer:  # the whole batch on one device (with several processes: process 0's, the others wait)
+            b = random_batch(sim, B)
+            f_phys = physics_only_fn(b, n_env)
+            d0 = b.state.d
+            _, c_phys = _timed(f_phys, b.model, d0)
+            _, t_phys = _timed(f_phys, b.model, d0)
+            f_wbc, args = wbc_chunk_fn(sim, b)
+            _, c_wbc = _timed(f_wbc, *args)
+            _, t_wbc = _timed(f_wbc, *args)
+            row.update(peak_device_bytes=_peak_bytes(), physics_steps_per_s=B * n_env / t_phys,
+                       wbc_steps_per_s=B * n_env / t_wbc, ratio=t_phys / t_wbc, compile_physics_s=c_phys - t_phys,
+                       compile_wbc_s=c_wbc - t_wbc)
+            print(f"{device} {label:4s} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   "
+                  f"physics+WBC {row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   compile "
+                  f"{row['compile_wbc_s']:.1f} s" + (f"   peak memory {row['peak_device_bytes'] / 2**30:.2f} GiB"
+                                                    if row["peak_device_bytes"] else ""), flush=True)
+        if n_proc > 1:  # every process its block of B / n_proc runs on its own device (wbc_jax.sim.spread)
+            b = random_batch(sim, B // n_proc, seed=1 + jax.process_index())
+            f_phys = physics_only_fn(b, n_env)
+            _timed_together(f_phys, b.model, b.state.d)
+            _, tp = _timed_together(f_phys, b.model, b.state.d)
+            f_wbc, args = wbc_chunk_fn(sim, b)
+            _timed_together(f_wbc, *args)
+            _, tw = _timed_together(f_wbc, *args)
+            n = B // n_proc * n_proc
+            row.update(processes=n_proc, physics_steps_per_s_processes=n * n_env / tp,
+                       wbc_steps_per_s_processes=n * n_env / tw, process_speedup=n / B * t_wbc / tw if t_wbc else None)
+            if writer:
+                print(f"{'':>{len(device)}} batch {B:6d}: on {n_proc} processes (one device each, {B // n_proc} runs "
+                      f"each): physics {n * n_env / tp:12.0f} steps/s   physics+WBC {n * n_env / tw:12.0f} steps/s   "
+                      f"speed-up {row['process_speedup']:.2f}x", flush=True)
+        elif jax.device_count() > 1 and backend == "warp":
+            print(f"{'':>{len(device)}} batch {B:6d}: Warp on several devices needs one process per device "
+                  f"(wbc_jax.sim.spread; --coordinator, --num-processes, --process-id, --local-device-ids)", flush=True)
+        elif jax.device_count() > 1:  # the same batch with the run axis over every device, as a campaign runs it
+            f_sh, sargs = sharded_chunk_fn(sim, b)
+            _timed(f_sh, *sargs)
+            _, t_sh = _timed(f_sh, *sargs)
+            n_dev = jax.device_count()
             row.update(n_devices=n_dev, wbc_steps_per_s_sharded=B * n_env / t_sh, sharded_speedup=t_wbc / t_sh)
             print(f"{'':>{len(device)}} batch {B:6d}: physics+WBC on {n_dev} devices {B * n_env / t_sh:12.0f} "
                   f"steps/s   speed-up {t_wbc / t_sh:.2f}x", flush=True)
         rows.append(row)
     out = dict(device=device, batches=rows, campaign=campaign_cold_warm(campaign) if campaign else None)
-    if json_path:
+    if json_path and writer:
         with open(json_path, "w") as fh:
             json.dump(out, fh, indent=2)
     return out
@@ -200,7 +250,7 @@ def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: st
               f"({batch * steps / t:10.0f} env-steps/s), compile {c - t:.1f} s", flush=True)
     if all(k in out for k in ("wbc_1_us", "wbc_n_us", "wbc_n_norefactor_us")):
         _split(out, iters, base)
-    if json_path:
+    if json_path and writer:
         with open(json_path, "w") as fh:
             json.dump(out, fh, indent=2)
     return out
@@ -279,7 +329,7 @@ def run_components(batch: int = 256, iters: int = 50, scene: str = "transport", 
             ts.append(_timed(f, *args)[1])
         out["stages_ms"][name] = 1e3 * float(np.median(ts))
         print(f"{device} batch {batch}: {name:50s} {out['stages_ms'][name]:8.3f} ms per call", flush=True)
-    if json_path:
+    if json_path and writer:
         with open(json_path, "w") as fh:
             json.dump(out, fh, indent=2)
     return out

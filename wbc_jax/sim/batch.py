@@ -18,12 +18,12 @@ from wbc_jax.control.transport import ObjectModel, TransportGains, default_gains
 from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.planner.spline import pad_path
 from wbc_jax.planner.transport import TransportPlan, course_plan, straight_plan
-from wbc_jax.sim.rollout import Push, RunState, Sim, init_state, no_push
+from wbc_jax.sim.rollout import Push, RunState, Sim, init_state, no_push, state_axes
 
 
 class Batch(NamedTuple):
     model: object  # batched mjx.Model
-    in_axes: object
+    in_axes: object  # the model's run axes (0 per run, None shared)
     state: RunState
     plan: TransportPlan
     om: ObjectModel
@@ -31,6 +31,7 @@ class Batch(NamedTuple):
     push: Push
     mu_ground: jax.Array
     factors: scenario.Factors
+    state_axes: object = 0  # the state's run axes (wbc_jax.sim.rollout.state_axes: Warp's contact list is shared)
 
 
 # Setup arithmetic is done in numpy and each leaf is placed on the device once: eager jnp operations would each
@@ -126,4 +127,4 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
         mu_ground = jnp.full(B, float(robot.mj_model.pair_friction[robot.ids.foot_pair[0, 0], 0]))
     else:
         mu_ground = _device(np.broadcast_to(np.asarray(ground_mu, float), (B,)))
-    return Batch(bm, in_axes, state, plans, om, gains, push, mu_ground, f)
+    return Batch(bm, in_axes, state, plans, om, gains, push, mu_ground, f, state_axes(sim, state))

@@ -209,6 +209,8 @@ class Robot:
     """
 
     def __init__(self, scene: str | os.PathLike = "flat", backend: str = "jax", solver_iterations: int = 0):
+        import jax
+
         from wbc_jax.sim import contacts
 
         if backend not in ("jax", "warp"):
@@ -225,12 +227,11 @@ class Robot:
             warp.config.quiet = True  # no banner or per-kernel-module load lines on the console
             self.mj_model, self.sensors = contacts.with_contact_sensors(self.path, base, self.ids)
             self.mj_model.opt.iterations = base.opt.iterations
-            self.mjx_model = _quiet_solver_limits(mjx.put_model(self.mj_model, impl="warp"))
-        else:
-            import jax
-
-            self.mj_model, self.sensors = base, None
             # on this process's device: MJX's default, jax.devices()[0], is process 0's in a multi-process run
+            self.mjx_model = _quiet_solver_limits(mjx.put_model(self.mj_model, impl="warp",
+                                                                device=jax.local_devices()[0]))
+        else:
+            self.mj_model, self.sensors = base, None
             self.mjx_model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])
         self.total_robot_mass = float(self.mj_model.body_subtreemass[self.ids.trunk_body])
 

@@ -76,7 +76,34 @@ def make_data(robot, n_runs: int = 1):
         return mjx.make_data(robot.mjx_model, device=jax.local_devices()[0])  # (several processes: not process 0's)
     m = robot.mj_model
     njmax = NJMAX_PER_CONTACT * NACON_PER_RUN + 2 * m.njnt
-    return mjx.make_data(m, impl="warp", naconmax=NACON_PER_RUN * max(int(n_runs), 1), njmax=njmax)
+    return mjx.make_data(m, impl="warp", naconmax=NACON_PER_RUN * max(int(n_runs), 1), njmax=njmax,
+                         device=jax.local_devices()[0])
+
+
+_DATA_AXES: dict = {}
+
+
+def data_axes(robot, d):
+    """The run axes of ``d``, a batched mjx.Data of ``robot``'s backend (``vmap`` of :func:`make_data`): a pytree
+    of ``d``'s structure with 0 where a leaf has the run axis first and None where the runs share it.
+
+    JAX: every leaf is per run. Warp: the contact list (``naconmax`` slots shared by the batch, each tagged with
+    its run) and its counters (``nacon``, ``ncollision``) have no run axis; ``vmap`` passes them through whole.
+    They are scratch: every ``step`` rebuilds them from the runs' states (the rollout reads contacts through the
+    contact sensors, per run). Sharding places them whole on every device (each device's runs use part of the
+    list), and taking or padding runs leaves them as they are (``wbc_jax.sim.runs``).
+
+    Found, not listed: the leaves whose first dimension follows the vmapped size when ``d``'s own
+    :func:`make_data` is vmapped over 2 and over 3 runs (shapes only, nothing is computed).
+    """
+    if not is_warp(d):
+        return jax.tree_util.tree_map(lambda _: 0, d)
+    n_runs = int(d._impl.naconmax) // NACON_PER_RUN
+    key = (id(robot), n_runs)
+    if key not in _DATA_AXES:
+        two, three = (jax.eval_shape(jax.vmap(lambda _: make_data(robot, n_runs)), jnp.zeros(k)) for k in (2, 3))
+        _DATA_AXES[key] = jax.tree_util.tree_map(lambda a, b: 0 if a.shape != b.shape else None, two, three)
+    return _DATA_AXES[key]
 
 
 STATE_FIELDS = ("time", "qpos", "qvel", "act", "qacc_warmstart", "history", "plugin_state")

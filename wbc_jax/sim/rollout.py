@@ -125,6 +125,14 @@ class RunState(NamedTuple):
     #                   (kinematics, M, contacts, sensors) belong to, the start of the last physics step; else None
 
 
+def state_axes(sim: "Sim", state: RunState) -> RunState:
+    """The run axes of a batched RunState: 0 on every leaf but the Warp data's shared contact list (None:
+    :func:`wbc_jax.sim.physics.data_axes`). The ``in_axes`` of the state in ``vmap``, sharding and row selection
+    (``wbc_jax.sim.runs``)."""
+    zeros = jax.tree_util.tree_map(lambda _: 0, state)
+    return zeros._replace(d=physics.data_axes(sim.robot, state.d))
+
+
 class Log(NamedTuple):
     """Logged every ``log_every`` steps (per run): time, object and CoM actual vs reference, QP residual,
     torques, and the full configuration qpos (nq,) for replay and video."""

@@ -12,6 +12,9 @@ global arrays of it, each process supplying its own devices' shards. :func:`over
 on each device's own runs (``shard_map``): no communication between devices, not even for the batched
 solver loops' conditions (a plain ``jax.jit`` of the sharded batch all-reduces those at every iteration).
 On one CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` fakes N devices (used by the tests).
+A state's leaves without a run axis (Warp's shared contact list, ``in_axes`` None) are placed whole on every
+device. Campaigns use this layout with JAX physics only; Warp physics runs a block of runs per process
+(:mod:`wbc_jax.sim.spread`).
 """
 
 from __future__ import annotations
@@ -79,20 +82,24 @@ def shard_batch(b, mesh: Mesh | None = None):
     mesh = mesh or run_mesh()
     n = int(jnp.shape(b.mu_ground)[0])
     return b._replace(
-        model=shard_runs(b.model, mesh, b.in_axes), state=shard_runs(b.state, mesh), plan=shard_runs(b.plan, mesh),
+        model=shard_runs(b.model, mesh, b.in_axes), state=shard_runs(b.state, mesh, b.state_axes),
+        plan=shard_runs(b.plan, mesh),
         om=shard_runs(b.om, mesh), gains=shard_runs(b.gains, mesh), push=shard_runs(b.push, mesh),
         mu_ground=shard_runs(b.mu_ground, mesh)), n
 
 
-def over_runs(fn, mesh: Mesh, in_axes):
-    """``fn`` (vmapped over the run axis: batched arguments and every output carry it first) run by each device
-    on its own shard of the runs (``jax.shard_map``), jitted.
+def over_runs(fn, mesh: Mesh, in_axes, out_axes=0):
+    """``fn`` (vmapped over the run axis: batched arguments and outputs carry it first) run by each device on its
+    own shard of the runs (``jax.shard_map``), jitted.
 
     Args:
         fn: function of positional pytrees.
         mesh: from :func:`run_mesh`.
         in_axes: tuple, one entry per argument: 0 (batched) or a matching pytree of 0 / None (None: the leaf is
             the same for every run and every device gets it whole).
+        out_axes: 0 (every output batched) or a pytree prefix of the outputs of 0 / None. None: an output with
+            no run axis that is scratch (Warp's shared contact list, :func:`wbc_jax.sim.physics.data_axes`): each
+            device keeps its own copy, and the value read back is device 0's.
 
     Returns:
         The jitted function; its outputs are split over ``mesh`` along the run axis, empty ones replicated (as
@@ -101,6 +108,10 @@ def over_runs(fn, mesh: Mesh, in_axes):
     def spec(a):
         return P() if a is None else P("runs")
 
-    in_specs = tuple(jax.tree_util.tree_map(spec, a, is_leaf=lambda v: v is None) if not isinstance(a, int)
-                     else spec(a) for a in in_axes)
-    return jax.jit(jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=P("runs"), check_vma=False))
+    def specs(axes):
+        return spec(axes) if isinstance(axes, int) else jax.tree_util.tree_map(spec, axes,
+                                                                               is_leaf=lambda v: v is None)
+
+    in_specs = tuple(specs(a) for a in in_axes)
+    out_specs = specs(out_axes)
+    return jax.jit(jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=out_specs, check_vma=False))

@@ -18,10 +18,10 @@ results equal an uninterrupted run's) after checking the identity and the checks
 one-line error; it is deleted once the results are written. A run that goes non-finite is frozen by the
 rollout and reported failed; the others continue.
 
-Several devices or processes (``wbc_jax.sim.distributed``: ``jax.distributed`` initialised by the CLI): the run
-axis is split over every device of every process (``wbc_jax.sim.sharding.over_runs``); every process builds the
-same batch and steps its own devices' runs; the states are gathered after each chunk and only process 0 writes
-(DIR, the checkpoint; the others write nothing). The checkpoint holds the real runs only (no padding), so a run
+Several devices or processes (``wbc_jax.sim.distributed``: ``jax.distributed`` initialised by the CLI): the runs
+are spread over them (``wbc_jax.sim.spread``: on JAX physics one program over every device of every process, on
+Warp physics a block of runs per process); every process builds the same batch and steps its own runs; the
+states are gathered after each chunk and only process 0 writes (DIR, the checkpoint; the others write nothing). The checkpoint holds the real runs only (no padding), so a run
 can resume on another layout; process 0 reads it and hands it to the others. ``manifest.json``'s ``layout``
 records the processes and devices.
 """
@@ -41,7 +41,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from wbc_jax.sim import aot, distributed
+from wbc_jax.sim import aot, distributed, runs
+from wbc_jax.sim.spread import choose
 from wbc_jax.errors import LimitError, ReportError, SpecError, WbcJaxError
 from wbc_jax.io_utils import atomic_dir, check_out_dir, write_json_atomic
 from wbc_jax.study import checkpoint
@@ -115,18 +116,20 @@ def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, 
     return _SIMS[key]
 
 
-def _chunk_fn(sim, in_axes, n_logs: int, mesh=None):
-    """The jitted, vmapped chunk function; with a ``mesh`` (several devices), each device steps its own runs."""
+def _chunk_fn(sim, in_axes, n_logs: int, mesh=None, state_axes=0):
+    """The jitted, vmapped chunk function; with a ``mesh`` (several devices), each device steps its own runs.
+    ``in_axes``, ``state_axes``: the batch's model and state run axes (``Batch.in_axes``, ``Batch.state_axes``)."""
     from wbc_jax.sim.rollout import make_chunk_fn
     from wbc_jax.sim.sharding import over_runs
 
-    key = (id(sim), n_logs, mesh)
+    leaves, tree = jax.tree_util.tree_flatten(state_axes, is_leaf=lambda v: v is None)
+    key = (id(sim), n_logs, mesh, tuple(leaves), tree)
     if key not in _FNS:  # jit, with the lowered program kept on disk for the next process (wbc_jax.sim.aot)
-        axes = (in_axes, 0, 0, 0, 0, 0, 0)
-        fn = jax.vmap(make_chunk_fn(sim, n_logs), in_axes=axes)
+        # (vmap takes the Warp data whole: MJX batches its shared contact list itself)
+        fn = jax.vmap(make_chunk_fn(sim, n_logs), in_axes=(in_axes, 0, 0, 0, 0, 0, 0))
         _FNS[key] = (aot.cached_jit("chunk", fn, aot.describe(sim, in_axes, n_logs),
                                      exportable=sim.robot.backend != "warp") if mesh is None
-                     else over_runs(fn, mesh, axes))
+                     else over_runs(fn, mesh, (in_axes, state_axes, 0, 0, 0, 0, 0), (state_axes, 0)))
     return _FNS[key]
 
 
@@ -352,21 +355,15 @@ def results_table(spec: Spec, dz: Design, res: dict):
     return df
 
 
-def _first(tree, n: int):
-    """The first ``n`` runs of a host pytree (drops a sharded batch's padding)."""
-    return jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], tree)
-
-
-def _shared_resume(state, done: int, mesh, n: int):
-    """Process 0's resume point (its loaded state and chunk count) in every process, the state placed on
-    ``mesh``; one process: as given."""
+def _shared_resume(state, done: int, spread, n: int, axes):
+    """Process 0's resume point (its loaded state of ``n`` runs, run axes ``axes``, and chunk count) in every
+    process, the state placed as ``spread`` (:class:`wbc_jax.sim.spread.Spread`) places the batch."""
     from jax.experimental import multihost_utils
 
-    from wbc_jax.sim.sharding import shard_runs
-
     if distributed.is_multiprocess():
-        state, done = multihost_utils.broadcast_one_to_all((_first(jax.device_get(state), n), np.int32(done)))
-    return shard_runs(state, mesh), int(done)
+        state, done = multihost_utils.broadcast_one_to_all((runs.first(jax.device_get(state), n, axes),
+                                                            np.int32(done)))
+    return spread.place_state(state, n, axes), int(done)
 
 
 def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: bool = True,
@@ -419,12 +416,8 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     sim, dz, b, T_plan, logs_per_chunk, n_chunks = build(spec, gains)
     chunk_s = logs_per_chunk * LOG_EVERY * sim.dt_control
     seconds = n_chunks * chunk_s
-    mesh, state0 = None, b.state
-    if jax.device_count() > 1:  # the run axis over every device of every process
-        from wbc_jax.sim.sharding import run_mesh, shard_batch
-
-        mesh = run_mesh()
-        b, _ = shard_batch(b, mesh)
+    sp, state0 = choose(sim.robot.backend), b.state  # several devices: each steps its own runs (wbc_jax.sim.spread)
+    b = sp.place(b)
     state, done, wall_before, marks, p_goal = b.state, 0, 0.0, [], None
     if resume:
         st = meta = problem = None
@@ -434,9 +427,9 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
             except WbcJaxError as e:
                 problem = e
         distributed.agree(problem)
-        if mesh is not None:  # every process: process 0's resume point, placed on the mesh
-            state, done = _shared_resume(state0 if st is None else st, meta["chunks_done"] if meta else 0, mesh,
-                                         dz.n)
+        if sp.mode != "one":  # every process: process 0's resume point, placed as the batch
+            state, done = _shared_resume(state0 if st is None else st, meta["chunks_done"] if meta else 0, sp,
+                                         dz.n, b.state_axes)
         elif st is not None:
             state, done = st, meta["chunks_done"]
         if meta is not None:
@@ -449,12 +442,16 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         shutil.rmtree(ck)
     if zero_noise_warning(spec) and writer:
         print("warning: all perturbations are zero: repetitions are identical (deterministic runs)", flush=True)
-    spread = f" x {jax.device_count()} over {jax.process_count()} processes" if distributed.is_multiprocess() else ""
+    spread = {"one": "", "mesh": f" x {jax.device_count()}" + (f" over {jax.process_count()} processes"
+                                                                if distributed.is_multiprocess() else ""),
+              "blocks": f" x {jax.process_count()} processes, a block of runs each"}[sp.mode]
+    if sp.note and writer:
+        print(sp.note, flush=True)
     print(f"{'' if writer else f'process {jax.process_index()}: '}campaign {spec.campaign['name']!r} ({spec.path}): "
           f"{dz.n} runs = {dz.n // spec.reps} cells x {spec.reps} reps, {seconds:.2f} s simulated in {n_chunks} "
           f"chunks of {chunk_s:.2f} s, scene {spec.campaign['scene']}, device {jax.devices()[0].device_kind}{spread}",
           flush=True)
-    fn = _chunk_fn(sim, b.in_axes, logs_per_chunk, mesh)
+    fn = _chunk_fn(sim, b.in_axes, logs_per_chunk, sp.mesh, b.state_axes)
     bar = None
     if progress and writer:
         from tqdm import tqdm
@@ -472,11 +469,10 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
             done += 1
             marks.append(dict(chunk=done, wall_s=dt_wall, fresh_process=first_in_process))
             first_in_process = False
-            if mesh is None:
+            if sp.mode == "one":
                 p_goal, saved = np.asarray(logs.p_obj_ref[:, -1]), state
             else:  # every process takes part in the gathers; process 0 writes
-                p_goal, saved = _first(distributed.gather(logs.p_obj_ref), dz.n)[:, -1], _first(
-                    distributed.gather(state), dz.n)
+                p_goal, saved = sp.gather(logs.p_obj_ref, dz.n)[:, -1], sp.gather(state, dz.n, b.state_axes)
             if writer:
                 checkpoint.save_state(ck, saved, dict(identity=identity, chunks_done=done, n_chunks=n_chunks,
                                            wall_s=wall_before + time.perf_counter() - t_run, marks=marks,
@@ -496,8 +492,8 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     if bar is not None:
         bar.close()
     wall_sim = wall_before + time.perf_counter() - t_run
-    if mesh is not None:
-        state = _first(distributed.gather(state), dz.n)
+    if sp.mode != "one":
+        state = sp.gather(state, dz.n, b.state_axes)
     if not writer:
         print(f"process {jax.process_index()}: done; process 0 writes {out}", flush=True)
         return None

@@ -54,7 +54,8 @@ from pathlib import Path
 
 import numpy as np
 
-from wbc_jax.study.tune_eval import Evaluator, score, take
+from wbc_jax.sim.runs import take
+from wbc_jax.study.tune_eval import Evaluator, score
 from wbc_jax.study.tune_report import (SUMMARY, leaderboard, make_rows, paired_comparison, report_md, row_key,
                                        runs_table)
 from wbc_jax.study.tune_search import CEMSearch, HalvingSearch, Space, halving_cost, halving_schedule, \
@@ -80,7 +81,8 @@ def _bracket(ev: Evaluator, search: HalvingSearch, x: np.ndarray, obj: dict, bar
     for a, h in zip(alive, horizons):
         if keys is not None:  # keep the best a of the previous rung, continue their runs
             keep = HalvingSearch.survivors(keys, a)
-            states = take(states, jnp.asarray((keep[:, None] * ev.n + np.arange(ev.n)[None]).ravel()))
+            states = take(states, jnp.asarray((keep[:, None] * ev.n + np.arange(ev.n)[None]).ravel()),
+                          ev.batch.state_axes)
             idx = idx[keep]
         res, states = ev.rollout(search.space.gains(x[idx]), (h0, h), states, bar)
         sc = score(res, ev.mu, obj)
@@ -185,6 +187,8 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
         + f"; {total:,.0f} run-seconds to simulate in all"
         + (f" (confirmation: {1 + spec.confirm['top']} gain sets x {evc.n} runs of {evc.camp.path})" if evc else ""),
         flush=True)
+    if ev.spread.note:
+        say(ev.spread.note, flush=True)
     bar = None
     if progress and writer:
         from tqdm import tqdm

@@ -9,10 +9,10 @@ Sub-batches run one after the other, each over the requested range of chunks; a 
 continued later (successive halving continues the survivors from their last rung).
 
 Several devices (one process, or several processes joined by :mod:`wbc_jax.sim.distributed`): every sub-batch is
-spread over all devices of all processes, each device stepping its own runs (the campaign's chunk function,
-:func:`wbc_jax.sim.sharding.over_runs`). With several processes each sub-batch's final states are gathered to
-every process after its last chunk (a collective), so every process scores the same runs, the search takes the
-same steps everywhere, and continued states are placed again from the host copy.
+spread as a campaign spreads its batch (:mod:`wbc_jax.sim.spread`: over every device of every process on JAX
+physics, a block per process on Warp). Each sub-batch's final states are then gathered to every process's host
+after its last chunk (a collective), so every process scores the same runs, the search takes the same steps
+everywhere, and continued states are placed again from the host copy.
 
 :func:`score` turns per-run metrics into per-candidate aggregates (module docstring of
 :mod:`wbc_jax.study.tune`).
@@ -23,31 +23,8 @@ from __future__ import annotations
 import numpy as np
 
 from wbc_jax.control.transport import TransportGains
-from wbc_jax.sim import distributed
-
-
-def take(tree, idx, in_axes=0):
-    """Rows ``idx`` of every batched leaf (``in_axes`` 0) of ``tree``; unbatched leaves (None) unchanged."""
-    import jax
-
-    leaves, treedef = jax.tree_util.tree_flatten(tree)
-    axes = [in_axes] * len(leaves) if isinstance(in_axes, int) else treedef.flatten_up_to(in_axes)
-    host = np.asarray(idx)  # host leaves (several processes' gathered states) are indexed on the host
-    return jax.tree_util.tree_unflatten(treedef, [x if a is None else x[host] if isinstance(x, np.ndarray) else x[idx]
-                                                  for x, a in zip(leaves, axes)])
-
-
-def concat(trees: list):
-    """Leafwise concatenation of pytrees along the run axis: device arrays stay on the device (the result keeps
-    the chunk function's input types and placement, so feeding it back does not compile again), host arrays on
-    the host."""
-    import jax
-    import jax.numpy as jnp
-
-    def cat(*xs):
-        return np.concatenate(xs) if isinstance(xs[0], np.ndarray) else jnp.concatenate(xs)
-
-    return trees[0] if len(trees) == 1 else jax.tree_util.tree_map(cat, *trees)
+from wbc_jax.sim.spread import choose
+from wbc_jax.sim.runs import concat, take
 
 
 class Evaluator:
@@ -62,8 +39,6 @@ class Evaluator:
     def __init__(self, camp, cells: list | None, size: int):
         """Args: camp: campaign Spec (reps, max_seconds, qp_iters applied); cells: [m, mu, d] cells to keep
         (None: all); size: runs per rollout call (>= 1)."""
-        import jax
-
         from wbc_jax.study import campaign
 
         sim, dz, b, _, logs_per_chunk, n_chunks = campaign.build(camp)
@@ -78,13 +53,8 @@ class Evaluator:
         self.seconds = n_chunks * self.chunk_s
         self.size = int(size)
         self.batch, self.sel = b, np.asarray(sel)
-        self.mesh = None
-        if jax.device_count() > 1:  # spread every sub-batch over all devices of all processes (wbc_jax.sim.sharding)
-            from wbc_jax.sim.sharding import run_mesh
-
-            self.mesh = run_mesh()
-        self.multiprocess = distributed.is_multiprocess()
-        self.fn = campaign._chunk_fn(sim, b.in_axes, logs_per_chunk, self.mesh)
+        self.spread = choose(sim.robot.backend)  # every sub-batch over every device (wbc_jax.sim.spread)
+        self.fn = campaign._chunk_fn(sim, b.in_axes, logs_per_chunk, self.spread.mesh, b.state_axes)
         self.calls = 0
 
     def compiled_variants(self) -> int | None:
@@ -130,12 +100,9 @@ class Evaluator:
             sub = b._replace(model=take(b.model, rows, b.in_axes), plan=take(b.plan, rows), om=take(b.om, rows),
                              push=take(b.push, rows), mu_ground=take(b.mu_ground, rows),
                              state=take(b.state if states is None else states, rows if states is None else
-                                        jnp.asarray(idx)),
+                                        jnp.asarray(idx), b.state_axes),
                              gains=jax.tree_util.tree_map(jnp.asarray, take(gains, cand[idx])))
-            if self.mesh is not None:
-                from wbc_jax.sim.sharding import shard_batch
-
-                sub, _ = shard_batch(sub, self.mesh)
+            sub = self.spread.place(sub)
             state, logs = sub.state, None
             for _ in range(c0, c1):
                 state, logs = self.fn(sub.model, state, sub.plan, sub.om, sub.gains, sub.push, sub.mu_ground)
@@ -144,12 +111,13 @@ class Evaluator:
                 if bar is not None:
                     bar.update(real * self.chunk_s)
             p_goal = logs.p_obj_ref[:, -1]
-            if self.multiprocess:  # every process: the whole sub-batch on the host (a collective)
-                state, p_goal = distributed.gather((state, p_goal))
+            if self.spread.mode != "one":  # every process: the whole sub-batch on the host (a collective)
+                state = self.spread.gather(state, self.size, b.state_axes)
+                p_goal = self.spread.gather(p_goal, self.size)
             finals.append(final_results(self.sim, state, p_goal, np.tile(self.mu, C)[idx], n=real))
-            outs.append(jax.tree_util.tree_map(lambda x: x[:real], state))
+            outs.append(take(state, np.arange(real), b.state_axes))
         res = {k: np.concatenate([f[k] for f in finals]).reshape(C, self.n) for k in finals[0]}
-        return res, concat(outs)
+        return res, concat(outs, b.state_axes)
 
 
 def score(res: dict, mu: np.ndarray, obj: dict) -> dict[str, np.ndarray]:
