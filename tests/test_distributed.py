@@ -229,6 +229,7 @@ def test_two_processes_equal_one(tiny_spec, tmp_path):
     pd.testing.assert_frame_equal(warp, ref, check_exact=True)
     wman = json.loads((dirs[0] / "warp" / "manifest.json").read_text())
     assert wman["physics_backend"] == "warp" and wman["layout"]["processes"] == 2
+    assert wman["layout"]["spread"] == "blocks" and lay["spread"] == "mesh" and ref_lay["spread"] == "mesh"
 
 
 def _warp_blocks(spec_path, n_blocks: int) -> pd.DataFrame:

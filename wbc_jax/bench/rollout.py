@@ -176,7 +176,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
             print(f"{'':>{len(device)}} batch {B:6d}: physics+WBC on {n_dev} devices {B * n_env / t_sh:12.0f} "
                   f"steps/s   speed-up {t_wbc / t_sh:.2f}x", flush=True)
         rows.append(row)
-    out = dict(device=device, batches=rows, campaign=campaign_cold_warm(campaign) if campaign else None)
+    out = dict(device=device, batches=rows, campaign=campaign_cold_warm(campaign) if campaign and writer else None)
     if json_path and writer:
         with open(json_path, "w") as fh:
             json.dump(out, fh, indent=2)

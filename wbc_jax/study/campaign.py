@@ -530,7 +530,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         sensing=sensing_of(spec),
         device=dict(backend=jax.default_backend(), kind=jax.devices()[0].device_kind, count=jax.device_count(),
                     host=platform.node(), cpu_count=os.cpu_count()),
-        layout=distributed.layout_record(),
+        layout=dict(distributed.layout_record(), spread=sp.mode),  # wbc_jax.sim.spread: one, mesh, blocks
         n_runs=dz.n, n_cells=int(len(cells)), reps=spec.reps, seeds=[int(s) for s in dz.seed],
         simulated_s=seconds, planned_s=T_plan, chunk_s=chunk_s, n_chunks=n_chunks, control_dt_s=sim.dt_control,
         wall_s_total=time.perf_counter() - t_import + wall_before, wall_s_rollout=wall_sim,

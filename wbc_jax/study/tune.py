@@ -289,7 +289,7 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
                           gain_sets=confirmed, chosen_rank=int(chosen["rank"]),
                           chosen_multipliers={n: float(chosen[f"{n}_x"]) for n in space.names}),
         comparison=comparison, physics_backend=backend_of(spec.campaign), sensing=sensing_of(spec.campaign),
-        layout=distributed.layout_record())
+        layout=dict(distributed.layout_record(), spread=ev.spread.mode))
     if isinstance(search, CEMSearch):
         manifest["cem_history"] = search.history
     info = dict(source="wbc-jax tune", spec=spec.path, spec_hash=spec.hash,
