@@ -79,6 +79,16 @@ def _timed_together(f, *args):
     return out, float(np.max(multihost_utils.process_allgather(np.array([t]))))
 
 
+def _physics_and_wbc(sim, b, n_env: int, timer):
+    """Physics only, then physics + WBC, on batch ``b``, each called twice with ``timer`` (:func:`_timed` or
+    :func:`_timed_together`): ((first call s, second call s) of physics, the same of physics + WBC); the first
+    call compiles."""
+    f_phys = physics_only_fn(b, n_env)
+    f_wbc, args = wbc_chunk_fn(sim, b)
+    return ([timer(f_phys, b.model, b.state.d)[1] for _ in range(2)],
+            [timer(f_wbc, *args)[1] for _ in range(2)])
+
+
 def _peak_bytes() -> int | None:
     """Peak device memory in use so far [bytes] (None where the backend does not report it, e.g. the CPU)."""
     stats = jax.local_devices()[0].memory_stats() or {}
@@ -135,13 +145,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         t_wbc = None
         if writer:  # the whole batch on one device (with several processes: process 0's, the others wait)
             b = random_batch(sim, B)
-            f_phys = physics_only_fn(b, n_env)
-            d0 = b.state.d
-            _, c_phys = _timed(f_phys, b.model, d0)
-            _, t_phys = _timed(f_phys, b.model, d0)
-            f_wbc, args = wbc_chunk_fn(sim, b)
-            _, c_wbc = _timed(f_wbc, *args)
-            _, t_wbc = _timed(f_wbc, *args)
+            (c_phys, t_phys), (c_wbc, t_wbc) = _physics_and_wbc(sim, b, n_env, _timed)
             row.update(peak_device_bytes=_peak_bytes(), physics_steps_per_s=B * n_env / t_phys,
                        wbc_steps_per_s=B * n_env / t_wbc, ratio=t_phys / t_wbc, compile_physics_s=c_phys - t_phys,
                        compile_wbc_s=c_wbc - t_wbc)
@@ -151,12 +155,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
                                                     if row["peak_device_bytes"] else ""), flush=True)
         if n_proc > 1:  # every process its block of B / n_proc runs on its own device (wbc_jax.sim.spread)
             b = random_batch(sim, B // n_proc, seed=1 + jax.process_index())
-            f_phys = physics_only_fn(b, n_env)
-            _timed_together(f_phys, b.model, b.state.d)
-            _, tp = _timed_together(f_phys, b.model, b.state.d)
-            f_wbc, args = wbc_chunk_fn(sim, b)
-            _timed_together(f_wbc, *args)
-            _, tw = _timed_together(f_wbc, *args)
+            (_, tp), (_, tw) = _physics_and_wbc(sim, b, n_env, _timed_together)
             n = B // n_proc * n_proc
             row.update(processes=n_proc, physics_steps_per_s_processes=n * n_env / tp,
                        wbc_steps_per_s_processes=n * n_env / tw, process_speedup=n / B * t_wbc / tw if t_wbc else None)
@@ -250,7 +249,7 @@ def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: st
               f"({batch * steps / t:10.0f} env-steps/s), compile {c - t:.1f} s", flush=True)
     if all(k in out for k in ("wbc_1_us", "wbc_n_us", "wbc_n_norefactor_us")):
         _split(out, iters, base)
-    if json_path and writer:
+    if json_path:
         with open(json_path, "w") as fh:
             json.dump(out, fh, indent=2)
     return out
@@ -329,7 +328,7 @@ def run_components(batch: int = 256, iters: int = 50, scene: str = "transport", 
             ts.append(_timed(f, *args)[1])
         out["stages_ms"][name] = 1e3 * float(np.median(ts))
         print(f"{device} batch {batch}: {name:50s} {out['stages_ms'][name]:8.3f} ms per call", flush=True)
-    if json_path and writer:
+    if json_path:
         with open(json_path, "w") as fh:
             json.dump(out, fh, indent=2)
     return out

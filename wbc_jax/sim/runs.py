@@ -13,14 +13,16 @@ import jax.numpy as jnp
 import numpy as np
 
 
-def _axes(tree, in_axes):
+def leaves_and_axes(tree, in_axes=0):
+    """(leaves, treedef, each leaf's run axis: 0 or None) of ``tree`` with run axes ``in_axes`` (0 or a pytree
+    of 0 / None matching ``tree``)."""
     leaves, treedef = jax.tree_util.tree_flatten(tree)
     return leaves, treedef, ([in_axes] * len(leaves) if isinstance(in_axes, int) else treedef.flatten_up_to(in_axes))
 
 
 def take(tree, idx, in_axes=0):
     """Rows ``idx`` of every batched leaf (``in_axes`` 0) of ``tree``; unbatched leaves (None) unchanged."""
-    leaves, treedef, axes = _axes(tree, in_axes)
+    leaves, treedef, axes = leaves_and_axes(tree, in_axes)
     host = np.asarray(idx)  # host leaves (several processes' gathered states) are indexed on the host
     return jax.tree_util.tree_unflatten(treedef, [x if a is None else x[host] if isinstance(x, np.ndarray) else x[idx]
                                                   for x, a in zip(leaves, axes)])
@@ -28,7 +30,7 @@ def take(tree, idx, in_axes=0):
 
 def first(tree, n: int, in_axes=0):
     """The first ``n`` runs of a host pytree (drops a sharded batch's padding), as numpy arrays."""
-    leaves, treedef, axes = _axes(tree, in_axes)
+    leaves, treedef, axes = leaves_and_axes(tree, in_axes)
     return jax.tree_util.tree_unflatten(treedef, [np.asarray(x) if a is None else np.asarray(x)[:n]
                                                   for x, a in zip(leaves, axes)])
 
@@ -39,7 +41,7 @@ def concat(trees: list, in_axes=0):
     not compile again), host arrays on the host."""
     if len(trees) == 1:
         return trees[0]
-    flat = [_axes(t, in_axes) for t in trees]
+    flat = [leaves_and_axes(t, in_axes) for t in trees]
     treedef, axes = flat[0][1], flat[0][2]
 
     def cat(xs, a):

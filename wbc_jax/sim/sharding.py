@@ -109,9 +109,7 @@ def over_runs(fn, mesh: Mesh, in_axes, out_axes=0):
         return P() if a is None else P("runs")
 
     def specs(axes):
-        return spec(axes) if isinstance(axes, int) else jax.tree_util.tree_map(spec, axes,
-                                                                               is_leaf=lambda v: v is None)
+        return jax.tree_util.tree_map(spec, axes, is_leaf=lambda v: v is None)
 
-    in_specs = tuple(specs(a) for a in in_axes)
-    out_specs = specs(out_axes)
-    return jax.jit(jax.shard_map(fn, mesh=mesh, in_specs=in_specs, out_specs=out_specs, check_vma=False))
+    return jax.jit(jax.shard_map(fn, mesh=mesh, in_specs=specs(tuple(in_axes)), out_specs=specs(out_axes),
+                                 check_vma=False))

@@ -45,6 +45,15 @@ class Spread:
     process: int = 0
     processes: int = 1
 
+    def describe(self) -> str:
+        """" x N ..." after a device name for the console ("" on one device)."""
+        if self.mode == "blocks":
+            return f" x {self.processes} processes, a block of runs each"
+        if self.mode == "mesh":
+            procs = jax.process_count()
+            return f" x {self.mesh.size}" + (f" over {procs} processes" if procs > 1 else "")
+        return ""
+
     def block(self, n: int) -> np.ndarray:
         """("blocks") This process's rows of an n-run batch: block ``process`` of ``ceil(n / processes)`` rows,
         past the last run padded with the last run."""
@@ -82,8 +91,7 @@ class Spread:
         if self.mode == "blocks":
             from jax.experimental import multihost_utils
 
-            leaves, treedef = jax.tree_util.tree_flatten(tree)
-            ax = [axes] * len(leaves) if isinstance(axes, int) else treedef.flatten_up_to(axes)
+            leaves, treedef, ax = runs.leaves_and_axes(tree, axes)
             host = [np.asarray(x) for x in jax.device_get(leaves)]
             mine = [x for x, a in zip(host, ax) if a is not None]
             every = iter(multihost_utils.process_allgather(mine, tiled=True))  # blocks in process order

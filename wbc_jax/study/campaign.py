@@ -21,9 +21,9 @@ rollout and reported failed; the others continue.
 Several devices or processes (``wbc_jax.sim.distributed``: ``jax.distributed`` initialised by the CLI): the runs
 are spread over them (``wbc_jax.sim.spread``: on JAX physics one program over every device of every process, on
 Warp physics a block of runs per process); every process builds the same batch and steps its own runs; the
-states are gathered after each chunk and only process 0 writes (DIR, the checkpoint; the others write nothing). The checkpoint holds the real runs only (no padding), so a run
-can resume on another layout; process 0 reads it and hands it to the others. ``manifest.json``'s ``layout``
-records the processes and devices.
+states are gathered after each chunk and only process 0 writes (DIR, the checkpoint; the others write nothing).
+The checkpoint holds the real runs only (no padding), so a run can resume on another layout; process 0 reads it
+and hands it to the others. ``manifest.json``'s ``layout`` records the processes and devices.
 """
 
 from __future__ import annotations
@@ -442,14 +442,11 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         shutil.rmtree(ck)
     if zero_noise_warning(spec) and writer:
         print("warning: all perturbations are zero: repetitions are identical (deterministic runs)", flush=True)
-    spread = {"one": "", "mesh": f" x {jax.device_count()}" + (f" over {jax.process_count()} processes"
-                                                                if distributed.is_multiprocess() else ""),
-              "blocks": f" x {jax.process_count()} processes, a block of runs each"}[sp.mode]
     if sp.note and writer:
         print(sp.note, flush=True)
     print(f"{'' if writer else f'process {jax.process_index()}: '}campaign {spec.campaign['name']!r} ({spec.path}): "
           f"{dz.n} runs = {dz.n // spec.reps} cells x {spec.reps} reps, {seconds:.2f} s simulated in {n_chunks} "
-          f"chunks of {chunk_s:.2f} s, scene {spec.campaign['scene']}, device {jax.devices()[0].device_kind}{spread}",
+          f"chunks of {chunk_s:.2f} s, scene {spec.campaign['scene']}, device {jax.devices()[0].device_kind}{sp.describe()}",
           flush=True)
     fn = _chunk_fn(sim, b.in_axes, logs_per_chunk, sp.mesh, b.state_axes)
     bar = None

@@ -183,7 +183,7 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
         f"{ev.seconds:.2f} s simulated), {ev.size} runs per rollout call, "
         f"{spec.campaign.campaign['qp_iters']} ADMM iterations, {backend_of(spec.campaign)} physics, device "
         f"{jax.devices()[0].device_kind}"
-        + (f" x {jax.device_count()} over {jax.process_count()} processes" if distributed.is_multiprocess() else "")
+        + ev.spread.describe()
         + f"; {total:,.0f} run-seconds to simulate in all"
         + (f" (confirmation: {1 + spec.confirm['top']} gain sets x {evc.n} runs of {evc.camp.path})" if evc else ""),
         flush=True)
