@@ -24,6 +24,12 @@ from wbc_jax.study.spec import load_spec, parse_spec
 
 N_SUB = 2
 PERIODS = 3  # control periods checked (6 physics steps)
+V_TOL = 1e-6  # [m/s] float32 rounding of velocities between the rollout's compiled step and the reference's (as the
+#               1e-6 m of the positions): each ||dv|| term of the acceleration integral may differ by 2 V_TOL
+INV_H_RTOL = 0.02  # 1/H of the object's contact forces, rollout vs reference: the two compiled float32 programs put
+#                    the tray and the cube a rounding apart (~1e-7 m), and the object's compliant contacts (about
+#                    0.25 N per um at rest, mjcf/ "Object contacts") turn that into up to ~1-2 % of a corner's force
+#                    (0.8 % measured in 1/H while the cube settles into its contacts)
 
 
 @pytest.fixture(scope="module")
@@ -92,8 +98,8 @@ def test_substep_monitors_equal_hand_stepping(setup, step):
         np.testing.assert_allclose(np.asarray(rs_next.d.qpos), qpos, rtol=0, atol=1e-6)
         # integrals: sum over the physics steps x the physics timestep (not one sample x the control period)
         d_acc = np.asarray(a1.sum_acc - a0.sum_acc)
-        np.testing.assert_allclose(d_acc, (a * h).sum(axis=1), rtol=1e-4, atol=1e-9)
-        np.testing.assert_allclose(a1.sum_invH - a0.sum_invH, (inv_h * h).sum(axis=1), rtol=1e-4, atol=1e-10)
+        np.testing.assert_allclose(d_acc, (a * h).sum(axis=1), rtol=1e-4, atol=2 * N_SUB * V_TOL)
+        np.testing.assert_allclose(a1.sum_invH - a0.sum_invH, (inv_h * h).sum(axis=1), rtol=INV_H_RTOL, atol=1e-10)
         np.testing.assert_array_equal(a1.n_boundary - a0.n_boundary, (inv_h <= 0).sum(axis=1))
         np.testing.assert_array_equal(a1.nonfoot_floor, a0.nonfoot_floor | nonfoot.any(axis=1))
         expect_off = np.asarray(a0.off_steps)
