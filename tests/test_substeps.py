@@ -28,8 +28,8 @@ V_TOL = 1e-6  # [m/s] float32 rounding of velocities between the rollout's compi
 #               1e-6 m of the positions): each ||dv|| term of the acceleration integral may differ by 2 V_TOL
 INV_H_RTOL = 0.02  # 1/H of the object's contact forces, rollout vs reference: the two compiled float32 programs put
 #                    the tray and the cube a rounding apart (~1e-7 m), and the object's compliant contacts (about
-#                    0.25 N per um at rest, mjcf/ "Object contacts") turn that into up to ~1-2 % of a corner's force
-#                    (0.8 % measured in 1/H while the cube settles into its contacts)
+#                    0.25 N per um at rest, docs/method.md "Object contacts") turn that into up to ~1-2 % of a
+#                    corner's force (0.8 % measured in 1/H while the cube settles into its contacts)
 
 
 @pytest.fixture(scope="module")
