@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.sim import aot, scenario
+from wbc_jax.sim import aot, runs, scenario
 from wbc_jax.control.transport import ObjectModel, TransportGains, default_gains
 from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.planner.spline import pad_path
@@ -33,6 +33,18 @@ class Batch(NamedTuple):
     factors: scenario.Factors
     state_axes: object = 0  # the state's run axes (wbc_jax.sim.rollout.state_axes: Warp's contact list is shared)
 
+
+
+def take_runs(b: Batch, rows, state=None, gains=None) -> Batch:
+    """The runs ``rows`` (indices into ``b``) of every per-run field of ``b`` (:func:`wbc_jax.sim.runs.take`, the
+    model and the state with their run axes; shared leaves stay whole). ``state``, ``gains``: already selected
+    replacements for those fields (e.g. runs continued from earlier states, candidate gains) instead of ``b``'s
+    rows."""
+    return b._replace(model=runs.take(b.model, rows, b.in_axes),
+                      state=runs.take(b.state, rows, b.state_axes) if state is None else state,
+                      plan=runs.take(b.plan, rows), om=runs.take(b.om, rows),
+                      gains=runs.take(b.gains, rows) if gains is None else gains, push=runs.take(b.push, rows),
+                      mu_ground=runs.take(b.mu_ground, rows), factors=runs.take(b.factors, rows))
 
 # Setup arithmetic is done in numpy and each leaf is placed on the device once: eager jnp operations would each
 # compile a small program (hundreds per campaign, seconds of a warm start).

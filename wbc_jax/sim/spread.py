@@ -68,11 +68,9 @@ class Spread:
 
             return shard_batch(b, self.mesh)[0]
         if self.mode == "blocks":
-            rows = self.block(int(np.shape(b.mu_ground)[0]))
-            return b._replace(model=runs.take(b.model, rows, b.in_axes), state=runs.take(b.state, rows, b.state_axes),
-                              plan=runs.take(b.plan, rows), om=runs.take(b.om, rows), gains=runs.take(b.gains, rows),
-                              push=runs.take(b.push, rows), mu_ground=runs.take(b.mu_ground, rows),
-                              factors=runs.take(b.factors, rows))
+            from wbc_jax.sim.batch import take_runs
+
+            return take_runs(b, self.block(int(np.shape(b.mu_ground)[0])))
         return b
 
     def place_state(self, state, n: int, axes=0):

@@ -469,7 +469,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
             if sp.mode == "one":
                 p_goal, saved = np.asarray(logs.p_obj_ref[:, -1]), state
             else:  # every process takes part in the gathers; process 0 writes
-                p_goal, saved = sp.gather(logs.p_obj_ref, dz.n)[:, -1], sp.gather(state, dz.n, b.state_axes)
+                p_goal, saved = sp.gather((logs.p_obj_ref[:, -1], state), dz.n, (0, b.state_axes))  # one collective
             if writer:
                 checkpoint.save_state(ck, saved, dict(identity=identity, chunks_done=done, n_chunks=n_chunks,
                                            wall_s=wall_before + time.perf_counter() - t_run, marks=marks,

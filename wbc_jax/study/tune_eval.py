@@ -84,6 +84,7 @@ class Evaluator:
         import jax
         import jax.numpy as jnp
 
+        from wbc_jax.sim.batch import take_runs
         from wbc_jax.sim.rollout import final_results
 
         c0, c1 = chunks[0], self.n_chunks if chunks[1] < 0 else chunks[1]
@@ -97,11 +98,8 @@ class Evaluator:
             real = min(self.size, total - s0)
             idx = np.arange(s0, s0 + self.size).clip(max=total - 1)  # padded with the last run
             rows = jnp.asarray(run[idx])
-            sub = b._replace(model=take(b.model, rows, b.in_axes), plan=take(b.plan, rows), om=take(b.om, rows),
-                             push=take(b.push, rows), mu_ground=take(b.mu_ground, rows),
-                             state=take(b.state if states is None else states, rows if states is None else
-                                        jnp.asarray(idx), b.state_axes),
-                             gains=jax.tree_util.tree_map(jnp.asarray, take(gains, cand[idx])))
+            sub = take_runs(b, rows, state=None if states is None else take(states, jnp.asarray(idx), b.state_axes),
+                            gains=jax.tree_util.tree_map(jnp.asarray, take(gains, cand[idx])))
             sub = self.spread.place(sub)
             state, logs = sub.state, None
             for _ in range(c0, c1):
@@ -111,9 +109,8 @@ class Evaluator:
                 if bar is not None:
                     bar.update(real * self.chunk_s)
             p_goal = logs.p_obj_ref[:, -1]
-            if self.spread.mode != "one":  # every process: the whole sub-batch on the host (a collective)
-                state = self.spread.gather(state, self.size, b.state_axes)
-                p_goal = self.spread.gather(p_goal, self.size)
+            if self.spread.mode != "one":  # every process: the whole sub-batch on the host (one collective)
+                state, p_goal = self.spread.gather((state, p_goal), self.size, (b.state_axes, 0))
             finals.append(final_results(self.sim, state, p_goal, np.tile(self.mu, C)[idx], n=real))
             outs.append(take(state, np.arange(real), b.state_axes))
         res = {k: np.concatenate([f[k] for f in finals]).reshape(C, self.n) for k in finals[0]}
