@@ -355,21 +355,38 @@ def test_extension_stops_at_the_cap():
     assert np.all(it == 25)
 
 
-@pytest.mark.parametrize("eq_rows,max_iters", [(24, 200), (0, 0)])
-def test_fused_kernel_equals_xla_iterations(eq_rows, max_iters):
+def _box_last(b):
+    """The WBC family's problems with their multiplier rows (rho >= 0, an identity block) moved to the end of the rows
+    and their variables to the end of the variables: ``QPSettings.box_rows``' layout, ``nrho`` box rows."""
+    nv, nrho, n, m_eq = 18, 40, b.P.shape[-1], EXACT_ROWS
+    cols = np.r_[0:nv, nv + nrho:n, nv:nv + nrho]
+    rows = np.r_[0:m_eq, m_eq + nrho:b.A.shape[-2], m_eq:m_eq + nrho]
+    A = b.A[:, rows][:, :, cols]
+    assert np.array_equal(A[:, -nrho:, -nrho:], np.broadcast_to(np.eye(nrho), (len(A), nrho, nrho)))
+    assert not np.any(A[:, -nrho:, :-nrho])
+    return (b.P[:, cols][:, :, cols], b.q[:, cols], A, b.l[:, rows], b.u[:, rows]), nrho
+
+
+@pytest.mark.parametrize("eq_rows,max_iters,box", [(24, 200, True), (0, 0, False)])
+def test_fused_kernel_equals_xla_iterations(eq_rows, max_iters, box):
     """QPSettings.kernel='fused' (one Pallas kernel for the iterations and the extension; here in the Pallas
     interpreter) gives the XLA path's iterate, iteration count and flag, float64 (6 cold WBC problems; with the
-    extension some converge at 90 or 150 iterations, some reach the cap)."""
+    extension some converge at 90 or 150 iterations, some reach the cap); with the multiplier rows stored as the
+    kernel's box block (box_rows, which the XLA path ignores) or as dense rows."""
     from wbc_jax.control.transport import control_qp_settings
 
     b = pr.make_batch(3, 6, "wbc")
-    s = control_qp_settings(10, eq_rows=eq_rows, eps_abs=1e-6, eps_rel=1e-6, linsolve="inv", max_iters=max_iters)
+    prob, nb = _box_last(b) if box else (b[:5], 0)
+    s = control_qp_settings(10, eq_rows=eq_rows, eps_abs=1e-6, eps_rel=1e-6, linsolve="inv", max_iters=max_iters,
+                            box_rows=nb)
     with jax.enable_x64(True):
-        data = [jnp.asarray(a, jnp.float64) for a in b[:5]]
+        data = [jnp.asarray(a, jnp.float64) for a in prob]
         ref = solve_qp(*data, settings=s)
         fus = solve_qp(*data, settings=s._replace(kernel="fused"))
         with pytest.raises(ValueError, match="kernel"):
             solve_qp(*data, settings=s._replace(kernel="fused", adapt_every=5))
+        with pytest.raises(ValueError, match="box_rows"):  # more box rows than rows after the exact ones
+            solve_qp(*data, settings=s._replace(box_rows=data[2].shape[-2]))
     np.testing.assert_array_equal(np.asarray(fus.iters), np.asarray(ref.iters))
     np.testing.assert_array_equal(np.asarray(fus.flag), np.asarray(ref.flag))
     for f in ("x", "y", "z"):

@@ -438,7 +438,8 @@ def transport_control(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gain
     """
     with jax.named_scope("qp_assemble"):
         obs, (P, q, A, l, u, A_tau, h_a, H_com) = assemble(m, d, dyn, ref, om, gains, cs, ids, cfg, mu_ground)
-    res = solve_qp(P, q, A, l, u, warm=cs.warm, settings=cfg.qp)
+    # the multiplier rows (12) are the QP's last rows, each bounding one of its last variables (QPSettings.box_rows)
+    res = solve_qp(P, q, A, l, u, warm=cs.warm, settings=cfg.qp._replace(box_rows=cfg.k * (N_FEET + N_OBJ)))
     tau_raw = A_tau @ res.x + h_a
     tmax = jnp.asarray(ids.tau_max)
     tau = jnp.clip(tau_raw, -tmax, tmax)

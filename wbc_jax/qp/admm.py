@@ -357,23 +357,33 @@ def _extend(P, q, A, sp: Scaled, st: State, cont, s: QPSettings, iters: int):
 
 
 def _run_fused(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
-    """``_run`` and the convergence-checked extension in one Pallas kernel (:mod:`wbc_jax.qp.fused`).
+    """``_run`` and the convergence-checked extension in one Pallas kernel (:mod:`wbc_jax.qp.fused`), with the rows
+    stored in blocks: the first ``ne`` (exact), the last ``box_rows`` (a diagonal), the dense rows between.
 
     Returns:
         ``(st, rho, n_it)``: the iterate, rho for the next solve (re-estimated from the final iterate when
         ``adapt_every > 0``) and () int32 the iterations run.
     """
-    from wbc_jax.qp.fused import fused_iterations
+    from wbc_jax.qp.fused import Block, fused_iterations
 
-    ne = max(min(s.eq_rows, sp.A.shape[0]), 1)  # one all-zero exact row stands for none
-    K0, G, Ae = _factor_parts(sp, w, free, ex, s, ne)
+    m, n = sp.A.shape
+    nb = s.box_rows
+    ne = max(min(s.eq_rows, m - nb), 1)  # one exact-block row that is not held stands for none
+    rho_v = _rho_vec(rho, w, free, s)  # 0 on held rows
+    parts = (slice(0, ne), slice(ne, m - nb), slice(m - nb, m))
+    Ae, Ai = sp.A[:ne], sp.A[ne:m - nb]
+    db = jnp.diagonal(sp.A[m - nb:, n - nb:])
     with jax.named_scope("qp_factor"):
-        kkt = _kkt_factor(K0 + rho * G, Ae, ex[:ne], "inv")
+        # P + sigma I + A' diag(rho_v) A, the box rows' part a diagonal
+        K = (sp.P + s.sigma * jnp.eye(n, dtype=sp.P.dtype) + mv(Ae.T * rho_v[:ne][None, :], Ae)
+             + mv(Ai.T * rho_v[parts[1]][None, :], Ai))
+        K = K + jnp.diag(jnp.pad(db * db * rho_v[m - nb:], (n - nb, 0)))
+        kkt = _kkt_factor(K, Ae * ex[:ne, None], ex[:ne], "inv")
+    blocks = [Block(sp.l[p], sp.u[p], rho_v[p], free[p], 1.0 / sp.E[p], st.z[p], st.y[p]) for p in parts]
     with jax.named_scope("qp_iterations"):
-        out = fused_iterations(sp.P, sp.A, Ae, kkt.fac, kkt.W, kkt.Sf, sp.q, sp.l, sp.u, _rho_vec(rho, w, free, s),
-                               ex, free, sp.E, 1.0 / (sp.c * sp.D), st.x, st.z, st.y, iters=iters,
-                               max_iters=max(s.max_iters, iters), check_every=max(s.check_every, 1),
-                               alpha=s.alpha, eps_abs=s.eps_abs, eps_rel=s.eps_rel)
+        out = fused_iterations(sp.P, kkt.fac, Ae, Ai, db, kkt.W, kkt.Sf, sp.q, ex[:ne], 1.0 / (sp.c * sp.D), st.x,
+                               *blocks, iters=iters, max_iters=max(s.max_iters, iters),
+                               check_every=max(s.check_every, 1), alpha=s.alpha, eps_abs=s.eps_abs, eps_rel=s.eps_rel)
     st = State(out.x, out.z, out.y, out.dx, out.dy, out.bad)
     if s.adapt_every > 0:
         rho = _adapt(sp, st, rho, s)
@@ -537,6 +547,11 @@ def solve_qp(P, q, A, l, u, *, iters: int | None = None, warm: Any = None,
     if s.kernel == "fused" and not one_factor:
         raise ValueError(f"QPSettings.kernel='fused' needs one factorization per solve (adapt_every 0 or >= iters), "
                          f"got adapt_every={s.adapt_every}, iters={it}")
+    m, n = jnp.shape(A)[-2:]
+    nb_max = min(n, m - max(min(s.eq_rows, m), 1))
+    if not 0 <= s.box_rows <= nb_max:
+        raise ValueError(f"QPSettings.box_rows must be in [0, {nb_max}] (bounds on the last variables, after the "
+                         f"eq_rows rows, or at least one other row), got {s.box_rows}")
     if s.max_iters > it and s.check_every < 1:
         raise ValueError(f"QPSettings.check_every must be >= 1 with max_iters > iters, got {s.check_every}")
     P = jnp.asarray(P)

@@ -79,6 +79,11 @@ class QPSettings(NamedTuple):
             (free, e.g. a swing foot's stance row) are ignored; any other of them stays an ADMM row. Their
             ``y`` is the KKT multiplier. 0: OSQP's scheme for every row (equalities through
             ``rho * rho_eq_scale``).
+        box_rows: the last ``box_rows`` rows of ``A`` bound the last ``box_rows`` variables one each (row
+            ``m - box_rows + i`` is zero except at column ``n - box_rows + i``; e.g. a force multiplier's
+            ``lambda >= 0``). The solver trusts this structure: the fused kernel stores those rows as a diagonal
+            (:mod:`wbc_jax.qp.fused`, a smaller kernel: more problems at once on a GPU); the XLA path treats them
+            as dense rows. 0: no such rows.
         max_iters: 0: exactly ``iters`` iterations. Larger: after ``iters``, blocks of ``check_every`` more
             iterations (same factorization) while the residuals are outside tolerance, up to ``max_iters``.
             Under ``vmap`` the block loop runs until the batch's slowest problem converges (converged problems
@@ -113,6 +118,7 @@ class QPSettings(NamedTuple):
     polish_delta: float = 1e-6
     polish_refine: int = 3
     eq_rows: int = 0
+    box_rows: int = 0
     max_iters: int = 0
     check_every: int = 10
     kernel: str = "xla"
