@@ -394,3 +394,64 @@ def test_fused_kernel_equals_xla_iterations(eq_rows, max_iters, box):
         assert np.max(np.abs(a - c)) <= 1e-9 * np.max(np.abs(a)), f
     if max_iters:
         assert len(np.unique(np.asarray(ref.iters))) > 1  # problems stopped at different counts
+
+
+def test_sweep_inverse_matches_numpy():
+    """The fused factorization's in-register inverse (sweep operator, no pivoting) against numpy's inverse, float64,
+    on SPD matrices with condition numbers up to ~1e8 (the x-update's K and the Schur complement are SPD), with the
+    last rows and columns identity padding that is not swept."""
+    from wbc_jax.qp.fused import sweep_inverse
+
+    rng = np.random.default_rng(5)
+    n, N = 28, 32
+    with jax.enable_x64(True):
+        for cond in (1e2, 1e5, 1e8):
+            Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+            K = Q @ np.diag(np.geomspace(1.0, 1.0 / cond, n)) @ Q.T
+            T = np.eye(N)
+            T[:n, :n] = K
+            ref = np.linalg.inv(K)
+            got = np.asarray(sweep_inverse(jnp.asarray(T), n))[:n, :n]
+            assert np.max(np.abs(got - ref)) <= 1e-14 * cond * np.max(np.abs(ref)), cond
+
+
+@pytest.mark.parametrize("n,ne", [(56, 24), (20, 6), (8, 3), (5, 2)])
+def test_fused_factorization_matches_numpy(n, ne):
+    """The fused path's factorization kernel (2 x 2 blocks of the variables' halves; Pallas interpreter, float64)
+    against numpy: K^-1 of K = P + Ae' diag(rho_e) Ae + Ai' diag(rho_i) Ai + diag(kd), W = K^-1 Ae_h' and the
+    Schur complement's inverse on the held rows, zero on padding and on rows not held; sizes with the second half
+    partly padded (56 of 64, 20 of 32), exactly one half (8 of 16) and less than one half (5 of 16)."""
+    import functools
+
+    from jax.experimental import pallas as pl
+
+    from wbc_jax.qp.fused import _factor_kernel, _pow2
+
+    rng = np.random.default_rng(11)
+    mi = 7
+    N, NE, MI = _pow2(n), _pow2(ne), _pow2(mi)
+    X = rng.normal(size=(n, n)) / np.sqrt(n)
+    P = np.zeros((N, N))
+    P[:n, :n] = X @ X.T + 0.05 * np.eye(n)
+    Ae, Ai = np.zeros((NE, N)), np.zeros((MI, N))
+    Ae[:ne, :n], Ai[:mi, :n] = rng.normal(size=(ne, n)), rng.normal(size=(mi, n))
+    re, ri = np.zeros(NE), np.zeros(MI)
+    re[ne - 1] = 1e-6  # a free exact row (rho_min), the others held (rho 0)
+    ri[:mi] = rng.uniform(0.1, 10.0, mi)
+    kd = np.where(np.arange(N) < n, rng.uniform(1e-6, 2.0, N), 1.0)
+    exe = np.zeros(NE)
+    exe[:ne - 1] = 1.0
+    shapes = [jax.ShapeDtypeStruct(s, jnp.float64) for s in ((N, N), (N, NE), (NE, NE))]
+    with jax.enable_x64(True):
+        Ki, W, Si = (np.asarray(a) for a in pl.pallas_call(
+            functools.partial(_factor_kernel, n=n, ne=ne), out_shape=shapes, interpret=True)(
+                *(jnp.asarray(a) for a in (P, Ae, Ai, kd, re, ri, exe))))
+    K = P[:n, :n] + (Ae[:, :n].T * re) @ Ae[:, :n] + (Ai[:, :n].T * ri) @ Ai[:, :n] + np.diag(kd[:n])
+    Ki_ref = np.linalg.inv(K)
+    Ah = Ae[:ne - 1, :n]
+    W_ref = Ki_ref @ Ah.T
+    Si_ref = np.linalg.inv(Ah @ W_ref)
+    rel = lambda a, b: np.max(np.abs(a - b)) / np.max(np.abs(b))  # noqa: E731
+    assert rel(Ki[:n, :n], Ki_ref) <= 1e-10 and not np.any(Ki[n:]) and not np.any(Ki[:, n:])
+    assert rel(W[:n, :ne - 1], W_ref) <= 1e-10 and not np.any(W[:, ne - 1:]) and not np.any(W[n:])
+    assert rel(Si[:ne - 1, :ne - 1], Si_ref) <= 1e-9 and not np.any(Si[ne - 1:]) and not np.any(Si[:, ne - 1:])

@@ -106,7 +106,8 @@ The control loop's settings (warm start, one factorization per step, rho fixed a
 10 to tolerance 1e-4) and their closed-loop evidence on the course (issue 22) are in
 :func:`wbc_jax.control.transport.control_qp_settings`. On a GPU the iterations and the extension run in one Pallas
 kernel per problem (``QPSettings.kernel``, :mod:`wbc_jax.qp.fused`; H100, course, Warp physics: paper campaign
-171.0 s -> 133.2 s, physics + WBC at batch 16384 431,605 -> 530,978 env-steps/s, docs/performance.md).
+171.0 s -> 133.2 s, physics + WBC at batch 16384 431,605 -> 530,978 env-steps/s, docs/performance.md), now preceded by
+a Pallas factorization kernel (physics + WBC at 16384: 906,038 -> 1,058,577 env-steps/s against XLA's).
 
 Removed settings (git has them), each measured without an advantage for the product:
 Anderson acceleration (above: -20 % iterations at +50-70 % per iteration), the x-update
@@ -114,12 +115,9 @@ in OSQP's right-hand-side form (``residual_form=False``, stalls in float32), OSQ
 no cost scaling (:mod:`wbc_jax.qp.scaling`), rho reset / re-estimated on a warm start
 (table above), and an earlier fused kernel of fixed-length segments (+12 % env-steps/s
 at batch 16384 on an H100 but a slower paper campaign, 192.6 s vs 175.0 s, from its
-compile), and the x-update's factorization inside the fused kernel (``K`` by one float32 dot, its inverse and the
-Schur complement's by Gauss-Jordan sweeps in registers; commit 9dfbbbf): H100, 512 cold WBC problems of this
-shape, the solve took 4.63 ms against 2.33 ms with the factorization in XLA, as the kernel's registers held more
-per problem; a separate Pallas factorization kernel took 4.2 ms at batch 16384 against XLA's 4.9 ms (the sweep
-inverse alone 1.5 ms), too little to pay for another kernel; splitting the constraint rows into the exact block
-and the rest (no padding to 128 rows, no selection matrix) was slower again (5.16 ms). Polishing is in :mod:`wbc_jax.qp.polish`, scaling in :mod:`wbc_jax.qp.scaling`,
+compile), and the x-update's factorization inside the iterations kernel (commit 9dfbbbf; with the rows in blocks
+again in 2026-11-26: 214,204 / 899,189 env-steps/s at batch 270 / 16384 against 219,705 / 1,058,577 for the separate
+factorization kernel, :mod:`wbc_jax.qp.fused`). Polishing is in :mod:`wbc_jax.qp.polish`, scaling in :mod:`wbc_jax.qp.scaling`,
 settings, result and flags in :mod:`wbc_jax.qp.settings`.
 """
 
@@ -357,33 +355,26 @@ def _extend(P, q, A, sp: Scaled, st: State, cont, s: QPSettings, iters: int):
 
 
 def _run_fused(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
-    """``_run`` and the convergence-checked extension in one Pallas kernel (:mod:`wbc_jax.qp.fused`), with the rows
+    """``_run`` and the convergence-checked extension in Pallas kernels (:mod:`wbc_jax.qp.fused`), with the rows
     stored in blocks: the first ``ne`` (exact), the last ``box_rows`` (a diagonal), the dense rows between.
 
     Returns:
         ``(st, rho, n_it)``: the iterate, rho for the next solve (re-estimated from the final iterate when
         ``adapt_every > 0``) and () int32 the iterations run.
     """
-    from wbc_jax.qp.fused import Block, fused_iterations
+    from wbc_jax.qp.fused import Block, fused_solve
 
     m, n = sp.A.shape
     nb = s.box_rows
     ne = max(min(s.eq_rows, m - nb), 1)  # one exact-block row that is not held stands for none
     rho_v = _rho_vec(rho, w, free, s)  # 0 on held rows
     parts = (slice(0, ne), slice(ne, m - nb), slice(m - nb, m))
-    Ae, Ai = sp.A[:ne], sp.A[ne:m - nb]
-    db = jnp.diagonal(sp.A[m - nb:, n - nb:])
-    with jax.named_scope("qp_factor"):
-        # P + sigma I + A' diag(rho_v) A, the box rows' part a diagonal
-        K = (sp.P + s.sigma * jnp.eye(n, dtype=sp.P.dtype) + mv(Ae.T * rho_v[:ne][None, :], Ae)
-             + mv(Ai.T * rho_v[parts[1]][None, :], Ai))
-        K = K + jnp.diag(jnp.pad(db * db * rho_v[m - nb:], (n - nb, 0)))
-        kkt = _kkt_factor(K, Ae * ex[:ne, None], ex[:ne], "inv")
     blocks = [Block(sp.l[p], sp.u[p], rho_v[p], free[p], 1.0 / sp.E[p], st.z[p], st.y[p]) for p in parts]
     with jax.named_scope("qp_iterations"):
-        out = fused_iterations(sp.P, kkt.fac, Ae, Ai, db, kkt.W, kkt.Sf, sp.q, ex[:ne], 1.0 / (sp.c * sp.D), st.x,
-                               *blocks, iters=iters, max_iters=max(s.max_iters, iters),
-                               check_every=max(s.check_every, 1), alpha=s.alpha, eps_abs=s.eps_abs, eps_rel=s.eps_rel)
+        out = fused_solve(sp.P, sp.A[:ne], sp.A[ne:m - nb], jnp.diagonal(sp.A[m - nb:, n - nb:]), sp.q, ex[:ne],
+                          1.0 / (sp.c * sp.D), st.x, *blocks, sigma=s.sigma, iters=iters,
+                          max_iters=max(s.max_iters, iters), check_every=max(s.check_every, 1), alpha=s.alpha,
+                          eps_abs=s.eps_abs, eps_rel=s.eps_rel)
     st = State(out.x, out.z, out.y, out.dx, out.dy, out.bad)
     if s.adapt_every > 0:
         rho = _adapt(sp, st, rho, s)

@@ -1,4 +1,5 @@
-"""The ADMM iterations of one solve, its convergence-checked extension included, as one Pallas (Triton) kernel.
+"""One solve of the fused path as two Pallas (Triton) kernels, one program per problem each: the x-update's
+factorization, then the ADMM iterations with the convergence-checked extension.
 
 Why: the XLA path (``admm._step`` in ``lax.scan``, then the extension's ``lax.while_loop``) launches about ten kernels
 per iteration and reads ``P``, ``A``, ``K^-1`` and the Schur factors from device memory at every one. Under ``vmap``
@@ -10,8 +11,7 @@ physics): the paper campaign 171.0 s -> 133.2 s, physics + WBC at batch 16384 43
 (docs/performance.md).
 
 The rows come in three blocks, each stored only as large as it is (a program's matrices live in the registers of
-one streaming multiprocessor, so their size sets how many problems run at once: ``num_warps`` 2, 4, 8, 16 timed the
-same, which is what a register-bound kernel does):
+one streaming multiprocessor, so their size sets how many problems run at once):
 
 * the exact block: the first ``ne`` rows (``QPSettings.eq_rows``), ``Ae`` (ne, n), unmasked; the rows held exactly
   (``ex``) enter the x-update's KKT system through ``W = K^-1 Ae'`` and the Schur complement's inverse ``S^-1``;
@@ -19,10 +19,23 @@ same, which is what a register-bound kernel does):
 * the box block: the last ``nb`` rows (``QPSettings.box_rows``), bounds on the last ``nb`` variables, stored as the
   diagonal ``db`` (n,) (zero on the other variables).
 
-Measured (H100, course, Warp physics, batch 16384, ``bench trace``): the kernel 6.31 ms -> 3.18 ms per control step
-against all rows in one (128, 64) matrix with the exact rows again in their own and a (32, 128) selection matrix
-(transport: 24 exact, 22 dense, 32 box rows; 56 variables); ``bench rollout``, physics + WBC, one run: 747,817 ->
-904,777 env-steps/s at 16384, 186,373 -> 199,088 at 270.
+The factorization (:func:`_factor_kernel`) builds ``K`` from the blocks and inverts it in 2 x 2 blocks of the
+variables' halves by Gauss-Jordan sweeps (:func:`sweep_inverse`), then ``W`` and ``S^-1``: one kernel where XLA
+launched ~50 (Gram products, cuSOLVER's batched Cholesky, triangular solves, the Schur complement's Cholesky).
+
+Measured on H100s (course, Warp physics; ``bench rollout`` physics + WBC, env-steps/s at batch 270 / 16384; each run
+one call on one machine, the earlier variant re-measured in the same run):
+
+* run 1: rows in one (128, 64) matrix, the exact rows again and a (32, 128) selection: 186,373 / 747,817; rows in
+  blocks (the iterations kernel 6.31 -> 3.18 ms per control step at 16384, ``bench trace``): 199,088 / 904,777.
+* run 2: blocks 201,582 / 903,970; factorization in Pallas, whole-tile sweeps, 8 warps: 212,198 / 889,724;
+  factorization and iterations in one kernel, 8 warps: 212,612 / 907,895.
+* run 3: blocks 200,846 / 906,038; whole-tile sweeps, 4 warps: 149,516 (the machine's first measurement) /
+  1,003,361; one kernel, 4 warps: 214,204 / 899,189; **2 x 2 blocks, 4 warps (this): 219,705 / 1,058,577**.
+
+The factorization kernel alone at 16384 problems: whole-tile sweeps 4.05 / 3.56 / 5.51 ms with 2 / 4 / 8 warps
+(one warp: 21 ms, spilled), 2 x 2 blocks 4.02 / 2.94 / 4.83 ms; the iterations kernel, 20 iterations: 4.97 ms with
+4 warps, 5.47 ms with 8, 9.5 ms with one.
 
 Every row follows the same ADMM update whatever its block (an exact-block row that is not held is an ordinary ADMM
 row), so the blocks are a partition of the storage, not of the algorithm. The arithmetic is ``admm._step``'s with
@@ -94,6 +107,84 @@ def _finite(*vs):  # () bool, every entry finite (Triton-friendly: x - x is 0 on
 
 
 N_BLOCK = len(Block._fields)
+
+
+def sweep_inverse(T, count: int):
+    """``T^-1`` of a symmetric positive definite ``T`` (N, N) by Gauss-Jordan elimination without pivoting, in the
+    symmetric form of Beaton's sweep operator (each sweep reads one row, which is also the column).
+
+    Only the first ``count`` indices are swept: the rest must be padding (identity rows and columns), whose entries
+    of the result are then meaningless (the caller masks them). No pivoting is needed for a positive definite
+    matrix (each pivot is a Schur complement's diagonal entry, > 0); the ADMM step's residual form corrects what
+    rounding leaves. Plain ``jnp`` on register tiles (masked reductions instead of dynamic indexing), so it runs
+    inside the Triton kernel and outside it (tests).
+    """
+    N = T.shape[0]
+    ri = jax.lax.broadcasted_iota(jnp.int32, (N, N), 0)
+    ci = jax.lax.broadcasted_iota(jnp.int32, (N, N), 1)
+    vi = jax.lax.broadcasted_iota(jnp.int32, (N,), 0)
+
+    def sweep(k, T):
+        rk = jnp.sum(jnp.where(ri == k, T, 0.0), axis=0)  # row k = column k
+        d = jnp.sum(jnp.where(vi == k, rk, 0.0))
+        v = jnp.where(vi == k, -1.0, rk) / d
+        return jnp.where(ri == k, v[None, :], jnp.where(ci == k, v[:, None], T - rk[:, None] * (rk[None, :] / d)))
+
+    return -jax.lax.fori_loop(0, count, sweep, T)
+
+
+def _dot(a, b, contract):  # full-precision matrix product (IEEE float32 on Triton, no TF32)
+    return jax.lax.dot_general(a, b, (contract, ((), ())), precision=jax.lax.Precision.HIGHEST)
+
+
+def _factor_kernel(P_ref, Ae_ref, Ai_ref, kd_ref, re_ref, ri_ref, exe_ref, Ki_ref, W_ref, Si_ref, *, n: int, ne: int):
+    """``admm._kkt_factor`` with ``linsolve="inv"`` for one problem, in 2 x 2 blocks of the variables' halves.
+
+    ``K = P + A' diag(rho) A + diag(kd)`` (the box rows and sigma in ``kd``; padded variables: identity) is inverted
+    through its first half's inverse and the Schur complement of the second half (two sweeps of half the size: the
+    sweeps are sequential, and a half-size tile's are cheaper), then ``W = K^-1 Ae_h'`` and ``S^-1``, ``S = Ae_h W``
+    regularized by the dtype's epsilon times its largest diagonal entry (``Ae_h``: the held exact rows; ``S^-1``
+    zero on the others). ``K^-1`` is zero on padded variables.
+    """
+    N = P_ref.shape[0]
+    H = N // 2
+    s1, s2 = slice(0, H), slice(H, N)
+    re, ri_, exe = re_ref[...], ri_ref[...], exe_ref[...]
+    Ae1, Ae2, Ai1, Ai2 = Ae_ref[:, s1], Ae_ref[:, s2], Ai_ref[:, s1], Ai_ref[:, s2]
+    r = jax.lax.broadcasted_iota(jnp.int32, (H, H), 0)
+    c = jax.lax.broadcasted_iota(jnp.int32, (H, H), 1)
+
+    def gram(Xa, Xb):  # Xa' diag(rho) Xb over the exact and the dense rows
+        return _dot(Xa[0] * re[:, None], Xb[0], ((0,), (0,))) + _dot(Xa[1] * ri_[:, None], Xb[1], ((0,), (0,)))
+
+    def sym(M, kd=None):
+        M = 0.5 * (M + M.T)
+        return M if kd is None else M + jnp.where(r == c, kd[None, :], 0.0)
+
+    K11 = sym(P_ref[s1, s1] + gram((Ae1, Ai1), (Ae1, Ai1)), kd_ref[s1])
+    K12 = P_ref[s1, s2] + gram((Ae1, Ai1), (Ae2, Ai2))
+    K22 = sym(P_ref[s2, s2] + gram((Ae2, Ai2), (Ae2, Ai2)), kd_ref[s2])
+    K11i = sweep_inverse(K11, min(n, H))
+    X = _dot(K11i, K12, ((1,), (0,)))  # K11^-1 K12
+    S2i = jnp.where((r < n - H) & (c < n - H), sweep_inverse(sym(K22 - _dot(K12, X, ((0,), (0,)))), n - H), 0.0)
+    XS = _dot(X, S2i, ((1,), (0,)))
+    Ki11 = jnp.where((r < n) & (c < n), K11i + _dot(XS, X, ((1,), (1,))), 0.0)
+    Ki_ref[s1, s1] = Ki11
+    Ki_ref[s1, s2] = -XS
+    Ki_ref[s2, s1] = -XS.T
+    Ki_ref[s2, s2] = S2i
+    Ah1, Ah2 = Ae1 * exe[:, None], Ae2 * exe[:, None]
+    W1 = _dot(Ki11, Ah1, ((1,), (1,))) - _dot(XS, Ah2, ((1,), (1,)))
+    W2 = -_dot(XS, Ah1, ((0,), (1,))) + _dot(S2i, Ah2, ((1,), (1,)))
+    W_ref[s1, :] = W1
+    W_ref[s2, :] = W2
+    S = _dot(Ah1, W1, ((1,), (0,))) + _dot(Ah2, W2, ((1,), (0,)))
+    NE = S.shape[0]
+    eye = jax.lax.broadcasted_iota(jnp.int32, (NE, NE), 0) == jax.lax.broadcasted_iota(jnp.int32, (NE, NE), 1)
+    info = jnp.finfo(S.dtype)
+    reg = float(info.eps) * jnp.max(jnp.abs(jnp.sum(jnp.where(eye, S, 0.0), axis=1))) + float(info.tiny)
+    S = 0.5 * (S + S.T) + jnp.where(eye, jnp.where(exe > 0.5, reg, 1.0)[:, None], 0.0)
+    Si_ref[...] = sweep_inverse(S, ne) * (exe[:, None] * exe[None, :])
 
 
 def _kernel(P_ref, Ki_ref, Ae_ref, Ai_ref, db_ref, W_ref, Si_ref, q_ref, le_ref, exe_ref, Dc_ref, x_ref, *refs,
@@ -185,24 +276,24 @@ def _padded_block(b: Block, size: int, front: int = 0) -> list:
     return [pad(b.l), pad(b.u), pad(b.rho), pad(b.free), pad(b.Ei, 1.0), pad(b.z), pad(b.y)]
 
 
-@functools.partial(jax.jit, static_argnames=("iters", "max_iters", "check_every", "alpha", "eps_abs", "eps_rel",
-                                             "num_warps"))
-def fused_iterations(P, Kinv, Ae, Ai, db, W, Sinv, q, ex_e, Dc, x, exact: Block, dense: Block, box: Block, *,
-                     iters: int, max_iters: int, check_every: int, alpha: float, eps_abs: float, eps_rel: float,
-                     num_warps: int = 8) -> FusedOut:
-    """``iters`` ADMM iterations of one scaled problem, then blocks of ``check_every`` while unconverged.
+@functools.partial(jax.jit, static_argnames=("sigma", "iters", "max_iters", "check_every", "alpha", "eps_abs",
+                                             "eps_rel", "num_warps", "factor_warps"))
+def fused_solve(P, Ae, Ai, db, q, ex_e, Dc, x, exact: Block, dense: Block, box: Block, *, sigma: float, iters: int,
+                max_iters: int, check_every: int, alpha: float, eps_abs: float, eps_rel: float,
+                num_warps: int = 4, factor_warps: int = 4) -> FusedOut:
+    """The x-update's factorization (one kernel), then ``iters`` ADMM iterations of one scaled problem and blocks of
+    ``check_every`` while unconverged (a second kernel).
 
     Args:
-        P: (n, n) the scaled cost; Kinv: (n, n) inverse of ``P + sigma I + A' diag(rho) A``.
-        Ae: (ne, n) the exact block's rows (unmasked); Ai: (mi, n) the dense block's rows; db: (nb,) the box block's
-            diagonal (row i bounds variable ``n - nb + i``).
-        W: (n, ne) ``Kinv Ae_h'`` and Sinv: (ne, ne) the inverse of the Schur complement ``Ae_h W`` (``admm.KKT``,
-            ``Ae_h`` the held rows of ``Ae``; identity on rows not held).
+        P: (n, n) the scaled cost; Ae: (ne, n) the exact block's rows (unmasked); Ai: (mi, n) the dense block's rows;
+            db: (nb,) the box block's diagonal (row i bounds variable ``n - nb + i``).
         q: (n,) scaled linear cost; ex_e: (ne,) bool, exact-block rows held exactly (their ``l == u``).
         Dc: (n,) ``1 / (c D)`` (column and cost scaling), for the convergence test.
         x: (n,) start. exact, dense, box: :class:`Block` of each (bounds finite, ``+-BIG``; ``rho`` 0 on held rows).
+        sigma: the proximal term of ``K = P + sigma I + A' diag(rho) A``.
         iters / max_iters / check_every: as ``QPSettings`` (``max_iters <= iters``: no extension).
-        alpha: over-relaxation. eps_abs, eps_rel: the test's tolerances. num_warps: Triton warps per program.
+        alpha: over-relaxation. eps_abs, eps_rel: the test's tolerances.
+        num_warps, factor_warps: Triton warps per program of the iteration and the factorization kernel.
 
     Returns:
         :class:`FusedOut`.
@@ -211,24 +302,33 @@ def fused_iterations(P, Kinv, Ae, Ai, db, W, Sinv, q, ex_e, Dc, x, exact: Block,
     N, NE, MI = _pow2(n), _pow2(ne), _pow2(mi)
     dt = P.dtype
     pn, pe, pi = (0, N - n), (0, NE - ne), (0, MI - mi)
-    ex_f = ex_e.astype(dt)
-    le = jnp.where(ex_e, exact.l, 0.0)
-    args = [jnp.pad(P, (pn, pn)), jnp.pad(Kinv, (pn, pn)), jnp.pad(Ae, (pe, pn)), jnp.pad(Ai, (pi, pn)),
-            jnp.pad(db, (n - nb, N - n)), jnp.pad(W, (pn, pe)), jnp.pad(Sinv * (ex_f[:, None] * ex_f[None, :]), (pe, pe)),
-            jnp.pad(q, pn), jnp.pad(le, pe), jnp.pad(ex_f, pe), jnp.pad(Dc, pn, constant_values=1.0), jnp.pad(x, pn)]
-    args += _padded_block(exact, NE) + _padded_block(dense, MI) + _padded_block(box, N, n - nb)
-    sizes = (N, NE, MI, N, NE, MI, N, NE, MI, N, N, 16)  # x, z (3 blocks), y (3), dy (3), dx, info
-    shapes = [jax.ShapeDtypeStruct((s,), dt) for s in sizes]
+    ex_f = jnp.pad(ex_e.astype(dt), pe)
+    le = jnp.pad(jnp.where(ex_e, exact.l, 0.0), pe)
+    P, Ae, Ai = jnp.pad(P, (pn, pn)), jnp.pad(Ae, (pe, pn)), jnp.pad(Ai, (pi, pn))
+    db_p = jnp.pad(db, (n - nb, N - n))
+    blocks = _padded_block(exact, NE) + _padded_block(dense, MI) + _padded_block(box, N, n - nb)
+    rho_e, rho_i, rho_b = blocks[2], blocks[N_BLOCK + 2], blocks[2 * N_BLOCK + 2]
+    kd = jnp.where(jnp.arange(N) < n, sigma + db_p * db_p * rho_b, 1.0)  # padded variables: identity
     interpret = jax.default_backend() == "cpu"
-    params = None
+    params = fparams = None
     if not interpret:
         from jax.experimental.pallas import triton as plgpu
 
         params = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
+        fparams = plgpu.CompilerParams(num_warps=factor_warps, num_stages=1)
+    with jax.named_scope("qp_factor"):
+        Ki, W, Si = pl.pallas_call(
+            functools.partial(_factor_kernel, n=n, ne=ne), interpret=interpret, compiler_params=fparams,
+            out_shape=[jax.ShapeDtypeStruct(s, dt) for s in ((N, N), (N, NE), (NE, NE))], name="admm_factor",
+        )(P, Ae, Ai, kd, rho_e, rho_i, ex_f)
+    args = [P, Ki, Ae, Ai, db_p, W, Si, jnp.pad(q, pn), le, ex_f, jnp.pad(Dc, pn, constant_values=1.0),
+            jnp.pad(x, pn)] + blocks
+    sizes = (N, NE, MI, N, NE, MI, N, NE, MI, N, N, 16)  # x, z (3 blocks), y (3), dy (3), dx, info
     kern = functools.partial(_kernel, iters=iters, max_iters=max_iters, check_every=check_every, alpha=alpha,
                              eps_abs=eps_abs, eps_rel=eps_rel)
     xo, ze, zi, zb, ye, yi, yb, dye, dyi, dyb, dxo, info = pl.pallas_call(
-        kern, out_shape=shapes, interpret=interpret, compiler_params=params, name="admm_iterations")(*args)
+        kern, out_shape=[jax.ShapeDtypeStruct((s,), dt) for s in sizes], interpret=interpret, compiler_params=params,
+        name="admm_iterations")(*args)
     rows = lambda e, i, b: jnp.concatenate([e[:ne], i[:mi], b[n - nb:n]])  # noqa: E731
     return FusedOut(xo[:n], rows(ze, zi, zb), rows(ye, yi, yb), dxo[:n], rows(dye, dyi, dyb), info[0] > 0,
                     info[1].astype(jnp.int32))
