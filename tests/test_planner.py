@@ -577,3 +577,44 @@ def test_cp_reference_and_trot_plan():
     eos_b = jax.jit(jax.vmap(chain))(jnp.array([0.05, 0.1]))
     np.testing.assert_allclose(eos_b[1], eos, atol=1e-6)
     np.testing.assert_allclose(eos_b[0], 0.5 * np.asarray(eos), atol=1e-6)
+
+
+def test_apf_band_newton_is_the_minimiser():
+    """plan_dip's Newton solve (issue: it replaced L-BFGS-B, 6-20 s per plan) on the course's wall: the band's
+    analytic gradient and Hessian against central differences of its energy, the result a stationary point (interior
+    gradient at float64 rounding) that random interior moves do not improve, and the same minimiser as scipy's
+    L-BFGS-B (an independent method) on a 1.2 m stretch through the wall."""
+    from scipy.optimize import minimize
+
+    from wbc_jax.planner.apf import band, plan_dip
+    from wbc_jax.planner.scene_geometry import scene_geometry
+    from wbc_jax.sim.model import Robot
+
+    obstacles = scene_geometry(Robot("transport")).obstacles
+    wall_y = float(np.mean(obstacles[:, :, 1]))
+    p_i = np.array([0.0, wall_y + 0.6, 0.81])
+    p_f = p_i + [0.0, -1.2, 0.0]
+    top = 0.04
+    b = band(p_i, p_f, obstacles, top)
+    rng = np.random.default_rng(3)
+    z = b.z_nom - 0.1 * np.exp(-((b.s - 0.6) / 0.2) ** 2) + 1e-3 * rng.normal(size=b.s.shape)  # a rough dip
+    U, g, H = b.energy(z)
+    h = 1e-6
+    for i in rng.choice(np.arange(1, len(z) - 1), 8, replace=False):
+        e = np.zeros_like(z)
+        e[i] = h
+        (Up, gp, _), (Um, gm, _) = b.energy(z + e), b.energy(z - e)
+        assert (Up - Um) / (2 * h) == pytest.approx(g[i], rel=1e-5, abs=1e-9)
+        np.testing.assert_allclose((gp - gm) / (2 * h), H[:, i], rtol=1e-5, atol=1e-7)
+    dip = plan_dip(p_i, p_f, obstacles, top)
+    U0, g0, _ = b.energy(dip.z)
+    assert np.max(np.abs(g0[1:-1])) <= 1e-11
+    for _ in range(5):
+        d = np.zeros_like(dip.z)
+        d[1:-1] = 1e-4 * rng.normal(size=len(d) - 2)
+        assert b.energy(dip.z + d)[0] > U0
+    bounds = [(b.z_nom[0], b.z_nom[0])] + [(None, None)] * (len(z) - 2) + [(b.z_nom[-1], b.z_nom[-1])]
+    ref = minimize(lambda z: b.energy(z)[:2], b.z_nom.copy(), jac=True, method="L-BFGS-B", bounds=bounds,
+                   options=dict(maxiter=20000, maxfun=40000, ftol=1e-15, gtol=1e-12))
+    assert dip.z.min() < b.z_nom[0] - 0.1  # the band dips under the lintel ...
+    np.testing.assert_allclose(dip.z, ref.x, atol=2e-6)  # ... to L-BFGS-B's minimiser (it stops within ~1 um)

