@@ -206,7 +206,10 @@ def test_mjx_slot_distance_overstates_edge_clearance():
     q[1] += dy
     q[2] += dz
     q[jq("FR_pitch")], q[jq("FR_knee")] = pitch, knee
-    d = jax.jit(physics.sense)(robot.mjx_model, mjx.make_data(robot.mjx_model).replace(qpos=jnp.asarray(q)))
+    # the data placed on the device as make_sim's contact-slot pass places it (physics.make_data, committed), so this
+    # is the program that pass compiles (make_sim above), reused rather than compiled again for uncommitted inputs
+    d = physics.make_data(robot).replace(qpos=jax.device_put(jnp.asarray(q), jax.local_devices()[0]))
+    d = jax.jit(physics.sense)(robot.mjx_model, d)
     shank, block = gid("FR_shank"), gid("block2")
     slots = [s for s, g in zip(sim.nonfoot_slots, sim.nonfoot_geoms) if set(g) == {shank, block}]
     mjx_d = float(np.min(np.asarray(d._impl.contact.dist)[slots]))

@@ -32,6 +32,7 @@ HEIGHT_TOL = 0.01  # [m]
 TROT_SECONDS = 0.7  # two diagonal swings (gait starts at 0.1 s)
 TROT_SLIP_MAX = 3e-3  # [m] over the segment (the full-walk figures are in the issue notes)
 TROT_Z_BAND = (0.40, 0.50)  # [m] trunk height band during the segment
+TROT_PLAN = dict(distance=0.3, ramp=0.5)  # the trot segment's path (the stand's plan has its shapes: setup)
 CHUNK_SECONDS = 0.1  # simulated time per jit call: a common divisor of both horizons, so the stand and the trot
 #                      run one compiled chunk function (same chunk length; the chunking leaves the logs unchanged)
 
@@ -40,8 +41,10 @@ CHUNK_SECONDS = 0.1  # simulated time per jit call: a common divisor of both hor
 def setup():
     robot = Robot("flat")
     sim = make_sim(robot, TransportConfig(dt=0.001, qp=control_qp_settings()), log_every=50)  # the control loop's QP
-    # gait starts after the test horizon: the robot stands under QP torque control, loaded
-    plan_kwargs = dict(gait=GaitParams(t_start=10.0), distance=0.1)
+    # gait starts after the test horizon: the robot stands under QP torque control, loaded; the path's distance
+    # and ramp are the trot segment's (TROT_PLAN), which do not act before the gait starts but give the plan the
+    # trot's array shapes, so the trot runs the stand's compiled chunk function (a second compile: ~1 min)
+    plan_kwargs = dict(TROT_PLAN, gait=GaitParams(t_start=10.0))
     b = prepare_batch(sim, [0.2, 0.4], [0.4, 1.0], [0.10, 0.06], plan_kwargs=plan_kwargs)
     return robot, sim, b
 
@@ -63,14 +66,28 @@ def _qp_at(m, rs, plan, om, gains, ids, cfg):
     return dyn, obj, build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, jnp.zeros(6), ids, cfg, 1.0, rs.cs.q_post)
 
 
-def test_qp_matches_reference_and_dynamics(setup):
+@pytest.fixture(scope="module")
+def qp_at(setup):
+    """cfg -> (DynTerms, ObjectState, build_qp's outputs) of run 0's initial state, one jitted program per
+    controller config (the module's config compiled once for both QP tests; jitted rather than run op by op,
+    which took about 2 minutes per call on 2 cores)."""
+    robot, sim, b = setup
+    args = (_take0(b.model, b.in_axes), _take0(b.state), _take0(b.plan), _take0(b.om), _take0(b.gains))
+    fns = {}
+
+    def at(cfg):
+        if cfg not in fns:
+            fns[cfg] = jax.jit(lambda m, rs, plan, om, gains: _qp_at(m, rs, plan, om, gains, robot.ids, cfg))(*args)
+        return fns[cfg]
+
+    return at
+
+
+def test_qp_matches_reference_and_dynamics(setup, qp_at):
     robot, sim, b = setup
     ids = robot.ids
-    m = _take0(b.model, b.in_axes)
-    rs, plan, om, gains = _take0(b.state), _take0(b.plan), _take0(b.om), _take0(b.gains)
-
-    build = jax.jit(lambda m, rs, plan, om, gains: _qp_at(m, rs, plan, om, gains, ids, sim.cfg)[::2])
-    dyn, (P, q, A, l, u, A_tau, h_a, H_com) = build(m, rs, plan, om, gains)
+    om = _take0(b.om)
+    dyn, _, (P, q, A, l, u, A_tau, h_a, H_com) = qp_at(sim.cfg)
     Pn, qn, An, ln, un, Atn, han = (np.asarray(x, float) for x in (P, q, A, l, u, A_tau, h_a))
     s = osqp.OSQP()
     s.setup(sp.csc_matrix(np.triu(Pn)), qn, sp.csc_matrix(An), np.maximum(ln, -1e20), np.minimum(un, 1e20),
@@ -104,7 +121,7 @@ def test_qp_matches_reference_and_dynamics(setup):
     assert abs(F_gr[2::3].sum() - total) < 0.02 * total
 
 
-def test_object_wrench_is_no_lever_for_the_com_row(setup):
+def test_object_wrench_is_no_lever_for_the_com_row(setup, qp_at):
     """Issue 23: the CoM-wrench cost row carries the object's *target* wrench as a constant, so the cost does not
     couple the object's multipliers Lambda_b to the ground's, and their linear cost term is the object row's
     alone: q_b = -W_b^T Q_obj F_b,ref with F_b,ref = [m g e_z; 0] for the cube at rest on its reference (hand
@@ -112,11 +129,10 @@ def test_object_wrench_is_no_lever_for_the_com_row(setup):
     CoM wrench, which made T grow with m, mu and d (docs/method.md)."""
     robot, sim, b = setup
     ids = robot.ids
-    m = _take0(b.model, b.in_axes)
-    rs, plan, om, gains = _take0(b.state), _take0(b.plan), _take0(b.om), _take0(b.gains)
+    om, gains = _take0(b.om), _take0(b.gains)
 
     def build(cfg):
-        dyn, obj, qp = _qp_at(m, rs, plan, om, gains, ids, cfg)
+        dyn, obj, qp = qp_at(cfg)
         return np.asarray(qp[0], float), np.asarray(qp[1], float), obj, dyn
 
     k, nv = sim.cfg.k, ids.nv_robot
@@ -159,7 +175,7 @@ def test_short_loaded_trot_segment(setup):
     """Two diagonal swings with the object on the tray: the QP keeps the robot up and the object on."""
     robot, sim, _ = setup
     b = prepare_batch(sim, [0.2, 0.4], [0.4, 1.0], [0.10, 0.06],
-                      plan_kwargs=dict(gait=GaitParams(t_start=0.1), distance=0.3, ramp=0.5))
+                      plan_kwargs=dict(TROT_PLAN, gait=GaitParams(t_start=0.1)))  # the stand's shapes: no recompile
     st, logs = simulate(sim, b.model, b.in_axes, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground,
                         TROT_SECONDS, chunk_seconds=CHUNK_SECONDS)
     acc = jax.device_get(st.acc)

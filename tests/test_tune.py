@@ -286,7 +286,7 @@ def test_compare_replay_pairs_by_seed(tmp_path):
         compare_replay(t_dir, c_dir)
 
 
-def test_cpu_batch_keeps_lapack_kernels_inline():
+def test_cpu_batch_keeps_lapack_kernels_inline(monkeypatch):
     """The hang of `wbc-jax tune --candidates 4` on 2 cores: jaxlib 0.10's batched Cholesky / triangular solve
     hand pieces of a batch to XLA's intra-op pool when batch x n^3 / 3 >= 200,000 and block their own pool thread
     until the pieces finish; two at once on a 2-thread pool deadlock. With CPU_BATCH runs per call, every LAPACK
@@ -294,6 +294,7 @@ def test_cpu_batch_keeps_lapack_kernels_inline():
     compile) and checks every factorisation in it, so a larger QP or model breaks this test, not a user's run."""
     import jax
 
+    from wbc_jax.sim import batch as batch_module
     from wbc_jax.sim.rollout import make_chunk_fn
     from wbc_jax.study import campaign
     from wbc_jax.study.spec import load_spec, parse_spec
@@ -303,10 +304,15 @@ def test_cpu_batch_keeps_lapack_kernels_inline():
     paper = load_spec(SWEEPS / "paper_campaign.toml")  # the course scene (the larger model), 8 runs to build
     spec = parse_spec(dict(campaign=dict(paper.campaign, reps=1), perturbations=paper.perturbations,
                            factors={k: v[:2] for k, v in paper.factors.items()}))
+    # the batch's initial states as shapes and types only (jax.eval_shape of the real init function): the trace
+    # below reads nothing else of them, and compiling the course scene's init program took ~1 min on 2 cores
+    real_init = batch_module._init_fn
+    monkeypatch.setattr(batch_module, "_init_fn", lambda *a: lambda *x: jax.eval_shape(real_init(*a), *x))
     sim, dz, b, *_ = campaign.build(spec)
+    assert all(isinstance(x, jax.ShapeDtypeStruct) for x in jax.tree_util.tree_leaves(b.state.d))  # not computed
     rows = np.arange(CPU_BATCH)
-    sub = b._replace(model=take(b.model, rows, b.in_axes), **{k: take(getattr(b, k), rows) for k in
-                                                              ("state", "plan", "om", "gains", "push", "mu_ground")})
+    sub = b._replace(model=take(b.model, rows, b.in_axes), state=jax.eval_shape(lambda s: take(s, rows), b.state),
+                     **{k: take(getattr(b, k), rows) for k in ("plan", "om", "gains", "push", "mu_ground")})
     f = jax.vmap(make_chunk_fn(sim, 1), in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0))
     jaxpr = jax.make_jaxpr(f)(sub.model, sub.state, sub.plan, sub.om, sub.gains, sub.push, sub.mu_ground)
     found = []
