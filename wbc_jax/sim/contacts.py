@@ -124,13 +124,46 @@ def contact_slots(robot):
     return aot.cached_value("slots", aot.describe(robot), lambda: _contact_slots(robot))
 
 
-def _contact_slots(robot):
+def contact_geoms_static(mjx_model) -> np.ndarray | None:
+    """(ncon, 2) geom ids of MJX's contact slots (JAX backend), from the model alone: MJX's collision driver runs one
+    collision function per group of geom pairs (``collision_driver._geom_groups``: by geom types, mesh and condim),
+    repeats each group's rows by the function's contact count and concatenates the groups by ascending condim, in
+    the groups' order. None where that layout is not static (a broad phase: ``max_geom_pairs`` or
+    ``max_contact_points`` set) or does not add up to the model's contact count; :func:`compiled_contact_geoms`
+    reads it from a compiled step instead (a test compares the two)."""
+    from mujoco.mjx._src import collision_driver as cd
+
+    if cd._numeric(mjx_model, "max_geom_pairs") > -1 or cd._numeric(mjx_model, "max_contact_points") > -1:
+        return None
+    by_condim: dict[int, list[np.ndarray]] = {}
+    for key, ids in cd._geom_groups(mjx_model).items():
+        func = cd._COLLISION_FUNC.get(key.types)
+        if func is None:  # SDF and other groups whose count is not the function's
+            return None
+        geom = np.asarray(ids, dtype=np.int64)[:, :2]
+        by_condim.setdefault(int(key.condim), []).append(np.repeat(geom, func.ncon, axis=0))
+    if not by_condim:
+        return None
+    dims = np.concatenate([np.full(len(g), c) for c in sorted(by_condim) for g in by_condim[c]])
+    if not np.array_equal(dims, cd.make_condim(mjx_model)):  # MJX's own count of the slots and their dims
+        return None
+    return np.concatenate([g for c in sorted(by_condim) for g in by_condim[c]])
+
+
+def compiled_contact_geoms(robot) -> np.ndarray:
+    """(ncon, 2) geom ids of MJX's contact slots read from one compiled sensing pass (25-40 s of compile on a CPU)."""
     from wbc_jax.sim import physics
     from wbc_jax.sim.model import mjx
 
-    m = robot.mj_model
     d = jax.jit(physics.sense)(robot.mjx_model, mjx.make_data(robot.mjx_model, device=jax.local_devices()[0]))
-    geom = np.asarray(d._impl.contact.geom)
+    return np.asarray(d._impl.contact.geom).astype(np.int64)
+
+
+def _contact_slots(robot):
+    m = robot.mj_model
+    geom = contact_geoms_static(robot.mjx_model)
+    if geom is None:
+        geom = compiled_contact_geoms(robot)
     pairs = {(int(m.pair_geom1[i]), int(m.pair_geom2[i])): i for i in range(m.npair)}
     slot_pair = np.array([pairs.get((int(a), int(b)), pairs.get((int(b), int(a)), -1)) for a, b in geom])
     foot = np.array([np.where(np.isin(slot_pair, fp))[0] for fp in robot.ids.foot_pair])
