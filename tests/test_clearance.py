@@ -206,8 +206,8 @@ def test_mjx_slot_distance_overstates_edge_clearance():
     q[1] += dy
     q[2] += dz
     q[jq("FR_pitch")], q[jq("FR_knee")] = pitch, knee
-    # the data placed on the device as make_sim's contact-slot pass places it (physics.make_data, committed), so this
-    # is the program that pass compiles (make_sim above), reused rather than compiled again for uncommitted inputs
+    # the data placed on the device as physics.make_data places it (committed), as the other sensing passes of this
+    # module's scene are, so the jitted sensing program is not compiled a second time for uncommitted inputs
     d = physics.make_data(robot).replace(qpos=jax.device_put(jnp.asarray(q), jax.local_devices()[0]))
     d = jax.jit(physics.sense)(robot.mjx_model, d)
     shank, block = gid("FR_shank"), gid("block2")
