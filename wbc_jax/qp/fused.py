@@ -62,7 +62,8 @@ from jax.experimental import pallas as pl
 
 
 class Block(NamedTuple):
-    """One block of rows (shapes ``(r,)``; the box block's are over the variables, ``(n,)``)."""
+    """One block of rows, each field ``(r,)`` for the block's ``r`` rows (in the kernel the box block's are laid out
+    over the variables: its row i at variable ``n - nb + i``)."""
 
     l: jax.Array  # lower bounds (finite: +-BIG)
     u: jax.Array  # upper bounds
