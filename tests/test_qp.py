@@ -369,8 +369,8 @@ def _box_last(b):
 
 @pytest.mark.parametrize("eq_rows,max_iters,box", [(24, 200, True), (0, 0, False)])
 def test_fused_kernel_equals_xla_iterations(eq_rows, max_iters, box):
-    """QPSettings.kernel='fused' (one Pallas kernel for the iterations and the extension; here in the Pallas
-    interpreter) gives the XLA path's iterate, iteration count and flag, float64 (6 cold WBC problems; with the
+    """QPSettings.kernel='fused' (Pallas kernels for the factorization and for the iterations with the extension;
+    here in the Pallas interpreter) gives the XLA path's iterate, iteration count and flag, float64 (6 cold WBC problems; with the
     extension some converge at 90 or 150 iterations, some reach the cap); with the multiplier rows stored as the
     kernel's box block (box_rows, which the XLA path ignores) or as dense rows."""
     from wbc_jax.control.transport import control_qp_settings

@@ -117,8 +117,8 @@ no cost scaling (:mod:`wbc_jax.qp.scaling`), rho reset / re-estimated on a warm 
 at batch 16384 on an H100 but a slower paper campaign, 192.6 s vs 175.0 s, from its
 compile), and the x-update's factorization inside the iterations kernel (commit 9dfbbbf; with the rows in blocks
 again in 2026-11-26: 214,204 / 899,189 env-steps/s at batch 270 / 16384 against 219,705 / 1,058,577 for the separate
-factorization kernel, :mod:`wbc_jax.qp.fused`). Polishing is in :mod:`wbc_jax.qp.polish`, scaling in :mod:`wbc_jax.qp.scaling`,
-settings, result and flags in :mod:`wbc_jax.qp.settings`.
+factorization kernel, :mod:`wbc_jax.qp.fused`). Polishing is in :mod:`wbc_jax.qp.polish`, scaling in
+:mod:`wbc_jax.qp.scaling`, settings, result and flags in :mod:`wbc_jax.qp.settings`.
 """
 
 
@@ -131,7 +131,8 @@ import jax.numpy as jnp
 from jax import lax
 
 from wbc_jax.qp.polish import polish
-from wbc_jax.qp.scaling import Scaled, all_finite, equilibrate, factor, inf_norm, mv, rel_residuals, solve
+from wbc_jax.qp.scaling import (Scaled, all_finite, equilibrate, factor, inf_norm, mv, regularize_schur,
+                                rel_residuals, solve)
 from wbc_jax.qp.settings import (BIG, FLAG_DUAL_INFEASIBLE, FLAG_MAX_ITER, FLAG_NONFINITE, FLAG_PRIMAL_INFEASIBLE,
                                  FLAG_SOLVED, KERNELS, LINSOLVES, QPResult, QPSettings)
 
@@ -177,18 +178,13 @@ class KKT(NamedTuple):
 def _kkt_factor(K, Ae, ex_e, linsolve: str) -> KKT:
     """Factor the x-update's KKT system ``[[K, Ae'], [Ae, 0]]`` (:class:`KKT`).
 
-    ``S`` gets a regularization of the dtype's epsilon times its largest diagonal entry (dependent
-    equality rows); the residual form of the step corrects what it leaves.
+    ``S`` is regularized on the held rows (:func:`wbc_jax.qp.scaling.regularize_schur`).
     """
     fac = factor(K, linsolve)
     if Ae is None:
         return KKT(fac)
     W = solve(fac, Ae.T, linsolve)
-    S = mv(Ae, W)
-    S = 0.5 * (S + S.T)
-    reg = jnp.finfo(S.dtype).eps * jnp.max(jnp.abs(jnp.diagonal(S)), initial=0.0) + jnp.finfo(S.dtype).tiny
-    S = S + jnp.diag(jnp.where(ex_e, reg, 1.0))
-    return KKT(fac, Ae, W, factor(S, linsolve))
+    return KKT(fac, Ae, W, factor(regularize_schur(mv(Ae, W), ex_e), linsolve))
 
 
 def _rho_vec(rho, w, free, s: QPSettings):

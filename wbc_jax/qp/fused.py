@@ -60,6 +60,8 @@ import jax
 import jax.numpy as jnp
 from jax.experimental import pallas as pl
 
+from wbc_jax.qp.scaling import regularize_schur
+
 
 class Block(NamedTuple):
     """One block of rows, each field ``(r,)`` for the block's ``r`` rows (in the kernel the box block's are laid out
@@ -144,8 +146,8 @@ def _factor_kernel(P_ref, Ae_ref, Ai_ref, kd_ref, re_ref, ri_ref, exe_ref, Ki_re
     ``K = P + A' diag(rho) A + diag(kd)`` (the box rows and sigma in ``kd``; padded variables: identity) is inverted
     through its first half's inverse and the Schur complement of the second half (two sweeps of half the size: the
     sweeps are sequential, and a half-size tile's are cheaper), then ``W = K^-1 Ae_h'`` and ``S^-1``, ``S = Ae_h W``
-    regularized by the dtype's epsilon times its largest diagonal entry (``Ae_h``: the held exact rows; ``S^-1``
-    zero on the others). ``K^-1`` is zero on padded variables.
+    regularized as the XLA path does (:func:`wbc_jax.qp.scaling.regularize_schur`; ``Ae_h``: the held exact rows;
+    ``S^-1`` zero on the others). ``K^-1`` is zero on padded variables.
     """
     N = P_ref.shape[0]
     H = N // 2
@@ -179,12 +181,7 @@ def _factor_kernel(P_ref, Ae_ref, Ai_ref, kd_ref, re_ref, ri_ref, exe_ref, Ki_re
     W2 = -_dot(XS, Ah1, ((0,), (1,))) + _dot(S2i, Ah2, ((1,), (1,)))
     W_ref[s1, :] = W1
     W_ref[s2, :] = W2
-    S = _dot(Ah1, W1, ((1,), (0,))) + _dot(Ah2, W2, ((1,), (0,)))
-    NE = S.shape[0]
-    eye = jax.lax.broadcasted_iota(jnp.int32, (NE, NE), 0) == jax.lax.broadcasted_iota(jnp.int32, (NE, NE), 1)
-    info = jnp.finfo(S.dtype)
-    reg = float(info.eps) * jnp.max(jnp.abs(jnp.sum(jnp.where(eye, S, 0.0), axis=1))) + float(info.tiny)
-    S = 0.5 * (S + S.T) + jnp.where(eye, jnp.where(exe > 0.5, reg, 1.0)[:, None], 0.0)
+    S = regularize_schur(_dot(Ah1, W1, ((1,), (0,))) + _dot(Ah2, W2, ((1,), (0,))), exe > 0.5)
     Si_ref[...] = sweep_inverse(S, ne) * (exe[:, None] * exe[None, :])
 
 

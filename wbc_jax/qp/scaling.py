@@ -96,6 +96,18 @@ def equilibrate(P, q, A, l, u, ruiz_iters: int, unroll: int | bool = 1) -> Scale
     return Scaled(P, q, A, E * l, E * u, D, E, c)
 
 
+def regularize_schur(S, held):
+    """The x-update's Schur complement ``S`` (k, k) made symmetric, plus on its diagonal the dtype's epsilon times its
+    largest diagonal entry (dependent equality rows; the residual form of the step corrects what it leaves) on the
+    ``held`` (k,) rows and 1 on the others, whose multiplier then stays 0. Masked reductions instead of
+    ``jnp.diagonal``, so the same function runs in XLA and inside the fused path's Triton kernel."""
+    k = S.shape[0]
+    eye = lax.broadcasted_iota(jnp.int32, (k, k), 0) == lax.broadcasted_iota(jnp.int32, (k, k), 1)
+    info = jnp.finfo(S.dtype)
+    reg = float(info.eps) * jnp.max(jnp.abs(jnp.sum(jnp.where(eye, S, 0.0), axis=1))) + float(info.tiny)
+    return 0.5 * (S + S.T) + jnp.where(eye, jnp.where(held, reg, 1.0)[:, None], 0.0)
+
+
 def factor(K, linsolve: str):
     """Linear solver for ``K x = b`` (K (n, n) symmetric positive definite).
 
