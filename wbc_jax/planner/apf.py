@@ -89,9 +89,9 @@ def _rep(rho, p: APFParams):
 
 
 def _newton(energy, z0: np.ndarray, max_iter: int = 200) -> np.ndarray:
-    """Minimiser of a strictly convex ``energy(z) -> (U, g, H)`` (H pentadiagonal) over z's interior (both end points fixed at
-    ``z0``'s), by Newton steps with backtracking (Armijo), until a full step no longer lowers the energy or the
-    Newton decrement reaches float64's rounding."""
+    """Minimiser of a strictly convex ``energy(z) -> (U, g, H)`` (H pentadiagonal) over z's interior (both end points
+    fixed at ``z0``'s), by Newton steps with backtracking (Armijo), until a full step no longer lowers the energy or
+    the Newton decrement reaches float64's rounding."""
     z = z0.copy()
     U, g, H = energy(z)
     for _ in range(max_iter):
@@ -185,10 +185,8 @@ def plan_dip(p_i, p_f, obstacles, top: float, params: APFParams = APFParams()) -
     b = band(p_i, p_f, obstacles, top, params)
     s, xy, n = b.s, b.xy, b.s.shape[0]
     ds = s[1] - s[0]
-    has = np.isfinite(b.under)
-    under_f = np.where(has, b.under, 0.0)
     z = _newton(b.energy, b.z_nom.copy())  # end points pinned at the start and goal heights
-    clearance = np.min(np.where(has, under_f - (z[:, None] + top), np.inf), axis=1) if has.size else np.full(n, np.inf)
+    clearance = np.min(b.under - (z[:, None] + top), axis=1) if b.under.size else np.full(n, np.inf)  # inf: none
     k = max(int(round(params.waypoint_spacing / ds)), 1)
     idx = np.unique(np.concatenate([np.arange(0, n, k), [n - 1]]))
     wp = np.concatenate([xy[idx], z[idx, None]], axis=1)
