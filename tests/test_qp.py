@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from wbc_jax.qp import (
+    FLAG_DUAL_INFEASIBLE,
     FLAG_NONFINITE,
     FLAG_PRIMAL_INFEASIBLE,
     FLAG_SOLVED,
@@ -357,43 +358,77 @@ def test_extension_stops_at_the_cap():
 
 def _box_last(b):
     """The WBC family's problems with their multiplier rows (rho >= 0, an identity block) moved to the end of the rows
-    and their variables to the end of the variables: ``QPSettings.box_rows``' layout, ``nrho`` box rows."""
+    and their variables to the end of the variables: ``QPSettings.box_rows``' layout, ``nrho`` box rows (each bounds
+    one variable)."""
     nv, nrho, n, m_eq = 18, 40, b.P.shape[-1], EXACT_ROWS
     cols = np.r_[0:nv, nv + nrho:n, nv:nv + nrho]
     rows = np.r_[0:m_eq, m_eq + nrho:b.A.shape[-2], m_eq:m_eq + nrho]
     A = b.A[:, rows][:, :, cols]
-    assert np.array_equal(A[:, -nrho:, -nrho:], np.broadcast_to(np.eye(nrho), (len(A), nrho, nrho)))
+    box = A[:, -nrho:, -nrho:]  # the identity (or, perturbed, a diagonal)
+    assert np.all(np.diagonal(box, axis1=1, axis2=2) != 0) and not np.any(box * (1.0 - np.eye(nrho)))
     assert not np.any(A[:, -nrho:, :-nrho])
     return (b.P[:, cols][:, :, cols], b.q[:, cols], A, b.l[:, rows], b.u[:, rows]), nrho
 
 
 @pytest.mark.parametrize("eq_rows,max_iters,box", [(24, 200, True), (0, 0, False)])
 def test_fused_kernel_equals_xla_iterations(eq_rows, max_iters, box):
-    """QPSettings.kernel='fused' (Pallas kernels for the factorization and for the iterations with the extension;
-    here in the Pallas interpreter) gives the XLA path's iterate, iteration count and flag, float64 (6 cold WBC problems; with the
-    extension some converge at 90 or 150 iterations, some reach the cap); with the multiplier rows stored as the
-    kernel's box block (box_rows, which the XLA path ignores) or as dense rows."""
+    """QPSettings.kernel='fused' (the whole solve in two Pallas kernels: equilibration, factorization, iterations
+    with the extension, residuals and flag; here in the Pallas interpreter) gives the XLA path's iterate, residuals,
+    iteration count, flag and re-estimated rho, float64: 6 cold WBC problems (with the extension some converge at 90
+    or 150 iterations, some reach the cap), then the same problems perturbed by 1 %, warm-started from the cold
+    results; with the multiplier rows stored as the kernel's box block (box_rows, which the XLA path ignores) or as
+    dense rows. (With the extension the paths re-estimate rho from different iterates: the XLA path after the fixed
+    iterations, the fused path from the final one; rho is compared without it.)"""
     from wbc_jax.control.transport import control_qp_settings
 
     b = pr.make_batch(3, 6, "wbc")
-    prob, nb = _box_last(b) if box else (b[:5], 0)
+    bp = pr.QPProblem(*pr.perturb(b, 4, WARM_PERTURBATION), b.x, b.y, b.f)
+    (prob, nb), (prob_p, _) = (_box_last(b), _box_last(bp)) if box else ((b[:5], 0), (bp[:5], 0))
     s = control_qp_settings(10, eq_rows=eq_rows, eps_abs=1e-6, eps_rel=1e-6, linsolve="inv", max_iters=max_iters,
-                            box_rows=nb)
+                            box_rows=nb, adapt_every=10)
     with jax.enable_x64(True):
-        data = [jnp.asarray(a, jnp.float64) for a in prob]
+        data, data_p = ([jnp.asarray(a, jnp.float64) for a in p] for p in (prob, prob_p))
         ref = solve_qp(*data, settings=s)
         fus = solve_qp(*data, settings=s._replace(kernel="fused"))
-        with pytest.raises(ValueError, match="kernel"):
-            solve_qp(*data, settings=s._replace(kernel="fused", adapt_every=5))
+        ref_w = solve_qp(*data_p, warm=ref, settings=s)
+        fus_w = solve_qp(*data_p, warm=ref, settings=s._replace(kernel="fused"))
+        for bad in (dict(adapt_every=5), dict(polish=True)):
+            with pytest.raises(ValueError, match="kernel"):
+                solve_qp(*data, settings=s._replace(kernel="fused", **bad))
         with pytest.raises(ValueError, match="box_rows"):  # more box rows than rows after the exact ones
             solve_qp(*data, settings=s._replace(box_rows=data[2].shape[-2]))
-    np.testing.assert_array_equal(np.asarray(fus.iters), np.asarray(ref.iters))
-    np.testing.assert_array_equal(np.asarray(fus.flag), np.asarray(ref.flag))
-    for f in ("x", "y", "z"):
-        a, c = np.asarray(getattr(ref, f)), np.asarray(getattr(fus, f))
-        assert np.max(np.abs(a - c)) <= 1e-9 * np.max(np.abs(a)), f
+    for r, f in ((ref, fus), (ref_w, fus_w)):
+        np.testing.assert_array_equal(np.asarray(f.iters), np.asarray(r.iters))
+        np.testing.assert_array_equal(np.asarray(f.flag), np.asarray(r.flag))
+        for k in ("x", "y", "z", "prim_res", "dual_res") + (() if max_iters else ("rho",)):
+            a, c = np.asarray(getattr(r, k)), np.asarray(getattr(f, k))
+            assert np.max(np.abs(a - c)) <= 1e-9 * np.max(np.abs(a)) + 1e-15, k
+    assert not np.allclose(np.asarray(ref.rho), s.rho)  # rho was re-estimated
     if max_iters:
         assert len(np.unique(np.asarray(ref.iters))) > 1  # problems stopped at different counts
+        assert np.mean(np.asarray(ref_w.iters)) < np.mean(np.asarray(ref.iters))  # the warm start was used
+
+
+def test_fused_kernel_flags():
+    """The fused path's flags (Pallas interpreter, float64) equal the XLA path's and the expected ones on small
+    problems: contradictory equalities and an empty box (primal infeasible), an unbounded cost (dual infeasible),
+    a NaN in q (non-finite) and a feasible box; the outputs stay finite."""
+    inf = np.inf
+    probs = [_box_problem([1.0, 2.0, -inf], [1.0, 2.0, 5.0], [[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
+             _box_problem([-1.0, 2.0, -inf], [1.0, 1.0, inf], np.eye(3)),
+             (np.zeros((3, 3)),) + _box_problem([-inf] * 3, [inf] * 3, np.eye(3))[1:],
+             _box_problem([-1.0] * 3, [1.0] * 3, np.eye(3)),
+             _box_problem([-1.0] * 3, [1.0] * 3, np.eye(3))]
+    probs[3] = probs[3][:1] + (np.array([1.0, np.nan, 1.0]),) + probs[3][2:]
+    expected = [FLAG_PRIMAL_INFEASIBLE, FLAG_PRIMAL_INFEASIBLE, FLAG_DUAL_INFEASIBLE, FLAG_NONFINITE, FLAG_SOLVED]
+    s = QPSettings(iters=200, adapt_every=0)
+    with jax.enable_x64(True):
+        data = [jnp.asarray(np.stack(a)) for a in zip(*probs)]
+        ref = solve_qp(*data, settings=s)
+        fus = solve_qp(*data, settings=s._replace(kernel="fused"))
+    _assert_finite(fus)
+    np.testing.assert_array_equal(np.asarray(ref.flag), expected)
+    np.testing.assert_array_equal(np.asarray(fus.flag), expected)
 
 
 def test_sweep_inverse_matches_numpy():
@@ -417,15 +452,12 @@ def test_sweep_inverse_matches_numpy():
 
 @pytest.mark.parametrize("n,ne", [(56, 24), (20, 6), (8, 3), (5, 2)])
 def test_fused_factorization_matches_numpy(n, ne):
-    """The fused path's factorization kernel (2 x 2 blocks of the variables' halves; Pallas interpreter, float64)
+    """The fused path's factorization (:func:`factor_blocks`, the factorization kernel's arithmetic: 2 x 2 blocks of
+    the variables' halves; float64)
     against numpy: K^-1 of K = P + Ae' diag(rho_e) Ae + Ai' diag(rho_i) Ai + diag(kd), W = K^-1 Ae_h' and the
     Schur complement's inverse on the held rows, zero on padding and on rows not held; sizes with the second half
     partly padded (56 of 64, 20 of 32), exactly one half (8 of 16) and less than one half (5 of 16)."""
-    import functools
-
-    from jax.experimental import pallas as pl
-
-    from wbc_jax.qp.fused import _factor_kernel, _pow2
+    from wbc_jax.qp.fused import _pow2, factor_blocks
 
     rng = np.random.default_rng(11)
     mi = 7
@@ -441,11 +473,14 @@ def test_fused_factorization_matches_numpy(n, ne):
     kd = np.where(np.arange(N) < n, rng.uniform(1e-6, 2.0, N), 1.0)
     exe = np.zeros(NE)
     exe[:ne - 1] = 1.0
-    shapes = [jax.ShapeDtypeStruct(s, jnp.float64) for s in ((N, N), (N, NE), (NE, NE))]
     with jax.enable_x64(True):
-        Ki, W, Si = (np.asarray(a) for a in pl.pallas_call(
-            functools.partial(_factor_kernel, n=n, ne=ne), out_shape=shapes, interpret=True)(
-                *(jnp.asarray(a) for a in (P, Ae, Ai, kd, re, ri, exe))))
+        H = N // 2
+        h1, h2 = slice(0, H), slice(H, N)
+        j = lambda *a: tuple(jnp.asarray(v) for v in a)  # noqa: E731
+        Ki11, XS, S2i, W1, W2, Si = (np.asarray(a) for a in factor_blocks(
+            j(P[h1, h1], P[h1, h2], P[h2, h2]), j(Ae[:, h1], Ae[:, h2]), j(Ai[:, h1], Ai[:, h2]), j(kd[h1], kd[h2]),
+            *j(re, ri, exe), n=n, ne=ne))
+    Ki, W = np.block([[Ki11, -XS], [-XS.T, S2i]]), np.concatenate([W1, W2])
     K = P[:n, :n] + (Ae[:, :n].T * re) @ Ae[:, :n] + (Ai[:, :n].T * ri) @ Ai[:, :n] + np.diag(kd[:n])
     Ki_ref = np.linalg.inv(K)
     Ah = Ae[:ne - 1, :n]

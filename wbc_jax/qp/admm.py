@@ -107,7 +107,9 @@ The control loop's settings (warm start, one factorization per step, rho fixed a
 :func:`wbc_jax.control.transport.control_qp_settings`. On a GPU the iterations and the extension run in one Pallas
 kernel per problem (``QPSettings.kernel``, :mod:`wbc_jax.qp.fused`; H100, course, Warp physics: paper campaign
 171.0 s -> 133.2 s, physics + WBC at batch 16384 431,605 -> 530,978 env-steps/s, docs/performance.md), now preceded by
-a Pallas factorization kernel (physics + WBC at 16384: 906,038 -> 1,058,577 env-steps/s against XLA's).
+a Pallas factorization kernel (physics + WBC at 16384: 906,038 -> 1,058,577 env-steps/s against XLA's) and a Pallas
+preparation kernel (equilibration, warm start; the residuals and flag moved into the iterations kernel: 1,035,444 ->
+1,256,437 at 16384, 196,113 -> 244,058 at 270).
 
 Removed settings (git has them), each measured without an advantage for the product:
 Anderson acceleration (above: -20 % iterations at +50-70 % per iteration), the x-update
@@ -130,13 +132,10 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from wbc_jax.qp import rules
 from wbc_jax.qp.polish import polish
-from wbc_jax.qp.scaling import (Scaled, all_finite, equilibrate, factor, inf_norm, mv, regularize_schur,
-                                rel_residuals, solve)
-from wbc_jax.qp.settings import (BIG, FLAG_DUAL_INFEASIBLE, FLAG_MAX_ITER, FLAG_NONFINITE, FLAG_PRIMAL_INFEASIBLE,
-                                 FLAG_SOLVED, KERNELS, LINSOLVES, QPResult, QPSettings)
-
-_EQ_TOL = 1e-4  # scaled |u - l| below this marks an equality row (OSQP's RHO_TOL)
+from wbc_jax.qp.scaling import Scaled, all_finite, equilibrate, factor, mv, regularize_schur, solve
+from wbc_jax.qp.settings import BIG, KERNELS, LINSOLVES, QPResult, QPSettings
 
 
 class State(NamedTuple):
@@ -148,17 +147,6 @@ class State(NamedTuple):
     dx: jax.Array  # (n,) last step in x (dual-infeasibility certificate)
     dy: jax.Array  # (m,) last step in y (primal-infeasibility certificate)
     bad: jax.Array  # () bool, a non-finite step was rejected
-
-
-def _row_weights(eq, free, ex, act, s: QPSettings):
-    """(m,) per-row rho factors: equality rows ``rho_eq_scale``, inequality rows 1, free
-    rows 0 (they use ``rho_min``), rows held exactly in the x-update (``ex``) 0; when warm
-    (``act`` given), inequality rows active at the warm point (nonzero dual)
-    ``warm_active_scale``."""
-    w = jnp.where(eq, s.rho_eq_scale, 1.0)
-    if act is not None:
-        w = jnp.where(eq, w, jnp.where(act, s.warm_active_scale, 1.0))
-    return jnp.where(free | ex, 0.0, w)
 
 
 class KKT(NamedTuple):
@@ -185,11 +173,6 @@ def _kkt_factor(K, Ae, ex_e, linsolve: str) -> KKT:
         return KKT(fac)
     W = solve(fac, Ae.T, linsolve)
     return KKT(fac, Ae, W, factor(regularize_schur(mv(Ae, W), ex_e), linsolve))
-
-
-def _rho_vec(rho, w, free, s: QPSettings):
-    """(m,) per-row rho from the scalar rho."""
-    return jnp.where(free, s.rho_min, rho * w)
 
 
 def _gram(sp: Scaled, w, free, s: QPSettings):
@@ -260,12 +243,8 @@ def _project(sp: Scaled, kkt: KKT, ex, st: State, linsolve: str) -> State:
 
 
 def _adapt(sp: Scaled, st: State, rho, s: QPSettings):
-    """OSQP's rho estimate ``rho sqrt(prim_rel / dual_rel)`` from scaled residuals."""
-    tiny = 1e-30
-    prim, dual = rel_residuals(sp, st.x, st.z, st.y, tiny)
-    est = jnp.clip(s.adapt_bias * rho * jnp.sqrt(prim / (dual + tiny)), s.rho_min, s.rho_max)
-    change = (est > rho * s.adapt_tol) | (est < rho / s.adapt_tol)
-    return jnp.where(change & jnp.isfinite(est), est, rho)
+    """OSQP's rho estimate from the scaled residuals (:func:`wbc_jax.qp.rules.adapt_rho`)."""
+    return rules.adapt_rho(rho, *rules.scaled_residuals(sp, st.x, st.z, st.y, 1e-30), s)
 
 
 def _factor_parts(sp: Scaled, w, free, ex, s: QPSettings, ne: int):
@@ -290,7 +269,7 @@ def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
 
     def make_kkt(rho):
         with jax.named_scope("qp_factor"):
-            return _kkt_factor(K0 + rho * G, Ae, ex[:ne], s.linsolve), _rho_vec(rho, w, free, s)  # w = 0 on exact rows
+            return _kkt_factor(K0 + rho * G, Ae, ex[:ne], s.linsolve), rules.rho_vec(rho, w, free, s)  # w = 0 on exact rows
 
     def iterate(st, kkt, rho_v, length, active=None):
         # active: () int, run only the first `active` of the `length` iterations (the extension's last block)
@@ -350,35 +329,8 @@ def _extend(P, q, A, sp: Scaled, st: State, cont, s: QPSettings, iters: int):
         return lax.while_loop(unconverged, more, (st, n_it))
 
 
-def _run_fused(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
-    """``_run`` and the convergence-checked extension in Pallas kernels (:mod:`wbc_jax.qp.fused`), with the rows
-    stored in blocks: the first ``ne`` (exact), the last ``box_rows`` (a diagonal), the dense rows between.
-
-    Returns:
-        ``(st, rho, n_it)``: the iterate, rho for the next solve (re-estimated from the final iterate when
-        ``adapt_every > 0``) and () int32 the iterations run.
-    """
-    from wbc_jax.qp.fused import Block, fused_solve
-
-    m, n = sp.A.shape
-    nb = s.box_rows
-    ne = max(min(s.eq_rows, m - nb), 1)  # one exact-block row that is not held stands for none
-    rho_v = _rho_vec(rho, w, free, s)  # 0 on held rows
-    parts = (slice(0, ne), slice(ne, m - nb), slice(m - nb, m))
-    blocks = [Block(sp.l[p], sp.u[p], rho_v[p], free[p], 1.0 / sp.E[p], st.z[p], st.y[p]) for p in parts]
-    with jax.named_scope("qp_iterations"):
-        out = fused_solve(sp.P, sp.A[:ne], sp.A[ne:m - nb], jnp.diagonal(sp.A[m - nb:, n - nb:]), sp.q, ex[:ne],
-                          1.0 / (sp.c * sp.D), st.x, *blocks, sigma=s.sigma, iters=iters,
-                          max_iters=max(s.max_iters, iters), check_every=max(s.check_every, 1), alpha=s.alpha,
-                          eps_abs=s.eps_abs, eps_rel=s.eps_rel)
-    st = State(out.x, out.z, out.y, out.dx, out.dy, out.bad)
-    if s.adapt_every > 0:
-        rho = _adapt(sp, st, rho, s)
-    return st, rho, out.iters
-
-
 def _unscaled(P, q, A, sp: Scaled, st: State, s: QPSettings):
-    """The iterate in the user's units and OSQP's convergence test.
+    """The iterate in the user's units and OSQP's convergence test (:func:`wbc_jax.qp.rules.termination`).
 
     Returns:
         ``(x, z, y, prim, dual, converged)``: (n,), (m,), (m,), ``||A x - z||_inf``, ``||P x + q + A'y||_inf``
@@ -387,73 +339,73 @@ def _unscaled(P, q, A, sp: Scaled, st: State, s: QPSettings):
     x = sp.D * st.x
     z = st.z / sp.E
     y = sp.E * st.y / sp.c
-    ax, px, aty = mv(A, x), mv(P, x), mv(A.T, y)
-    prim = inf_norm(ax - z)
-    dual = inf_norm(px + q + aty)
-    prim_tol = s.eps_abs + s.eps_rel * jnp.maximum(inf_norm(ax), inf_norm(z))
-    dual_tol = s.eps_abs + s.eps_rel * jnp.maximum(jnp.maximum(inf_norm(px), inf_norm(aty)), inf_norm(q))
-    return x, z, y, prim, dual, (prim <= prim_tol) & (dual <= dual_tol)
+    return (x, z, y) + rules.termination((mv(A, x),), (z,), mv(P, x), mv(A.T, y), q, s)
 
 
-def _certificates(P, q, A, l, u, dx, dy, s: QPSettings):
-    """OSQP's primal/dual infeasibility tests on the last steps (unscaled)."""
-    lo_inf = l <= -BIG
-    up_inf = u >= BIG
-    dy = jnp.where((lo_inf & (dy < 0)) | (up_inf & (dy > 0)), 0.0, dy)
-    ndy = inf_norm(dy)
-    lf = jnp.where(lo_inf, 0.0, l)
-    uf = jnp.where(up_inf, 0.0, u)
-    supp = jnp.sum(uf * jnp.maximum(dy, 0.0) + lf * jnp.minimum(dy, 0.0))
-    pinf = (ndy > 0) & (inf_norm(mv(A.T, dy)) <= s.eps_pinf * ndy) & (supp <= -s.eps_pinf * ndy)
-    ndx = inf_norm(dx)
-    adx = mv(A, dx)
-    tol = s.eps_dinf * ndx
-    in_cone = jnp.all(jnp.where(up_inf, True, adx <= tol) & jnp.where(lo_inf, True, adx >= -tol))
-    dinf = (ndx > 0) & (inf_norm(mv(P, dx)) <= tol) & (mv(q, dx) <= -tol) & in_cone
-    return pinf, dinf
-
-
-def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
+def _inputs(P, q, A, l, u):
+    """The problem in one floating dtype, missing bounds as ``+-BIG``: ``(dt, P, q, A, l, u)``."""
     dt = jnp.result_type(P, q, A)
     if not jnp.issubdtype(dt, jnp.floating):
         dt = jnp.result_type(float)
     P, q, A, l, u = (jnp.asarray(a, dt) for a in (P, q, A, l, u))
-    P = 0.5 * (P + P.T)  # the problem solved and tested (an asymmetric P's dual residual has a floor)
-    n, m = P.shape[-1], A.shape[0]
     big = jnp.asarray(BIG, dt)
     l = jnp.clip(jnp.nan_to_num(l, nan=-BIG, neginf=-BIG), -big, big)
     u = jnp.clip(jnp.nan_to_num(u, nan=BIG, posinf=BIG), -big, big)
+    return dt, P, q, A, l, u
+
+
+def _solve_fused(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
+    """The whole solve in the Pallas kernels of :mod:`wbc_jax.qp.fused` (equilibration, warm start, iterations with
+    the extension, residuals, certificates, flag); here only the rows split into the kernels' blocks: the first
+    ``ne`` (exact), the last ``box_rows`` (a diagonal), the dense rows between."""
+    from wbc_jax.qp.fused import fused_solve
+
+    dt, P, q, A, l, u = _inputs(P, q, A, l, u)
+    m, n = A.shape
+    nb = s.box_rows
+    ne = max(min(s.eq_rows, m - nb), 1)  # one exact-block row that is not held stands for none
+    parts = (slice(0, ne), slice(ne, m - nb), slice(m - nb, m))
+    if warm is None:
+        wx, wz, wy = jnp.zeros(n, dt), jnp.zeros(m, dt), jnp.zeros(m, dt)
+    else:
+        wx, wz, wy = (jnp.asarray(v, dt) for v in warm[:3])
+    rho = rules.warm_rho(None if warm is None else warm[3], s, dt)
+    blocks = lambda v: tuple(v[p] for p in parts)  # noqa: E731
+    return fused_solve(P, A[:ne], A[ne:m - nb], jnp.diagonal(A[m - nb:, n - nb:]), q, blocks(l), blocks(u), wx,
+                       blocks(wz), blocks(wy), rho, s=s, iters=iters, warm=warm is not None)
+
+
+def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
+    if s.kernel == "fused":
+        return _solve_fused(P, q, A, l, u, warm, s, iters)
+    dt, P, q, A, l, u = _inputs(P, q, A, l, u)
+    P = 0.5 * (P + P.T)  # the problem solved and tested (an asymmetric P's dual residual has a floor)
+    n, m = P.shape[-1], A.shape[0]
     empty = jnp.any(l > u)
     with jax.named_scope("qp_equilibrate"):
         sp = equilibrate(P, q, A, l, u, s.ruiz_iters, s.unroll)
     free = (l <= -BIG) & (u >= BIG)
-    eq = jnp.abs(sp.u - sp.l) < _EQ_TOL
+    eq = jnp.abs(sp.u - sp.l) < rules.EQ_TOL
     ex = (jnp.arange(m) < s.eq_rows) & eq & ~free  # held exactly in the x-update
     # Scaled start: x = D xb, z = zb / E, y = E yb / c.
+    rho = rules.warm_rho(None if warm is None else warm[3], s, dt)
     if warm is None:
         xb, zb, yb = jnp.zeros(n, dt), jnp.zeros(m, dt), jnp.zeros(m, dt)
-        rho = jnp.asarray(s.rho, dt)
     else:
-        wx, wz, wy, wr = warm
+        wx, wz, wy, _ = warm
         xb = jnp.asarray(wx, dt) / sp.D
         zb = jnp.asarray(wz, dt) * sp.E
         yb = jnp.asarray(wy, dt) * sp.c / sp.E
-        rho = jnp.asarray(s.rho if wr is None else wr, dt)
-        rho = jnp.where(jnp.isfinite(rho), jnp.clip(rho, s.rho_min, s.rho_max), s.rho)
         xb, zb, yb = (jnp.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0) for v in (xb, zb, yb))
     act = None
     if warm is not None and s.warm_active_scale != 1.0:
-        # ADMM's y is zero on rows inside their bounds up to rounding of y - rho (y / rho).
-        act = jnp.abs(yb) > 100 * jnp.finfo(dt).eps * inf_norm(yb)
-    w = _row_weights(eq, free, ex, act, s)
+        (act,) = rules.active_rows((yb,), dt)
+    w = rules.row_weights(eq, free, ex, act, s)
     zb = jnp.where(free, mv(sp.A, xb), jnp.clip(zb, sp.l, sp.u))
     yb = jnp.where(free, 0.0, yb)
     st = State(xb, zb, yb, jnp.zeros(n, dt), jnp.zeros(m, dt), jnp.zeros((), bool))
-    if s.kernel == "fused":
-        st, rho, n_it = _run_fused(sp, st, rho, w, free, ex, s, iters)
-    else:
-        st, rho, cont = _run(sp, st, rho, w, free, ex, s, iters)
-        st, n_it = _extend(P, q, A, sp, st, cont, s, iters)
+    st, rho, cont = _run(sp, st, rho, w, free, ex, s, iters)
+    st, n_it = _extend(P, q, A, sp, st, cont, s, iters)
     if s.polish:
         x, z, y = polish(sp, st.x, st.z, st.y, eq, free, s)
         st = st._replace(x=x, z=z, y=y)
@@ -462,19 +414,14 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
         x, z, y, prim, dual, converged = _unscaled(P, q, A, sp, st, s)
         dx = sp.D * st.dx
         dy = sp.E * st.dy / sp.c
-        pinf, dinf = _certificates(P, q, A, l, u, dx, dy, s)
+        pinf = rules.primal_infeasible((l,), (u,), (dy,), lambda v: mv(A.T, v[0]), s)
+        dinf = rules.dual_infeasible((l,), (u,), dx, (mv(A, dx),), mv(P, dx), mv(q, dx), s)
         finite = all_finite(x, y, z, prim, dual) & ~st.bad
-        flag = jnp.where(~finite, FLAG_NONFINITE,
-                         jnp.where(empty | pinf, FLAG_PRIMAL_INFEASIBLE,
-                                   jnp.where(dinf, FLAG_DUAL_INFEASIBLE,
-                                             jnp.where(converged, FLAG_SOLVED, FLAG_MAX_ITER))))
         fmax = jnp.finfo(dt).max
-        clean = lambda v: jnp.nan_to_num(v, nan=0.0, posinf=fmax, neginf=-fmax)  # noqa: E731
-        res_clean = lambda v: jnp.nan_to_num(v, nan=fmax, posinf=fmax)  # noqa: E731
         return QPResult(
-            x=clean(x), y=clean(y), z=clean(z),
-            prim_res=res_clean(prim), dual_res=res_clean(dual),
-            flag=flag.astype(jnp.int32), iters=n_it,
+            x=rules.clean(x, 0.0, fmax), y=rules.clean(y, 0.0, fmax), z=rules.clean(z, 0.0, fmax),
+            prim_res=rules.clean(prim, fmax, fmax), dual_res=rules.clean(dual, fmax, fmax),
+            flag=rules.status(finite, empty, pinf, dinf, converged).astype(jnp.int32), iters=n_it,
             rho=jnp.nan_to_num(rho, nan=s.rho).astype(dt))
 
 
@@ -530,10 +477,10 @@ def solve_qp(P, q, A, l, u, *, iters: int | None = None, warm: Any = None,
         raise ValueError(f"QPSettings.kernel must be one of {KERNELS}, not {s.kernel!r}")
     one_factor = s.adapt_every == 0 or s.adapt_every >= it
     if s.kernel == "auto":
-        s = s._replace(kernel="fused" if jax.default_backend() != "cpu" and one_factor else "xla")
-    if s.kernel == "fused" and not one_factor:
-        raise ValueError(f"QPSettings.kernel='fused' needs one factorization per solve (adapt_every 0 or >= iters), "
-                         f"got adapt_every={s.adapt_every}, iters={it}")
+        s = s._replace(kernel="fused" if jax.default_backend() != "cpu" and one_factor and not s.polish else "xla")
+    if s.kernel == "fused" and (not one_factor or s.polish):
+        raise ValueError(f"QPSettings.kernel='fused' needs one factorization per solve (adapt_every 0 or >= iters) "
+                         f"and polish=False, got adapt_every={s.adapt_every}, iters={it}, polish={s.polish}")
     m, n = jnp.shape(A)[-2:]
     nb_max = min(n, m - max(min(s.eq_rows, m), 1))
     if not 0 <= s.box_rows <= nb_max:

@@ -1,5 +1,7 @@
-"""One solve of the fused path as two Pallas (Triton) kernels, one program per problem each: the x-update's
-factorization, then the ADMM iterations with the convergence-checked extension.
+"""One solve of the fused path as three Pallas (Triton) kernels, one program per problem each: the preparation
+(Ruiz equilibration, the rows' kinds and rho, the scaled warm start), the x-update's factorization, then the ADMM
+iterations with the convergence-checked extension and the result in the user's units (residuals, infeasibility
+certificates, flag, the next rho). Outside them XLA only splits ``A`` into the blocks and pads.
 
 Why: the XLA path (``admm._step`` in ``lax.scan``, then the extension's ``lax.while_loop``) launches about ten kernels
 per iteration and reads ``P``, ``A``, ``K^-1`` and the Schur factors from device memory at every one. Under ``vmap``
@@ -18,6 +20,14 @@ one streaming multiprocessor, so their size sets how many problems run at once):
 * the dense block: the rows after them, ``Ai`` (mi, n);
 * the box block: the last ``nb`` rows (``QPSettings.box_rows``), bounds on the last ``nb`` variables, stored as the
   diagonal ``db`` (n,) (zero on the other variables).
+
+The preparation (:func:`_prepare_kernel`, :func:`prepare`) reads each problem once and writes the scaled problem
+(:class:`Stage`) that the other two read; before it, XLA's equilibration was 27 ops per control step, 1.60 ms at
+batch 16384, its residuals and flag 14 ops, 0.63 ms (H100, ``bench trace``). Done inside the factorization and
+iterations kernels instead (each scaling its own copy) it doubled both (iterations 3.5 -> 8.6 ms, factorization
+3.2 -> 6.2 ms at 16384): the preparation's registers set the kernel's occupancy. One H100, one call, ``bench
+rollout`` physics + WBC at 16384 / 270: XLA preparation 1,035,444 / 196,113 env-steps/s; this 1,256,437 / 244,058
+(again: 1,253,711 / 242,299).
 
 The factorization (:func:`_factor_kernel`) builds ``K`` from the blocks and inverts it in 2 x 2 blocks of the
 variables' halves by Gauss-Jordan sweeps (:func:`sweep_inverse`), then ``W`` and ``S^-1``: one kernel where XLA
@@ -41,9 +51,11 @@ Every row follows the same ADMM update whatever its block (an exact-block row th
 row), so the blocks are a partition of the storage, not of the algorithm. The arithmetic is ``admm._step``'s with
 ``linsolve="inv"`` (explicit inverses ``K^-1`` and ``S^-1``, matrix-vector products only) and the projection onto
 the exact rows at the start of each block of iterations, as ``admm._run`` does; the convergence test is OSQP's in
-the user's units (``admm._unscaled``), evaluated from the scaled iterate with the scalings
-(``A x - z = E^-1 (A_s x_s - z_s)``, ``P x + q + A'y = c^-1 D^-1 (P_s x_s + q_s + A_s' y_s)``). Results equal the
-XLA path up to float rounding (tests compare them in the Pallas interpreter, float64).
+the user's units (:func:`wbc_jax.qp.rules.termination`, as the XLA path's), evaluated from the scaled iterate with
+the scalings (``A x - z = E^-1 (A_s x_s - z_s)``, ``P x + q + A'y = c^-1 D^-1 (P_s x_s + q_s + A_s' y_s)``); the
+rho rules, certificates and flag are :mod:`wbc_jax.qp.rules`' too. Results equal the XLA path up to float rounding
+(tests compare them in the Pallas interpreter, float64), except the re-estimated rho with the extension: the XLA
+path estimates it after the fixed iterations, the kernel from the final iterate.
 
 Shapes are padded to powers of two (Triton's rule, at least 16): padded variables have zero rows and columns in
 every matrix, padded rows are ``0 <= 0 <= 0`` with zero rho and dual, padded exact rows have zero ``S^-1``.
@@ -60,32 +72,38 @@ import jax
 import jax.numpy as jnp
 from jax.experimental import pallas as pl
 
-from wbc_jax.qp.scaling import regularize_schur
+from wbc_jax.qp import rules
+from wbc_jax.qp.scaling import regularize_schur, ruiz_pass
+from wbc_jax.qp.settings import BIG, QPResult, QPSettings
 
 
-class Block(NamedTuple):
-    """One block of rows, each field ``(r,)`` for the block's ``r`` rows (in the kernel the box block's are laid out
-    over the variables: its row i at variable ``n - nb + i``)."""
+class Dims(NamedTuple):
+    """The problem's real sizes (static): variables ``n``, exact rows ``ne``, dense rows ``mi``, box rows ``nb``."""
 
-    l: jax.Array  # lower bounds (finite: +-BIG)
-    u: jax.Array  # upper bounds
-    rho: jax.Array  # per-row rho (0: exact rows, padding)
-    free: jax.Array  # bool, no bounds: z = A x, y = 0
-    Ei: jax.Array  # 1 / row scaling, for the convergence test
-    z: jax.Array  # start
-    y: jax.Array  # start
+    n: int
+    ne: int
+    mi: int
+    nb: int
 
 
-class FusedOut(NamedTuple):
-    """The kernel's result for one problem (scaled problem); z, y, dy in the row order ``(exact, dense, box)``."""
+class Prepared(NamedTuple):
+    """One problem after equilibration, in the kernels' layout (rows in three blocks: exact, dense, box; each
+    per-row field a tuple of the three, the box block's laid over the variables)."""
 
-    x: jax.Array  # (n,)
-    z: jax.Array  # (m,)
-    y: jax.Array  # (m,)
-    dx: jax.Array  # (n,) last accepted step in x
-    dy: jax.Array  # (m,) last accepted step in y
-    bad: jax.Array  # () bool, a non-finite step was rejected
-    iters: jax.Array  # () int32, iterations run
+    P: jax.Array  # (N, N) scaled cost, symmetric
+    q: jax.Array  # (N,) scaled linear cost
+    Ae: jax.Array  # (NE, N) scaled exact rows
+    Ai: jax.Array  # (MI, N) scaled dense rows
+    db: jax.Array  # (N,) scaled box diagonal
+    D: jax.Array  # (N,) column scaling
+    E: tuple  # row scalings
+    c: jax.Array  # () cost scaling
+    l: tuple  # scaled lower bounds (+-BIG rows: E BIG, still far outside every iterate)
+    u: tuple  # scaled upper bounds
+    free: tuple  # bool, no bounds
+    ex: jax.Array  # (NE,) 1.0 on the exact rows held exactly (l == u), else 0.0
+    rho: tuple  # per-row rho (0: held rows, padding)
+    y: tuple  # scaled warm duals (0 cold, on free rows and padding)
 
 
 def _pow2(k: int) -> int:
@@ -100,16 +118,54 @@ def _mtv(M, v):  # M' v
     return jnp.sum(M * v[:, None], axis=0)
 
 
-def _amax(v):
-    return jnp.max(jnp.abs(v))
-
-
 def _finite(*vs):  # () bool, every entry finite (Triton-friendly: x - x is 0 only for finite x)
     tot = sum(jnp.sum(v) for v in vs)
     return (tot - tot) == 0.0
 
 
-N_BLOCK = len(Block._fields)
+def _or_zero(v):  # non-finite entries -> 0
+    return jnp.where(v - v == 0.0, v, 0.0)
+
+
+def _row_masks(dims: Dims, sizes) -> tuple:
+    """bool masks of each block's real rows (the box block's over the variables ``n - nb .. n - 1``)."""
+    NE, MI, N = sizes
+    ie, ii, ib = (jax.lax.broadcasted_iota(jnp.int32, (k,), 0) for k in (NE, MI, N))
+    return ie < dims.ne, ii < dims.mi, (ib >= dims.n - dims.nb) & (ib < dims.n)
+
+
+def prepare(P, Ae, Ai, db, q, l, u, wy, rho, *, s: QPSettings, dims: Dims, warm: bool) -> Prepared:
+    """``admm._solve_one``'s preparation of one problem, on the kernels' blocks: symmetrize ``P``, Ruiz passes
+    (:func:`wbc_jax.qp.scaling.ruiz_pass`), the rows' kinds (free, equality, held exactly), the warm duals in the
+    scaled problem and the per-row rho. Both kernels run it (it is cheap next to either, and nothing scaled has to
+    pass through device memory).
+
+    Args:
+        P: (N, N), Ae: (NE, N), Ai: (MI, N), db: (N,), q: (N,) the problem in the user's units, zero-padded.
+        l, u, wy: tuples of the three blocks' bounds (finite, ``+-BIG``; padding 0) and warm duals (user's units).
+        rho: () the solve's rho.
+    """
+    N = P.shape[0]
+    masks = _row_masks(dims, (Ae.shape[0], Ai.shape[0], N))
+    P = 0.5 * (P + P.T)
+    D, E, c = jnp.ones_like(q), [jnp.ones_like(v) for v in l], jnp.ones_like(rho)
+    rows = (Ae, Ai)
+    for _ in range(s.ruiz_iters):
+        P, q, rows, db, d, e, ct = ruiz_pass(P, q, rows, db, dims.n)
+        D, E, c = D * d, [a * b for a, b in zip(E, e)], c * ct
+    P = 0.5 * (P + P.T)
+    ls, us = tuple(e * v for e, v in zip(E, l)), tuple(e * v for e, v in zip(E, u))
+    free = tuple((a <= -BIG) & (b >= BIG) for a, b in zip(l, u))
+    eq = [jnp.abs(b - a) < rules.EQ_TOL for a, b in zip(ls, us)]
+    ex = masks[0] & eq[0] & ~free[0] if s.eq_rows > 0 else None  # (no bool constants: they do not lower)
+    y = tuple(_or_zero(v * c / e) if warm else jnp.zeros_like(v) for v, e in zip(wy, E))
+    act = rules.active_rows(y, P.dtype) if warm and s.warm_active_scale != 1.0 else (None,) * 3
+    exs = (ex, None, None)
+    rho_v = tuple(jnp.where(mk, rules.rho_vec(rho, rules.row_weights(e, f, x, a, s), f, s), 0.0)
+                  for mk, e, f, x, a in zip(masks, eq, free, exs, act))
+    y = tuple(jnp.where(f, 0.0, v) for f, v in zip(free, y))
+    ex = jnp.zeros_like(l[0]) if ex is None else jnp.where(ex, 1.0, 0.0)
+    return Prepared(P, q, rows[0], rows[1], db, D, tuple(E), c, ls, us, free, ex, rho_v, y)
 
 
 def sweep_inverse(T, count: int):
@@ -140,60 +196,136 @@ def _dot(a, b, contract):  # full-precision matrix product (IEEE float32 on Trit
     return jax.lax.dot_general(a, b, (contract, ((), ())), precision=jax.lax.Precision.HIGHEST)
 
 
-def _factor_kernel(P_ref, Ae_ref, Ai_ref, kd_ref, re_ref, ri_ref, exe_ref, Ki_ref, W_ref, Si_ref, *, n: int, ne: int):
+def factor_blocks(P, Ae, Ai, kd, re, ri, exe, *, n: int, ne: int):
     """``admm._kkt_factor`` with ``linsolve="inv"`` for one problem, in 2 x 2 blocks of the variables' halves.
 
-    ``K = P + A' diag(rho) A + diag(kd)`` (the box rows and sigma in ``kd``; padded variables: identity) is inverted
-    through its first half's inverse and the Schur complement of the second half (two sweeps of half the size: the
-    sweeps are sequential, and a half-size tile's are cheaper), then ``W = K^-1 Ae_h'`` and ``S^-1``, ``S = Ae_h W``
-    regularized as the XLA path does (:func:`wbc_jax.qp.scaling.regularize_schur`; ``Ae_h``: the held exact rows;
-    ``S^-1`` zero on the others). ``K^-1`` is zero on padded variables.
+    ``K = P + Ae' diag(re) Ae + Ai' diag(ri) Ai + diag(kd)`` (the box rows and sigma in ``kd``; padded variables:
+    identity) is inverted through its first half's inverse and the Schur complement of the second half (two sweeps
+    of half the size: the sweeps are sequential, and a half-size tile's are cheaper), then ``W = K^-1 Ae_h'`` and
+    ``S^-1``, ``S = Ae_h W`` regularized as the XLA path does (:func:`wbc_jax.qp.scaling.regularize_schur`;
+    ``Ae_h``: the rows held, ``exe`` 1). Plain ``jnp`` (runs inside the kernel and in tests).
+
+    Args:
+        P: ``(P11, P12, P22)`` the cost's blocks (H, H) each; Ae, Ai: ``(X1, X2)`` the rows' column halves (NE, H)
+            and (MI, H); kd: ``(kd1, kd2)`` (H,) each; re (NE,), ri (MI,): the rows' rho; exe (NE,): 1 on held rows.
+
+    Returns:
+        ``(Ki11, XS, S2i, W1, W2, Si)``: ``K^-1 = [[Ki11, -XS], [-XS', S2i]]`` (H, H) each, zero on padded variables;
+        ``W = [W1; W2]`` (H, NE) each; ``S^-1`` (NE, NE), zero on the rows not held.
     """
-    N = P_ref.shape[0]
-    H = N // 2
-    s1, s2 = slice(0, H), slice(H, N)
-    re, ri_, exe = re_ref[...], ri_ref[...], exe_ref[...]
-    Ae1, Ae2, Ai1, Ai2 = Ae_ref[:, s1], Ae_ref[:, s2], Ai_ref[:, s1], Ai_ref[:, s2]
+    (P11, P12, P22), (Ae1, Ae2), (Ai1, Ai2) = P, Ae, Ai
+    H = P11.shape[0]
     r = jax.lax.broadcasted_iota(jnp.int32, (H, H), 0)
     c = jax.lax.broadcasted_iota(jnp.int32, (H, H), 1)
 
     def gram(Xa, Xb):  # Xa' diag(rho) Xb over the exact and the dense rows
-        return _dot(Xa[0] * re[:, None], Xb[0], ((0,), (0,))) + _dot(Xa[1] * ri_[:, None], Xb[1], ((0,), (0,)))
+        return _dot(Xa[0] * re[:, None], Xb[0], ((0,), (0,))) + _dot(Xa[1] * ri[:, None], Xb[1], ((0,), (0,)))
 
     def sym(M, kd=None):
         M = 0.5 * (M + M.T)
         return M if kd is None else M + jnp.where(r == c, kd[None, :], 0.0)
 
-    K11 = sym(P_ref[s1, s1] + gram((Ae1, Ai1), (Ae1, Ai1)), kd_ref[s1])
-    K12 = P_ref[s1, s2] + gram((Ae1, Ai1), (Ae2, Ai2))
-    K22 = sym(P_ref[s2, s2] + gram((Ae2, Ai2), (Ae2, Ai2)), kd_ref[s2])
+    K11 = sym(P11 + gram((Ae1, Ai1), (Ae1, Ai1)), kd[0])
+    K12 = P12 + gram((Ae1, Ai1), (Ae2, Ai2))
+    K22 = sym(P22 + gram((Ae2, Ai2), (Ae2, Ai2)), kd[1])
     K11i = sweep_inverse(K11, min(n, H))
     X = _dot(K11i, K12, ((1,), (0,)))  # K11^-1 K12
     S2i = jnp.where((r < n - H) & (c < n - H), sweep_inverse(sym(K22 - _dot(K12, X, ((0,), (0,)))), n - H), 0.0)
     XS = _dot(X, S2i, ((1,), (0,)))
     Ki11 = jnp.where((r < n) & (c < n), K11i + _dot(XS, X, ((1,), (1,))), 0.0)
+    Ah1, Ah2 = Ae1 * exe[:, None], Ae2 * exe[:, None]
+    W1 = _dot(Ki11, Ah1, ((1,), (1,))) - _dot(XS, Ah2, ((1,), (1,)))
+    W2 = -_dot(XS, Ah1, ((0,), (1,))) + _dot(S2i, Ah2, ((1,), (1,)))
+    S = regularize_schur(_dot(Ah1, W1, ((1,), (0,))) + _dot(Ah2, W2, ((1,), (0,))), exe > 0.5)
+    return Ki11, XS, S2i, W1, W2, sweep_inverse(S, ne) * (exe[:, None] * exe[None, :])
+
+
+class Stage(NamedTuple):
+    """The preparation kernel's outputs, one problem's scaled data as the other two kernels read it (rows in the
+    three blocks: each per-row field a tuple of the exact, dense and box block's)."""
+
+    P: jax.Array  # (N, N) scaled cost
+    Ae: jax.Array  # (NE, N) scaled exact rows
+    Ai: jax.Array  # (MI, N) scaled dense rows
+    db: jax.Array  # (N,) scaled box diagonal
+    q: jax.Array  # (N,) scaled linear cost
+    kd: jax.Array  # (N,) K's diagonal term: sigma + the box rows' rho db^2 (padded variables: 1)
+    D: jax.Array  # (N,) column scaling
+    Dc: jax.Array  # (N,) 1 / (c D): the dual residual's unscaling
+    lo: tuple  # scaled lower bounds
+    hi: tuple  # scaled upper bounds
+    rho: tuple  # per-row rho (0 on held rows and padding)
+    free: tuple  # 1.0 on rows without bounds
+    Ei: tuple  # 1 / row scaling
+    x: jax.Array  # (N,) scaled start
+    z: tuple  # scaled start
+    y: tuple  # scaled start
+    exe: jax.Array  # (NE,) 1.0 on the rows held exactly
+    le: jax.Array  # (NE,) their right-hand side (0 elsewhere)
+    scal: jax.Array  # (16,) [c, rho]
+
+
+N_IN = 19  # the preparation kernel's inputs: P, Ae, Ai, db, q, l (3 blocks), u (3), wy (3), scal, wx, wz (3)
+
+
+def _first(v):  # () v[0] (a masked sum: a Triton kernel cannot index a value)
+    return jnp.sum(jnp.where(jax.lax.broadcasted_iota(jnp.int32, v.shape, 0) == 0, v, 0.0))
+
+
+def _prepare_kernel(*refs, s: QPSettings, dims: Dims, warm: bool, treedef):
+    """:func:`prepare` of one problem and its scaled start, written as a :class:`Stage`."""
+    P, Ae, Ai, db, q, *rest = (r[...] for r in refs[:N_IN])
+    l, u, wy, scal, wx, wz = tuple(rest[0:3]), tuple(rest[3:6]), tuple(rest[6:9]), rest[9], rest[10], rest[11:14]
+    out = jax.tree_util.tree_unflatten(treedef, refs[N_IN:])
+    rho = _first(scal)
+    pr = prepare(P, Ae, Ai, db, q, l, u, wy, rho, s=s, dims=dims, warm=warm)
+    N = P.shape[0]
+    x0 = _or_zero(wx / pr.D) if warm else jnp.zeros_like(q)
+    ax0 = [_mv(pr.Ae, x0), _mv(pr.Ai, x0), pr.db * x0]
+    z0 = [jnp.where(f, a, jnp.minimum(jnp.maximum(_or_zero(v * e) if warm else jnp.zeros_like(e), lb), ub))
+          for f, a, v, e, lb, ub in zip(pr.free, ax0, wz, pr.E, pr.l, pr.u)]
+    i = jax.lax.broadcasted_iota(jnp.int32, (N,), 0)
+    vals = Stage(pr.P, pr.Ae, pr.Ai, pr.db, pr.q, jnp.where(i < dims.n, s.sigma + pr.db * pr.db * pr.rho[2], 1.0),
+                 pr.D, 1.0 / (pr.c * pr.D), pr.l, pr.u, pr.rho, tuple(jnp.where(f, 1.0, 0.0) for f in pr.free),
+                 tuple(1.0 / e for e in pr.E), x0, tuple(z0), pr.y, pr.ex, jnp.where(pr.ex > 0.5, pr.l[0], 0.0),
+                 jnp.where(jax.lax.broadcasted_iota(jnp.int32, (16,), 0) == 0, pr.c, rho))
+    for ref, v in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(vals)):
+        ref[...] = v
+
+
+def _factor_kernel(P_ref, Ae_ref, Ai_ref, kd_ref, re_ref, ri_ref, exe_ref, Ki_ref, W_ref, Si_ref, *, n: int,
+                   ne: int):
+    """:func:`factor_blocks` of one problem, its blocks read from the scaled matrices."""
+    N = P_ref.shape[0]
+    H = N // 2
+    s1, s2 = slice(0, H), slice(H, N)
+    Ki11, XS, S2i, W1, W2, Si = factor_blocks(
+        (P_ref[s1, s1], P_ref[s1, s2], P_ref[s2, s2]), (Ae_ref[:, s1], Ae_ref[:, s2]), (Ai_ref[:, s1], Ai_ref[:, s2]),
+        (kd_ref[s1], kd_ref[s2]), re_ref[...], ri_ref[...], exe_ref[...], n=n, ne=ne)
     Ki_ref[s1, s1] = Ki11
     Ki_ref[s1, s2] = -XS
     Ki_ref[s2, s1] = -XS.T
     Ki_ref[s2, s2] = S2i
-    Ah1, Ah2 = Ae1 * exe[:, None], Ae2 * exe[:, None]
-    W1 = _dot(Ki11, Ah1, ((1,), (1,))) - _dot(XS, Ah2, ((1,), (1,)))
-    W2 = -_dot(XS, Ah1, ((0,), (1,))) + _dot(S2i, Ah2, ((1,), (1,)))
     W_ref[s1, :] = W1
     W_ref[s2, :] = W2
-    S = regularize_schur(_dot(Ah1, W1, ((1,), (0,))) + _dot(Ah2, W2, ((1,), (0,))), exe > 0.5)
-    Si_ref[...] = sweep_inverse(S, ne) * (exe[:, None] * exe[None, :])
+    Si_ref[...] = Si
 
 
-def _kernel(P_ref, Ki_ref, Ae_ref, Ai_ref, db_ref, W_ref, Si_ref, q_ref, le_ref, exe_ref, Dc_ref, x_ref, *refs,
-            iters: int, max_iters: int, check_every: int, alpha: float, eps_abs: float, eps_rel: float):
-    blk_refs = [refs[i * N_BLOCK:(i + 1) * N_BLOCK] for i in range(3)]  # exact, dense, box: Block's fields
-    xo_ref, *out_refs = refs[3 * N_BLOCK:]
-    P, Ki, Ae, Ai, db, W, Si = (r[...] for r in (P_ref, Ki_ref, Ae_ref, Ai_ref, db_ref, W_ref, Si_ref))
-    q, le, exe, Dc = q_ref[...], le_ref[...], exe_ref[...], Dc_ref[...]
-    lo, hi, rho, free, Ei, z0, y0 = ([r[...] for r in field] for field in zip(*blk_refs))  # each: 3 blocks
-    free = [f > 0.5 for f in free]
+def _kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, treedef):
+    """One problem's solve from its :class:`Stage` and factorization: ``iters`` iterations, blocks of
+    ``check_every`` while outside tolerance, then the result in the user's units with its residuals, certificates
+    and flag (the user's bounds ``l``, ``u`` read at the end, for the certificates)."""
+    n_stage = treedef.num_leaves
+    st = jax.tree_util.tree_unflatten(treedef, refs[:n_stage])
+    Ki_ref, W_ref, Si_ref = refs[n_stage:n_stage + 3]
+    l_refs, u_refs = refs[n_stage + 3:n_stage + 6], refs[n_stage + 6:n_stage + 9]
+    x_ref, z_refs, y_refs, info_ref = refs[n_stage + 9], refs[n_stage + 10:n_stage + 13], refs[-4:-1], refs[-1]
+    P, Ki, Ae, Ai, db, W, Si = (r[...] for r in (st.P, Ki_ref, st.Ae, st.Ai, st.db, W_ref, Si_ref))
+    q, le, exe, Dc = st.q[...], st.le[...], st.exe[...], st.Dc[...]
+    lo, hi, rho, Ei = ([r[...] for r in f] for f in (st.lo, st.hi, st.rho, st.Ei))
+    free = [r[...] > 0.5 for r in st.free]
     rdiv = [jnp.where(r > 0.0, r, 1.0) for r in rho]  # z's step y / rho; exact rows and padding: y / 1 (l == u)
+    alpha = s.alpha
 
     def rows(x):  # A x per block
         return [_mv(Ae, x), _mv(Ai, x), db * x]
@@ -227,17 +359,12 @@ def _kernel(P_ref, Ki_ref, Ae_ref, Ai_ref, db_ref, W_ref, Si_ref, q_ref, le_ref,
         return (jnp.where(ok, xn, x), keep(zn, z), keep(yn, y), jnp.where(ok, xn - x, dx),
                 keep([a - b for a, b in zip(yn, y)], dy), jnp.where(ok, bad, 1.0))
 
-    def converged(x, z, y):  # admm._unscaled's test, from the scaled iterate
-        ax, px, aty = rows(x), _mv(P, x), rows_t(y)
-        prim = functools.reduce(jnp.maximum, [_amax((ax[b] - z[b]) * Ei[b]) for b in range(3)])
-        a_max = functools.reduce(jnp.maximum, [_amax(ax[b] * Ei[b]) for b in range(3)])
-        z_max = functools.reduce(jnp.maximum, [_amax(z[b] * Ei[b]) for b in range(3)])
-        prim_tol = eps_abs + eps_rel * jnp.maximum(a_max, z_max)
-        dual = _amax((px + q + aty) * Dc)
-        dual_tol = eps_abs + eps_rel * jnp.maximum(jnp.maximum(_amax(px * Dc), _amax(aty * Dc)), _amax(q * Dc))
-        return (prim <= prim_tol) & (dual <= dual_tol)
+    def test(x, z, y):  # rules.termination in the user's units, from the scaled iterate
+        return rules.termination([a * e for a, e in zip(rows(x), Ei)], [a * e for a, e in zip(z, Ei)],
+                                 _mv(P, x) * Dc, rows_t(y) * Dc, q * Dc, s)
 
-    x0 = x_ref[...]
+    x0 = st.x[...]
+    z0, y0 = [r[...] for r in st.z], [r[...] for r in st.y]
     c = (project(x0), z0, y0, jnp.zeros_like(x0), [jnp.zeros_like(v) for v in y0], jnp.zeros((), x0.dtype))
     c = jax.lax.fori_loop(0, iters, step, c)
     k = jnp.int32(iters)
@@ -245,7 +372,7 @@ def _kernel(P_ref, Ki_ref, Ae_ref, Ai_ref, db_ref, W_ref, Si_ref, q_ref, le_ref,
         def unconverged(w):
             k, c = w
             x, z, y, _, _, bad = c
-            return (k < max_iters) & (bad == 0.0) & jnp.logical_not(converged(x, z, y))
+            return (k < max_iters) & (bad == 0.0) & jnp.logical_not(test(x, z, y)[2])
 
         def block(w):
             k, c = w
@@ -255,58 +382,64 @@ def _kernel(P_ref, Ki_ref, Ae_ref, Ai_ref, db_ref, W_ref, Si_ref, q_ref, le_ref,
 
         k, c = jax.lax.while_loop(unconverged, block, (k, c))
     x, z, y, dx, dy, bad = c
-    xo_ref[...] = x
-    dxo_ref, info_ref = out_refs[9], out_refs[10]
-    dxo_ref[...] = dx
+    prim, dual, conv = test(x, z, y)
+    D, scal = st.D[...], st.scal[...]
+    cs = _first(scal)
+    E = [1.0 / e for e in Ei]
+    xu, zu, yu = D * x, [a * e for a, e in zip(z, Ei)], [e * a / cs for a, e in zip(y, E)]
+    l, u = [r[...] for r in l_refs], [r[...] for r in u_refs]
+    pinf = rules.primal_infeasible(l, u, [e * a / cs for a, e in zip(dy, E)],
+                                   lambda v: rows_t([a * e for a, e in zip(v, Ei)]) / D, s)
+    dinf = rules.dual_infeasible(l, u, D * dx, [a * e for a, e in zip(rows(dx), Ei)], _mv(P, dx) * Dc,
+                                 jnp.sum(q * dx) / cs, s)
+    empty = rules.amax(*[jnp.where(a > b, 1.0, 0.0) for a, b in zip(l, u)]) > 0.0
+    flag = rules.status(_finite(xu, *zu, *yu, prim, dual) & (bad == 0.0), empty, pinf, dinf, conv)
+    i = jax.lax.broadcasted_iota(jnp.int32, scal.shape, 0)
+    rho_out = jnp.sum(jnp.where(i == 1, scal, 0.0))
+    if s.adapt_every > 0:
+        rho_out = rules.adapt_rho(rho_out, *rules.rel_residuals(rows(x), z, _mv(P, x), rows_t(y), q, 1e-30), s)
+    fmax = float(jnp.finfo(x.dtype).max)
+    x_ref[...] = rules.clean(xu, 0.0, fmax)
     for b in range(3):
-        out_refs[b][...] = z[b]
-        out_refs[3 + b][...] = y[b]
-        out_refs[6 + b][...] = dy[b]
-    i = jax.lax.broadcasted_iota(jnp.int32, info_ref.shape, 0)
-    info_ref[...] = jnp.where(i == 0, bad, jnp.where(i == 1, k.astype(x.dtype), 0.0)).astype(info_ref.dtype)
+        z_refs[b][...] = rules.clean(zu[b], 0.0, fmax)
+        y_refs[b][...] = rules.clean(yu[b], 0.0, fmax)
+    info = [flag.astype(x.dtype), k.astype(x.dtype), prim, dual, rho_out]
+    info = functools.reduce(lambda acc, j: jnp.where(i == j, info[j], acc), range(len(info)), jnp.zeros_like(scal))
+    info_ref[...] = rules.clean(info, jnp.where(i == 4, s.rho, fmax), fmax)  # NaN residuals: fmax; NaN rho: rho
 
 
-def _padded_block(b: Block, size: int, front: int = 0) -> list:
-    """The block's fields as kernel inputs of length ``size`` (``front`` zeros first: the box block's place among the
-    variables); padding is ``0 <= 0 <= 0`` with zero rho, not free, row scaling 1."""
-    dt = b.l.dtype
-    pad = lambda v, c=0.0: jnp.pad(v.astype(dt), (front, size - front - v.shape[0]), constant_values=c)  # noqa: E731
-    return [pad(b.l), pad(b.u), pad(b.rho), pad(b.free), pad(b.Ei, 1.0), pad(b.z), pad(b.y)]
-
-
-@functools.partial(jax.jit, static_argnames=("sigma", "iters", "max_iters", "check_every", "alpha", "eps_abs",
-                                             "eps_rel", "num_warps", "factor_warps"))
-def fused_solve(P, Ae, Ai, db, q, ex_e, Dc, x, exact: Block, dense: Block, box: Block, *, sigma: float, iters: int,
-                max_iters: int, check_every: int, alpha: float, eps_abs: float, eps_rel: float,
-                num_warps: int = 4, factor_warps: int = 4) -> FusedOut:
-    """The x-update's factorization (one kernel), then ``iters`` ADMM iterations of one scaled problem and blocks of
-    ``check_every`` while unconverged (a second kernel).
+@functools.partial(jax.jit, static_argnames=("s", "iters", "warm", "num_warps", "factor_warps"))
+def fused_solve(P, Ae, Ai, db, q, l, u, wx, wz, wy, rho, *, s: QPSettings, iters: int, warm: bool,
+                num_warps: int = 4, factor_warps: int = 4) -> QPResult:
+    """One QP solved by the three kernels: its preparation, its factorization, then the iterations and everything
+    after them.
 
     Args:
-        P: (n, n) the scaled cost; Ae: (ne, n) the exact block's rows (unmasked); Ai: (mi, n) the dense block's rows;
-            db: (nb,) the box block's diagonal (row i bounds variable ``n - nb + i``).
-        q: (n,) scaled linear cost; ex_e: (ne,) bool, exact-block rows held exactly (their ``l == u``).
-        Dc: (n,) ``1 / (c D)`` (column and cost scaling), for the convergence test.
-        x: (n,) start. exact, dense, box: :class:`Block` of each (bounds finite, ``+-BIG``; ``rho`` 0 on held rows).
-        sigma: the proximal term of ``K = P + sigma I + A' diag(rho) A``.
-        iters / max_iters / check_every: as ``QPSettings`` (``max_iters <= iters``: no extension).
-        alpha: over-relaxation. eps_abs, eps_rel: the test's tolerances.
+        P: (n, n) cost; Ae: (ne, n) the exact block's rows; Ai: (mi, n) the dense block's rows; db: (nb,) the box
+            block's diagonal (row i bounds variable ``n - nb + i``); q: (n,); all in the user's units.
+        l, u: tuples of the three blocks' bounds (finite, ``+-BIG``): (ne,), (mi,), (nb,).
+        wx: (n,), wz, wy: tuples of the blocks' warm start (user's units; ignored when ``warm`` is False).
+        rho: () the solve's rho (:func:`wbc_jax.qp.rules.warm_rho`).
+        s: the solver's settings (``sigma``, ``alpha``, tolerances, ``iters``/``max_iters``/``check_every``, rho
+            rules); iters: the fixed iterations; warm: start from ``wx, wz, wy``.
         num_warps, factor_warps: Triton warps per program of the iteration and the factorization kernel.
 
     Returns:
-        :class:`FusedOut`.
+        :class:`~wbc_jax.qp.settings.QPResult`, rows in their order (exact, dense, box).
     """
-    n, ne, mi, nb = P.shape[0], Ae.shape[0], Ai.shape[0], db.shape[0]
+    dims = Dims(P.shape[0], Ae.shape[0], Ai.shape[0], db.shape[0])
+    n, ne, mi, nb = dims
     N, NE, MI = _pow2(n), _pow2(ne), _pow2(mi)
     dt = P.dtype
-    pn, pe, pi = (0, N - n), (0, NE - ne), (0, MI - mi)
-    ex_f = jnp.pad(ex_e.astype(dt), pe)
-    le = jnp.pad(jnp.where(ex_e, exact.l, 0.0), pe)
-    P, Ae, Ai = jnp.pad(P, (pn, pn)), jnp.pad(Ae, (pe, pn)), jnp.pad(Ai, (pi, pn))
-    db_p = jnp.pad(db, (n - nb, N - n))
-    blocks = _padded_block(exact, NE) + _padded_block(dense, MI) + _padded_block(box, N, n - nb)
-    rho_e, rho_i, rho_b = blocks[2], blocks[N_BLOCK + 2], blocks[2 * N_BLOCK + 2]
-    kd = jnp.where(jnp.arange(N) < n, sigma + db_p * db_p * rho_b, 1.0)  # padded variables: identity
+    pn = (0, N - n)
+
+    def blocks(v):  # the three blocks padded to the kernels' sizes, the box block laid over the variables
+        return [jnp.pad(v[0], (0, NE - ne)), jnp.pad(v[1], (0, MI - mi)), jnp.pad(v[2], (n - nb, N - n))]
+
+    lb, ub = blocks(l), blocks(u)
+    ins = [jnp.pad(P, (pn, pn)), jnp.pad(Ae, ((0, NE - ne), pn)), jnp.pad(Ai, ((0, MI - mi), pn)),
+           jnp.pad(db, (n - nb, N - n)), jnp.pad(q, pn)] + lb + ub + blocks(wy)
+    ins += [jnp.pad(jnp.reshape(rho, (1,)).astype(dt), (0, 15)), jnp.pad(wx, pn)] + blocks(wz)
     interpret = jax.default_backend() == "cpu"
     params = fparams = None
     if not interpret:
@@ -314,19 +447,28 @@ def fused_solve(P, Ae, Ai, db, q, ex_e, Dc, x, exact: Block, dense: Block, box: 
 
         params = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
         fparams = plgpu.CompilerParams(num_warps=factor_warps, num_stages=1)
+    sd = lambda *sh: jax.ShapeDtypeStruct(sh, dt)  # noqa: E731
+    rowb = (sd(NE), sd(MI), sd(N))
+    shapes = Stage(sd(N, N), sd(NE, N), sd(MI, N), sd(N), sd(N), sd(N), sd(N), sd(N), rowb, rowb, rowb, rowb, rowb,
+                   sd(N), rowb, rowb, sd(NE), sd(NE), sd(16))
+    treedef = jax.tree_util.tree_structure(shapes)
+    with jax.named_scope("qp_equilibrate"):
+        st = pl.pallas_call(
+            functools.partial(_prepare_kernel, s=s, dims=dims, warm=warm, treedef=treedef), interpret=interpret,
+            compiler_params=params, out_shape=jax.tree_util.tree_leaves(shapes), name="admm_prepare")(*ins)
+    st = jax.tree_util.tree_unflatten(treedef, st)
     with jax.named_scope("qp_factor"):
-        Ki, W, Si = pl.pallas_call(
+        factors = pl.pallas_call(
             functools.partial(_factor_kernel, n=n, ne=ne), interpret=interpret, compiler_params=fparams,
-            out_shape=[jax.ShapeDtypeStruct(s, dt) for s in ((N, N), (N, NE), (NE, NE))], name="admm_factor",
-        )(P, Ae, Ai, kd, rho_e, rho_i, ex_f)
-    args = [P, Ki, Ae, Ai, db_p, W, Si, jnp.pad(q, pn), le, ex_f, jnp.pad(Dc, pn, constant_values=1.0),
-            jnp.pad(x, pn)] + blocks
-    sizes = (N, NE, MI, N, NE, MI, N, NE, MI, N, N, 16)  # x, z (3 blocks), y (3), dy (3), dx, info
-    kern = functools.partial(_kernel, iters=iters, max_iters=max_iters, check_every=check_every, alpha=alpha,
-                             eps_abs=eps_abs, eps_rel=eps_rel)
-    xo, ze, zi, zb, ye, yi, yb, dye, dyi, dyb, dxo, info = pl.pallas_call(
-        kern, out_shape=[jax.ShapeDtypeStruct((s,), dt) for s in sizes], interpret=interpret, compiler_params=params,
-        name="admm_iterations")(*args)
+            out_shape=[sd(N, N), sd(N, NE), sd(NE, NE)], name="admm_factor",
+        )(st.P, st.Ae, st.Ai, st.kd, st.rho[0], st.rho[1], st.exe)
+    kern = functools.partial(_kernel, s=s, iters=iters, max_iters=max(s.max_iters, iters),
+                             check_every=max(s.check_every, 1), treedef=treedef)
+    with jax.named_scope("qp_iterations"):
+        x, ze, zi, zb, ye, yi, yb, info = pl.pallas_call(
+            kern, out_shape=[sd(N), *rowb, *rowb, sd(16)], interpret=interpret, compiler_params=params,
+            name="admm_iterations",
+        )(*jax.tree_util.tree_leaves(st), *factors, *lb, *ub)
     rows = lambda e, i, b: jnp.concatenate([e[:ne], i[:mi], b[n - nb:n]])  # noqa: E731
-    return FusedOut(xo[:n], rows(ze, zi, zb), rows(ye, yi, yb), dxo[:n], rows(dye, dyi, dyb), info[0] > 0,
-                    info[1].astype(jnp.int32))
+    return QPResult(x=x[:n], y=rows(ye, yi, yb), z=rows(ze, zi, zb), prim_res=info[2], dual_res=info[3],
+                    flag=info[0].astype(jnp.int32), iters=info[1].astype(jnp.int32), rho=info[4])

@@ -45,15 +45,16 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from wbc_jax.qp.scaling import HI, Scaled, all_finite, mv, rel_residuals
+from wbc_jax.qp.rules import scaled_residuals
+from wbc_jax.qp.scaling import HI, Scaled, all_finite, mv
 from wbc_jax.qp.settings import BIG, QPSettings
 
 
 def _kkt_error(sp: Scaled, x, z, y):
-    """Relative KKT error ``max(prim, dual)`` of ``(x, z, y)`` (:func:`_rel_residuals`
+    """Relative KKT error ``max(prim, dual)`` of ``(x, z, y)`` (:func:`wbc_jax.qp.rules.rel_residuals`
     with offset 1) in the scaled problem; ``z`` in ``[l, u]`` and ``y`` in its normal
     cone are assumed. Returns ()."""
-    return jnp.maximum(*rel_residuals(sp, x, z, y, 1.0))
+    return jnp.maximum(*scaled_residuals(sp, x, z, y, 1.0))
 
 
 def _guess_active(sp: Scaled, ax, y, eq, free):

@@ -61,8 +61,48 @@ def _limit(v):
     return jnp.where(v < _MIN_SCALING, 1.0, jnp.minimum(v, _MAX_SCALING))
 
 
+def absmax(M, axis: int):
+    """``max |M|`` along ``axis`` (0 along an empty axis); no ``initial`` where the axis is not empty, so that it also
+    lowers inside a Triton kernel."""
+    if M.shape[axis] == 0:
+        return jnp.max(jnp.abs(M), axis=axis, initial=0.0)
+    return jnp.max(jnp.abs(M), axis=axis)
+
+
+def ruiz_pass(P, q, rows, diag, n: int):
+    """One Ruiz pass on ``[[P, A'], [A, 0]]`` with cost scaling (module docstring), ``A``'s rows given in blocks.
+
+    Args:
+        P: (N, N) cost; q: (N,) linear cost.
+        rows: tuple of dense row blocks of ``A``, each (r, N).
+        diag: (N,) a block of rows that bound one variable each, laid over the variables (row of variable j: ``A``'s
+            entry ``diag[j]``; 0 where no such row), or None.
+        n: the problem's variables (the cost is scaled by the mean of ``P``'s column norms over them; padding
+            variables, if ``N > n``, have zero rows and columns).
+
+    Returns:
+        ``(P, q, rows, diag, d, e, ct)``: the scaled parts, the pass's column scaling d (N,), row scalings e (a tuple
+        with one (r,) per block, then diag's (N,) when given) and cost scaling ct ().
+    """
+    col = absmax(P, 0)
+    for M in rows:
+        col = jnp.maximum(col, absmax(M, 0))
+    if diag is not None:
+        col = jnp.maximum(col, jnp.abs(diag))
+    d = lax.rsqrt(_limit(col))
+    e = [lax.rsqrt(_limit(absmax(M, 1))) for M in rows]
+    P = d[:, None] * P * d[None, :]
+    rows = tuple(ek[:, None] * M * d[None, :] for ek, M in zip(e, rows))
+    if diag is not None:
+        e.append(lax.rsqrt(_limit(jnp.abs(diag))))
+        diag = e[-1] * diag * d
+    q = d * q
+    ct = 1.0 / jnp.clip(jnp.sum(absmax(P, 0)) / n, _MIN_COST_SCALING, _MAX_COST_SCALING)
+    return ct * P, ct * q, rows, diag, d, tuple(e), ct
+
+
 def equilibrate(P, q, A, l, u, ruiz_iters: int, unroll: int | bool = 1) -> Scaled:
-    """Ruiz equilibration of ``[[P, A'], [A, 0]]`` with cost scaling (module docstring).
+    """Ruiz equilibration of ``[[P, A'], [A, 0]]`` with cost scaling (module docstring; :func:`ruiz_pass`).
 
     Args:
         P: (n, n), q: (n,), A: (m, n), l, u: (m,) the problem (bounds finite, ``+-BIG``).
@@ -77,16 +117,8 @@ def equilibrate(P, q, A, l, u, ruiz_iters: int, unroll: int | bool = 1) -> Scale
 
     def one_pass(carry, _):
         P, q, A, D, E, c = carry
-        col = jnp.maximum(jnp.max(jnp.abs(P), axis=0), jnp.max(jnp.abs(A), axis=0, initial=0.0))
-        row = jnp.max(jnp.abs(A), axis=1, initial=0.0)
-        d = lax.rsqrt(_limit(col))
-        e = lax.rsqrt(_limit(row))
-        P = d[:, None] * P * d[None, :]
-        A = e[:, None] * A * d[None, :]
-        q = d * q
-        cp = jnp.mean(jnp.max(jnp.abs(P), axis=0))
-        ct = 1.0 / jnp.clip(cp, _MIN_COST_SCALING, _MAX_COST_SCALING)
-        return (ct * P, ct * q, A, D * d, E * e, ct * c), None
+        P, q, (A,), _, d, (e,), ct = ruiz_pass(P, q, (A,), None, n)
+        return (P, q, A, D * d, E * e, ct * c), None
 
     init = (P, q, A, jnp.ones(n, dt), jnp.ones(m, dt), jnp.ones((), dt))
     if ruiz_iters > 0:
@@ -127,25 +159,3 @@ def solve(fac, b, linsolve: str):
     if linsolve == "inv":
         return mv(fac, b)
     return jax.scipy.linalg.cho_solve((fac, True), b)
-
-
-def rel_residuals(sp: Scaled, x, z, y, offset):
-    """Relative primal and dual residuals in the scaled problem (inf-norms).
-
-    Args:
-        sp: scaled problem.
-        x: (n,) primal point.
-        z: (m,) row values.
-        y: (m,) duals.
-        offset: added to the denominators (tiny: OSQP's relative residuals; 1: also
-            absolute near zero).
-
-    Returns:
-        ``(prim, dual)``: ``||Ax - z|| / (offset + max(||Ax||, ||z||))`` and
-        ``||Px + q + A'y|| / (offset + max(||Px||, ||A'y||, ||q||))``.
-    """
-    ax, px, aty = mv(sp.A, x), mv(sp.P, x), mv(sp.A.T, y)
-    prim = inf_norm(ax - z) / (offset + jnp.maximum(inf_norm(ax), inf_norm(z)))
-    dual = inf_norm(px + sp.q + aty) / (
-        offset + jnp.maximum(jnp.maximum(inf_norm(px), inf_norm(aty)), inf_norm(sp.q)))
-    return prim, dual

@@ -89,10 +89,10 @@ class QPSettings(NamedTuple):
             Under ``vmap`` the block loop runs until the batch's slowest problem converges (converged problems
             keep their result), so its cost is paid only at steps where some problem needs it (contact events).
         check_every: iterations per block of the extension (one convergence test each).
-        kernel: ``"xla"`` (the iterations as XLA ops), ``"fused"`` (the iterations and the extension in one Pallas
-            kernel per problem, :mod:`wbc_jax.qp.fused`; needs one factorization per solve, ``adapt_every`` 0 or
-            ``>= iters``; rho is then re-estimated from the final iterate) or ``"auto"`` (fused on a GPU where
-            that holds, else XLA).
+        kernel: ``"xla"`` (the solve as XLA ops), ``"fused"`` (the whole solve in Pallas kernels of one program
+            per problem, :mod:`wbc_jax.qp.fused`; needs one factorization per solve, ``adapt_every`` 0 or
+            ``>= iters``, and no polishing; rho is then re-estimated from the final iterate) or ``"auto"`` (fused
+            on a GPU where that holds, else XLA).
     """
 
     iters: int = 100
