@@ -372,7 +372,7 @@ def _box_last(b):
 
 @pytest.mark.parametrize("eq_rows,max_iters,box", [(24, 200, True), (0, 0, False)])
 def test_fused_kernel_equals_xla_iterations(eq_rows, max_iters, box):
-    """QPSettings.kernel='fused' (the whole solve in two Pallas kernels: equilibration, factorization, iterations
+    """QPSettings.kernel='fused' (the whole solve in three Pallas kernels: preparation, factorization, iterations
     with the extension, residuals and flag; here in the Pallas interpreter) gives the XLA path's iterate, residuals,
     iteration count, flag and re-estimated rho, float64: 6 cold WBC problems (with the extension some converge at 90
     or 150 iterations, some reach the cap), then the same problems perturbed by 1 %, warm-started from the cold

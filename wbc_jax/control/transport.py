@@ -187,7 +187,7 @@ def control_qp_settings(iters: int = 10, **kw) -> QPSettings:
     ``iters`` warm-started iterations (the previous step's x, z, y), then blocks of 10 more while the residuals are
     outside the tolerance 1e-4 (abs and rel, OSQP's test) up to 200 (``max_iters``); the QP's first ``N_EQ_ROWS`` rows (floating base, stance feet,
     tray: equalities, or free for a swing foot) held exactly in every x-update (``eq_rows``); rho fixed at 3 on the
-    remaining (inequality) rows, so one factorization per step; 2 Ruiz passes; the linear solve picked per backend (``linsolve="auto"``: Cholesky on the CPU, explicit inverse on a GPU); on a GPU the factorization, then the iterations and the extension, in two Pallas kernels of one program per problem (``kernel="auto"``, :mod:`wbc_jax.qp.fused`).
+    remaining (inequality) rows, so one factorization per step; 2 Ruiz passes; the linear solve picked per backend (``linsolve="auto"``: Cholesky on the CPU, explicit inverse on a GPU); on a GPU the whole solve (equilibration, factorization, the iterations with the extension, residuals and flag) in three Pallas kernels of one program per problem (``kernel="auto"``, :mod:`wbc_jax.qp.fused`).
 
     Evidence, issue 22 (2026-11-25, CPU, float32; ``bench qp-rollout``'s acceptance: relative objective error
     <= 1e-3 and violation <= 1e-4 of max(1, |Ax|) against OSQP at eps 1e-9). Before: the swing slack (12
