@@ -59,8 +59,8 @@ path estimates it after the fixed iterations, the kernel from the final iterate.
 
 Shapes are padded to powers of two (Triton's rule, at least 16): padded variables have zero rows and columns in
 every matrix, padded rows are ``0 <= 0 <= 0`` with zero rho and dual, padded exact rows have zero ``S^-1``.
-``vmap`` adds a grid axis (one program per problem). On a CPU the kernel runs in Pallas' interpreter (slow; tests
-only); the solver uses it where ``QPSettings.kernel`` says so (``"auto"``: on a GPU).
+``vmap`` adds a grid axis (one program per problem). On a CPU the kernels run in Pallas' interpreter (slow; tests
+only); the solver uses them where ``QPSettings.kernel`` says so (``"auto"``: on a GPU).
 """
 
 from __future__ import annotations
@@ -137,8 +137,8 @@ def _row_masks(dims: Dims, sizes) -> tuple:
 def prepare(P, Ae, Ai, db, q, l, u, wy, rho, *, s: QPSettings, dims: Dims, warm: bool) -> Prepared:
     """``admm._solve_one``'s preparation of one problem, on the kernels' blocks: symmetrize ``P``, Ruiz passes
     (:func:`wbc_jax.qp.scaling.ruiz_pass`), the rows' kinds (free, equality, held exactly), the warm duals in the
-    scaled problem and the per-row rho. Both kernels run it (it is cheap next to either, and nothing scaled has to
-    pass through device memory).
+    scaled problem and the per-row rho. The preparation kernel runs it and writes its result for the other two
+    (:class:`Stage`); plain ``jnp`` (runs inside the kernel and outside it).
 
     Args:
         P: (N, N), Ae: (NE, N), Ai: (MI, N), db: (N,), q: (N,) the problem in the user's units, zero-padded.
