@@ -392,17 +392,13 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     if warm is None:
         xb, zb, yb = jnp.zeros(n, dt), jnp.zeros(m, dt), jnp.zeros(m, dt)
     else:
-        wx, wz, wy, _ = warm
-        xb = jnp.asarray(wx, dt) / sp.D
-        zb = jnp.asarray(wz, dt) * sp.E
-        yb = jnp.asarray(wy, dt) * sp.c / sp.E
-        xb, zb, yb = (jnp.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0) for v in (xb, zb, yb))
+        wx, wz, wy = (jnp.asarray(v, dt) for v in warm[:3])
+        xb, (zb,), (yb,) = rules.scaled_start(wx, (wz,), (wy,), sp.D, (sp.E,), sp.c)
     act = None
     if warm is not None and s.warm_active_scale != 1.0:
         (act,) = rules.active_rows((yb,), dt)
     w = rules.row_weights(eq, free, ex, act, s)
-    zb = jnp.where(free, mv(sp.A, xb), jnp.clip(zb, sp.l, sp.u))
-    yb = jnp.where(free, 0.0, yb)
+    (zb,), (yb,) = rules.start_on_rows((zb,), (yb,), (mv(sp.A, xb),), (sp.l,), (sp.u,), (free,))
     st = State(xb, zb, yb, jnp.zeros(n, dt), jnp.zeros(m, dt), jnp.zeros((), bool))
     st, rho, cont = _run(sp, st, rho, w, free, ex, s, iters)
     st, n_it = _extend(P, q, A, sp, st, cont, s, iters)

@@ -103,7 +103,9 @@ class Prepared(NamedTuple):
     free: tuple  # bool, no bounds
     ex: jax.Array  # (NE,) 1.0 on the exact rows held exactly (l == u), else 0.0
     rho: tuple  # per-row rho (0: held rows, padding)
-    y: tuple  # scaled warm duals (0 cold, on free rows and padding)
+    x: jax.Array  # (N,) scaled start (0 cold)
+    z: tuple  # scaled start (in the bounds; A x on free rows)
+    y: tuple  # scaled start (0 on free rows and padding)
 
 
 def _pow2(k: int) -> int:
@@ -123,10 +125,6 @@ def _finite(*vs):  # () bool, every entry finite (Triton-friendly: x - x is 0 on
     return (tot - tot) == 0.0
 
 
-def _or_zero(v):  # non-finite entries -> 0
-    return jnp.where(v - v == 0.0, v, 0.0)
-
-
 def _row_masks(dims: Dims, sizes) -> tuple:
     """bool masks of each block's real rows (the box block's over the variables ``n - nb .. n - 1``)."""
     NE, MI, N = sizes
@@ -134,15 +132,17 @@ def _row_masks(dims: Dims, sizes) -> tuple:
     return ie < dims.ne, ii < dims.mi, (ib >= dims.n - dims.nb) & (ib < dims.n)
 
 
-def prepare(P, Ae, Ai, db, q, l, u, wy, rho, *, s: QPSettings, dims: Dims, warm: bool) -> Prepared:
+def prepare(P, Ae, Ai, db, q, l, u, wx, wz, wy, rho, *, s: QPSettings, dims: Dims, warm: bool) -> Prepared:
     """``admm._solve_one``'s preparation of one problem, on the kernels' blocks: symmetrize ``P``, Ruiz passes
     (:func:`wbc_jax.qp.scaling.ruiz_pass`), the rows' kinds (free, equality, held exactly), the warm duals in the
-    scaled problem and the per-row rho. The preparation kernel runs it and writes its result for the other two
+    scaled problem and the per-row rho, the start in the scaled problem (:func:`wbc_jax.qp.rules.scaled_start`,
+    :func:`wbc_jax.qp.rules.start_on_rows`, as the XLA path). The preparation kernel runs it and writes its result for the other two
     (:class:`Stage`); plain ``jnp`` (runs inside the kernel and outside it).
 
     Args:
         P: (N, N), Ae: (NE, N), Ai: (MI, N), db: (N,), q: (N,) the problem in the user's units, zero-padded.
-        l, u, wy: tuples of the three blocks' bounds (finite, ``+-BIG``; padding 0) and warm duals (user's units).
+        l, u: tuples of the three blocks' bounds (finite, ``+-BIG``; padding 0).
+        wx: (N,), wz, wy: tuples of the blocks: the warm point (user's units; ignored when ``warm`` is False).
         rho: () the solve's rho.
     """
     N = P.shape[0]
@@ -158,14 +158,17 @@ def prepare(P, Ae, Ai, db, q, l, u, wy, rho, *, s: QPSettings, dims: Dims, warm:
     free = tuple((a <= -BIG) & (b >= BIG) for a, b in zip(l, u))
     eq = [jnp.abs(b - a) < rules.EQ_TOL for a, b in zip(ls, us)]
     ex = masks[0] & eq[0] & ~free[0] if s.eq_rows > 0 else None  # (no bool constants: they do not lower)
-    y = tuple(_or_zero(v * c / e) if warm else jnp.zeros_like(v) for v, e in zip(wy, E))
+    if warm:
+        x, z, y = rules.scaled_start(wx, wz, wy, D, E, c)
+    else:
+        x, z, y = jnp.zeros_like(q), tuple(jnp.zeros_like(v) for v in l), tuple(jnp.zeros_like(v) for v in l)
     act = rules.active_rows(y, P.dtype) if warm and s.warm_active_scale != 1.0 else (None,) * 3
     exs = (ex, None, None)
     rho_v = tuple(jnp.where(mk, rules.rho_vec(rho, rules.row_weights(e, f, x, a, s), f, s), 0.0)
                   for mk, e, f, x, a in zip(masks, eq, free, exs, act))
-    y = tuple(jnp.where(f, 0.0, v) for f, v in zip(free, y))
+    z, y = rules.start_on_rows(z, y, (_mv(rows[0], x), _mv(rows[1], x), db * x), ls, us, free)
     ex = jnp.zeros_like(l[0]) if ex is None else jnp.where(ex, 1.0, 0.0)
-    return Prepared(P, q, rows[0], rows[1], db, D, tuple(E), c, ls, us, free, ex, rho_v, y)
+    return Prepared(P, q, rows[0], rows[1], db, D, tuple(E), c, ls, us, free, ex, rho_v, x, z, y)
 
 
 def sweep_inverse(T, count: int):
@@ -268,8 +271,8 @@ class Stage(NamedTuple):
 N_IN = 19  # the preparation kernel's inputs: P, Ae, Ai, db, q, l (3 blocks), u (3), wy (3), scal, wx, wz (3)
 
 
-def _first(v):  # () v[0] (a masked sum: a Triton kernel cannot index a value)
-    return jnp.sum(jnp.where(jax.lax.broadcasted_iota(jnp.int32, v.shape, 0) == 0, v, 0.0))
+def _entry(v, k: int):  # () v[k] (a masked sum: a Triton kernel cannot index a value)
+    return jnp.sum(jnp.where(jax.lax.broadcasted_iota(jnp.int32, v.shape, 0) == k, v, 0.0))
 
 
 def _prepare_kernel(*refs, s: QPSettings, dims: Dims, warm: bool, treedef):
@@ -277,17 +280,12 @@ def _prepare_kernel(*refs, s: QPSettings, dims: Dims, warm: bool, treedef):
     P, Ae, Ai, db, q, *rest = (r[...] for r in refs[:N_IN])
     l, u, wy, scal, wx, wz = tuple(rest[0:3]), tuple(rest[3:6]), tuple(rest[6:9]), rest[9], rest[10], rest[11:14]
     out = jax.tree_util.tree_unflatten(treedef, refs[N_IN:])
-    rho = _first(scal)
-    pr = prepare(P, Ae, Ai, db, q, l, u, wy, rho, s=s, dims=dims, warm=warm)
-    N = P.shape[0]
-    x0 = _or_zero(wx / pr.D) if warm else jnp.zeros_like(q)
-    ax0 = [_mv(pr.Ae, x0), _mv(pr.Ai, x0), pr.db * x0]
-    z0 = [jnp.where(f, a, jnp.minimum(jnp.maximum(_or_zero(v * e) if warm else jnp.zeros_like(e), lb), ub))
-          for f, a, v, e, lb, ub in zip(pr.free, ax0, wz, pr.E, pr.l, pr.u)]
-    i = jax.lax.broadcasted_iota(jnp.int32, (N,), 0)
+    rho = _entry(scal, 0)
+    pr = prepare(P, Ae, Ai, db, q, l, u, wx, wz, wy, rho, s=s, dims=dims, warm=warm)
+    i = jax.lax.broadcasted_iota(jnp.int32, q.shape, 0)
     vals = Stage(pr.P, pr.Ae, pr.Ai, pr.db, pr.q, jnp.where(i < dims.n, s.sigma + pr.db * pr.db * pr.rho[2], 1.0),
                  pr.D, 1.0 / (pr.c * pr.D), pr.l, pr.u, pr.rho, tuple(jnp.where(f, 1.0, 0.0) for f in pr.free),
-                 tuple(1.0 / e for e in pr.E), x0, tuple(z0), pr.y, pr.ex, jnp.where(pr.ex > 0.5, pr.l[0], 0.0),
+                 tuple(1.0 / e for e in pr.E), pr.x, pr.z, pr.y, pr.ex, jnp.where(pr.ex > 0.5, pr.l[0], 0.0),
                  jnp.where(jax.lax.broadcasted_iota(jnp.int32, (16,), 0) == 0, pr.c, rho))
     for ref, v in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(vals)):
         ref[...] = v
@@ -384,7 +382,7 @@ def _kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, 
     x, z, y, dx, dy, bad = c
     prim, dual, conv = test(x, z, y)
     D, scal = st.D[...], st.scal[...]
-    cs = _first(scal)
+    cs = _entry(scal, 0)
     E = [1.0 / e for e in Ei]
     xu, zu, yu = D * x, [a * e for a, e in zip(z, Ei)], [e * a / cs for a, e in zip(y, E)]
     l, u = [r[...] for r in l_refs], [r[...] for r in u_refs]
@@ -395,7 +393,7 @@ def _kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, 
     empty = rules.amax(*[jnp.where(a > b, 1.0, 0.0) for a, b in zip(l, u)]) > 0.0
     flag = rules.status(_finite(xu, *zu, *yu, prim, dual) & (bad == 0.0), empty, pinf, dinf, conv)
     i = jax.lax.broadcasted_iota(jnp.int32, scal.shape, 0)
-    rho_out = jnp.sum(jnp.where(i == 1, scal, 0.0))
+    rho_out = _entry(scal, 1)
     if s.adapt_every > 0:
         rho_out = rules.adapt_rho(rho_out, *rules.rel_residuals(rows(x), z, _mv(P, x), rows_t(y), q, 1e-30), s)
     fmax = float(jnp.finfo(x.dtype).max)

@@ -54,6 +54,25 @@ def active_rows(y, dt):
     return tuple(jnp.abs(v) > floor for v in y)
 
 
+def finite_or_zero(v):
+    """``v`` with its non-finite entries 0 (``v - v`` is 0 only where ``v`` is finite)."""
+    return jnp.where(v - v == 0.0, v, 0.0)
+
+
+def scaled_start(wx, wz, wy, D, E, c):
+    """A warm point in the user's units, in the equilibrated problem: ``(x / D, z E, y c / E)``, non-finite entries 0;
+    ``wx`` (n,), ``wz``, ``wy`` and the row scalings ``E`` tuples of the blocks of rows, ``D`` (n,), ``c`` ()."""
+    return (finite_or_zero(wx / D), tuple(finite_or_zero(v * e) for v, e in zip(wz, E)),
+            tuple(finite_or_zero(v * c / e) for v, e in zip(wy, E)))
+
+
+def start_on_rows(z, y, ax, l, u, free):
+    """The start's ``z`` and ``y`` made consistent with the rows (tuples of blocks): ``z`` in ``[l, u]``, and on
+    rows without bounds (``free``) ``z = A x`` (``ax``) and ``y = 0``."""
+    z = tuple(jnp.where(f, a, jnp.minimum(jnp.maximum(v, lo), hi)) for f, a, v, lo, hi in zip(free, ax, z, l, u))
+    return z, tuple(jnp.where(f, 0.0, v) for f, v in zip(free, y))
+
+
 def rel_residuals(ax, z, px, aty, q, offset):
     """Relative primal and dual residuals (inf-norms), rows in blocks (``ax``, ``z``: tuples).
 
