@@ -256,12 +256,13 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--batches", default=None, help="rollout: comma-separated batch sizes (default 1,1024,4096,16384 "
                                                    "on an accelerator, 1,4,16 on a CPU)")
     b.add_argument("--steps", type=int, default=200, help="rollout: control steps per timed call")
-    b.add_argument("--iters", type=int, default=10, help="rollout: ADMM iterations per control step before the "
-                                                         "convergence checks (the control loop's default: 10)")
+    b.add_argument("--iters", type=int, default=4, help="rollout: ADMM iterations per control step before the "
+                                                         "convergence checks (the control loop's default: 4)")
     b.add_argument("--qp", default=None, help="rollout: control-loop ADMM variant it<N>[_a<K>][_b<B>][_rho<R>][_r<R>]"
-                                          "[_pol<P>][_e<E>][_m<M>][_tol<T>] (N iterations, rho adapted every K (0: "
-                                          "never), adaptation bias B, rho R, R Ruiz passes, P polishing passes, E "
-                                          "rows held exactly, up to M iterations while unconverged, tolerance "
+                                          "[_pol<P>][_e<E>][_m<M>][_c<C>][_tol<T>] (N iterations, rho adapted every K "
+                                          "(0: never), adaptation bias B, rho R, R Ruiz passes, P polishing passes, "
+                                          "E rows held exactly, up to M iterations while unconverged, tested every "
+                                          "C, tolerance "
                                           "10^-T; unnamed parts: the control loop's); overrides --iters")
     b.add_argument("--substeps", type=int, default=1, help="rollout: physics steps per control step (default 1)")
     b.add_argument("--backend", default="jax",

@@ -41,7 +41,7 @@ VIOL_TOL = 1e-4  # max violation relative to max(1, |Ax|_inf)
 ACCEPT_FRAC = 0.999  # fraction of sampled QPs within both
 CELLS = ((0.2, 0.4, 0.06), (0.4, 1.0, 0.10), (0.3, 0.7, 0.08), (0.4, 0.4, 0.10))
 _PARTS = {"tol": "tol", "pol": "polish_passes", "rho": "rho", "a": "adapt_every", "b": "adapt_bias", "r": "ruiz_iters",
-          "e": "eq_rows", "m": "max_iters", "k": "kernel"}  # longest prefix first
+          "e": "eq_rows", "m": "max_iters", "c": "check_every", "k": "kernel"}  # longest prefix first
 _KERNEL_CODES = ("xla", "fused", "auto")  # ..._k<K>: QPSettings.kernel by index
 DEFAULT_VARIANTS = ("it20",)
 
@@ -51,19 +51,20 @@ def variants(names=None) -> dict:
     ``..._a<K>`` (rho adapted every K iterations, 0: never, one factorization per step), ``..._r<R>`` (R Ruiz
     equilibration passes), ``..._b<B>`` (rho adaptation bias B), ``..._rho<R>`` (initial rho R), ``..._pol<P>`` (P active-set polishing passes
     after the iterations, 0: none), ``..._e<E>`` (the first E rows held exactly, ``QPSettings.eq_rows``), ``..._m<M>`` (continue
-    while unconverged up to M iterations, ``QPSettings.max_iters``), ``..._tol<E>`` (flag tolerance 10^-E, abs
+    while unconverged up to M iterations, ``QPSettings.max_iters``), ``..._c<C>`` (the convergence test every C
+    iterations past the first N, ``QPSettings.check_every``), ``..._tol<E>`` (flag tolerance 10^-E, abs
     and rel), ``..._k<K>`` (``QPSettings.kernel``: 0 XLA, 1 fused, 2 auto)."""
     out = {}
     for name in names or DEFAULT_VARIANTS:
         parts = name.split("_")
         if not (parts[0].startswith("it") and parts[0][2:].isdigit()):
-            raise ValueError(f"variant {name!r}: expected it<N>[_a<K>][_b<B>][_rho<R>][_r<R>][_pol<P>][_e<E>][_m<M>][_tol<E>][_k<K>]")
+            raise ValueError(f"variant {name!r}: expected it<N>[_a<K>][_b<B>][_rho<R>][_r<R>][_pol<P>][_e<E>][_m<M>][_c<C>][_tol<E>][_k<K>]")
         iters = int(parts[0][2:])
         kw = {}
         for p in parts[1:]:
             key = next((k for k in _PARTS if p.startswith(k)), None)
             if key is None or not p[len(key):].isdigit():
-                raise ValueError(f"variant {name!r}: unknown part {p!r} (expected a<K>, b<B>, rho<R>, r<R>, pol<P>, e<E>, m<M>, tol<E> or k<K>)")
+                raise ValueError(f"variant {name!r}: unknown part {p!r} (expected a<K>, b<B>, rho<R>, r<R>, pol<P>, e<E>, m<M>, c<C>, tol<E> or k<K>)")
             kw[_PARTS[key]] = (float if key == "rho" else int)(p[len(key):])
         if "tol" in kw:
             kw["eps_abs"] = kw["eps_rel"] = 10.0 ** -kw.pop("tol")

@@ -253,7 +253,7 @@ def run_trace(batch: int = 270, steps: int = 50, scene: str = "transport", qp: s
     backend = resolve_backend(name)
     sensing = resolve_sensing(sensing or "auto", backend, substeps)
     robot = Robot(scene, backend=backend)
-    qs = variants([qp])[qp] if qp else control_qp_settings(10)
+    qs = variants([qp])[qp] if qp else control_qp_settings()
     sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=qs),
                    n_substeps=substeps, log_every=steps, sensing=sensing)
     b = random_batch(sim, batch)

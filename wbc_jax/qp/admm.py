@@ -357,22 +357,19 @@ def _inputs(P, q, A, l, u):
 def _solve_fused(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     """The whole solve in the Pallas kernels of :mod:`wbc_jax.qp.fused` (equilibration, warm start, iterations with
     the extension, residuals, certificates, flag); here only the rows split into the kernels' blocks: the first
-    ``ne`` (exact), the last ``box_rows`` (a diagonal), the dense rows between."""
+    ``ne`` (exact), the last ``box_rows`` (a diagonal), the dense rows between (split inside the kernels)."""
     from wbc_jax.qp.fused import fused_solve
 
     dt, P, q, A, l, u = _inputs(P, q, A, l, u)
     m, n = A.shape
     nb = s.box_rows
     ne = max(min(s.eq_rows, m - nb), 1)  # one exact-block row that is not held stands for none
-    parts = (slice(0, ne), slice(ne, m - nb), slice(m - nb, m))
     if warm is None:
         wx, wz, wy = jnp.zeros(n, dt), jnp.zeros(m, dt), jnp.zeros(m, dt)
     else:
         wx, wz, wy = (jnp.asarray(v, dt) for v in warm[:3])
     rho = rules.warm_rho(None if warm is None else warm[3], s, dt)
-    blocks = lambda v: tuple(v[p] for p in parts)  # noqa: E731
-    return fused_solve(P, A[:ne], A[ne:m - nb], jnp.diagonal(A[m - nb:, n - nb:]), q, blocks(l), blocks(u), wx,
-                       blocks(wz), blocks(wy), rho, s=s, iters=iters, warm=warm is not None)
+    return fused_solve(P, A, q, l, u, wx, wz, wy, rho, s=s, iters=iters, warm=warm is not None, ne=ne)
 
 
 def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:

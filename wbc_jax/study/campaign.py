@@ -457,13 +457,18 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
                    bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim-s [{elapsed}<{remaining}{postfix}]")
     t_run = time.perf_counter()
     first_in_process = True  # that chunk's wall time includes compilation
+    step = lambda st: fn(b.model, st, b.plan, b.om, b.gains, b.push, b.mu_ground)  # noqa: E731  (dispatch only)
     try:
+        nxt, t0 = (step(state) if done < n_chunks else None), t_run
         while done < n_chunks:
-            t0 = time.perf_counter()
-            state, logs = fn(b.model, state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+            state, logs = nxt
             state = jax.block_until_ready(state)
             dt_wall = time.perf_counter() - t0
+            t0 = time.perf_counter()
             done += 1
+            # the next chunk runs on the device while this one's checkpoint is written (nothing is donated: the
+            # state saved below stays valid)
+            nxt = step(state) if done < n_chunks else None
             marks.append(dict(chunk=done, wall_s=dt_wall, fresh_process=first_in_process))
             first_in_process = False
             if sp.mode == "one":

@@ -13,7 +13,7 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     speed = 0.13               # cruise speed [m/s], 0.01..0.5
     extra_seconds = 0.5        # simulated time after the planned path ends [s], 0..10
     max_seconds = 0.0          # cap on the simulated time [s] (0: no cap; a capped run stops mid-path), 0..600
-    qp_iters = 10              # ADMM iterations per control step before the convergence checks (up to 200), 1..1000
+    qp_iters = 4               # ADMM iterations per control step before the convergence checks (up to 200), 1..1000
     control_substeps = 1       # physics steps per control step (zero-order hold), 1..10; 1 = control at the
                                # physics rate (the control period is this x the scene's timestep; the metrics'
                                # physics-rate monitors still run every physics step, see wbc_jax.sim.rollout)
@@ -88,7 +88,7 @@ CAMPAIGN = {
     "speed": (float, 0.13, 0.01, 0.5, False, "[m/s]"),
     "extra_seconds": (float, 0.5, 0.0, 10.0, False, "[s]"),
     "max_seconds": (float, 0.0, 0.0, 600.0, False, "[s], 0 = no cap"),
-    "qp_iters": (int, 10, 1, 1000, False, "ADMM iterations before the convergence checks"),
+    "qp_iters": (int, 4, 1, 1000, False, "ADMM iterations before the convergence checks"),
     "control_substeps": (int, 1, 1, 10, False,
                          "physics steps per control step (zero-order hold); 1 = control at the physics rate"),
     "chunk_seconds": (float, 2.0, 0.02, 60.0, False, "[s]"),
