@@ -214,8 +214,8 @@ def control_qp_settings(iters: int = 4, **kw) -> QPSettings:
     2026-11-26 (H100, course, Warp physics; ``bench rollout --batches 16384 --steps 50 --qp ...``, one call):
     physics + WBC env-steps/s with 10 fixed iterations and a test every 10 (the earlier default) 1,269,134; 5 and 5:
     1,370,667; **4 and 4: 1,392,525**; 3 and 3: 1,391,377; 5 and 3: 1,369,869. Every problem stops at its own
-    converged test, so the accuracy holds by the same test; on the paper campaign (10 fixed, tests every 4) the mean iterations
-    per step 20.8 -> 16.5, no run flagged (worst 0.027 % of its steps), R, T, S equal to the 4th digit.
+    converged test, so the accuracy holds by the same test. Paper campaign (H100): mean iterations per step 20.8 ->
+    16.4, no run flagged (worst 0.027 % of its steps), R, T, S equal to the 4th digit; 2,700 runs: none flagged.
 
     Reading: eliminating the slack did most (its band rows relaxed toward the warm point slowly); the steps still
     flagged are touchdowns (every 265 steps, all runs at once), which need 30-40 iterations; the convergence-checked

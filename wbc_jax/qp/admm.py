@@ -102,8 +102,8 @@ optimum by ~50 % (20-35 activity changes); those problems were the warm failures
 Warm points solved further (400 instead of 100 iterations) do not help (.80 at 37: the
 rho kept from a long solve is less suited).
 
-The control loop's settings (warm start, one factorization per step, rho fixed at 3, 10 iterations then blocks of
-10 to tolerance 1e-4) and their closed-loop evidence on the course (issue 22) are in
+The control loop's settings (warm start, one factorization per step, rho fixed at 3, 4 iterations then blocks of
+4 to tolerance 1e-4) and their closed-loop evidence on the course (issue 22) are in
 :func:`wbc_jax.control.transport.control_qp_settings`. On a GPU the iterations and the extension run in one Pallas
 kernel per problem (``QPSettings.kernel``, :mod:`wbc_jax.qp.fused`; H100, course, Warp physics: paper campaign
 171.0 s -> 133.2 s, physics + WBC at batch 16384 431,605 -> 530,978 env-steps/s, docs/performance.md), now preceded by

@@ -2,8 +2,9 @@
 (Ruiz equilibration, the rows' kinds and rho, the scaled warm start), the x-update's factorization, then the ADMM
 iterations with the convergence-checked extension and the result in the user's units (residuals, infeasibility
 certificates, flag, the next rho). ``P`` and ``A`` reach the preparation kernel as they are (masked loads of
-power-of-two tiles, :func:`_tile`: XLA's three pads of them, ~160 us each at batch 16384, are gone); outside the
-kernels XLA only pads the vectors' blocks.
+power-of-two tiles, :func:`_tile`); outside the kernels XLA only pads the vectors' blocks. (XLA's three pads of the
+matrices, ~160 us each at batch 16384, are gone, but the trace's assembly grew by about as much: XLA still copies
+``A`` into the custom call's layout. Measured net: within noise, below.)
 
 Why: the XLA path (``admm._step`` in ``lax.scan``, then the extension's ``lax.while_loop``) launches about ten kernels
 per iteration and reads ``P``, ``A``, ``K^-1`` and the Schur factors from device memory at every one. Under ``vmap``
