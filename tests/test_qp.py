@@ -490,3 +490,24 @@ def test_fused_factorization_matches_numpy(n, ne):
     assert rel(Ki[:n, :n], Ki_ref) <= 1e-10 and not np.any(Ki[n:]) and not np.any(Ki[:, n:])
     assert rel(W[:n, :ne - 1], W_ref) <= 1e-10 and not np.any(W[:, ne - 1:]) and not np.any(W[n:])
     assert rel(Si[:ne - 1, :ne - 1], Si_ref) <= 1e-9 and not np.any(Si[ne - 1:]) and not np.any(Si[:, ne - 1:])
+
+
+def test_resolve_settings_picks_the_fused_kernels_for_float32_on_a_gpu():
+    """kernel='auto' picks the Pallas kernels only on an accelerator, for float32 problems with one factorization
+    and no polishing (the kernels are built in float32: Triton's lowering fails in float64); an explicit 'fused'
+    with float64 data is refused off the CPU with a line naming the setting, and runs on the CPU (interpreter)."""
+    from wbc_jax.control.transport import control_qp_settings
+    from wbc_jax.qp.admm import resolve_settings
+
+    s = control_qp_settings()
+    f32, f64 = jnp.float32, np.dtype("float64")
+    assert resolve_settings(s, 4, f32, "gpu").kernel == "fused"
+    assert resolve_settings(s, 4, f32, "gpu").linsolve == "inv"
+    assert resolve_settings(s, 4, f64, "gpu").kernel == "xla"
+    assert resolve_settings(s, 4, f32, "cpu").kernel == "xla"
+    assert resolve_settings(s, 4, f32, "cpu").linsolve == "chol"
+    assert resolve_settings(s._replace(polish=True), 4, f32, "gpu").kernel == "xla"
+    assert resolve_settings(s._replace(adapt_every=2), 4, f32, "gpu").kernel == "xla"
+    assert resolve_settings(s._replace(kernel="fused"), 4, f64, "cpu").kernel == "fused"
+    with pytest.raises(ValueError, match="kernel='fused' runs float32"):
+        resolve_settings(s._replace(kernel="fused"), 4, f64, "gpu")

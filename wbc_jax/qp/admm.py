@@ -437,6 +437,37 @@ def _solve_jit(P, q, A, l, u, warm, iters: int, settings: QPSettings) -> QPResul
     return _batched(fn, nb)(P, q, A, l, u, warm)
 
 
+def resolve_settings(s: QPSettings, iters: int, dtype, backend: str) -> QPSettings:
+    """``s`` with its ``"auto"`` choices made for this solve, checked (ValueError naming the setting).
+
+    ``linsolve="auto"``: Cholesky on a CPU, the explicit inverse elsewhere. ``kernel="auto"``: the fused Pallas
+    kernels on a GPU for float32 problems with one factorization per solve and no polishing, else XLA. The kernels
+    are built and measured in float32: in float64 Triton's lowering fails (an f32 / f64 comparison, H100,
+    2026-11-26), so ``kernel="fused"`` with float64 data is refused off the CPU (Pallas' interpreter runs it).
+    """
+    if s.linsolve == "auto":
+        s = s._replace(linsolve="chol" if backend == "cpu" else "inv")
+    if s.linsolve not in LINSOLVES:
+        raise ValueError(f"QPSettings.linsolve must be one of {LINSOLVES}, not {s.linsolve!r}")
+    if iters < 1:
+        raise ValueError(f"iters must be >= 1, got {iters}")
+    if s.kernel not in KERNELS:
+        raise ValueError(f"QPSettings.kernel must be one of {KERNELS}, not {s.kernel!r}")
+    if not jnp.issubdtype(dtype, jnp.floating):
+        dtype = jnp.result_type(float)
+    one_factor = s.adapt_every == 0 or s.adapt_every >= iters
+    f32 = jnp.dtype(dtype) == jnp.float32
+    if s.kernel == "auto":
+        s = s._replace(kernel="fused" if backend != "cpu" and one_factor and not s.polish and f32 else "xla")
+    if s.kernel == "fused" and (not one_factor or s.polish):
+        raise ValueError(f"QPSettings.kernel='fused' needs one factorization per solve (adapt_every 0 or >= iters) "
+                         f"and polish=False, got adapt_every={s.adapt_every}, iters={iters}, polish={s.polish}")
+    if s.kernel == "fused" and backend != "cpu" and not f32:
+        raise ValueError(f"QPSettings.kernel='fused' runs float32 problems on a {backend.upper()} (its Triton "
+                         f"kernels), got {jnp.dtype(dtype).name}; use kernel='auto' or 'xla'")
+    return s
+
+
 def solve_qp(P, q, A, l, u, *, iters: int | None = None, warm: Any = None,
              settings: QPSettings | None = None) -> QPResult:
     """Solve ``min 1/2 x'Px + q'x  s.t.  l <= Ax <= u`` with a fixed number of ADMM steps.
@@ -459,21 +490,8 @@ def solve_qp(P, q, A, l, u, *, iters: int | None = None, warm: Any = None,
         QPResult with fields of shape (..., n), (..., m) or (...,).
     """
     s = QPSettings() if settings is None else settings
-    if s.linsolve == "auto":
-        s = s._replace(linsolve="chol" if jax.default_backend() == "cpu" else "inv")
-    if s.linsolve not in LINSOLVES:
-        raise ValueError(f"QPSettings.linsolve must be one of {LINSOLVES}, not {s.linsolve!r}")
     it = int(s.iters if iters is None else iters)
-    if it < 1:
-        raise ValueError(f"iters must be >= 1, got {it}")
-    if s.kernel not in KERNELS:
-        raise ValueError(f"QPSettings.kernel must be one of {KERNELS}, not {s.kernel!r}")
-    one_factor = s.adapt_every == 0 or s.adapt_every >= it
-    if s.kernel == "auto":
-        s = s._replace(kernel="fused" if jax.default_backend() != "cpu" and one_factor and not s.polish else "xla")
-    if s.kernel == "fused" and (not one_factor or s.polish):
-        raise ValueError(f"QPSettings.kernel='fused' needs one factorization per solve (adapt_every 0 or >= iters) "
-                         f"and polish=False, got adapt_every={s.adapt_every}, iters={it}, polish={s.polish}")
+    s = resolve_settings(s, it, jnp.result_type(P, q, A), jax.default_backend())
     m, n = jnp.shape(A)[-2:]
     nb_max = min(n, m - max(min(s.eq_rows, m), 1))
     if not 0 <= s.box_rows <= nb_max:
