@@ -342,11 +342,15 @@ def _unscaled(P, q, A, sp: Scaled, st: State, s: QPSettings):
     return (x, z, y) + rules.termination((mv(A, x),), (z,), mv(P, x), mv(A.T, y), q, s)
 
 
-def _inputs(P, q, A, l, u):
-    """The problem in one floating dtype, missing bounds as ``+-BIG``: ``(dt, P, q, A, l, u)``."""
+def _dtype(P, q, A):
+    """The problem's floating dtype: ``P``'s, ``q``'s and ``A``'s common type, the default float for integers."""
     dt = jnp.result_type(P, q, A)
-    if not jnp.issubdtype(dt, jnp.floating):
-        dt = jnp.result_type(float)
+    return dt if jnp.issubdtype(dt, jnp.floating) else jnp.result_type(float)
+
+
+def _inputs(P, q, A, l, u):
+    """The problem in one floating dtype (:func:`_dtype`), missing bounds as ``+-BIG``: ``(dt, P, q, A, l, u)``."""
+    dt = _dtype(P, q, A)
     P, q, A, l, u = (jnp.asarray(a, dt) for a in (P, q, A, l, u))
     big = jnp.asarray(BIG, dt)
     l = jnp.clip(jnp.nan_to_num(l, nan=-BIG, neginf=-BIG), -big, big)
@@ -438,7 +442,8 @@ def _solve_jit(P, q, A, l, u, warm, iters: int, settings: QPSettings) -> QPResul
 
 
 def resolve_settings(s: QPSettings, iters: int, dtype, backend: str) -> QPSettings:
-    """``s`` with its ``"auto"`` choices made for this solve, checked (ValueError naming the setting).
+    """``s`` with its ``"auto"`` choices made for this solve (``dtype``: the problem's floating dtype, :func:`_dtype`),
+    checked (ValueError naming the setting).
 
     ``linsolve="auto"``: Cholesky on a CPU, the explicit inverse elsewhere. ``kernel="auto"``: the fused Pallas
     kernels on a GPU for float32 problems with one factorization per solve and no polishing, else XLA. The kernels
@@ -453,8 +458,6 @@ def resolve_settings(s: QPSettings, iters: int, dtype, backend: str) -> QPSettin
         raise ValueError(f"iters must be >= 1, got {iters}")
     if s.kernel not in KERNELS:
         raise ValueError(f"QPSettings.kernel must be one of {KERNELS}, not {s.kernel!r}")
-    if not jnp.issubdtype(dtype, jnp.floating):
-        dtype = jnp.result_type(float)
     one_factor = s.adapt_every == 0 or s.adapt_every >= iters
     f32 = jnp.dtype(dtype) == jnp.float32
     if s.kernel == "auto":
@@ -491,7 +494,7 @@ def solve_qp(P, q, A, l, u, *, iters: int | None = None, warm: Any = None,
     """
     s = QPSettings() if settings is None else settings
     it = int(s.iters if iters is None else iters)
-    s = resolve_settings(s, it, jnp.result_type(P, q, A), jax.default_backend())
+    s = resolve_settings(s, it, _dtype(P, q, A), jax.default_backend())
     m, n = jnp.shape(A)[-2:]
     nb_max = min(n, m - max(min(s.eq_rows, m), 1))
     if not 0 <= s.box_rows <= nb_max:

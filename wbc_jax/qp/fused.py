@@ -285,15 +285,6 @@ def _entry(v, k: int):  # () v[k] (a masked sum: a Triton kernel cannot index a 
     return jnp.sum(jnp.where(jax.lax.broadcasted_iota(jnp.int32, v.shape, 0) == k, v, 0.0))
 
 
-def _tile(ref, row0: int, rows: int, cols: int, n_rows: int, n_cols: int):
-    """The (rows, cols) tile of ``ref`` from row ``row0``, zero outside its first ``n_rows`` rows and ``n_cols``
-    columns: a masked load, so the matrix needs no padding in device memory (on a GPU ``ref`` is the user's
-    unpadded matrix: the masked entries past its end are never read; Triton's tiles are powers of two)."""
-    r = jax.lax.broadcasted_iota(jnp.int32, (rows, cols), 0)
-    c = jax.lax.broadcasted_iota(jnp.int32, (rows, cols), 1)
-    return _masked_load(ref, (pl.ds(row0, rows), pl.ds(0, cols)), (r < n_rows) & (c < n_cols))
-
-
 try:  # JAX >= 0.8: a masked load of a ref's view (Triton-specific)
     from jax.experimental.pallas.triton import load as _triton_load
 
@@ -304,12 +295,21 @@ except ImportError:  # earlier JAX: pallas.load(ref, idx, mask, other)
         return pl.load(ref, idx, mask=mask, other=0.0)
 
 
+def _tile(ref, row0: int, rows: int, cols: int, n_rows: int, n_cols: int):
+    """The (rows, cols) tile of ``ref`` from row ``row0``, zero outside its first ``n_rows`` rows and ``n_cols``
+    columns: a masked load, so the matrix needs no padding in device memory (on a GPU ``ref`` is the user's
+    unpadded matrix: the masked entries past its end are never read; Triton's tiles are powers of two)."""
+    r = jax.lax.broadcasted_iota(jnp.int32, (rows, cols), 0)
+    c = jax.lax.broadcasted_iota(jnp.int32, (rows, cols), 1)
+    return _masked_load(ref, (pl.ds(row0, rows), pl.ds(0, cols)), (r < n_rows) & (c < n_cols))
+
+
 def _prepare_kernel(*refs, s: QPSettings, dims: Dims, warm: bool, treedef):
     """:func:`prepare` of one problem and its scaled start, written as a :class:`Stage`; ``P`` and the exact and
     dense blocks read from the user's ``P`` and ``A`` (:func:`_tile`)."""
     P_ref, A_ref = refs[0], refs[1]
     db, q, *rest = (r[...] for r in refs[2:N_IN])
-    N, NE, MI = q.shape[0], refs[N_IN + 1].shape[0], refs[N_IN + 2].shape[0]  # Stage's outputs: P, Ae, Ai, ...
+    N, NE, MI = _pow2(dims.n), _pow2(dims.ne), _pow2(dims.mi)  # the tiles' sizes (fused_solve's)
     P = _tile(P_ref, 0, N, N, dims.n, dims.n)
     Ae, Ai = _tile(A_ref, 0, NE, N, dims.ne, dims.n), _tile(A_ref, dims.ne, MI, N, dims.mi, dims.n)
     l, u, wy, scal, wx, wz = tuple(rest[0:3]), tuple(rest[3:6]), tuple(rest[6:9]), rest[9], rest[10], rest[11:14]
