@@ -22,10 +22,11 @@ are the same on both backends and exact when positive:
   the sign and the order of magnitude of a penetration compare; and for a segment that goes through a box MuJoCo
   C may report a positive distance (seen for shanks driven through a block from below, unphysical poses).
 * **sphere / box**: the box SDF at the centre, minus the radius (exact, signed).
-* **box / box** (trunk or tray vs a wall; trunk vs a block): separated, the smallest of each edge of the robot's
-  box against the other box (the capsule/box candidates outside the box, 12 x 22) and each vertex of the other
-  box against the robot's box (8): exact, since a closest pair is a point of an edge of one box or a vertex of
-  the other against a face (face/face and face/edge closest sets end at vertices or on edges). Overlapping (no
+* **box / box** (trunk or tray vs a wall; trunk vs a block): separated, the smallest of each box's vertices against
+  the other box (8 + 8 box SDFs) and each edge of the robot's box at its point nearest each edge line of the other
+  box (12 x 12): exact, since a closest pair is a vertex of one box against the other box, or an interior point
+  of an edge of each (non-parallel edges: the first edge's point nearest the second's line); a closest set that
+  involves a face or two parallel edges is a segment or a face whose ends reach a vertex or an edge. Overlapping (no
   separating axis among the 15 of the separating-axis test): minus the smallest overlap over those axes, which is
   the exact penetration depth (minimum translation distance) of two boxes.
 
@@ -54,14 +55,12 @@ _ROBOT_TYPES = {_SPHERE: "sphere", _CAPSULE: "capsule", _BOX: "box"}
 _ENV_TYPES = {_PLANE: "plane", _BOX: "box"}
 KINDS = ("capsule_plane", "capsule_box", "sphere_plane", "sphere_box", "box_plane", "box_box")  # pair order
 
-# unit box: 8 corners, 12 edges (axis i from -1 to +1 at the 4 sign combinations of the other two)
+# unit box: 8 corners (index 4 (x > 0) + 2 (y > 0) + (z > 0)), its 12 edges as (start, end) corner indices (the
+# edges along x, then y, then z), and the 12 edges as (axis, sign on the first other axis, sign on the second)
 _CORNERS = np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
-_EDGES = np.array([[np.insert([s1, s2], i, -1.0), np.insert([s1, s2], i, 1.0)]
-                   for i in range(3) for s1 in (-1.0, 1.0) for s2 in (-1.0, 1.0)])  # (12, 2, 3)
-_SIGNS = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
-_AXIS_PAIRS = np.array([[0, 1], [0, 2], [1, 2]])
-_EDGE_OTHER = np.array([[j for j in range(3) if j != i] for i in range(3) for _ in range(4)])  # (12, 2)
-_EDGE_SIGNS = np.array([[s1, s2] for _ in range(3) for s1 in (-1.0, 1.0) for s2 in (-1.0, 1.0)])  # (12, 2)
+_EDGE_ENDS = np.array([(c, c | (4 >> i)) for i in range(3) for c in range(8) if not c & (4 >> i)])  # (12, 2)
+_EDGE_LINES = [(i, s1, s2) for i in range(3) for s1 in (-1.0, 1.0) for s2 in (-1.0, 1.0)]
+_OTHER = ((1, 2), (0, 2), (0, 1))
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,41 +124,42 @@ def _build_pairs(m: mujoco.MjModel, ids) -> ClearancePairs:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# primitives (one pair; vmapped over the pairs of a kind). Written per coordinate (no ``@``, no reductions over a
-# last axis of 3, candidate points as x, y, z arrays): XLA on the CPU fuses that into a few loops; measured in a
-# lax.scan at batch 4, 143 us per physics step for the 54 pairs of the course (36 capsule/box 31 us, 9 box/box
-# 116 us: 12 x 22 candidate points per pair), against 304 us with 3-vector products and (..., 3) points.
+# primitives (one pair; vmapped over the pairs of a kind). A point or vector is a 3-tuple of arrays (its components)
+# and a box's half-sizes a 3-tuple too, every candidate point is its own expression and minima are taken pairwise,
+# so a kind's whole distance is elementwise arithmetic that XLA fuses into one GPU kernel (no stacked candidates,
+# no concatenation, no reduction over a short axis). Measured (H100, the course's 54 pairs, distances alone, against
+# the candidates stacked on an axis, the form before): 16384 runs 681 -> 196 us, at 270 runs 14 kernels (47 us) ->
+# 4 (13 us); compile 2.1 -> 6.1 s alone, +2 to +4 s for the whole control-step program; equal to 1e-6 m (float32).
+
+def _v(p):
+    """The components of a (3,) array (or of the leading axis of a (3, ...) array)."""
+    return (p[0], p[1], p[2])
+
+
+def _col(M, j):
+    """Column ``j`` of a 3x3 matrix, as components."""
+    return (M[0, j], M[1, j], M[2, j])
+
 
 def _dot(x, y):
-    return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1] + x[..., 2] * y[..., 2]
+    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
 
 
-def _mul_t(X, M):
-    """``X @ M.T`` for rows X (..., 3) and a 3x3 M."""
-    return jnp.stack([X[..., 0] * M[i, 0] + X[..., 1] * M[i, 1] + X[..., 2] * M[i, 2] for i in range(3)], axis=-1)
+def _sub(p, o):
+    return (p[0] - o[0], p[1] - o[1], p[2] - o[2])
 
 
-def _mul(X, M):
-    """``X @ M`` for rows X (..., 3) and a 3x3 M."""
-    return jnp.stack([X[..., 0] * M[0, j] + X[..., 1] * M[1, j] + X[..., 2] * M[2, j] for j in range(3)], axis=-1)
+def _in_frame(p, o, M):
+    """``(p - o) @ M``: point ``p`` in the frame of origin ``o`` and rotation ``M`` (3x3 array, columns = axes)."""
+    d = _sub(p, o)
+    return tuple(_dot(d, _col(M, j)) for j in range(3))
 
 
 def box_sdf(p, h):
-    """Signed distance of point(s) ``p`` (..., 3) (box frame) to the box of half-sizes ``h`` (3,)."""
-    return _sdf_xyz(p[..., 0], p[..., 1], p[..., 2], h)
-
-
-def _sdf_xyz(x, y, z, h):
-    """:func:`box_sdf` of points given by their coordinate arrays (elementwise only: XLA fuses it)."""
-    qx, qy, qz = jnp.abs(x) - h[0], jnp.abs(y) - h[1], jnp.abs(z) - h[2]
+    """Signed distance of point ``p`` (box frame) to the box of half-sizes ``h`` (components, any shapes)."""
+    qx, qy, qz = jnp.abs(p[0]) - h[0], jnp.abs(p[1]) - h[1], jnp.abs(p[2]) - h[2]
     ox, oy, oz = jnp.maximum(qx, 0.0), jnp.maximum(qy, 0.0), jnp.maximum(qz, 0.0)
     return jnp.sqrt(ox * ox + oy * oy + oz * oz) + jnp.minimum(jnp.maximum(jnp.maximum(qx, qy), qz), 0.0)
-
-
-def _pick(x, idx):
-    """``x[..., idx]`` for a static index array, as static slices (a gather is a slow call on the CPU)."""
-    idx = np.asarray(idx)
-    return jnp.stack([x[..., int(k)] for k in idx.ravel()], axis=-1).reshape(*x.shape[:-1], *idx.shape)
 
 
 def _ratio(num, den):
@@ -168,91 +168,110 @@ def _ratio(num, den):
     return jnp.clip(jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0), 0.0, 1.0)
 
 
-def _outside_candidates(a, D, h):
-    """(22,) segment parameters that hold the minimum of the box SDF over the segment a + t D when it is positive:
-    the ends, the segment's point nearest each box vertex (8) and nearest each edge's line (12: in the plane across
-    the edge, a point-to-segment projection). A closest box feature is a vertex, an edge (the segment point nearest
-    its line) or a face, whose minimum along the segment is at an end or where its projection leaves the face,
-    i.e. at the point nearest that edge's line."""
+def _at(a, D, h, t):
+    """Box SDF (half-sizes ``h``) at the segment point a + t D."""
+    return box_sdf((a[0] + t * D[0], a[1] + t * D[1], a[2] + t * D[2]), h)
+
+
+def _edge_lines_min(a, D, h):
+    """Smallest box SDF at the segment's points nearest each of the box's 12 edge lines (in the plane across the
+    edge, a point-to-segment projection)."""
+    best = None
+    for i, s1, s2 in _EDGE_LINES:
+        o1, o2 = _OTHER[i]
+        num = (s1 * h[o1] - a[o1]) * D[o1] + (s2 * h[o2] - a[o2]) * D[o2]
+        v = _at(a, D, h, _ratio(num, D[o1] * D[o1] + D[o2] * D[o2]))
+        best = v if best is None else jnp.minimum(best, v)
+    return best
+
+
+def segment_box(a, b, h):
+    """Smallest box SDF over the segment a-b (box frame, components; half-sizes ``h``), exact (module docstring).
+
+    Candidates (segment parameters): the ends; the segment's point nearest each box vertex (8) and nearest each
+    edge's line (12), which hold the minimum when it is positive; and the breakpoints of max_i(|a_i + t D_i| - h_i),
+    the SDF inside the box: a coordinate crossing 0 (3), two face terms equal (3 axis pairs x 4 signs). Every
+    candidate is a point of the segment, so a minimum over more candidates stays exact when positive."""
+    D = (b[0] - a[0], b[1] - a[1], b[2] - a[2])
     dd = _dot(D, D)
-    tv = _ratio(_dot(jnp.asarray(_CORNERS) * h - a, D), dd)  # (8,)
-    o = _EDGE_OTHER  # (12, 2) the two axes across each edge
-    c = jnp.asarray(_EDGE_SIGNS) * _pick(h, o)  # (12, 2) the edge's coordinates on them
-    Do = _pick(D, o)
-    te = _ratio(jnp.sum((c - _pick(a, o)) * Do, axis=-1), jnp.sum(Do * Do, axis=-1))  # (12,)
-    return jnp.concatenate([jnp.array([0.0, 1.0], a.dtype), tv, te])
-
-
-def _inside_candidates(a, D, h):
-    """(15,) breakpoints of max_i(|a_i + t D_i| - h_i) (the SDF inside the box): a coordinate crossing 0 (3), two
-    face terms equal (3 axis pairs x 4 signs)."""
-    i, j = _AXIS_PAIRS[:, 0], _AXIS_PAIRS[:, 1]
-    si, sj = _SIGNS[:, None, 0], _SIGNS[:, None, 1]  # (4, 1)
-    # s_i (a_i + t D_i) - h_i = s_j (a_j + t D_j) - h_j
-    t_face = _ratio(_pick(h, i) - _pick(h, j) - si * _pick(a, i) + sj * _pick(a, j),
-                    si * _pick(D, i) - sj * _pick(D, j)).ravel()  # (12,)
-    return jnp.concatenate([_ratio(-a, D), t_face])
-
-
-def segment_box(a, b, h, inside: bool = True):
-    """Smallest box SDF over the segment a-b (box frame; box half-sizes ``h``), exact (module docstring);
-    ``inside`` False: exact only when positive (the penetrating candidates left out)."""
-    D = b - a
-    t = _outside_candidates(a, D, h)
-    if inside:
-        t = jnp.concatenate([t, _inside_candidates(a, D, h)])
-    return jnp.min(_sdf_xyz(a[0] + t * D[0], a[1] + t * D[1], a[2] + t * D[2], h))
+    best = jnp.minimum(jnp.minimum(box_sdf(a, h), box_sdf(b, h)), _edge_lines_min(a, D, h))
+    for c in _CORNERS:
+        best = jnp.minimum(best, _at(a, D, h, _ratio(sum((c[k] * h[k] - a[k]) * D[k] for k in range(3)), dd)))
+    for i in range(3):
+        best = jnp.minimum(best, _at(a, D, h, _ratio(-a[i], D[i])))
+    for i, j in ((0, 1), (0, 2), (1, 2)):  # s_i (a_i + t D_i) - h_i = s_j (a_j + t D_j) - h_j
+        for si, sj in ((1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)):
+            best = jnp.minimum(best, _at(a, D, h, _ratio(h[i] - h[j] - si * a[i] + sj * a[j], si * D[i] - sj * D[j])))
+    return best
 
 
 def _capsule_ends(pos, R, half):
-    axis = R[:, 2] * half
-    return pos - axis, pos + axis
+    axis = tuple(R[k, 2] * half for k in range(3))
+    return (tuple(pos[k] - axis[k] for k in range(3)), tuple(pos[k] + axis[k] for k in range(3)))
 
 
 def capsule_plane(pos, R, size, ppos, pR, _):
     a, b = _capsule_ends(pos, R, size[1])
-    n = pR[:, 2]
-    return jnp.minimum(_dot(n, a - ppos), _dot(n, b - ppos)) - size[0]
+    n = _col(pR, 2)
+    return jnp.minimum(_dot(n, _sub(a, ppos)), _dot(n, _sub(b, ppos))) - size[0]
 
 
 def capsule_box(pos, R, size, bpos, bR, bsize):
     a, b = _capsule_ends(pos, R, size[1])
-    return segment_box(_mul(a - bpos, bR), _mul(b - bpos, bR), bsize) - size[0]
+    o = _v(bpos)
+    return segment_box(_in_frame(a, o, bR), _in_frame(b, o, bR), _v(bsize)) - size[0]
 
 
 def sphere_plane(pos, R, size, ppos, pR, _):
-    return _dot(pR[:, 2], pos - ppos) - size[0]
+    return _dot(_col(pR, 2), _sub(pos, ppos)) - size[0]
 
 
 def sphere_box(pos, R, size, bpos, bR, bsize):
-    return box_sdf(_mul(pos - bpos, bR), bsize) - size[0]
+    return box_sdf(_in_frame(_v(pos), _v(bpos), bR), _v(bsize)) - size[0]
 
 
 def box_plane(pos, R, size, ppos, pR, _):
-    v = pos + _mul_t(jnp.asarray(_CORNERS) * size, R)  # (8, 3)
-    return jnp.min(_dot(v - ppos, pR[:, 2]))
+    """The lowest vertex along the plane's normal n: centre height minus sum_j |size_j (R[:, j] . n)|."""
+    n = _col(pR, 2)
+    return (_dot(n, _sub(pos, ppos))
+            - sum(jnp.abs(size[j] * _dot(_col(R, j), n)) for j in range(3)))
 
 
 def box_box(pos, R, size, bpos, bR, bsize):
     """Signed distance of box (pos, R, size) to box (bpos, bR, bsize) (module docstring)."""
-    Rab = _mul(bR.T, R)  # bR.T @ R: A's axes in B's frame (columns)
-    t = _mul(pos - bpos, bR)  # A's centre in B's frame
-    vb = _mul(jnp.asarray(_CORNERS) * bsize - t, Rab)  # B's vertices in A's frame
-    ea = t + _mul_t(jnp.asarray(_EDGES) * size, Rab)  # (12, 2, 3) A's edges in B's frame
-    # separated: a closest pair is a point of an edge of A against B (each edge's exact distance to B) or a vertex
-    # of B against a face of A (face/face and face/edge closest sets end at vertices or on edges)
-    e_d = jax.vmap(lambda e: segment_box(e[0], e[1], bsize, inside=False))(ea)
-    sep = jnp.minimum(jnp.min(e_d), jnp.min(box_sdf(vb, size)))
-    # separating-axis test in B's frame: B's axes, A's axes, their 9 cross products
-    eye = jnp.eye(3, dtype=t.dtype)
-    cross = jnp.cross(eye[:, None, :], Rab.T[None, :, :]).reshape(9, 3)
-    L = jnp.concatenate([eye, Rab.T, cross])  # (15, 3)
-    n = jnp.linalg.norm(L, axis=1)
-    ok = n > 1e-6
-    L = L / jnp.where(ok, n, 1.0)[:, None]
-    gap = jnp.abs(_dot(L, t)) - _dot(jnp.abs(L), bsize) - _dot(jnp.abs(_mul(L, Rab)), size)
-    gap = jnp.max(jnp.where(ok, gap, -jnp.inf))
-    return jnp.where(gap < 0.0, gap, sep)
+    Rab = [[_dot(_col(bR, i), _col(R, j)) for j in range(3)] for i in range(3)]  # bR.T @ R: A's axes in B's frame
+    t = _in_frame(_v(pos), _v(bpos), bR)  # A's centre in B's frame
+    s, h = _v(size), _v(bsize)
+    # separated (module docstring): A's vertices against B, B's vertices against A, and each edge of A at its
+    # points nearest B's 12 edge lines (A's 8 vertices and 12 edges as axes of length 8 and 12)
+    vA = tuple(t[i] + sum(Rab[i][j] * (_CORNERS[:, j] * s[j]) for j in range(3)) for i in range(3))
+    e0, e1 = _CORNERS[_EDGE_ENDS[:, 0]], _CORNERS[_EDGE_ENDS[:, 1]]  # (12, 3) each
+    ea = tuple(t[i] + sum(Rab[i][j] * (e0[:, j] * s[j]) for j in range(3)) for i in range(3))
+    eD = tuple(sum(Rab[i][j] * ((e1[:, j] - e0[:, j]) * s[j]) for j in range(3)) for i in range(3))
+    d = [_CORNERS[:, i] * h[i] - t[i] for i in range(3)]  # B's vertices - A's centre, (8,) each (B's frame)
+    vb = tuple(d[0] * Rab[0][j] + d[1] * Rab[1][j] + d[2] * Rab[2][j] for j in range(3))  # in A's frame
+    sep = jnp.minimum(jnp.minimum(jnp.min(box_sdf(vA, h)), jnp.min(box_sdf(vb, s))),
+                      jnp.min(_edge_lines_min(ea, eD, h)))
+    # separating-axis test in B's frame: B's axes, A's axes, their 9 cross products;
+    # gap(L) = |L.t| - sum_i |L_i| h_i - sum_j |L.a_j| s_j, divided by |L|
+    axes = [(Rab[0][j], Rab[1][j], Rab[2][j]) for j in range(3)]  # A's axes a_j
+
+    def gap(L):
+        return (jnp.abs(_dot(L, t)) - sum(jnp.abs(L[i]) * h[i] for i in range(3))
+                - sum(jnp.abs(_dot(L, a)) * s[j] for j, a in enumerate(axes)))
+
+    g = [jnp.abs(t[i]) - h[i] - sum(jnp.abs(Rab[i][j]) * s[j] for j in range(3)) for i in range(3)]
+    g += [gap(a) for a in axes]  # unit: columns of a rotation
+    for i in range(3):
+        for a in axes:  # e_i x a
+            L = [(0.0, -a[2], a[1]), (a[2], 0.0, -a[0]), (-a[1], a[0], 0.0)][i]
+            n = jnp.sqrt(_dot(L, L))
+            ok = n > 1e-6
+            g.append(jnp.where(ok, gap(L) / jnp.where(ok, n, 1.0), -jnp.inf))
+    worst = g[0]
+    for x in g[1:]:
+        worst = jnp.maximum(worst, x)
+    return jnp.where(worst < 0.0, worst, sep)
 
 
 _FNS = {"capsule_plane": capsule_plane, "capsule_box": capsule_box, "sphere_plane": sphere_plane,
