@@ -149,6 +149,10 @@ def _sub(p, o):
     return (p[0] - o[0], p[1] - o[1], p[2] - o[2])
 
 
+def _add(p, o):
+    return (p[0] + o[0], p[1] + o[1], p[2] + o[2])
+
+
 def _in_frame(p, o, M):
     """``(p - o) @ M``: point ``p`` in the frame of origin ``o`` and rotation ``M`` (3x3 array, columns = axes)."""
     d = _sub(p, o)
@@ -207,7 +211,7 @@ def segment_box(a, b, h):
 
 def _capsule_ends(pos, R, half):
     axis = tuple(R[k, 2] * half for k in range(3))
-    return (tuple(pos[k] - axis[k] for k in range(3)), tuple(pos[k] + axis[k] for k in range(3)))
+    return _sub(pos, axis), _add(pos, axis)
 
 
 def capsule_plane(pos, R, size, ppos, pR, _):
@@ -240,26 +244,27 @@ def box_plane(pos, R, size, ppos, pR, _):
 def box_box(pos, R, size, bpos, bR, bsize):
     """Signed distance of box (pos, R, size) to box (bpos, bR, bsize) (module docstring)."""
     Rab = [[_dot(_col(bR, i), _col(R, j)) for j in range(3)] for i in range(3)]  # bR.T @ R: A's axes in B's frame
+    axes = [(Rab[0][j], Rab[1][j], Rab[2][j]) for j in range(3)]  # A's axes a_j (Rab's columns)
     t = _in_frame(_v(pos), _v(bpos), bR)  # A's centre in B's frame
     s, h = _v(size), _v(bsize)
+
+    def in_b(C):  # Rab (C * s) for the rows of a constant (k, 3) array C of unit-box points: (k,) components
+        return tuple(sum(Rab[i][j] * (C[:, j] * s[j]) for j in range(3)) for i in range(3))
+
     # separated (module docstring): A's vertices against B, B's vertices against A, and each edge of A at its
     # points nearest B's 12 edge lines (A's 8 vertices and 12 edges as axes of length 8 and 12)
-    vA = tuple(t[i] + sum(Rab[i][j] * (_CORNERS[:, j] * s[j]) for j in range(3)) for i in range(3))
     e0, e1 = _CORNERS[_EDGE_ENDS[:, 0]], _CORNERS[_EDGE_ENDS[:, 1]]  # (12, 3) each
-    ea = tuple(t[i] + sum(Rab[i][j] * (e0[:, j] * s[j]) for j in range(3)) for i in range(3))
-    eD = tuple(sum(Rab[i][j] * ((e1[:, j] - e0[:, j]) * s[j]) for j in range(3)) for i in range(3))
-    d = [_CORNERS[:, i] * h[i] - t[i] for i in range(3)]  # B's vertices - A's centre, (8,) each (B's frame)
-    vb = tuple(d[0] * Rab[0][j] + d[1] * Rab[1][j] + d[2] * Rab[2][j] for j in range(3))  # in A's frame
-    sep = jnp.minimum(jnp.minimum(jnp.min(box_sdf(vA, h)), jnp.min(box_sdf(vb, s))),
-                      jnp.min(_edge_lines_min(ea, eD, h)))
-    # separating-axis test in B's frame: B's axes, A's axes, their 9 cross products;
-    # gap(L) = |L.t| - sum_i |L_i| h_i - sum_j |L.a_j| s_j, divided by |L|
-    axes = [(Rab[0][j], Rab[1][j], Rab[2][j]) for j in range(3)]  # A's axes a_j
+    d = _sub(tuple(_CORNERS[:, i] * h[i] for i in range(3)), t)  # B's vertices - A's centre, (8,) each (B's frame)
+    vb = tuple(_dot(d, a) for a in axes)  # in A's frame
+    sep = jnp.minimum(jnp.minimum(jnp.min(box_sdf(_add(t, in_b(_CORNERS)), h)), jnp.min(box_sdf(vb, s))),
+                      jnp.min(_edge_lines_min(_add(t, in_b(e0)), in_b(e1 - e0), h)))
 
-    def gap(L):
+    def gap(L):  # separating-axis gap along L (B's frame), times |L|
         return (jnp.abs(_dot(L, t)) - sum(jnp.abs(L[i]) * h[i] for i in range(3))
                 - sum(jnp.abs(_dot(L, a)) * s[j] for j, a in enumerate(axes)))
 
+    # separating-axis test in B's frame: B's axes, A's axes, their 9 cross products;
+    # gap(L) = |L.t| - sum_i |L_i| h_i - sum_j |L.a_j| s_j, divided by |L|
     g = [jnp.abs(t[i]) - h[i] - sum(jnp.abs(Rab[i][j]) * s[j] for j in range(3)) for i in range(3)]
     g += [gap(a) for a in axes]  # unit: columns of a rotation
     for i in range(3):
