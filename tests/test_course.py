@@ -89,6 +89,35 @@ def test_dip_moves_with_the_wall(tmp_path):
         assert max_abs_accel_z(plan.obj_path) < 9.81
 
 
+def test_plans_come_back_from_disk_equal_and_only_for_their_inputs(tmp_path, monkeypatch):
+    """prepare_batch's plans (wbc_jax.sim.batch._plan) are kept on disk: a second request with the same model,
+    start pose and arguments reads the stored plan, leaf for leaf equal to a fresh course_plan, without planning;
+    another object side is planned."""
+    import jax
+
+    from wbc_jax.sim import batch
+
+    monkeypatch.setenv("WBC_JAX_CACHE", str(tmp_path))
+    robot = Robot("transport")
+    q = robot.home_qpos(0.08)
+    fresh = course_plan(robot, q, side=0.08)
+    first = batch._plan(robot, True, q, dict(side=0.08))
+    assert len(list((tmp_path / "exported").glob("plan-*.pkl"))) == 1
+    planned = []
+    real = batch.course_plan
+    monkeypatch.setattr(batch, "course_plan", lambda *a, **k: planned.append(k["side"]) or real(*a, **k))
+    again = batch._plan(robot, True, q, dict(side=0.08))
+    assert planned == []
+    leaves = jax.tree_util.tree_leaves
+    assert len(leaves(fresh)) == len(leaves(again)) > 10
+    for a, b, c in zip(leaves(fresh), leaves(first), leaves(again)):
+        np.testing.assert_array_equal(np.asarray(a), b)
+        np.testing.assert_array_equal(b, c)
+    other = batch._plan(robot, True, robot.home_qpos(0.10), dict(side=0.10))
+    assert planned == [0.10]
+    assert not np.array_equal(other.obj_path.coef, again.obj_path.coef)
+
+
 @pytest.fixture(scope="module")
 def wall_segment(tmp_path_factory):
     robot = Robot(_moved_scene(tmp_path_factory.mktemp("scene"), SEG_WALL_Y))
