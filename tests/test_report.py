@@ -13,6 +13,7 @@ import pytest
 from test_stats import FACTORS, PLANTED, planted
 
 from wbc_jax.analysis import report
+from wbc_jax.analysis.render import ReportWorker, Workers
 from wbc_jax.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -49,11 +50,15 @@ def test_cli_full_report_with_figures(tmp_path):
     assert p.returncode == 0, stderr
     assert {f.name for f in out.iterdir()} == {"report.md", "report.html", "anova.json", "design.csv",
                                               "cell_means.csv", "manifest.json", "figures"}
-    for png in ("means.png", "interactions.png", "qq.png", "success_levels.png", "success_pairs.png"):
+    pngs = ["means.png", "interactions_R.png", "interactions_T.png", "interactions_S.png", "qq.png",
+            "success_levels.png", "success_pairs.png"]
+    assert sorted(p.name for p in (out / "figures").iterdir()) == sorted(pngs)
+    for png in pngs:
         data = (out / "figures" / png).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
     html = (out / "report.html").read_text()
-    assert html.count('src="data:image/png;base64,') == 5 and 'src="figures/' not in html
+    assert html.count('src="data:image/png;base64,') == 7 and 'src="figures/' not in html
+    assert "Interaction plots of T:" in html
     md = (out / "report.md").read_text()
     assert "![" in md and "figures/means.png" in md and "## Metric R" in md
     summary = _strict_json(out / "anova.json")
@@ -67,6 +72,37 @@ def test_cli_full_report_with_figures(tmp_path):
     man = _strict_json(out / "manifest.json")
     assert man["rows"] == len(df) and len(man["sha256"]) == 64
     assert not _leftovers(tmp_path, "rep")
+
+    # the same figures from worker processes (wbc_jax.analysis.render; the CLI above used them only on 4+ cores):
+    # 3 workers for 7 figures, one of them dead before its job (its figure and the 4 left over are drawn in this
+    # process), byte for byte those of the CLI
+    workers = Workers(3)
+    workers.processes[0].kill()
+    report.run_report(str(csv), str(tmp_path / "rep2"), workers=workers)
+    assert all(p.returncode is not None for p in workers.processes)  # every worker ended
+    assert sorted(workers.answered.values()) == ["lost"] * 5 + ["ok"] * 2  # 2 drawn by workers
+    for png in (out / "figures").iterdir():
+        assert (tmp_path / "rep2" / "figures" / png.name).read_bytes() == png.read_bytes(), png.name
+
+
+def test_report_worker_writes_the_same_report_and_raises_its_errors(tmp_path):
+    """A campaign's report process (wbc_jax.analysis.render.ReportWorker, started before the rollout on 4+ cores):
+    the same tables as this process's report of the same results; an input error of the report raised in the
+    caller as the same one-line error. Figures off and no figure workers (test_cli_full_report_with_figures
+    compares the workers' figures)."""
+    csv = tmp_path / "results.csv"
+    planted(seed=2).to_csv(csv, index=False)
+    worker = ReportWorker(n_figures=0)
+    got = worker.run_report(str(csv), str(tmp_path / "w"), figures=False)
+    assert worker.answered == "ok" and worker.process.returncode == 0
+    ref = report.run_report(str(csv), str(tmp_path / "p"), figures=False)
+    assert got.keys() == ref.keys() and got["metrics"] == ref["metrics"] and got["success"] == ref["success"]
+    for name in ("report.md", "cell_means.csv", "design.csv"):
+        assert (tmp_path / "w" / name).read_bytes() == (tmp_path / "p" / name).read_bytes(), name
+    worker = ReportWorker(n_figures=0)
+    with pytest.raises(InputError, match="results file not found") as e:
+        worker.run_report(str(tmp_path / "none.csv"), str(tmp_path / "x"))
+    assert worker.answered == "error" and "\n" not in str(e.value) and not (tmp_path / "x").exists()
 
 
 def test_unbalanced_and_deterministic_metric_report(tmp_path):

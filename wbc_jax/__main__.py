@@ -1,3 +1,6 @@
-from wbc_jax.cli import main
+"""``python -m wbc_jax``: the ``wbc-jax`` console script."""
 
-raise SystemExit(main())
+from wbc_jax.cli import run
+
+if __name__ == "__main__":
+    run()

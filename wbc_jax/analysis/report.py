@@ -14,8 +14,8 @@ Reads the CSV, checks it, runs :func:`wbc_jax.analysis.stats.analyze`, and write
   and from the QP's planned object forces per cell and the boundary rule's share of each (:func:`r_sources`).
 - ``design.csv``, ``cell_means.csv`` (mean, sd, n per cell and metric; CI baselines).
 - ``manifest.json``: input path and SHA-256, arguments, package versions, wall time.
-- ``figures/means.png`` (metric means +- SD per factor level), ``figures/interactions.png``
-  (EMM +- 95 % CI per two-way interaction), ``figures/qq.png`` (residual Q-Q plots),
+- ``figures/means.png`` (metric means +- SD per factor level), ``figures/interactions_<metric>.png`` (one per
+  metric: EMM +- 95 % CI per two-way interaction), ``figures/qq.png`` (residual Q-Q plots),
   ``figures/success_levels.png`` and ``figures/success_pairs.png`` (success rate per factor level and per
   pair of factors, :mod:`wbc_jax.analysis.success`).
 
@@ -54,7 +54,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from wbc_jax.analysis import interaction, stats
+from wbc_jax.analysis import interaction, render, stats
 from wbc_jax.io_utils import atomic_dir, check_out_dir, read_capped
 from wbc_jax.errors import InputError, WbcJaxError
 
@@ -71,8 +71,8 @@ R_SOURCE_COLUMNS = (("R", "R (simulator)"), ("R_plan", "R (QP plan)"), ("boundar
 CLEARANCE = "min_clearance_mm"  # a campaign's results.csv column: the report's clearance section  # the metrics of a campaign's report (its results.csv has more columns)
 FIGURE_CAPTIONS = {
     "means.png": "Mean ± SD of each metric per factor level (rows: metrics, columns: factors).",
-    "interactions.png": "Interaction plots: EMMs ± 95 % CI for each two-way interaction, in both orientations, "
-                        "each titled ordinal or disordinal (lines crossing).",
+    "interactions_{}.png": "Interaction plots of {}: EMMs ± 95 % CI for each two-way interaction, in both "
+                           "orientations, each titled ordinal or disordinal (lines crossing).",
     "qq.png": "Normal Q-Q plots of standardized model residuals.",
     "success_levels.png": "Success rate (all runs) per level of each factor.",
     "success_pairs.png": "Success rate (all runs) per pair of factors; cells: successes/runs.",
@@ -83,7 +83,7 @@ RESULTS_LIMIT = 64 << 20  # largest results CSV read [bytes] (16384 runs: about 
 
 def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: list[str] | None = None,
                metrics: list[str] | None = None, *, figures: bool = True, ss_type: int = 3, order: int | None = None,
-               force: bool = False) -> dict:
+               force: bool = False, workers: render.Workers | None = None) -> dict:
     """Write the ANOVA report of ``results_csv`` into ``out_dir``.
 
     Args:
@@ -96,6 +96,10 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
         ss_type: sums-of-squares type, 1, 2 or 3.
         order: highest interaction order of the model (2: main effects + two-way; default: the campaign's or 2).
         force: replace ``out_dir`` when it holds an earlier report.
+        workers: figure workers (:class:`wbc_jax.analysis.render.Workers`) that draw the figures side by side
+            while this process writes the document (figures beyond their number: drawn here); None: drawn here one
+            after another. The caller closes them (:meth:`~wbc_jax.analysis.render.Workers.close`: those left
+            idle, e.g. after an error).
 
     Returns:
         The content of ``anova.json``.
@@ -122,21 +126,21 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
     extra = _beyond_anova(data, factors, alpha)
     if not res["metrics"]:
         return _write_design_only(res, extra, results_csv, raw, out_dir, alpha, factors, metrics, ss_type, order,
-                                  t0, figures)
+                                  t0, figures, workers)
     metrics = list(res["metrics"])
 
-    images = {}
+    jobs = {}
     if figures:
-        from wbc_jax.analysis import figures as fg
-
-        images["means.png"] = fg.means_grid(res["level_means"], factors, metrics)
         fits = {m: r["fit"] for m, r in res["metrics"].items()}
-        inter = fg.interaction_grid({m: r["emms"] for m, r in res["metrics"].items()}, metrics,
-                                    [m for m, f in fits.items() if not f.reliable])
-        if inter is not None:
-            images["interactions.png"] = inter
-        images["qq.png"] = fg.qq_grid({m: (f.result.resid, None if f.degenerate else f.mse) for m, f in fits.items()})
-        images.update(_success_images(extra, factors))
+        emms = {m: r["emms"] for m, r in res["metrics"].items()}
+        has_pairs = bool(next(iter(emms.values())))  # a two-way term in the model: interaction plots
+        jobs = {"means.png": ("means_grid", (res["level_means"], factors, metrics)),
+                **{_interaction_png(m): ("interaction_grid", ({m: emms[m]}, [m], [] if fits[m].reliable else [m]))
+                   for m in (metrics if has_pairs else [])},  # one figure per metric: drawn side by side
+                "qq.png": ("qq_grid", ({m: (np.asarray(f.result.resid), None if f.degenerate else f.mse)
+                                        for m, f in fits.items()},)),
+                **_success_jobs(extra, factors)}
+    pending = render.start(jobs, workers)  # drawn by the workers while this process writes the document
 
     manifest = {
         "command": COMMAND, "input": str(results_csv), "sha256": hashlib.sha256(raw).hexdigest(), "rows": len(df),
@@ -145,7 +149,8 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
     }
     r_json = {"r_sources": r_sources(df, factors).to_dict("records")} if R_PLAN in df.columns else {}
     summary = _clean(dict(_summary(res, data, factors, metrics, alpha, manifest), **_extra_json(extra), **r_json))
-    doc = _document(res, summary, factors, metrics, alpha, list(images), df, extra)
+    doc = _document(res, summary, factors, metrics, alpha, list(jobs), df, extra)
+    images = pending.result()
     manifest["wall_s"] = summary["manifest"]["wall_s"] = round(time.perf_counter() - t0, 3)
     files = {
         "report.md": doc.markdown().encode(),
@@ -193,12 +198,24 @@ def _extra_json(extra: dict) -> dict:
             "ablation": extra["ablation"]}
 
 
-def _success_images(extra: dict, factors) -> dict[str, bytes]:
-    from wbc_jax.analysis import figures as fg
+def _interaction_png(metric: str) -> str:
+    """The interaction figure's file name of a metric (characters other than letters, digits, ``.-_``: ``_``)."""
+    return "interactions_" + re.sub(r"[^A-Za-z0-9._-]", "_", metric) + ".png"
 
-    out = {"success_levels.png": fg.success_levels(extra["by_level"], factors)}
+
+def _caption(name: str, metrics) -> str:
+    """The caption of figure ``name`` (of a report of ``metrics``)."""
+    for m in metrics:
+        if name == _interaction_png(m):
+            return FIGURE_CAPTIONS["interactions_{}.png"].format(m)
+    return FIGURE_CAPTIONS[name]
+
+
+def _success_jobs(extra: dict, factors) -> dict[str, tuple[str, tuple]]:
+    """The success-rate figures as :mod:`wbc_jax.analysis.render` jobs."""
+    out = {"success_levels.png": ("success_levels", (extra["by_level"], factors))}
     if extra["by_pair"]:
-        out["success_pairs.png"] = fg.success_pairs(extra["by_pair"])
+        out["success_pairs.png"] = ("success_pairs", (extra["by_pair"],))
     return out
 
 
@@ -290,7 +307,7 @@ def _analyze(data: pd.DataFrame, factors: list[str], metrics: list[str], **kw) -
 
 
 def _write_design_only(res, extra, results_csv, raw, out_dir, alpha, factors, metrics, ss_type, order, t0,
-                       figures) -> dict:
+                       figures, workers) -> dict:
     """The report of a table without an analysable metric: warnings, the design table and the success rates."""
     d = _Doc()
     d.h(1, f"ANOVA report: {Path(results_csv).name}")
@@ -300,7 +317,7 @@ def _write_design_only(res, extra, results_csv, raw, out_dir, alpha, factors, me
     d.h(2, "Design")
     d.table(res["design"])
     _success_sections(d, extra, factors, alpha)
-    images = _success_images(extra, factors) if figures else {}
+    images = render.start(_success_jobs(extra, factors) if figures else {}, workers).result()
     for name in images:
         d.img(name, FIGURE_CAPTIONS[name])
     manifest = {"command": COMMAND, "input": str(results_csv), "sha256": hashlib.sha256(raw).hexdigest(),
@@ -366,15 +383,21 @@ def _one_line(e: Exception) -> str:
 
 
 def _versions() -> dict:
-    import matplotlib
-    import scipy
-    import statsmodels
-
     from wbc_jax import __version__
 
     return {"wbc_jax": __version__, "python": platform.python_version(), "numpy": np.__version__,
-            "scipy": scipy.__version__, "pandas": pd.__version__, "statsmodels": statsmodels.__version__,
-            "matplotlib": matplotlib.__version__}
+            "scipy": _version("scipy"), "pandas": pd.__version__, "statsmodels": _version("statsmodels"),
+            "matplotlib": _version("matplotlib")}
+
+
+def _version(name: str) -> str:
+    """An installed package's version without importing it (matplotlib's import alone took 0.26 s)."""
+    from importlib import import_module, metadata
+
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:  # not installed as a distribution: ask the module
+        return import_module(name).__version__
 
 
 def _clean(x):
@@ -556,7 +579,7 @@ def _document(res: dict, summary: dict, factors, metrics, alpha: float, images: 
     if images:
         d.h(2, "Figures")
         for name in images:
-            d.img(name, FIGURE_CAPTIONS[name])
+            d.img(name, _caption(name, metrics))
 
     if df is not None and R_PLAN in df.columns:
         _r_sources_section(d, df, factors)

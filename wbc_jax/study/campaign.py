@@ -458,8 +458,13 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     t_run = time.perf_counter()
     first_in_process = True  # that chunk's wall time includes compilation
     step = lambda st: fn(b.model, st, b.plan, b.om, b.gains, b.push, b.mu_ground)  # noqa: E731  (dispatch only)
+    reporter = None
     try:
         nxt, t0 = (step(state) if done < n_chunks else None), t_run
+        if report and writer:  # the report's process gets ready during the rollout (wbc_jax.analysis.render),
+            from wbc_jax.analysis.render import ReportWorker  # started once the first chunk is traced and compiled
+
+            reporter = ReportWorker.for_machine()
         while done < n_chunks:
             state, logs = nxt
             state = jax.block_until_ready(state)
@@ -487,6 +492,8 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     except KeyboardInterrupt:
         if bar is not None:
             bar.close()
+        if reporter is not None:
+            reporter.close()
         if writer:
             print(f"interrupted after {done} of {n_chunks} chunks; finished chunks kept in {ck}; "
                   f"continue with --resume", file=sys.stderr, flush=True)
@@ -550,7 +557,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         write_json_atomic(tmp / "manifest.json", manifest)
     shutil.rmtree(ck, ignore_errors=True)
     if report:
-        _campaign_report(out_p, manifest, warnings)
+        _campaign_report(out_p, manifest, warnings, reporter)
     for w in manifest["warnings"]:
         print(f"warning: {w}", flush=True)
     print(f"{int(df.success.sum())}/{dz.n} runs succeeded; wall {manifest['wall_s_total']:.1f} s, "
@@ -569,16 +576,17 @@ def _plain(x):
     return x.item() if isinstance(x, np.generic) else x
 
 
-def _campaign_report(out: Path, manifest: dict, warnings: list[str]) -> None:
-    """The ANOVA report of ``out/results.csv`` into ``out/report`` (the spec's factors and ``[analysis]``); a
-    failure is written to ``out/report_error.txt`` and the manifest, and raised as a one-line ReportError (the
-    results stay)."""
+def _campaign_report(out: Path, manifest: dict, warnings: list[str], reporter=None) -> None:
+    """The ANOVA report of ``out/results.csv`` into ``out/report`` (the spec's factors and ``[analysis]``; written
+    by ``reporter``, a :class:`wbc_jax.analysis.render.ReportWorker`, when given; closed here); a failure is written
+    to ``out/report_error.txt`` and the manifest, and raised as a one-line ReportError (the results stay)."""
     from wbc_jax.analysis.report import CAMPAIGN_METRICS, run_report
 
+    write = run_report if reporter is None else reporter.run_report  # the same function, in the worker
     spec = manifest.get("spec", {})
     analysis = spec.get("analysis", {})
     try:
-        run_report(str(out / "results.csv"), str(out / "report"), metrics=list(CAMPAIGN_METRICS),
+        write(str(out / "results.csv"), str(out / "report"), metrics=list(CAMPAIGN_METRICS),
                    factors=list(spec["factors"]) if "factors" in spec else None, order=analysis.get("order", 2),
                    alpha=analysis.get("alpha", 0.05))
         if warnings:
@@ -592,6 +600,9 @@ def _campaign_report(out: Path, manifest: dict, warnings: list[str]) -> None:
         raise ReportError(f"the simulation finished and {out}/results.csv and manifest.json are written, but the "
                           f"report failed ({why}); retry with wbc-jax report {out}/results.csv --out "
                           f"{out}/report") from None
+    finally:
+        if reporter is not None:
+            reporter.close()
 
 
 def run_in_fresh_process(spec_path, out: Path, **env) -> Path:
