@@ -90,8 +90,10 @@ class Workers:
 
     @classmethod
     def for_machine(cls, n: int = N_FIGURES) -> Workers | None:
-        """``n`` workers where the machine has at least :data:`MIN_CORES` cores, else None (render in process)."""
-        return cls(n) if (os.cpu_count() or 1) >= MIN_CORES else None
+        """Up to ``n`` workers, one core left to the caller, where the machine has at least :data:`MIN_CORES`
+        cores; else None (the figures are drawn in the caller)."""
+        cores = os.cpu_count() or 1
+        return cls(min(n, cores - 1)) if cores >= MIN_CORES else None
 
     def start(self, jobs: dict[str, tuple[str, tuple]]) -> Pending:
         """Give each job (name -> (function of :mod:`wbc_jax.analysis.figures`, its positional arguments)) to an
@@ -150,8 +152,10 @@ class ReportWorker:
 
     @classmethod
     def for_machine(cls) -> ReportWorker | None:
-        """A report worker where the machine has at least :data:`MIN_CORES` cores, else None."""
-        return cls() if (os.cpu_count() or 1) >= MIN_CORES else None
+        """A report worker with up to :data:`N_FIGURES` figure workers, two cores left to the caller and the
+        report worker, where the machine has at least :data:`MIN_CORES` cores; else None."""
+        cores = os.cpu_count() or 1
+        return cls(min(N_FIGURES, cores - 2)) if cores >= MIN_CORES else None
 
     def run_report(self, *args, **kwargs) -> dict:
         """:func:`wbc_jax.analysis.report.run_report` in the worker (its figures in the worker's own figure
