@@ -23,6 +23,9 @@ PAPER_HASHES = {
     "reports/baseline/spec.toml": "654ac4b816ec9952866d7c292c7b7f16465bda8ef005664d4b52627da5172bdf",
 }
 # a tiny flat-ground campaign: 4 runs x 0.06 s (3 chunks of one log each); every test rollout here has this shape
+# and runs one compiled chunk program: where ground_mu and speed are not factors, SAME_SHAPE sets them in
+# [campaign] to the flat scene's own foot friction (1.0: the same physics, but per-run friction of the factor's
+# array type) and to the ground_mu x speed campaign's slower speed (whose plan has the most knots)
 TINY = """[campaign]
 reps = 1
 seed = 5
@@ -37,6 +40,9 @@ chunk_seconds = 0.02
 [perturbations]
 {perturbations}
 """
+
+
+SAME_SHAPE = "ground_mu = 1.0\nspeed = 0.05"
 
 
 def tiny(tmp_path, name="tiny.toml", campaign="", factors="", perturbations=""):
@@ -210,10 +216,10 @@ def test_report_reads_the_campaigns_factors_from_its_manifest(tmp_path):
 
 @pytest.fixture(scope="module")
 def variants_run(tmp_path_factory):
-    """The four variants side by side in one batched rollout (4 runs, 0.06 s, no perturbations)."""
+    """The four variants side by side in one batched rollout (4 runs, 0.06 s, no perturbations; SAME_SHAPE)."""
     from wbc_jax.study import campaign as C
 
-    spec = load_spec(tiny(tmp_path_factory.mktemp("variants"),
+    spec = load_spec(tiny(tmp_path_factory.mktemp("variants"), campaign=SAME_SHAPE,
                           factors='variant = ["full", "no_tray_cone", "no_observer", "no_posture"]'))
     sim, dz, b, _, logs_per_chunk, n_chunks = C.build(spec)
     fn = C._chunk_fn(sim, b.in_axes, logs_per_chunk)
@@ -248,7 +254,7 @@ def test_push_and_variant_campaign_end_to_end(variants_run, tmp_path):
     """push_N x variant, 2 x 2, through run_campaign and its report (the rollout shape of variants_run)."""
     from wbc_jax.study.campaign import run_campaign
 
-    spec = tiny(tmp_path, factors='push_N = [0.0, 30.0]\nvariant = ["full", "no_observer"]',
+    spec = tiny(tmp_path, campaign=SAME_SHAPE, factors='push_N = [0.0, 30.0]\nvariant = ["full", "no_observer"]',
                 perturbations="push_duration_s = 0.02\npush_window = [0.0, 0.1]\npush_dir_deg = 90.0")
     man = run_campaign(str(spec), str(tmp_path / "out"), progress=False)
     df = pd.read_csv(tmp_path / "out" / "results.csv")
@@ -262,7 +268,8 @@ def test_push_and_variant_campaign_end_to_end(variants_run, tmp_path):
 
 
 def test_ground_friction_and_speed_campaign_end_to_end(variants_run, tmp_path):
-    """ground_mu x speed, 2 x 2: per-run foot friction in the physics and the controller, per-run plans."""
+    """ground_mu x speed, 2 x 2: per-run foot friction in the physics and the controller, per-run plans (the
+    rollout shape of variants_run, whose compiled chunk function it reuses)."""
     from wbc_jax.study import campaign as C
 
     spec = tiny(tmp_path, factors="ground_mu = [0.5, 1.2]\nspeed = [0.05, 0.2]")
