@@ -19,9 +19,9 @@ fi
 # (the flat scene's contact slots and the tiny campaign's chunk and init programs, which test_sharding, test_tune's
 # CEM run and test_window reuse in lane 3; test_window after the other two, which load them into that process),
 # while lane 2 starts with test_qp (no MJX model) so as not to compile the same programs at the same time.
-# test_model (~160 s, programs of its own) ends lane 2: with test_factors' three rollouts on one compiled program
-# (2026-11-27), lanes 2+3 come to ~1,600 s against lane 1's ~1,800 s (estimated from the 2026-11-26 CI run's
-# durations). A test file in none of the lists runs at the end of lane 3.
+# test_model (~180 s, programs of its own) ends lane 2: with test_factors' three rollouts on one compiled program,
+# lanes 2+3 took 2,010 s against lane 1's 1,906 s (clean clone, 2 cores); in lane 1 it would make that lane the
+# longer one (~2,090 s). A test file in none of the lists runs at the end of lane 3.
 lane1=(campaign backends centroidal course aot api distributed)
 lane2=(qp clearance metrics planner interaction kernel_trace reliability snapshots spec_docs stats model)
 lane3=(sharding tune window transport substeps factors report)

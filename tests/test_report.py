@@ -86,7 +86,7 @@ def test_cli_full_report_with_figures(tmp_path):
 
 
 def test_report_worker_writes_the_same_report_and_raises_its_errors(tmp_path):
-    """A campaign's report process (wbc_jax.analysis.render.ReportWorker, started before the rollout on 4+ cores):
+    """A campaign's report process (wbc_jax.analysis.render.ReportWorker, started during the rollout on 4+ cores):
     the same tables as this process's report of the same results; an input error of the report raised in the
     caller as the same one-line error. Figures off and no figure workers (test_cli_full_report_with_figures
     compares the workers' figures)."""
