@@ -2,7 +2,9 @@
 
 Both are measured in the same process on the current device, on the flat scene (or ``scene``) with the object,
 excluding compile time (reported separately); the ratio WBC / physics-only is printed next to the
-absolute figures. The WBC runs the loaded stand-and-walk plan from t = 0.
+absolute figures, and so is everything but physics per control step (the physics + WBC call's time less the
+physics-only call's, over its control steps: what the controller, the QP and the rollout's bookkeeping add). The
+WBC runs the loaded stand-and-walk plan from t = 0.
 
 Several devices: one process with several (JAX physics) also times the same batch with its runs over every
 device (:func:`sharded_chunk_fn`, as a campaign runs it). Several processes (``--coordinator`` etc., one device
@@ -148,9 +150,10 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
             (c_phys, t_phys), (c_wbc, t_wbc) = _physics_and_wbc(sim, b, n_env, _timed)
             row.update(peak_device_bytes=_peak_bytes(), physics_steps_per_s=B * n_env / t_phys,
                        wbc_steps_per_s=B * n_env / t_wbc, ratio=t_phys / t_wbc, compile_physics_s=c_phys - t_phys,
-                       compile_wbc_s=c_wbc - t_wbc)
+                       compile_wbc_s=c_wbc - t_wbc, non_physics_ms_per_step=1e3 * (t_wbc - t_phys) / steps)
             print(f"{device} {label:4s} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   "
-                  f"physics+WBC {row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   compile "
+                  f"physics+WBC {row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   everything but "
+                  f"physics {row['non_physics_ms_per_step']:.3f} ms per control step   compile "
                   f"{row['compile_wbc_s']:.1f} s" + (f"   peak memory {row['peak_device_bytes'] / 2**30:.2f} GiB"
                                                     if row["peak_device_bytes"] else ""), flush=True)
         if n_proc > 1:  # every process its block of B / n_proc runs on its own device (wbc_jax.sim.spread)
