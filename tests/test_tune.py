@@ -313,7 +313,7 @@ def test_cpu_batch_keeps_lapack_kernels_inline(monkeypatch):
     rows = np.arange(CPU_BATCH)
     sub = b._replace(model=take(b.model, rows, b.in_axes), state=jax.eval_shape(lambda s: take(s, rows), b.state),
                      **{k: take(getattr(b, k), rows) for k in ("plan", "om", "gains", "push", "mu_ground")})
-    f = jax.vmap(make_chunk_fn(sim, 1), in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0))
+    f = make_chunk_fn(sim, 1, b.in_axes)
     jaxpr = jax.make_jaxpr(f)(sub.model, sub.state, sub.plan, sub.om, sub.gains, sub.push, sub.mu_ground)
     found = []
 

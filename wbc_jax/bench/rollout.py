@@ -54,8 +54,9 @@ def physics_only_fn(b, n_steps: int):
 
 
 def _vmapped_chunk(sim, b):
-    """vmap over ``b``'s runs of one chunk of ``sim.log_every`` control steps (MJX batches the Warp data whole)."""
-    return jax.vmap(make_chunk_fn(sim, 1), in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0))
+    """One chunk of ``sim.log_every`` control steps of ``b``'s runs (:func:`make_chunk_fn`; MJX batches the Warp data
+    whole)."""
+    return make_chunk_fn(sim, 1, b.in_axes)
 
 
 def wbc_chunk_fn(sim, b):

@@ -558,29 +558,39 @@ def contact_name(sim: Sim, k: int) -> str:
     return _pair_name(sim, g1, g2)
 
 
-def make_chunk_fn(sim: Sim, n_logs: int):
-    """jit(vmap(run n_logs x log_every control steps)) over runs.
+def make_chunk_fn(sim: Sim, n_logs: int, model_axes):
+    """One chunk of every run: ``n_logs`` x ``log_every`` control steps, the runs batched inside each step.
 
-    Returns f(batched_model, in_axes-bound) -> callable(state, plan, om, gains, push, mu_ground).
+    Returns f(batched model, state, plan, om, gains, push, mu_ground) -> (state, Log with axes (run, log)), for
+    ``jax.jit``; every argument after the model has the runs on its axis 0, the model on ``model_axes``
+    (``Batch.in_axes``).
+
+    The step is vmapped inside the scans (``scan(vmap(step))``), not the scans over one run's step
+    (``vmap(scan(step))``). With vmap outside, JAX traces the step into a jaxpr and then runs that jaxpr again
+    under the scans' batching rules; here the step is traced once, batched. Measured on the CPU (course scene, JAX
+    physics, 2 runs; the two forms alternated twice, caches cleared): tracing 7.01 / 6.60 s before, 5.33 / 5.17 s
+    now; the compiled programs have the same op counts (36,440 ops, 852 copies, 1,562 fusions) and the outputs are
+    equal bit for bit (flat scene).
     """
+    nu = sim.robot.mj_model.nu
+    step = jax.vmap(lambda m, rs, plan, om, gains, push, mu: control_step(sim, m, rs, plan, om, gains, push, mu),
+                    in_axes=(model_axes, 0, 0, 0, 0, 0, 0))
 
-    def run_one(m, rs, plan, om, gains, push, mu_ground):
-        def step(rs):
-            return control_step(sim, m, rs, plan, om, gains, push, mu_ground)
-
+    def chunk(m, rs, plan, om, gains, push, mu_ground):
         # the log of the period's last step rides in the carry (overwritten every step) rather than as the inner
         # scan's stacked output, of which only the last row was kept
-        log0 = empty_log(rs.d, sim.robot.mj_model.nu)
+        log0 = jax.vmap(lambda d: empty_log(d, nu))(rs.d)
 
         def inner(carry, _):
-            return step(carry[0]), None
+            return step(m, carry[0], plan, om, gains, push, mu_ground), None
 
         def outer(rs, _):
             return jax.lax.scan(inner, (rs, log0), None, length=sim.log_every)[0]
 
-        return jax.lax.scan(outer, rs, None, length=n_logs)
+        rs, logs = jax.lax.scan(outer, rs, None, length=n_logs)
+        return rs, jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), logs)  # (log, run) -> (run, log)
 
-    return run_one
+    return chunk
 
 
 _CHUNK_FNS: dict = {}
@@ -599,7 +609,7 @@ def simulate(sim: Sim, bmodel, in_axes, state: RunState, plan, om, gains, push, 
         n = min(logs_per_chunk, n_logs_total - done)
         key = (id(sim), n)
         if key not in _CHUNK_FNS:  # one compiled function per (sim, chunk length), reused across calls
-            _CHUNK_FNS[key] = jax.jit(jax.vmap(make_chunk_fn(sim, n), in_axes=(in_axes, 0, 0, 0, 0, 0, 0)))
+            _CHUNK_FNS[key] = jax.jit(make_chunk_fn(sim, n, in_axes))
         state, logs = _CHUNK_FNS[key](bmodel, state, plan, om, gains, push, mu_ground)
         out_logs.append(jax.device_get(logs))
         done += n

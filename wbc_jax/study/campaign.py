@@ -117,8 +117,9 @@ def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, 
 
 
 def _chunk_fn(sim, in_axes, n_logs: int, mesh=None, state_axes=0):
-    """The jitted, vmapped chunk function; with a ``mesh`` (several devices), each device steps its own runs.
-    ``in_axes``, ``state_axes``: the batch's model and state run axes (``Batch.in_axes``, ``Batch.state_axes``)."""
+    """The jitted chunk function (:func:`wbc_jax.sim.rollout.make_chunk_fn`); with a ``mesh`` (several devices),
+    each device steps its own runs. ``in_axes``, ``state_axes``: the batch's model and state run axes
+    (``Batch.in_axes``, ``Batch.state_axes``)."""
     from wbc_jax.sim.rollout import make_chunk_fn
     from wbc_jax.sim.sharding import over_runs
 
@@ -126,7 +127,7 @@ def _chunk_fn(sim, in_axes, n_logs: int, mesh=None, state_axes=0):
     key = (id(sim), n_logs, mesh, tuple(leaves), tree)
     if key not in _FNS:  # jit, with the lowered program kept on disk for the next process (wbc_jax.sim.aot)
         # (vmap takes the Warp data whole: MJX batches its shared contact list itself)
-        fn = jax.vmap(make_chunk_fn(sim, n_logs), in_axes=(in_axes, 0, 0, 0, 0, 0, 0))
+        fn = make_chunk_fn(sim, n_logs, in_axes)
         _FNS[key] = (aot.cached_jit("chunk", fn, aot.describe(sim, in_axes, n_logs),
                                      exportable=sim.robot.backend != "warp") if mesh is None
                      else over_runs(fn, mesh, (in_axes, state_axes, 0, 0, 0, 0, 0), (state_axes, 0)))
