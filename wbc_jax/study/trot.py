@@ -175,18 +175,22 @@ def simulate(sim: TrotSim, rs: TrotRun, plan: CPWalkPlan, R0, gains: CentroidalG
     n_chunks = max(1, int(np.ceil(seconds / chunk_seconds - 1e-9)))
     n_logs = max(1, int(np.ceil(seconds / n_chunks / (dt * sim.log_every) - 1e-9)))
     key = (id(sim), n_logs)
-    if key not in _CHUNKS:
-        def run_one(m, rs, plan, R0, gains):
+    if key not in _CHUNKS:  # the runs batched inside each step, traced once (wbc_jax.sim.rollout.make_chunk_fn)
+        step = jax.vmap(lambda m, rs, plan, R0, gains: control_step(sim, m, rs, plan, R0, gains),
+                        in_axes=(None, 0, None, None, 0))
+
+        def chunk(m, rs, plan, R0, gains):
             def inner(rs, _):
-                return control_step(sim, m, rs, plan, R0, gains)
+                return step(m, rs, plan, R0, gains)
 
             def outer(rs, _):
                 rs, logs = jax.lax.scan(inner, rs, None, length=sim.log_every)
                 return rs, jax.tree_util.tree_map(lambda x: x[-1], logs)
 
-            return jax.lax.scan(outer, rs, None, length=n_logs)
+            rs, logs = jax.lax.scan(outer, rs, None, length=n_logs)
+            return rs, jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), logs)  # (log, run) -> (run, log)
 
-        _CHUNKS[key] = jax.jit(jax.vmap(run_one, in_axes=(None, 0, None, None, 0)))
+        _CHUNKS[key] = jax.jit(chunk)
     m = sim.robot.mjx_model
     out = []
     for c in range(n_chunks):
