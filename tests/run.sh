@@ -19,11 +19,16 @@ fi
 # (the flat scene's contact slots and the tiny campaign's chunk and init programs, which test_sharding, test_tune's
 # CEM run and test_window reuse in lane 3; test_window after the other two, which load them into that process),
 # while lane 2 starts with test_qp (no MJX model) so as not to compile the same programs at the same time.
-# test_model (~180 s, programs of its own) ends lane 2: with test_factors' three rollouts on one compiled program,
-# lanes 2+3 took 2,010 s against lane 1's 1,906 s (clean clone, 2 cores); in lane 1 it would make that lane the
-# longer one (~2,090 s). A test file in none of the lists runs at the end of lane 3.
-lane1=(campaign backends centroidal course aot api distributed)
-lane2=(qp clearance metrics planner interaction kernel_trace reliability snapshots spec_docs stats model)
+# test_model (~180 s, programs of its own) ends lane 2. test_clearance (42 s) ends lane 1, moved from lane 2 when
+# test_transport stopped compiling its chunk program (test_backends' JAX walk, early in lane 1, compiles the same
+# one) and test_distributed's second process its programs; by the run below's per-file times, in lane 2 it would give
+# 1,978 / 2,007 s instead. Measured with these lists (empty cache, this 2-core machine, 2026-11-27, with
+# another user's test runs and a QP benchmark on the same 2 cores for most of it): lane 1 2,020 s, lanes 2+3
+# 1,965 s (lane 2 573 s), 385 passed; the list before (2026-11-26, less load): 1,906 / 2,010 s. Under load the
+# long B=1 rollouts slow most: test_course's wall passage took 504 s there (158 s alone on an idle machine).
+# A test file in none of the lists runs at the end of lane 3.
+lane1=(campaign backends centroidal course aot api distributed clearance)
+lane2=(qp metrics planner interaction kernel_trace reliability snapshots spec_docs stats model)
 lane3=(sharding tune window transport substeps factors report)
 named=" ${lane1[*]} ${lane2[*]} ${lane3[*]} "
 paths() { for f in "$@"; do [ -f "tests/test_$f.py" ] && echo "tests/test_$f.py"; done; }

@@ -27,6 +27,10 @@ FORCE_RTOL, FORCE_ATOL = 0.05, 0.02  # [-], [N] object contact forces, float32 b
 POS_TOL = 1e-3  # [m] trunk and object positions after the walk, Warp vs JAX
 METRIC_RTOL = 0.05  # R and T, Warp vs JAX (the constraint solvers split the object's four forces differently)
 SECONDS = 0.6
+# the walks' Sim and plan shapes and chunk length are tests/test_transport.py's (log_every 50, the plan of a 0.3 m
+# path with a 0.5 s ramp, 0.1 s chunks), so the JAX walk runs the compiled chunk program of that file's stand and
+# trot (one compile for both files; the logs are not read here)
+LOG_EVERY, PLAN, CHUNK_SECONDS = 50, dict(distance=0.3, ramp=0.5), 0.1
 FACTORS = (np.array([0.3, 0.4]), np.array([0.7, 0.4]), np.array([0.08, 0.06]))  # m [kg], mu, d [m]
 
 
@@ -37,10 +41,10 @@ def walks():
     out = {}
     for key in ("jax", "warp", "warp:delayed"):
         backend, _, sensing = key.partition(":")
-        sim = make_sim(Robot("flat", backend=backend), log_every=20, sensing=sensing or "exact")
-        b = prepare_batch(sim, *FACTORS)
+        sim = make_sim(Robot("flat", backend=backend), log_every=LOG_EVERY, sensing=sensing or "exact")
+        b = prepare_batch(sim, *FACTORS, plan_kwargs=PLAN)
         st, _ = simulate(sim, b.model, b.in_axes, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground,
-                         seconds=SECONDS, chunk_seconds=SECONDS)
+                         seconds=SECONDS, chunk_seconds=CHUNK_SECONDS)
         res = final_results(sim, st, np.zeros((2, 3)), FACTORS[1])
         out[key] = (sim, b, jax.device_get(st), res)
     return out
@@ -153,7 +157,7 @@ def test_nan_run_is_frozen_and_others_unchanged_on_warp(walks):
     d = b.state.d
     state = b.state._replace(d=d.replace(qvel=d.qvel.at[1].set(np.nan)))
     bad, _ = simulate(sim, b.model, b.in_axes, state, b.plan, b.om, b.gains, b.push, b.mu_ground,
-                      seconds=SECONDS, chunk_seconds=SECONDS)
+                      seconds=SECONDS, chunk_seconds=CHUNK_SECONDS)
     bad = jax.device_get(bad)
     got = final_results(sim, bad, np.zeros((2, 3)), FACTORS[1])
     assert got["nonfinite"][1] and not got["success"][1] and not got["nonfinite"][0]

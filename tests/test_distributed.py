@@ -94,6 +94,11 @@ def _free_port() -> int:
 
 ALL_IN_ONE = textwrap.dedent("""
     import os, sys
+    if any(a.startswith("--coordinator") for a in sys.argv):  # SHARE_COMPILED: process 1 loads process 0's
+        import jax
+        from jax._src import cache_key
+        cache_key._hash_accelerator_config = cache_key._hash_devices
+        jax.config.update("jax_share_binary_between_hosts", True)
     from wbc_jax import cli
     args = sys.argv[1:]
     cut = args.index("--then")
@@ -117,6 +122,13 @@ ALL_IN_ONE = textwrap.dedent("""
              or (cli.main(["campaign", "--spec", spec, "--backend", "warp", "--out", "warp", "--no-report", *mp])
                  if mp else 0))  # Warp: the reference is computed in the test (_warp_blocks)
 """)  # one launch for all three: every fresh process compiles the rollout again (~1 min each on 2 cores)
+# SHARE_COMPILED: the two processes' programs over both processes (the campaign's and the tune's chunk programs,
+# the gathers) are the same program; with jax_share_binary_between_hosts process 0 compiles each and hands the
+# executable to process 1 through the coordinator instead of both compiling it on the same 2 cores. JAX names an
+# executable there by its persistent-cache key, which on the CPU holds a topology fingerprint that differs between
+# the processes (measured: their keys differ in that entry only), so process 1 would wait for a key process 0 never
+# sets; the script keys the devices by their kind instead (JAX's own fallback where a backend has no topology).
+# Each process still runs its own copy; the results are compared bit for bit below as before.
 
 
 def _run_all(cmds, envs, cwds) -> tuple[list[int], list[str]]:

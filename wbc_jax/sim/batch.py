@@ -154,7 +154,9 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
     if jnp.ndim(push.t0) == 0:
         push = broadcast(push, B)
     if ground_mu is None:
-        mu_ground = jnp.full(B, float(robot.mj_model.pair_friction[robot.ids.foot_pair[0, 0], 0]))
+        # the scene's value as a strong-typed array like a ground_mu factor's (_device: float32, or float64 under
+        # x64): a weak-typed jnp.full made batches with and without that factor compile separate programs
+        mu_ground = _device(np.full(B, float(robot.mj_model.pair_friction[robot.ids.foot_pair[0, 0], 0])))
     else:
         mu_ground = _device(np.broadcast_to(np.asarray(ground_mu, float), (B,)))
     return Batch(bm, in_axes, state, plans, om, gains, push, mu_ground, f, state_axes(sim, state))
