@@ -22,10 +22,10 @@ fi
 # test_model (~180 s, programs of its own) ends lane 2. test_clearance (42 s) ends lane 1, moved from lane 2 when
 # test_transport stopped compiling its chunk program (test_backends' JAX walk, early in lane 1, compiles the same
 # one) and test_distributed's second process its programs; by the run below's per-file times, in lane 2 it would give
-# 1,978 / 2,007 s instead. Measured with these lists (empty cache, this 2-core machine, 2026-11-27, with
-# another user's test runs and a QP benchmark on the same 2 cores for most of it): lane 1 2,020 s, lanes 2+3
-# 1,965 s (lane 2 573 s), 385 passed; the list before (2026-11-26, less load): 1,906 / 2,010 s. Under load the
-# long B=1 rollouts slow most: test_course's wall passage took 504 s there (158 s alone on an idle machine).
+# 1,978 / 2,007 s instead. Measured with these lists (empty cache, this 2-core machine, 2026-11-27): on a clean
+# clone with nothing else running, lane 1 1,064 s, lanes 2+3 992 s (367 + 625 s), 385 passed, 18 min 43 s in all;
+# with another user's test runs on the same 2 cores for most of it, 2,020 / 1,965 s. Under load the long B=1
+# rollouts slow most: test_course's wall passage took 504 s there (206 s in the clean run).
 # A test file in none of the lists runs at the end of lane 3.
 lane1=(campaign backends centroidal course aot api distributed clearance)
 lane2=(qp metrics planner interaction kernel_trace reliability snapshots spec_docs stats model)
