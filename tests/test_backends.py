@@ -20,6 +20,7 @@ from wbc_jax.sim import contacts, physics, scenario  # noqa: E402
 from wbc_jax.sim.batch import prepare_batch  # noqa: E402
 from wbc_jax.sim.model import Robot  # noqa: E402
 from wbc_jax.sim.rollout import final_results, make_sim, simulate  # noqa: E402
+from test_transport import CHUNK_SECONDS, TROT_PLAN  # noqa: E402  (the walks share its compiled chunk program)
 
 M_TOL = 1e-5  # relative, float32 CSR scatter vs MuJoCo C float64
 DIST_TOL = 1e-5  # [m] geometric sphere distances vs MJX's collision functions (float32)
@@ -27,10 +28,10 @@ FORCE_RTOL, FORCE_ATOL = 0.05, 0.02  # [-], [N] object contact forces, float32 b
 POS_TOL = 1e-3  # [m] trunk and object positions after the walk, Warp vs JAX
 METRIC_RTOL = 0.05  # R and T, Warp vs JAX (the constraint solvers split the object's four forces differently)
 SECONDS = 0.6
-# the walks' Sim and plan shapes and chunk length are tests/test_transport.py's (log_every 50, the plan of a 0.3 m
-# path with a 0.5 s ramp, 0.1 s chunks), so the JAX walk runs the compiled chunk program of that file's stand and
-# trot (one compile for both files; the logs are not read here)
-LOG_EVERY, PLAN, CHUNK_SECONDS = 50, dict(distance=0.3, ramp=0.5), 0.1
+# the walks' Sim and plan shapes and chunk length are tests/test_transport.py's (log_every 50, its trot plan and
+# chunk length), so the JAX walk runs the compiled chunk program of that file's stand and trot (one compile for both
+# files; the logs are not read here)
+LOG_EVERY, PLAN = 50, TROT_PLAN
 FACTORS = (np.array([0.3, 0.4]), np.array([0.7, 0.4]), np.array([0.08, 0.06]))  # m [kg], mu, d [m]
 
 

@@ -53,21 +53,15 @@ def physics_only_fn(b, n_steps: int):
     return jax.jit(jax.vmap(phys, in_axes=(b.in_axes, 0)))
 
 
-def _vmapped_chunk(sim, b):
-    """One chunk of ``sim.log_every`` control steps of ``b``'s runs (:func:`make_chunk_fn`; MJX batches the Warp data
-    whole)."""
-    return make_chunk_fn(sim, 1, b.in_axes)
-
-
 def wbc_chunk_fn(sim, b):
     """(f, args): jit(vmap) of one chunk of ``sim.log_every`` control steps per run, and its arguments from ``b``."""
-    return jax.jit(_vmapped_chunk(sim, b)), (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+    return jax.jit(make_chunk_fn(sim, 1, b.in_axes)), (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
 
 
 def sharded_chunk_fn(sim, b):
     """(f, args): :func:`wbc_chunk_fn` with the run axis over every device, each device stepping its own runs
     (``wbc_jax.sim.sharding.over_runs``, as a campaign on several devices), and ``b``'s arguments placed so."""
-    f = over_runs(_vmapped_chunk(sim, b), run_mesh(), (b.in_axes, b.state_axes, 0, 0, 0, 0, 0),
+    f = over_runs(make_chunk_fn(sim, 1, b.in_axes), run_mesh(), (b.in_axes, b.state_axes, 0, 0, 0, 0, 0),
                   (b.state_axes, 0))
     bs, _ = shard_batch(b)
     return f, (bs.model, bs.state, bs.plan, bs.om, bs.gains, bs.push, bs.mu_ground)

@@ -17,6 +17,7 @@ kept. Per-step quantities are reduced online (max, min, sums; :class:`Accum`) an
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -573,8 +574,7 @@ def make_chunk_fn(sim: Sim, n_logs: int, model_axes):
     equal bit for bit (flat scene).
     """
     nu = sim.robot.mj_model.nu
-    step = jax.vmap(lambda m, rs, plan, om, gains, push, mu: control_step(sim, m, rs, plan, om, gains, push, mu),
-                    in_axes=(model_axes, 0, 0, 0, 0, 0, 0))
+    step = jax.vmap(functools.partial(control_step, sim), in_axes=(model_axes, 0, 0, 0, 0, 0, 0))
 
     def chunk(m, rs, plan, om, gains, push, mu_ground):
         # the log of the period's last step rides in the carry (overwritten every step) rather than as the inner

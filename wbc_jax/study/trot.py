@@ -16,6 +16,7 @@ and ``summary.json`` ``snapshots`` says why), ``fig10_torques.png``, ``fig11_pha
 
 from __future__ import annotations
 
+import functools
 import json
 import platform
 import time
@@ -176,8 +177,7 @@ def simulate(sim: TrotSim, rs: TrotRun, plan: CPWalkPlan, R0, gains: CentroidalG
     n_logs = max(1, int(np.ceil(seconds / n_chunks / (dt * sim.log_every) - 1e-9)))
     key = (id(sim), n_logs)
     if key not in _CHUNKS:  # the runs batched inside each step, traced once (wbc_jax.sim.rollout.make_chunk_fn)
-        step = jax.vmap(lambda m, rs, plan, R0, gains: control_step(sim, m, rs, plan, R0, gains),
-                        in_axes=(None, 0, None, None, 0))
+        step = jax.vmap(functools.partial(control_step, sim), in_axes=(None, 0, None, None, 0))
 
         def chunk(m, rs, plan, R0, gains):
             def inner(rs, _):
