@@ -19,17 +19,17 @@ fi
 # (the flat scene's contact slots and the tiny campaign's chunk and init programs, which test_sharding, test_tune's
 # CEM run and test_window reuse in lane 3; test_window after the other two, which load them into that process),
 # while lane 2 starts with test_qp (no MJX model) so as not to compile the same programs at the same time.
-# test_model (~180 s, programs of its own) ends lane 2. test_clearance (33-45 s; its sensing program is test_model's,
-# compiled earlier in lane 2) ends lane 3: with it ending lane 1, lane 1 finished 64-73 s after lanes 2+3 in three
-# clean-clone runs (2026-11-27: 1,000 / 936 s, 1,189 / 1,116 s under another user's load, 902 / 830 s after
-# test_distributed's Warp reference stopped compiling twice: 16 min 4 s in all, 385 passed). Earlier, with these
-# lists but test_clearance in lane 1 and nothing else running: lane 1 1,064 s, lanes 2+3 992 s (367 + 625 s),
-# 18 min 43 s; with another user's test runs on the same 2 cores for most of it, 2,020 / 1,965 s. Under load the long
-# B=1 rollouts slow most: test_course's wall passage took 504 s there (206 s in the clean run).
+# test_model (~180 s, programs of its own) ends lane 2. test_clearance (42 s) ends lane 1, moved from lane 2 when
+# test_transport stopped compiling its chunk program (test_backends' JAX walk, early in lane 1, compiles the same
+# one) and test_distributed's second process its programs; by the run below's per-file times, in lane 2 it would give
+# 1,978 / 2,007 s instead. Measured with these lists (empty cache, this 2-core machine, 2026-11-27): on a clean
+# clone with nothing else running, lane 1 1,064 s, lanes 2+3 992 s (367 + 625 s), 385 passed, 18 min 43 s in all;
+# with another user's test runs on the same 2 cores for most of it, 2,020 / 1,965 s. Under load the long B=1
+# rollouts slow most: test_course's wall passage took 504 s there (206 s in the clean run).
 # A test file in none of the lists runs at the end of lane 3.
-lane1=(campaign backends centroidal course aot api distributed)
+lane1=(campaign backends centroidal course aot api distributed clearance)
 lane2=(qp metrics planner interaction kernel_trace reliability snapshots spec_docs stats model)
-lane3=(sharding tune window transport substeps factors report clearance)
+lane3=(sharding tune window transport substeps factors report)
 named=" ${lane1[*]} ${lane2[*]} ${lane3[*]} "
 paths() { for f in "$@"; do [ -f "tests/test_$f.py" ] && echo "tests/test_$f.py"; done; }
 mapfile -t files1 < <(paths "${lane1[@]}")
