@@ -23,6 +23,7 @@ import time
 import numpy as np
 import pandas as pd
 import pytest
+from jax._src import cache_key
 
 from wbc_jax import cli
 from wbc_jax.errors import InputError
@@ -172,7 +173,7 @@ rungs = 2
 #      confirmed; every call 4 runs (padded), 2 per device as in the campaign
 
 
-def test_two_processes_equal_one(tiny_spec, tmp_path):
+def test_two_processes_equal_one(tiny_spec, tmp_path, monkeypatch):
     """2 processes x 1 CPU device, the run axis over both, against one process over 2 CPU devices (the same
     per-device program, 2 runs each), the three launched once (ALL_IN_ONE): `wbc-jax campaign`'s results.csv equal
     bit for bit, every run once; process 0 writes DIR and the manifest's layout, process 1 (its own --out and
@@ -197,6 +198,10 @@ def test_two_processes_equal_one(tiny_spec, tmp_path):
     mp = [[f"--coordinator=localhost:{port}", "--num-processes=2", f"--process-id={i}"] for i in range(2)]
     camp = [sys.executable, "-c", ALL_IN_ONE, "campaign", "--spec", str(spec), "--out", "out", "--no-report"]
     tn = ["--then", "tune", "--spec", str(tune), "--out", "tune", "--no-progress"]
+    # the Warp reference first, keyed as the processes key their programs (SHARE_COMPILED): its compiled programs are
+    # then persistent-cache hits for both processes' Warp campaign instead of two more compiles
+    monkeypatch.setattr(cache_key, "_hash_accelerator_config", cache_key._hash_devices)
+    warp_ref = _warp_blocks(spec, 2)
     codes, logs = _run_all([camp + mp[0] + tn + mp[0], camp + mp[1] + tn + mp[1], camp + tn], [one, one, two],
                            dirs)
     assert codes == [0, 0, 0], "\n---\n".join(x[-3000:] for x in logs)
@@ -237,7 +242,7 @@ def test_two_processes_equal_one(tiny_spec, tmp_path):
     # stepped here one after the other with the single-device program
     warp = pd.read_csv(dirs[0] / "warp" / "results.csv")
     assert warp["run"].tolist() == list(range(4)) and warp["success"].all()
-    ref = pd.read_csv(io.StringIO(_warp_blocks(spec, 2).to_csv(index=False)))  # as the campaign writes it
+    ref = pd.read_csv(io.StringIO(warp_ref.to_csv(index=False)))  # as the campaign writes it
     pd.testing.assert_frame_equal(warp, ref, check_exact=True)
     wman = json.loads((dirs[0] / "warp" / "manifest.json").read_text())
     assert wman["physics_backend"] == "warp" and wman["layout"]["processes"] == 2
