@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from wbc_jax.control.dynamics import point_jacobians
 from wbc_jax.sim import scenario
 from wbc_jax.errors import FactorError, SceneError
 from wbc_jax.sim.model import Robot, mjx, resolve_ids
@@ -67,6 +68,20 @@ def test_mjx_matches_mujoco_c_at_home(robot):
         jp_x, jr_x = mjx.jac(mx, dx, jnp.asarray(point), body)
         np.testing.assert_allclose(np.asarray(jp_x).T, jp_c, atol=JAC_ATOL)
         np.testing.assert_allclose(np.asarray(jr_x).T, jr_c, atol=JAC_ATOL)
+
+    # the controller's own point Jacobians (static body masks, no scan) and their Jdot v against MuJoCo C's
+    pts = np.array([p for _, p in points])
+    bodies = [b for b, _ in points]
+    Jp, Jr, Jdp, Jdr = jax.jit(lambda d, p: point_jacobians(mx, d, ids, p, bodies))(dx, jnp.asarray(pts))
+    nvr = ids.nv_robot
+    for i, (body, point) in enumerate(points):
+        jp_c, jr_c, jdp_c, jdr_c = (np.zeros((3, m.nv)) for _ in range(4))
+        mujoco.mj_jac(m, d, jp_c, jr_c, point, body)
+        mujoco.mj_jacDot(m, d, jdp_c, jdr_c, point, body)
+        np.testing.assert_allclose(np.asarray(Jp[i]), jp_c[:, :nvr], atol=JAC_ATOL)
+        np.testing.assert_allclose(np.asarray(Jr[i]), jr_c[:, :nvr], atol=JAC_ATOL)
+        np.testing.assert_allclose(np.asarray(Jdp[i]), jdp_c @ d.qvel, atol=JAC_ATOL)
+        np.testing.assert_allclose(np.asarray(Jdr[i]), jdr_c @ d.qvel, atol=JAC_ATOL)
 
 
 def test_batched_model_matches_single_run_models(robot):

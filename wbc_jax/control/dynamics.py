@@ -15,11 +15,12 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from wbc_jax.sim.model import RobotIds, mjx
 
-from mujoco.mjx._src.support import jac_dot as _jac_dot  # noqa: E402  (not re-exported by mjx)
+from mujoco.mjx._src.math import motion_cross as _motion_cross  # noqa: E402  (not re-exported by mjx)
 
 GRAVITY = 9.81  # [m/s^2]
 
@@ -66,23 +67,52 @@ class DynTerms(NamedTuple):
     p_tray: jax.Array
 
 
+def chain_dofs(m, body: int) -> np.ndarray:
+    """(nv,) bool, static: the dofs whose motion moves ``body`` (its own joints' and its ancestors'), from the model's
+    tree (``body_parentid``, ``dof_bodyid``: numpy on both backends). MJX's ``jac`` finds the same mask at run time
+    by a scan over the tree with the body id traced."""
+    parent, chain, b = np.asarray(m.body_parentid), {int(body)}, int(body)
+    while b > 0:
+        b = int(parent[b])
+        chain.add(b)
+    return np.isin(np.asarray(m.dof_bodyid), sorted(chain))
+
+
 def point_jacobians(m, d, ids: RobotIds, points, bodies):
     """Translational and rotational Jacobians of points fixed to bodies, and their Jdot v.
 
+    MJX's ``jac`` and ``jac_dot`` (``mujoco.mjx._src.support``), the same arithmetic, with the bodies static: each
+    body's dof mask (:func:`chain_dofs`), root and velocity are constants of the program, so no scan over the body
+    tree and no gather by a traced id runs in the control step (issue 22: at batch 270 every XLA op costs ~1 us).
+
     Args:
-        points: (k, 3) world points [m]; bodies: (k,) body ids (static or traced ints).
+        points: (k, 3) world points [m]; bodies: (k,) body ids (static ints).
 
     Returns:
         (Jp (k, 3, nv_r), Jr (k, 3, nv_r), Jdv_p (k, 3), Jdv_r (k, 3)).
     """
     nvr = ids.nv_robot
-
-    def one(p, b):
-        jp, jr = mjx.jac(m, d, p, b)
-        jdp, jdr = _jac_dot(m, d, p, b)
-        return jp.T[:, :nvr], jr.T[:, :nvr], jdp.T @ d.qvel, jdr.T @ d.qvel
-
-    return jax.vmap(one)(points, jnp.asarray(bodies))
+    bodies = [int(b) for b in np.asarray(bodies).reshape(-1)]
+    mask = np.stack([chain_dofs(m, b) for b in bodies]).astype(np.float32)[:, :, None]  # (k, nv, 1)
+    dof_body = np.asarray(m.dof_bodyid)
+    jnt_type, dof_adr = np.asarray(m.jnt_type)[m.dof_jntid], np.asarray(m.jnt_dofadr)[m.dof_jntid]
+    is_quat = (jnt_type == int(mujoco.mjtJoint.mjJNT_BALL)) | (
+        (jnt_type == int(mujoco.mjtJoint.mjJNT_FREE)) & (np.arange(m.nv) >= dof_adr + 3))
+    offset = points - d.subtree_com[np.asarray(m.body_rootid)[bodies]]  # (k, 3)
+    cvel = d.cvel[np.asarray(bodies)]  # (k, 6) [angular; linear]
+    cdof = d.cdof  # (nv, 6)
+    cross = lambda a, b: jnp.cross(a, b, axis=-1)  # noqa: E731
+    # the points' Jacobians (k, nv, 3): v = cdof_lin + cdof_ang x offset, masked to the body's chain
+    jacp = (cdof[None, :, 3:] + cross(cdof[None, :, :3], offset[:, None])) * mask
+    jacr = cdof[None, :, :3] * mask
+    # their time derivatives; a ball or free joint's rotational cdof_dot from the body's own velocity, as MJX does
+    cdof_dot = jnp.where(is_quat[:, None], jax.vmap(_motion_cross)(d.cvel[dof_body], cdof), d.cdof_dot)
+    pvel_lin = cvel[:, 3:] - cross(offset, cvel[:, :3])  # (k, 3)
+    jdp = (cdof_dot[None, :, 3:] + cross(cdof_dot[None, :, :3], offset[:, None])
+           + cross(cdof[None, :, :3], pvel_lin[:, None])) * mask
+    jdr = cdof_dot[None, :, :3] * mask
+    T = lambda j: jnp.swapaxes(j, 1, 2)  # noqa: E731  (k, nv, 3) -> (k, 3, nv)
+    return T(jacp)[:, :, :nvr], T(jacr)[:, :, :nvr], T(jdp) @ d.qvel, T(jdr) @ d.qvel
 
 
 def mass_matrix(m, d) -> jax.Array:
@@ -90,14 +120,18 @@ def mass_matrix(m, d) -> jax.Array:
 
     MJX's JAX implementation keeps M dense for small models (``mjx.full_m`` returns it); MuJoCo Warp keeps its
     lower triangle in MuJoCo's CSR layout (``M_rownnz`` / ``M_rowadr`` / ``M_colind``, ``nC`` values), which
-    ``mjx.full_m`` returns unchanged for small models: scatter it and mirror the strict lower triangle.
+    ``mjx.full_m`` returns unchanged for small models: each dense entry is then read from its CSR value (or its
+    mirror's) through a static index, one gather (a scatter and a transpose before, issue 22).
     """
     M = mjx.full_m(m, d)
     if M.ndim == 2:
         return M
-    rows = np.repeat(np.arange(m.nv), m.M_rownnz)
-    L = jnp.zeros((m.nv, m.nv), M.dtype).at[rows, np.asarray(m.M_colind)].set(M)
-    return L + jnp.tril(L, -1).T
+    nv, nc = m.nv, M.shape[-1]
+    rows = np.repeat(np.arange(nv), m.M_rownnz)
+    idx = np.full((nv, nv), nc)  # entries outside the sparsity pattern read the appended zero
+    idx[rows, np.asarray(m.M_colind)] = np.arange(nc)
+    idx[np.asarray(m.M_colind), rows] = np.arange(nc)
+    return jnp.concatenate([M, jnp.zeros((1,), M.dtype)])[idx]
 
 
 def full_precision(fn):
@@ -159,12 +193,18 @@ def skew(w):
     return jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
-def wrench_map(points, about):
-    """(3k, 6)^T map: stacked point forces (k, 3) -> wrench [sum f; sum (p - about) x f] as (6, 3k)."""
-    k = points.shape[0]
-    top = jnp.tile(jnp.eye(3), (1, k))
-    bot = jnp.concatenate([skew(p - about) for p in points], axis=1) if k else jnp.zeros((3, 0))
-    return jnp.concatenate([top, bot], axis=0)
+def edge_wrenches(points, about, edges):
+    """(6, k e): the wrench about ``about`` of a unit force along each friction-pyramid edge of each point, column
+    ``i e + j`` for point i's edge j: ``[E_ij; (p_i - about) x E_ij]``. The same as the wrench map of the stacked
+    point forces times ``block_diag(E_1, ..., E_k)``, without building either matrix (their concatenations of
+    blocks were separate kernels, ~15 us per control step at batch 270 on an H100: issue 22).
+
+    Args:
+        points: (k, 3) [m]; about: (3,) [m]; edges: (k, 3, e) each point's edge directions (world frame).
+    """
+    r = jnp.broadcast_to((points - about)[:, :, None], edges.shape)
+    w = jnp.concatenate([edges, jnp.cross(r, edges, axis=1)], axis=1)  # (k, 6, e)
+    return jnp.swapaxes(w, 0, 1).reshape(6, -1)
 
 
 def rot_error(R_ref, R):

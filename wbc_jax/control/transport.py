@@ -35,8 +35,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from wbc_jax.control.dynamics import (GRAVITY, DynTerms, cone_edges, full_precision, point_jacobians, rot_error,
-                                      wrench_map)
+from wbc_jax.control.dynamics import (GRAVITY, DynTerms, cone_edges, edge_wrenches, full_precision,
+                                      point_jacobians, rot_error)
 from wbc_jax.control.variants import FULL, Variant
 from wbc_jax.sim.model import RobotIds
 from wbc_jax.qp import QPResult, QPSettings, solve_qp
@@ -326,23 +326,21 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     inf = jnp.inf
     stance = ~ref.swing
 
-    # friction pyramids
+    # friction pyramids: each multiplier's generalized force and wrenches, per point (no block-diagonal matrices)
     mu_feet = jnp.broadcast_to(jnp.asarray(mu_ground, dyn.M.dtype), (N_FEET,))  # () or (4,): per foot's surface
     Eg_feet = jax.vmap(lambda mu: cone_edges(mu, k))(mu_feet)  # (4, 3, k) ground normal = world z
-    Eg = jax.scipy.linalg.block_diag(*Eg_feet)  # (12, 4k)
-    Ec1 = cone_edges(om.mu, k, dyn.R_tray)  # (3, k) contact normal = tray z axis
-    Ec = jax.scipy.linalg.block_diag(*([Ec1] * N_OBJ))  # (12, 4k)
+    Ec = jnp.broadcast_to(cone_edges(om.mu, k, dyn.R_tray), (N_OBJ, 3, k))  # contact normal = tray z axis
     p_c = contact_points(obj, om)
 
     Jf = dyn.J_foot.reshape(12, nv)  # (12, nv)
-    JfE = Jf.T @ Eg  # (nv, 4k) generalized force per ground multiplier
-    Wb = wrench_map(p_c, obj.p) @ Ec  # (6, 4k) object wrench about its CoM
+    JfE = jnp.einsum("fcv,fcj->vfj", dyn.J_foot, Eg_feet).reshape(nv, ng)  # (nv, 4k) gen. force per ground multiplier
+    Wb = edge_wrenches(p_c, obj.p, Ec)  # (6, 4k) object wrench about its CoM
     JoW = J_o.T @ Wb  # (nv, 4k) generalized force on the robot is -JoW Lambda_b
 
     # ---- cost: ground contact wrench about the robot's CoM, object wrench about its CoM
     H = jnp.zeros((12, n))
-    H = H.at[0:6, nv : nv + ng].set(wrench_map(dyn.p_foot, dyn.com) @ Eg)
-    H_net = H[0:6].at[:, nv + ng : nv + ng + nb].set(-(wrench_map(p_c, dyn.com) @ Ec))  # + the object's reaction
+    H = H.at[0:6, nv : nv + ng].set(edge_wrenches(dyn.p_foot, dyn.com, Eg_feet))
+    H_net = H[0:6].at[:, nv + ng : nv + ng + nb].set(-edge_wrenches(p_c, dyn.com, Ec))  # + the object's reaction
     if cfg.object_lever:
         H = H.at[0:6].set(H_net)
     H = H.at[6:12, nv + ng : nv + ng + nb].set(Wb)
@@ -404,7 +402,7 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     b11 = jnp.concatenate([a_b, al_b]) - Jdv_o
     add(jnp.zeros((6, n)).at[:, iv].set(J_o), b11, b11)
     # (12b) normal force of stance feet between f_min and the (ramped) cap
-    An = jnp.zeros((4, n)).at[:, ig].set(jax.scipy.linalg.block_diag(*Eg_feet[:, 2:3]))
+    An = jnp.zeros((4, n)).at[:, ig].set((jnp.eye(N_FEET)[:, :, None] * Eg_feet[None, :, 2, :]).reshape(N_FEET, ng))
     cap = gains.f_max * ref.load
     add(An, jnp.where(stance, jnp.minimum(gains.f_min, cap), -inf), jnp.where(stance, cap, inf))
     # (13) torque limits

@@ -1,10 +1,14 @@
 """One solve of the fused path as three Pallas (Triton) kernels, one program per problem each: the preparation
 (Ruiz equilibration, the rows' kinds and rho, the scaled warm start), the x-update's factorization, then the ADMM
 iterations with the convergence-checked extension and the result in the user's units (residuals, infeasibility
-certificates, flag, the next rho). ``P`` and ``A`` reach the preparation kernel as they are (masked loads of
-power-of-two tiles, :func:`_tile`); outside the kernels XLA only pads the vectors' blocks. (XLA's three pads of the
-matrices, ~160 us each at batch 16384, are gone, but the trace's assembly grew by about as much: XLA still copies
-``A`` into the custom call's layout. Measured net: within noise, below.)
+certificates, flag, the next rho). Every input reaches the kernels as the user's array: ``P`` and ``A`` as masked
+loads of power-of-two tiles (:func:`_tile`), the vectors by index (:func:`_read_rows`; the bounds as their three
+blocks, :func:`_read_blocks`), and ``x``, ``z``, ``y`` are written in the user's layout (:func:`_write_rows`): no XLA
+pads, slices or concatenations around the kernels. Measured (H100, ``bench rollout --backend warp --scene
+transport``, one call, alternated with the kernels' earlier padded vectors): everything but physics at batch 270
+0.389 / 0.366 ms against 0.388 / 0.378 ms, at 16384 6.474 against 6.624 ms (docs/performance.md). Passing the
+bounds whole instead (read by index like ``wz``) measured worse: XLA then fused the bounds' whole assembly into one
+37.5 us kernel at batch 270.
 
 Why: the XLA path (``admm._step`` in ``lax.scan``, then the extension's ``lax.while_loop``) launches about ten kernels
 per iteration and reads ``P``, ``A``, ``K^-1`` and the Schur factors from device memory at every one. Under ``vmap``
@@ -278,21 +282,28 @@ class Stage(NamedTuple):
     scal: jax.Array  # (16,) [c, rho]
 
 
-N_IN = 18  # the preparation kernel's inputs: P, A, db, q, l (3 blocks), u (3), wy (3), scal, wx, wz (3)
+N_IN = 13  # the preparation kernel's inputs: P, A, q, l (3 blocks), u (3 blocks), wy, rho, wx, wz (unpadded)
 
 
 def _entry(v, k: int):  # () v[k] (a masked sum: a Triton kernel cannot index a value)
     return jnp.sum(jnp.where(jax.lax.broadcasted_iota(jnp.int32, v.shape, 0) == k, v, 0.0))
 
 
-try:  # JAX >= 0.8: a masked load of a ref's view (Triton-specific)
+try:  # JAX >= 0.8: masked loads and stores of a ref's view (Triton-specific)
     from jax.experimental.pallas.triton import load as _triton_load
+    from jax.experimental.pallas.triton import store as _triton_store
 
     def _masked_load(ref, idx, mask):
         return _triton_load(ref.at[idx], mask=mask, other=0.0)
-except ImportError:  # earlier JAX: pallas.load(ref, idx, mask, other)
+
+    def _masked_store(ref, idx, val, mask):
+        _triton_store(ref.at[idx], val, mask=mask)
+except ImportError:  # earlier JAX: pallas.load(ref, idx, mask, other), pallas.store(ref, idx, val, mask)
     def _masked_load(ref, idx, mask):
         return pl.load(ref, idx, mask=mask, other=0.0)
+
+    def _masked_store(ref, idx, val, mask):
+        pl.store(ref, idx, val, mask=mask)
 
 
 def _tile(ref, row0: int, rows: int, cols: int, n_rows: int, n_cols: int):
@@ -304,17 +315,62 @@ def _tile(ref, row0: int, rows: int, cols: int, n_rows: int, n_cols: int):
     return _masked_load(ref, (pl.ds(row0, rows), pl.ds(0, cols)), (r < n_rows) & (c < n_cols))
 
 
+def _row_index(dims: Dims):
+    """Per block (exact, dense, box): the user's row index of each of the block's entries (int32, the box block's
+    laid over the variables: variable ``i`` is bounded by row ``m - n + i``) and the mask of its real entries. Built
+    in the kernel (iota): an index array is not bounds-checked at trace time as a static slice start is. Masked
+    entries are never read or written on a GPU; their index is ``m`` (past the end), which Pallas' interpreter
+    clamps when it reads and drops when it writes (a negative index would wrap onto a real row)."""
+    m = dims.ne + dims.mi + dims.nb
+    masks = _row_masks(dims, (_pow2(dims.ne), _pow2(dims.mi), _pow2(dims.n)))
+    ie, ii, ib = (jax.lax.broadcasted_iota(jnp.int32, (mk.shape[0],), 0) for mk in masks)
+    return tuple(jnp.where(mk, i, m) for i, mk in zip((ie, ii + dims.ne, ib + (m - dims.n)), masks)), masks
+
+
+def _read_rows(ref, dims: Dims) -> tuple:
+    """The three blocks of a per-row vector ``ref`` (m,) in the user's row order, zero on padding."""
+    idx, masks = _row_index(dims)
+    return tuple(_masked_load(ref, (i,), mk) for i, mk in zip(idx, masks))
+
+
+def _write_rows(ref, dims: Dims, blocks) -> None:
+    """The three blocks' values written to ``ref`` (m,) in the user's row order (padding not written)."""
+    idx, masks = _row_index(dims)
+    for i, mk, v in zip(idx, masks, blocks):
+        _masked_store(ref, (i,), v, mk)
+
+
+def _read_blocks(refs, dims: Dims) -> tuple:
+    """A per-row vector given as its three blocks (``refs``: exact (ne,), dense (mi,), box (nb,)), in the kernels'
+    layout: zero on padding, the box block laid over the variables."""
+    ib = jax.lax.broadcasted_iota(jnp.int32, (_pow2(dims.n),), 0)
+    mb = _row_masks(dims, (1, 1, ib.shape[0]))[2]
+    return (_read_vec(refs[0], _pow2(dims.ne), dims.ne), _read_vec(refs[1], _pow2(dims.mi), dims.mi),
+            _masked_load(refs[2], (jnp.where(mb, ib - (dims.n - dims.nb), dims.nb),), mb))
+
+
+def _read_vec(ref, size: int, n: int):
+    """``ref`` (n,) as a (size,) tile, zero past its end."""
+    i = jax.lax.broadcasted_iota(jnp.int32, (size,), 0)
+    return _masked_load(ref, (i,), i < n)
+
+
 def _prepare_kernel(*refs, s: QPSettings, dims: Dims, warm: bool, treedef):
-    """:func:`prepare` of one problem and its scaled start, written as a :class:`Stage`; ``P`` and the exact and
-    dense blocks read from the user's ``P`` and ``A`` (:func:`_tile`)."""
-    P_ref, A_ref = refs[0], refs[1]
-    db, q, *rest = (r[...] for r in refs[2:N_IN])
+    """:func:`prepare` of one problem and its scaled start, written as a :class:`Stage`; everything read from the
+    user's arrays as they are: ``P`` and the exact and dense blocks of ``A`` as tiles (:func:`_tile`), the box
+    block's diagonal and the per-row vectors' blocks by index (:func:`_read_rows`)."""
+    P_ref, A_ref, q_ref = refs[:3]
+    wy_ref, rho_ref, wx_ref, wz_ref = refs[9:N_IN]
     N, NE, MI = _pow2(dims.n), _pow2(dims.ne), _pow2(dims.mi)  # the tiles' sizes (fused_solve's)
     P = _tile(P_ref, 0, N, N, dims.n, dims.n)
     Ae, Ai = _tile(A_ref, 0, NE, N, dims.ne, dims.n), _tile(A_ref, dims.ne, MI, N, dims.mi, dims.n)
-    l, u, wy, scal, wx, wz = tuple(rest[0:3]), tuple(rest[3:6]), tuple(rest[6:9]), rest[9], rest[10], rest[11:14]
+    (_, _, rb), (_, _, mb) = _row_index(dims)
+    db = _masked_load(A_ref, (rb, jax.lax.broadcasted_iota(jnp.int32, (N,), 0)), mb)  # A[m - n + i, i]
+    q, wx = _read_vec(q_ref, N, dims.n), _read_vec(wx_ref, N, dims.n)
+    l, u = _read_blocks(refs[3:6], dims), _read_blocks(refs[6:9], dims)
+    wy, wz = _read_rows(wy_ref, dims), _read_rows(wz_ref, dims)
     out = jax.tree_util.tree_unflatten(treedef, refs[N_IN:])
-    rho = _entry(scal, 0)
+    rho = _entry(_read_vec(rho_ref, 16, 1), 0)
     pr = prepare(P, Ae, Ai, db, q, l, u, wx, wz, wy, rho, s=s, dims=dims, warm=warm)
     i = jax.lax.broadcasted_iota(jnp.int32, q.shape, 0)
     vals = Stage(pr.P, pr.Ae, pr.Ai, pr.db, pr.q, jnp.where(i < dims.n, s.sigma + pr.db * pr.db * pr.rho[2], 1.0),
@@ -343,15 +399,16 @@ def _factor_kernel(P_ref, Ae_ref, Ai_ref, kd_ref, re_ref, ri_ref, exe_ref, Ki_re
     Si_ref[...] = Si
 
 
-def _kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, treedef):
+def _kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, treedef, dims: Dims):
     """One problem's solve from its :class:`Stage` and factorization: ``iters`` iterations, blocks of
     ``check_every`` while outside tolerance, then the result in the user's units with its residuals, certificates
-    and flag (the user's bounds ``l``, ``u`` read at the end, for the certificates)."""
+    and flag (the user's bounds ``l``, ``u`` read at the end, for the certificates), written in the user's layout:
+    ``x`` (n,), ``z`` and ``y`` (m,) in the rows' order."""
     n_stage = treedef.num_leaves
     st = jax.tree_util.tree_unflatten(treedef, refs[:n_stage])
     Ki_ref, W_ref, Si_ref = refs[n_stage:n_stage + 3]
     l_refs, u_refs = refs[n_stage + 3:n_stage + 6], refs[n_stage + 6:n_stage + 9]
-    x_ref, z_refs, y_refs, info_ref = refs[n_stage + 9], refs[n_stage + 10:n_stage + 13], refs[-4:-1], refs[-1]
+    x_ref, z_ref, y_ref, info_ref = refs[n_stage + 9:]
     P, Ki, Ae, Ai, db, W, Si = (r[...] for r in (st.P, Ki_ref, st.Ae, st.Ai, st.db, W_ref, Si_ref))
     q, le, exe, Dc = st.q[...], st.le[...], st.exe[...], st.Dc[...]
     lo, hi, rho, Ei = ([r[...] for r in f] for f in (st.lo, st.hi, st.rho, st.Ei))
@@ -424,7 +481,7 @@ def _kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, 
     cs = _entry(scal, 0)
     E = [1.0 / e for e in Ei]
     xu, zu, yu = D * x, [a * e for a, e in zip(z, Ei)], [e * a / cs for a, e in zip(y, E)]
-    l, u = [r[...] for r in l_refs], [r[...] for r in u_refs]
+    l, u = list(_read_blocks(l_refs, dims)), list(_read_blocks(u_refs, dims))
     pinf = rules.primal_infeasible(l, u, [e * a / cs for a, e in zip(dy, E)],
                                    lambda v: rows_t([a * e for a, e in zip(v, Ei)]) / D, s)
     dinf = rules.dual_infeasible(l, u, D * dx, [a * e for a, e in zip(rows(dx), Ei)], _mv(P, dx) * Dc,
@@ -436,10 +493,10 @@ def _kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, 
     if s.adapt_every > 0:
         rho_out = rules.adapt_rho(rho_out, *rules.rel_residuals(ax, z, _mv(P, x), rows_t(y), q, 1e-30), s)
     fmax = float(jnp.finfo(x.dtype).max)
-    x_ref[...] = rules.clean(xu, 0.0, fmax)
-    for b in range(3):
-        z_refs[b][...] = rules.clean(zu[b], 0.0, fmax)
-        y_refs[b][...] = rules.clean(yu[b], 0.0, fmax)
+    i_n = jax.lax.broadcasted_iota(jnp.int32, xu.shape, 0)
+    _masked_store(x_ref, (i_n,), rules.clean(xu, 0.0, fmax), i_n < dims.n)
+    _write_rows(z_ref, dims, [rules.clean(v, 0.0, fmax) for v in zu])
+    _write_rows(y_ref, dims, [rules.clean(v, 0.0, fmax) for v in yu])
     info = [flag.astype(x.dtype), k.astype(x.dtype), prim, dual, rho_out]
     info = functools.reduce(lambda acc, j: jnp.where(i == j, info[j], acc), range(len(info)), jnp.zeros_like(scal))
     info_ref[...] = rules.clean(info, jnp.where(i == 4, s.rho, fmax), fmax)  # NaN residuals: fmax; NaN rho: rho
@@ -472,22 +529,17 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, *, s: QPSettings, iters: int, wa
     mi = dims.mi
     N, NE, MI = _pow2(n), _pow2(ne), _pow2(mi)
     dt = P.dtype
-    pn = (0, N - n)
-    parts = (slice(0, ne), slice(ne, m - nb), slice(m - nb, m))
-
-    def blocks(v):  # the three blocks padded to the kernels' sizes, the box block laid over the variables
-        e, i, b = (v[p] for p in parts)
-        return [jnp.pad(e, (0, NE - ne)), jnp.pad(i, (0, MI - mi)), jnp.pad(b, (n - nb, N - n))]
-
-    db = jnp.pad(jnp.diagonal(A[m - nb:m, n - nb:n]), (n - nb, N - n))
     interpret = jax.default_backend() == "cpu"
     if interpret:  # the interpreter slices as XLA does: every tile inside its matrix
+        pn = (0, N - n)
         P, A = jnp.pad(P, (pn, pn)), jnp.pad(A, ((0, max(m, NE, ne + MI) - m), pn))
     elif ne + MI > m:  # the dense block's tile starts at row ne (a static start past 0 is bounds-checked)
         A = jnp.pad(A, ((0, ne + MI - m), (0, 0)))
-    lb, ub = blocks(l), blocks(u)
-    ins = [P, A, db, jnp.pad(q, pn)] + lb + ub
-    ins += blocks(wy) + [jnp.pad(jnp.reshape(rho, (1,)).astype(dt), (0, 15)), jnp.pad(wx, pn)] + blocks(wz)
+    # the bounds as their blocks: XLA then builds each block where the rows are assembled (as one fusion of all
+    # the rows, the bounds' assembly cost 37.5 us per control step at batch 270, H100)
+    parts = (slice(0, ne), slice(ne, m - nb), slice(m - nb, m))
+    lb, ub = ([v[p] if p.stop > p.start else jnp.zeros(1, dt) for p in parts] for v in (l, u))
+    ins = [P, A, q, *lb, *ub, wy, jnp.reshape(rho, (1,)).astype(dt), wx, wz]
     params = fparams = None
     if not interpret:
         from jax.experimental.pallas import triton as plgpu
@@ -510,12 +562,11 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, *, s: QPSettings, iters: int, wa
             out_shape=[sd(N, N), sd(N, NE), sd(NE, NE)], name="admm_factor",
         )(st.P, st.Ae, st.Ai, st.kd, st.rho[0], st.rho[1], st.exe)
     kern = functools.partial(_kernel, s=s, iters=iters, max_iters=max(s.max_iters, iters),
-                             check_every=max(s.check_every, 1), treedef=treedef)
+                             check_every=max(s.check_every, 1), treedef=treedef, dims=dims)
     with jax.named_scope("qp_iterations"):
-        x, ze, zi, zb, ye, yi, yb, info = pl.pallas_call(
-            kern, out_shape=[sd(N), *rowb, *rowb, sd(16)], interpret=interpret, compiler_params=params,
+        x, z, y, info = pl.pallas_call(
+            kern, out_shape=[sd(n), sd(m), sd(m), sd(16)], interpret=interpret, compiler_params=params,
             name="admm_iterations",
         )(*jax.tree_util.tree_leaves(st), *factors, *lb, *ub)
-    rows = lambda e, i, b: jnp.concatenate([e[:ne], i[:mi], b[n - nb:n]])  # noqa: E731
-    return QPResult(x=x[:n], y=rows(ye, yi, yb), z=rows(ze, zi, zb), prim_res=info[2], dual_res=info[3],
-                    flag=info[0].astype(jnp.int32), iters=info[1].astype(jnp.int32), rho=info[4])
+    return QPResult(x=x, y=y, z=z, prim_res=info[2], dual_res=info[3], flag=info[0].astype(jnp.int32),
+                    iters=info[1].astype(jnp.int32), rho=info[4])
