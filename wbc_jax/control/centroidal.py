@@ -33,9 +33,9 @@ import jax
 import jax.numpy as jnp
 
 from wbc_jax.control.centroidal_dynamics import centroidal_terms
-from wbc_jax.control.dynamics import GRAVITY, DynTerms, full_precision, rot_error
+from wbc_jax.control.dynamics import GRAVITY, DynTerms, full_precision, point_jacobians, rot_error
 from wbc_jax.control.transport import control_qp_settings
-from wbc_jax.sim.model import RobotIds, mjx
+from wbc_jax.sim.model import RobotIds
 from wbc_jax.qp import QPResult, QPSettings, solve_qp
 
 N_FEET = 4
@@ -302,7 +302,7 @@ def centroidal_control(m, d, dyn: DynTerms, ref: CentroidalRef, gains: Centroida
     """
     nv = ids.nv_robot
     dyn_c = scaled_model(dyn, gains.mass_scale, m.dof_armature[:nv])
-    J_t = mjx.jac(m, d, dyn.p_tray, ids.tray_body)[0].T[:, :nv]  # (3, nv)
+    J_t = point_jacobians(m, d, ids, dyn.p_tray[None], [ids.tray_body])[0][0]  # (3, nv)
     sw_int = jnp.where(ref.swing[:, None], cs.sw_int + (ref.p_sw - dyn.p_foot) * cfg.dt, 0.0)
     P, q, A, l, u, A_tau, b_tau, hdot_d = build_qp(dyn_c, J_t, ref, gains, sw_int, cs.q_post,
                                                          d.qpos[ids.act_qpos[12:]], ids)
