@@ -28,8 +28,10 @@ fi
 # rollouts slow most: test_course's wall passage took 504 s there (206 s in the clean run).
 # After test_distributed's Warp reference moved ahead of its processes (85dba08), clean clone: lane 1 928 s,
 # lanes 2+3 863 s (355 + 508 s), 16 min 20 s. At a44d8b4 (among others the controller's point Jacobians without
-# MJX's body-tree scans), clean clone: lane 1 840 s, lanes 2+3 805 s (304 + 501 s), 14 min 48 s; how much of the
-# gain is that change and how much run-to-run variation (~3 min of CPU time between earlier runs) is not resolved.
+# MJX's body-tree scans), clean clone: lane 1 840 s, lanes 2+3 805 s (304 + 501 s), 14 min 48 s; the same code
+# (docs and one controller line later) took 17 min 9 s and 20 min 7 s in two runs after it, with 4-6.5 min more
+# CPU time and the load average at 3.5-4 on 2 cores (other tenants): the machine's speed varies more than the
+# changes of these sessions, so compare CPU time (`time`'s user) as well as the wall time.
 # A test file in none of the lists runs at the end of lane 3.
 lane1=(campaign backends centroidal course aot api distributed clearance)
 lane2=(qp metrics planner interaction kernel_trace reliability snapshots spec_docs stats model)
