@@ -358,7 +358,8 @@ def _read_vec(ref, size: int, n: int):
 def _prepare_kernel(*refs, s: QPSettings, dims: Dims, warm: bool, treedef):
     """:func:`prepare` of one problem and its scaled start, written as a :class:`Stage`; everything read from the
     user's arrays as they are: ``P`` and the exact and dense blocks of ``A`` as tiles (:func:`_tile`), the box
-    block's diagonal and the per-row vectors' blocks by index (:func:`_read_rows`)."""
+    block's diagonal and the vectors by index (:func:`_read_vec`, :func:`_read_rows`; the bounds from their three
+    blocks, :func:`_read_blocks`)."""
     P_ref, A_ref, q_ref = refs[:3]
     wy_ref, rho_ref, wx_ref, wz_ref = refs[9:N_IN]
     N, NE, MI = _pow2(dims.n), _pow2(dims.ne), _pow2(dims.mi)  # the tiles' sizes (fused_solve's)
