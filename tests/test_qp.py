@@ -452,12 +452,16 @@ def test_sweep_inverse_matches_numpy():
 
 @pytest.mark.parametrize("n,ne", [(56, 24), (20, 6), (8, 3), (5, 2)])
 def test_fused_factorization_matches_numpy(n, ne):
-    """The fused path's factorization (:func:`factor_blocks`, the factorization kernel's arithmetic: 2 x 2 blocks of
-    the variables' halves; float64)
+    """The fused path's factorization kernel (:func:`wbc_jax.qp.fused._factor_kernel`: 2 x 2 blocks of the
+    variables' halves, its products staged through memory in chunks; Pallas' interpreter, float64)
     against numpy: K^-1 of K = P + Ae' diag(rho_e) Ae + Ai' diag(rho_i) Ai + diag(kd), W = K^-1 Ae_h' and the
     Schur complement's inverse on the held rows, zero on padding and on rows not held; sizes with the second half
     partly padded (56 of 64, 20 of 32), exactly one half (8 of 16) and less than one half (5 of 16)."""
-    from wbc_jax.qp.fused import _pow2, factor_blocks
+    import functools
+
+    from jax.experimental import pallas as pl
+
+    from wbc_jax.qp.fused import _factor_kernel, _pow2
 
     rng = np.random.default_rng(11)
     mi = 7
@@ -474,13 +478,10 @@ def test_fused_factorization_matches_numpy(n, ne):
     exe = np.zeros(NE)
     exe[:ne - 1] = 1.0
     with jax.enable_x64(True):
-        H = N // 2
-        h1, h2 = slice(0, H), slice(H, N)
-        j = lambda *a: tuple(jnp.asarray(v) for v in a)  # noqa: E731
-        Ki11, XS, S2i, W1, W2, Si = (np.asarray(a) for a in factor_blocks(
-            j(P[h1, h1], P[h1, h2], P[h2, h2]), j(Ae[:, h1], Ae[:, h2]), j(Ai[:, h1], Ai[:, h2]), j(kd[h1], kd[h2]),
-            *j(re, ri, exe), n=n, ne=ne))
-    Ki, W = np.block([[Ki11, -XS], [-XS.T, S2i]]), np.concatenate([W1, W2])
+        sd = lambda *sh: jax.ShapeDtypeStruct(sh, jnp.float64)  # noqa: E731
+        Ki, W, Si = (np.asarray(a) for a in pl.pallas_call(
+            functools.partial(_factor_kernel, n=n, ne=ne, barrier=None), interpret=True,
+            out_shape=[sd(N, N), sd(N, NE), sd(NE, NE)])(*(jnp.asarray(v) for v in (P, Ae, Ai, kd, re, ri, exe))))
     K = P[:n, :n] + (Ae[:, :n].T * re) @ Ae[:, :n] + (Ai[:, :n].T * ri) @ Ai[:, :n] + np.diag(kd[:n])
     Ki_ref = np.linalg.inv(K)
     Ah = Ae[:ne - 1, :n]
