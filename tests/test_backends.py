@@ -95,12 +95,13 @@ def test_warp_mass_matrix_and_distances_match_references(walks):
             return mass_matrix(m, ds), contacts.foot_dist(sim, m, ds), dist, f
 
         f = jax.jit(jax.vmap(one, in_axes=(b.in_axes, 0)))
-        keys = ("qpos", "qvel", "ctrl", "qacc_warmstart")
-        w = walks["warp"][2].d  # the Warp walk's final state, torques and warm start included, on both backends
-        out[backend] = jax.device_get(f(b.model, b.state.d.replace(**{k: jax.numpy.asarray(getattr(w, k))
-                                                                      for k in keys})))
-        own[backend] = jax.device_get(f(b.model, b.state.d.replace(**{k: jax.numpy.asarray(getattr(st.d, k))
-                                                                      for k in keys})))[3]
+
+        def at(src):  # this backend's data at a walk's final state, torques and warm start included
+            return b.state.d.replace(**{k: jax.numpy.asarray(getattr(src, k))
+                                        for k in ("qpos", "qvel", "ctrl", "qacc_warmstart")})
+
+        out[backend] = jax.device_get(f(b.model, at(walks["warp"][2].d)))  # the Warp walk's, on both backends
+        own[backend] = jax.device_get(f(b.model, at(st.d)))[3]
     sim, _, st, _ = walks["warp"]
     mj, nvr = sim.robot.mj_model, sim.robot.ids.nv_robot
     data = mujoco.MjData(mj)  # MuJoCo C at run 0's configuration (the robot's block does not depend on the object)

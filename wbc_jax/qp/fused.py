@@ -322,6 +322,13 @@ def _read_vec(ref, size: int, n: int):
     return _masked_load(ref, (i,), i < n)
 
 
+def _write_vec(ref, v, n: int, where=True) -> None:
+    """The first ``n`` entries of the tile ``v`` written to ``ref`` (n,) (nothing where the scalar ``where`` is
+    False)."""
+    i = jax.lax.broadcasted_iota(jnp.int32, v.shape, 0)
+    _masked_store(ref, (i,), v, (i < n) & where)
+
+
 def _prepare_kernel(*refs, s: QPSettings, dims: Dims, warm: bool, treedef):
     """:func:`prepare` of one problem and its scaled start, written as a :class:`Stage`; everything read from the
     user's arrays as they are: ``P`` and the exact and dense blocks of ``A`` as tiles (:func:`_tile`), the box
@@ -446,16 +453,15 @@ def _kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, 
     x_ref, z_ref, y_ref, flag_ref, iters_ref, prim_ref, dual_ref, rho_ref = refs[n_stage + 9:]
     Dc = st.Dc[...]
     Ei = [r[...] for r in st.Ei]
-    # the per-row constants are read where each step uses them (held across the loop, they and the iterate's
-    # vectors took more registers than a thread has)
+    alpha = s.alpha
+
+    # the matrices, constant vectors and per-row constants, each read where it is used (held across the loop, they
+    # and the iterate's vectors took more registers than a thread has)
     def at(ref, o):  # ref[...] at the loop-variant offset o (always 0): not hoisted out of the loop
         return ref[(pl.ds(o, ref.shape[0]),) + (slice(None),) * (len(ref.shape) - 1)]
 
     lo, hi, rho = (lambda b, o, f=f: at(f[b], o) for f in (st.lo, st.hi, st.rho))
     free = lambda b, o: at(st.free[b], o) > 0.5  # noqa: E731
-    alpha = s.alpha
-
-    # the matrices and constant vectors, each read where it is used (o: see ``at``)
     P, Ki, Ae, Ai, db, W, Si, q, le, exe = (functools.partial(at, r) for r in (
         st.P, Ki_ref, st.Ae, st.Ai, st.db, W_ref, Si_ref, st.q, st.le, st.exe))
 
@@ -498,7 +504,7 @@ def _kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, 
         # the step's deltas (the infeasibility certificates' directions, read after the loop) go to the outputs
         # x and y, which hold them until the result overwrites them: carried, they and the iterate took more
         # registers than a thread has
-        _masked_store(x_ref, (i_n,), xn - x, (i_n < dims.n) & ok)
+        _write_vec(x_ref, xn - x, dims.n, ok)
         _write_rows(y_ref, dims, [a - b for a, b in zip(yn, y)], ok)
         return jnp.where(ok, xn, x), keep(axn, ax), keep(zn, z), keep(yn, y), jnp.where(ok, bad, 1.0)
 
@@ -512,8 +518,7 @@ def _kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, 
 
     x0 = st.x[...]
     z0, y0 = [r[...] for r in st.z], [r[...] for r in st.y]
-    i_n = jax.lax.broadcasted_iota(jnp.int32, x0.shape, 0)
-    _masked_store(x_ref, (i_n,), jnp.zeros_like(x0), i_n < dims.n)  # no step yet: zero deltas
+    _write_vec(x_ref, jnp.zeros_like(x0), dims.n)  # no step yet: zero deltas
     _write_rows(y_ref, dims, [jnp.zeros_like(v) for v in y0])
     sync()  # before any step's deltas (a step's vectors may sit on other threads than these zeros)
     c = start(x0, (z0, y0, jnp.zeros((), x0.dtype)))
@@ -536,7 +541,7 @@ def _kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, 
     # certificates, the residuals and the result took more registers than a thread has): the certificates, then
     # the residuals and the next rho, then the result
     sync()  # every thread's last deltas written
-    dx, dy = _masked_load(x_ref, (i_n,), i_n < dims.n), _read_rows(y_ref, dims)
+    dx, dy = _read_vec(x_ref, x0.shape[0], dims.n), _read_rows(y_ref, dims)
     D, scal = st.D[...], st.scal[...]
     cs = _entry(scal, 0)
     E = [1.0 / e for e in Ei]
@@ -555,14 +560,14 @@ def _kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, 
         rho_out = rules.adapt_rho(rho_out, *rules.rel_residuals(ax, z, _mv(P(0), x), rows_t(y), q(0), 1e-30), s)
     fmax = float(jnp.finfo(x.dtype).max)
     sync()  # every thread's reads of the deltas done
-    _masked_store(x_ref, (i_n,), rules.clean(xu, 0.0, fmax), i_n < dims.n)
+    _write_vec(x_ref, rules.clean(xu, 0.0, fmax), dims.n)
     _write_rows(z_ref, dims, [rules.clean(v, 0.0, fmax) for v in zu])
     _write_rows(y_ref, dims, [rules.clean(v, 0.0, fmax) for v in yu])
     # each scalar its own (1,) output: the caller's reshape to () is free (sliced from one info vector they were five
     # slices and two conversions, ~6 us per control step at batch 270, H100)
     one = jnp.zeros((1,), x.dtype)
     flag_ref[...] = (one + flag).astype(jnp.int32)
-    iters_ref[...] = (one + k.astype(x.dtype)).astype(jnp.int32)
+    iters_ref[...] = jnp.zeros((1,), jnp.int32) + k
     prim_ref[...] = rules.clean(one + prim, fmax, fmax)  # NaN residuals: fmax
     dual_ref[...] = rules.clean(one + dual, fmax, fmax)
     rho_ref[...] = rules.clean(one + rho_out, s.rho, fmax)  # NaN rho: the settings' rho
