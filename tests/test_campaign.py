@@ -270,6 +270,22 @@ def test_bench_rollout_rejects_a_bad_campaign_spec_before_timing(tmp_path, capsy
     assert not js.exists()
 
 
+def test_bench_round_figures_by_hand():
+    """``bench rollout``'s figures of three timed rounds (batch 10, 100 env-steps = 50 control steps per call):
+    rates from the median call times, everything but physics the median of the rounds' differences (not the
+    difference of the medians: 2 ms here against 4 ms), with its smallest and largest round."""
+    from wbc_jax.bench.rollout import round_figures
+
+    f = round_figures([1.00, 1.20, 1.10], [1.50, 1.30, 1.10], batch=10, n_env=100, steps=50)
+    assert f["rounds"] == 3
+    assert f["physics_steps_per_s"] == pytest.approx(10 * 100 / 1.10)
+    assert f["wbc_steps_per_s"] == pytest.approx(10 * 100 / 1.30)
+    assert f["ratio"] == pytest.approx(1.10 / 1.30)
+    # differences 0.50, 0.10, 0.00 s over 50 control steps: 10, 2, 0 ms
+    assert f["non_physics_ms_per_step"] == pytest.approx(2.0)
+    assert f["non_physics_ms_per_step_range"] == pytest.approx([0.0, 10.0])
+
+
 def test_report_reruns_on_the_campaigns_own_results(full_run, tmp_path, capsys):
     """``wbc-jax report`` on a campaign's own all-success results.csv: metrics R, T, S by default (the empty
     fail_reason column is no metric); the campaign folder itself is refused as --out (it holds the input)."""

@@ -90,6 +90,7 @@ BAD_INPUTS = [
      "variant.toml: factors.variant: level 'no_arm': expected one of full, no_tray_cone, no_observer, no_posture"),
     ("bench_backend", ["bench", "rollout", "--backend", "bullet"], "--backend 'bullet'"),
     ("bench_sensing", ["bench", "rollout", "--backend", "jax:delayed"], "sensing = 'delayed' needs the Warp backend"),
+    ("bench_rounds", ["bench", "rollout", "--rounds", "0"], "--rounds 0: expected an integer >= 1"),
     ("campaign_spec_sensing", ["campaign", "--spec", "sensing.toml", "--out", "new_s"],
      "campaign.sensing: = 'late': expected one of auto, exact, delayed"),
     ("campaign_spec_delayed_jax", ["campaign", "--spec", "delayed.toml", "--out", "new_d"],

@@ -47,8 +47,8 @@ def _check_bench_args(args: argparse.Namespace) -> list[int] | None:
             sizes = []
         if not sizes or min(sizes) < 1:
             raise InputError(f"--batches {args.batches!r}: expected comma-separated integers >= 1, e.g. 1,1024")
-    for flag in ("steps", "iters", "substeps"):
-        if getattr(args, flag) < 1:
+    for flag in ("steps", "iters", "substeps", "rounds"):
+        if getattr(args, flag) is not None and getattr(args, flag) < 1:
             raise InputError(f"--{flag} {getattr(args, flag)}: expected an integer >= 1")
     if args.qp is not None:
         from wbc_jax.bench.qp_audit import variants
@@ -93,7 +93,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         backends = tuple(x for x in args.backend.split(",") if x)
         batches = sizes or ((1, 4) if args.quick else CPU_BATCHES["rollout"] if cpu else (1, 1024, 4096, 16384))
         run_rollout_bench(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json, scene=args.scene,
-                          qp=args.qp, substeps=args.substeps, campaign=args.campaign, backends=backends)
+                          qp=args.qp, substeps=args.substeps, campaign=args.campaign, backends=backends,
+                          rounds=args.rounds or (3 if cpu else 5))
         return 0
     if args.what == "profile":
         from wbc_jax.bench.rollout import run_profile
@@ -264,6 +265,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--batches", default=None, help="rollout: comma-separated batch sizes (default 1,1024,4096,16384 "
                                                    "on an accelerator, 1,4,16 on a CPU)")
     b.add_argument("--steps", type=int, default=200, help="rollout: control steps per timed call")
+    b.add_argument("--rounds", type=int, default=None, help="rollout: timed rounds per batch, each a physics-only "
+                   "and a physics + WBC call; the figures are the rounds' medians (default 5; 3 on a CPU)")
     b.add_argument("--iters", type=int, default=4, help="rollout: ADMM iterations per control step before the "
                                                          "convergence checks (the control loop's default: 4)")
     b.add_argument("--qp", default=None, help="rollout: control-loop ADMM variant it<N>[_a<K>][_b<B>][_rho<R>][_r<R>]"

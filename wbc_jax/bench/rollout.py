@@ -6,6 +6,12 @@ absolute figures, and so is everything but physics per control step (the physics
 physics-only call's, over its control steps: what the controller, the QP and the rollout's bookkeeping add). The
 WBC runs the loaded stand-and-walk plan from t = 0.
 
+Each batch is timed in ``rounds`` rounds, a round being one physics-only call then one physics + WBC call, so slow
+drifts of the device (clocks, other processes) reach both; the figures are the rounds' medians, and everything but
+physics is also given as its smallest and largest round. One call of each is a single sample of a difference of
+two timings: on an H100 at batch 270 (course, Warp) one such sample of the same code gave 0.302 ms in one process
+and 0.465 ms in the next, and 9 rounds in one process spread from 0.204 to 0.329 ms (median 0.309; 2026-11-27).
+
 Several devices: one process with several (JAX physics) also times the same batch with its runs over every
 device (:func:`sharded_chunk_fn`, as a campaign runs it). Several processes (``--coordinator`` etc., one device
 each; the layout of Warp physics on several GPUs, ``wbc_jax.sim.spread``): process 0 first times the whole batch
@@ -76,14 +82,29 @@ def _timed_together(f, *args):
     return out, float(np.max(multihost_utils.process_allgather(np.array([t]))))
 
 
-def _physics_and_wbc(sim, b, n_env: int, timer):
-    """Physics only, then physics + WBC, on batch ``b``, each called twice with ``timer`` (:func:`_timed` or
-    :func:`_timed_together`): ((first call s, second call s) of physics, the same of physics + WBC); the first
-    call compiles."""
+def _physics_and_wbc(sim, b, n_env: int, timer, rounds: int):
+    """Physics only and physics + WBC on batch ``b``, timed with ``timer`` (:func:`_timed` or
+    :func:`_timed_together`): each called once (the call that compiles), then ``rounds`` rounds of one physics call
+    and one physics + WBC call. Returns (first physics call s, first physics + WBC call s, (rounds,) physics s,
+    (rounds,) physics + WBC s)."""
     f_phys = physics_only_fn(b, n_env)
     f_wbc, args = wbc_chunk_fn(sim, b)
-    return ([timer(f_phys, b.model, b.state.d)[1] for _ in range(2)],
-            [timer(f_wbc, *args)[1] for _ in range(2)])
+    c_phys, c_wbc = timer(f_phys, b.model, b.state.d)[1], timer(f_wbc, *args)[1]
+    t = np.array([(timer(f_phys, b.model, b.state.d)[1], timer(f_wbc, *args)[1]) for _ in range(rounds)])
+    return c_phys, c_wbc, t[:, 0], t[:, 1]
+
+
+def round_figures(t_phys, t_wbc, batch: int, n_env: int, steps: int) -> dict:
+    """The reported figures of timed rounds: (rounds,) seconds of the physics-only and of the physics + WBC call
+    (``batch`` runs, ``n_env`` env-steps each, ``steps`` control steps). Rates and their ratio from the medians;
+    everything but physics [ms per control step] the median over rounds of each round's difference, with the
+    smallest and largest round."""
+    t_phys, t_wbc = np.asarray(t_phys, float), np.asarray(t_wbc, float)
+    diff = 1e3 * (t_wbc - t_phys) / steps
+    tp, tw = float(np.median(t_phys)), float(np.median(t_wbc))
+    return dict(rounds=len(diff), physics_steps_per_s=batch * n_env / tp, wbc_steps_per_s=batch * n_env / tw,
+                ratio=tp / tw, non_physics_ms_per_step=float(np.median(diff)),
+                non_physics_ms_per_step_range=[float(diff.min()), float(diff.max())])
 
 
 def _peak_bytes() -> int | None:
@@ -94,7 +115,7 @@ def _peak_bytes() -> int | None:
 
 def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30, json_path: str | None = None,
               scene: str = "flat", qp: str | None = None, substeps: int = 1, campaign: str | None = None,
-              backends=("jax",)):
+              backends=("jax",), rounds: int = 5):
     """Physics-only and physics + WBC env-steps/s per batch size (see module docstring).
 
     An env-step is one physics step (``robot``'s timestep); with ``substeps`` > 1 the controller runs once per
@@ -106,6 +127,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
             process, so their ratios are read from one run.
         qp: control-loop ADMM variant name (``wbc_jax.bench.qp_audit.variants``, e.g. ``"it20_a0"``); None: ``iters``
             iterations with the control loop's default settings.
+        rounds: timed rounds per batch (module docstring); the figures are their medians.
         campaign: a campaign spec (e.g. ``sweeps/paper_campaign.toml``) also run end to end, twice, in fresh
             processes sharing a new compilation cache (:func:`campaign_cold_warm`): wall time, compile and setup
             times cold and warm.
@@ -142,18 +164,22 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         t_wbc = None
         if writer:  # the whole batch on one device (with several processes: process 0's, the others wait)
             b = random_batch(sim, B)
-            (c_phys, t_phys), (c_wbc, t_wbc) = _physics_and_wbc(sim, b, n_env, _timed)
-            row.update(peak_device_bytes=_peak_bytes(), physics_steps_per_s=B * n_env / t_phys,
-                       wbc_steps_per_s=B * n_env / t_wbc, ratio=t_phys / t_wbc, compile_physics_s=c_phys - t_phys,
-                       compile_wbc_s=c_wbc - t_wbc, non_physics_ms_per_step=1e3 * (t_wbc - t_phys) / steps)
+            c_phys, c_wbc, t_phys, t_wbc = _physics_and_wbc(sim, b, n_env, _timed, rounds)
+            row.update(round_figures(t_phys, t_wbc, B, n_env, steps), peak_device_bytes=_peak_bytes(),
+                       compile_physics_s=c_phys - float(np.median(t_phys)),
+                       compile_wbc_s=c_wbc - float(np.median(t_wbc)))
+            t_wbc = float(np.median(t_wbc))
+            lo, hi = row["non_physics_ms_per_step_range"]
             print(f"{device} {label:4s} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   "
                   f"physics+WBC {row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   everything but "
-                  f"physics {row['non_physics_ms_per_step']:.3f} ms per control step   compile "
-                  f"{row['compile_wbc_s']:.1f} s" + (f"   peak memory {row['peak_device_bytes'] / 2**30:.2f} GiB"
-                                                    if row["peak_device_bytes"] else ""), flush=True)
+                  f"physics {row['non_physics_ms_per_step']:.3f} ms per control step ({rounds} rounds: {lo:.3f} to "
+                  f"{hi:.3f})   compile {row['compile_wbc_s']:.1f} s"
+                  + (f"   peak memory {row['peak_device_bytes'] / 2**30:.2f} GiB" if row["peak_device_bytes"] else ""),
+                  flush=True)
         if n_proc > 1:  # every process its block of B / n_proc runs on its own device (wbc_jax.sim.spread)
             b = random_batch(sim, B // n_proc, seed=1 + jax.process_index())
-            (_, tp), (_, tw) = _physics_and_wbc(sim, b, n_env, _timed_together)
+            _, _, tp, tw = _physics_and_wbc(sim, b, n_env, _timed_together, rounds)
+            tp, tw = float(np.median(tp)), float(np.median(tw))
             n = B // n_proc * n_proc
             row.update(processes=n_proc, physics_steps_per_s_processes=n * n_env / tp,
                        wbc_steps_per_s_processes=n * n_env / tw, process_speedup=n / B * t_wbc / tw if t_wbc else None)
@@ -167,7 +193,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         elif jax.device_count() > 1:  # the same batch with the run axis over every device, as a campaign runs it
             f_sh, sargs = sharded_chunk_fn(sim, b)
             _timed(f_sh, *sargs)
-            _, t_sh = _timed(f_sh, *sargs)
+            t_sh = float(np.median([_timed(f_sh, *sargs)[1] for _ in range(rounds)]))
             n_dev = jax.device_count()
             row.update(n_devices=n_dev, wbc_steps_per_s_sharded=B * n_env / t_sh, sharded_speedup=t_wbc / t_sh)
             print(f"{'':>{len(device)}} batch {B:6d}: physics+WBC on {n_dev} devices {B * n_env / t_sh:12.0f} "
