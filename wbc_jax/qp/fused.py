@@ -20,6 +20,15 @@ bench, one call, alternated with the kernels before): batch 270 0.333 / 0.296 ms
 5.773 against 6.467 ms; device trace at 270: factorization 91.2 -> 62.7 us, iterations 68.8 -> 62.4 us
 (docs/performance.md).
 
+Both kernels run 2 warps per program (``num_warps``, ``factor_warps``). At 4 the factorization took 144 registers
+and the iterations 255 (112 bytes of spills); at 2, 235 and no spills, and 255 with 656 bytes (pip Triton, sm_90a),
+but a program's reductions and layout changes span 2 warps instead of 4, and 4 programs fit a multiprocessor (the
+campaign's 270 problems in one wave). Measured (H100, ``bench rollout``, 9 / 3 rounds, alternated with 4 / 4):
+everything but physics at batch 16384 5.286 against 5.758 ms (physics + WBC 1,853,937 against 1,761,804
+env-steps/s), at 270 0.308 / 0.299 against 0.310 / 0.308 ms; device trace at 270, the factorization alone at 2
+warps 56.8 us against 62.9 (1 warp: 81.1 us, 255 registers and 480 bytes of spills). Before the staged products
+2 / 2 had measured worse than 4 / 4 (docs/performance.md).
+
 Why: the XLA path (``admm._step`` in ``lax.scan``, then the extension's ``lax.while_loop``) launches about ten kernels
 per iteration and reads ``P``, ``A``, ``K^-1`` and the Schur factors from device memory at every one. Under ``vmap``
 the extension's loop also runs every problem of the batch until the slowest has converged: the batch pays the
@@ -575,7 +584,7 @@ def _kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, 
 
 @functools.partial(jax.jit, static_argnames=("s", "iters", "warm", "ne", "num_warps", "factor_warps"))
 def fused_solve(P, A, q, l, u, wx, wz, wy, rho, *, s: QPSettings, iters: int, warm: bool, ne: int,
-                num_warps: int = 4, factor_warps: int = 4) -> QPResult:
+                num_warps: int = 2, factor_warps: int = 2) -> QPResult:
     """One QP solved by the three kernels: its preparation, its factorization, then the iterations and everything
     after them.
 
