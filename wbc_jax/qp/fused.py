@@ -20,10 +20,10 @@ bench, one call, alternated with the kernels before): batch 270 0.333 / 0.296 ms
 5.773 against 6.467 ms; device trace at 270: factorization 91.2 -> 62.7 us, iterations 68.8 -> 62.4 us
 (docs/performance.md).
 
-Both kernels run 2 warps per program (``num_warps``, ``factor_warps``). At 4 the factorization took 144 registers
-and the iterations 255 (112 bytes of spills); at 2, 235 and no spills, and 255 with 656 bytes (pip Triton, sm_90a),
-but a program's reductions and layout changes span 2 warps instead of 4, and 4 programs fit a multiprocessor (the
-campaign's 270 problems in one wave). Measured (H100, ``bench rollout``, 9 / 3 rounds, alternated with 4 / 4):
+The kernels run 2 warps per program (``num_warps``: the preparation and the iterations; ``factor_warps``: the
+factorization). With 4, the factorization took 144 registers and the iterations 255 (112 bytes of spills); with 2,
+235 (no spills) and 255 (656 bytes; pip Triton, sm_90a), but a program's reductions and layout changes span 2 warps
+instead of 4, and 4 programs fit a multiprocessor (the campaign's 270 problems in one wave). Measured (H100, ``bench rollout``, 9 / 3 rounds, alternated with 4 / 4):
 everything but physics at batch 16384 5.286 against 5.758 ms (physics + WBC 1,853,937 against 1,761,804
 env-steps/s), at 270 0.308 / 0.299 against 0.310 / 0.308 ms; device trace at 270, the factorization alone at 2
 warps 56.8 us against 62.9 (1 warp: 81.1 us, 255 registers and 480 bytes of spills). Before the staged products
@@ -599,7 +599,8 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, *, s: QPSettings, iters: int, wa
         s: the solver's settings (``sigma``, ``alpha``, tolerances, ``iters``/``max_iters``/``check_every``, rho
             rules, ``box_rows``); iters: the fixed iterations; warm: start from ``wx, wz, wy``; ne: the exact
             block's rows.
-        num_warps, factor_warps: Triton warps per program of the iteration and the factorization kernel.
+        num_warps, factor_warps: Triton warps per program of the preparation and iteration kernels, and of the
+            factorization kernel (module docstring).
 
     Returns:
         :class:`~wbc_jax.qp.settings.QPResult`, rows in their order (exact, dense, box).
