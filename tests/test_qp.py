@@ -461,7 +461,7 @@ def test_fused_factorization_matches_numpy(n, ne):
 
     from jax.experimental import pallas as pl
 
-    from wbc_jax.qp.fused import _factor_kernel, _pow2
+    from wbc_jax.qp.fused import _factor_kernel, _no_sync, _pow2
 
     rng = np.random.default_rng(11)
     mi = 7
@@ -480,7 +480,7 @@ def test_fused_factorization_matches_numpy(n, ne):
     with jax.enable_x64(True):
         sd = lambda *sh: jax.ShapeDtypeStruct(sh, jnp.float64)  # noqa: E731
         Ki, W, Si = (np.asarray(a) for a in pl.pallas_call(
-            functools.partial(_factor_kernel, n=n, ne=ne, barrier=None), interpret=True,
+            functools.partial(_factor_kernel, n=n, ne=ne, sync=_no_sync), interpret=True,
             out_shape=[sd(N, N), sd(N, NE), sd(NE, NE)])(*(jnp.asarray(v) for v in (P, Ae, Ai, kd, re, ri, exe))))
     K = P[:n, :n] + (Ae[:, :n].T * re) @ Ae[:, :n] + (Ai[:, :n].T * ri) @ Ai[:, :n] + np.diag(kd[:n])
     Ki_ref = np.linalg.inv(K)

@@ -10,7 +10,8 @@ Each batch is timed in ``rounds`` rounds, a round being one physics-only call th
 drifts of the device (clocks, other processes) reach both; the figures are the rounds' medians, and everything but
 physics is also given as its smallest and largest round. One call of each is a single sample of a difference of
 two timings: on an H100 at batch 270 (course, Warp) one such sample of the same code gave 0.302 ms in one process
-and 0.465 ms in another on the same machine, and 9 rounds in one process spread from 0.204 to 0.329 ms (median 0.309; 2026-11-27).
+and 0.465 ms in another on the same machine, and 9 rounds in one process spread from 0.204 to 0.329 ms (median
+0.309; 2026-11-27).
 
 Several devices: one process with several (JAX physics) also times the same batch with its runs over every
 device (:func:`sharded_chunk_fn`, as a campaign runs it). Several processes (``--coordinator`` etc., one device
@@ -164,11 +165,10 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         t_wbc = None
         if writer:  # the whole batch on one device (with several processes: process 0's, the others wait)
             b = random_batch(sim, B)
-            c_phys, c_wbc, t_phys, t_wbc = _physics_and_wbc(sim, b, n_env, _timed, rounds)
-            row.update(round_figures(t_phys, t_wbc, B, n_env, steps), peak_device_bytes=_peak_bytes(),
-                       compile_physics_s=c_phys - float(np.median(t_phys)),
-                       compile_wbc_s=c_wbc - float(np.median(t_wbc)))
-            t_wbc = float(np.median(t_wbc))  # the one-device time the speed-ups below compare with
+            c_phys, c_wbc, phys_rounds, wbc_rounds = _physics_and_wbc(sim, b, n_env, _timed, rounds)
+            t_phys, t_wbc = float(np.median(phys_rounds)), float(np.median(wbc_rounds))  # t_wbc: the speed-ups' base
+            row.update(round_figures(phys_rounds, wbc_rounds, B, n_env, steps), peak_device_bytes=_peak_bytes(),
+                       compile_physics_s=c_phys - t_phys, compile_wbc_s=c_wbc - t_wbc)
             lo, hi = row["non_physics_ms_per_step_range"]
             print(f"{device} {label:4s} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   "
                   f"physics+WBC {row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   everything but "

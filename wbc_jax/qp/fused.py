@@ -23,11 +23,11 @@ bench, one call, alternated with the kernels before): batch 270 0.333 / 0.296 ms
 The kernels run 2 warps per program (``num_warps``: the preparation and the iterations; ``factor_warps``: the
 factorization). With 4, the factorization took 144 registers and the iterations 255 (112 bytes of spills); with 2,
 235 (no spills) and 255 (656 bytes; pip Triton, sm_90a), but a program's reductions and layout changes span 2 warps
-instead of 4, and 4 programs fit a multiprocessor (the campaign's 270 problems in one wave). Measured (H100, ``bench rollout``, 9 / 3 rounds, alternated with 4 / 4):
-everything but physics at batch 16384 5.286 against 5.758 ms (physics + WBC 1,853,937 against 1,761,804
-env-steps/s), at 270 0.308 / 0.299 against 0.310 / 0.308 ms; device trace at 270, the factorization alone at 2
-warps 56.8 us against 62.9 (1 warp: 81.1 us, 255 registers and 480 bytes of spills). Before the staged products
-2 / 2 had measured worse than 4 / 4 (docs/performance.md).
+instead of 4, and 4 programs fit a multiprocessor (the campaign's 270 problems in one wave). Measured (H100,
+``bench rollout``, 9 / 3 rounds, alternated with 4 / 4): everything but physics at batch 16384 5.286 against 5.758
+ms (physics + WBC 1,853,937 against 1,761,804 env-steps/s), at 270 0.308 / 0.299 against 0.310 / 0.308 ms; device
+trace at 270, the factorization alone at 2 warps 56.8 us against 62.9 (1 warp: 81.1 us, 255 registers and 480
+bytes of spills). Before the staged products 2 / 2 had measured worse than 4 / 4 (docs/performance.md).
 
 Why: the XLA path (``admm._step`` in ``lax.scan``, then the extension's ``lax.while_loop``) launches about ten kernels
 per iteration and reads ``P``, ``A``, ``K^-1`` and the Schur factors from device memory at every one. Under ``vmap``
@@ -366,7 +366,7 @@ def _prepare_kernel(*refs, s: QPSettings, dims: Dims, warm: bool, treedef):
 
 
 def _factor_kernel(P_ref, Ae_ref, Ai_ref, kd_ref, re_ref, ri_ref, exe_ref, Ki_ref, W_ref, Si_ref, *, n: int,
-                   ne: int, barrier):
+                   ne: int, sync):
     """``admm._kkt_factor`` with ``linsolve="inv"`` for one problem, in 2 x 2 blocks of the variables' halves,
     every matrix product staged through device memory.
 
@@ -381,9 +381,9 @@ def _factor_kernel(P_ref, Ae_ref, Ai_ref, kd_ref, re_ref, ri_ref, exe_ref, Ki_re
     Each matrix product runs over its contraction index in chunks of ``CK`` (a loop), both operands read from memory
     at each chunk: the inputs from the preparation's outputs, the intermediate factors from this kernel's own outputs
     (``Ki``, ``W``: each written where a later product reads it, and overwritten by its final value once no product
-    reads it any more). ``barrier`` (``__syncthreads``; None in the interpreter) orders each write before the reads
-    of other threads. Held whole in registers, the products' operands took all 255 registers of a thread and
-    spilled, and the kernel ran at 2 programs per streaming multiprocessor.
+    reads it any more). ``sync`` (``__syncthreads``; :func:`_no_sync` in the interpreter) orders each write before
+    the reads of other threads. Held whole in registers, the products' operands took all 255 registers of a thread
+    and spilled, and the kernel ran at 2 programs per streaming multiprocessor (4 warps).
     """
     N = P_ref.shape[0]
     H = N // 2
@@ -391,7 +391,6 @@ def _factor_kernel(P_ref, Ae_ref, Ai_ref, kd_ref, re_ref, ri_ref, exe_ref, Ki_re
     s1, s2 = slice(0, H), slice(H, N)
     r = jax.lax.broadcasted_iota(jnp.int32, (H, H), 0)
     c = jax.lax.broadcasted_iota(jnp.int32, (H, H), 1)
-    sync = barrier or (lambda: None)
 
     def chunks(count, body, acc):  # acc + the sum over the chunks k of body(k's slice)
         ck = min(CK, count)
@@ -449,13 +448,16 @@ def _factor_kernel(P_ref, Ae_ref, Ai_ref, kd_ref, re_ref, ri_ref, exe_ref, Ki_re
 CK = 16  # the products' contraction chunk (Triton's dot: every dimension at least 16)
 
 
-def _kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, treedef, dims: Dims, barrier):
+def _no_sync() -> None:
+    """The kernels' ``sync`` in Pallas' interpreter, which runs a program's operations in order (one thread)."""
+
+
+def _kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, treedef, dims: Dims, sync):
     """One problem's solve from its :class:`Stage` and factorization: ``iters`` iterations, blocks of
     ``check_every`` while outside tolerance, then the result in the user's units with its residuals, certificates
     and flag (the user's bounds ``l``, ``u`` read at the end, for the certificates), written in the user's layout:
     ``x`` (n,), ``z`` and ``y`` (m,) in the rows' order."""
     n_stage = treedef.num_leaves
-    sync = barrier or (lambda: None)
     st = jax.tree_util.tree_unflatten(treedef, refs[:n_stage])
     Ki_ref, W_ref, Si_ref = refs[n_stage:n_stage + 3]
     l_refs, u_refs = refs[n_stage + 3:n_stage + 6], refs[n_stage + 6:n_stage + 9]
@@ -622,11 +624,13 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, *, s: QPSettings, iters: int, wa
     lb, ub = ([v[p] if p.stop > p.start else jnp.zeros(1, dt) for p in parts] for v in (l, u))
     ins = [P, A, q, *lb, *ub, wy, jnp.reshape(rho, (1,)).astype(dt), wx, wz]
     params = fparams = None
+    sync = _no_sync
     if not interpret:
         from jax.experimental.pallas import triton as plgpu
 
         params = plgpu.CompilerParams(num_warps=num_warps, num_stages=1)
         fparams = plgpu.CompilerParams(num_warps=factor_warps, num_stages=1)
+        sync = plgpu.debug_barrier  # __syncthreads
     sd = lambda *sh: jax.ShapeDtypeStruct(sh, dt)  # noqa: E731
     rowb = (sd(NE), sd(MI), sd(N))
     shapes = Stage(sd(N, N), sd(NE, N), sd(MI, N), sd(N), sd(N), sd(N), sd(N), sd(N), rowb, rowb, rowb, rowb, rowb,
@@ -639,13 +643,11 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, *, s: QPSettings, iters: int, wa
     st = jax.tree_util.tree_unflatten(treedef, st)
     with jax.named_scope("qp_factor"):
         factors = pl.pallas_call(
-            functools.partial(_factor_kernel, n=n, ne=ne, barrier=None if interpret else plgpu.debug_barrier),
-            interpret=interpret, compiler_params=fparams,
+            functools.partial(_factor_kernel, n=n, ne=ne, sync=sync), interpret=interpret, compiler_params=fparams,
             out_shape=[sd(N, N), sd(N, NE), sd(NE, NE)], name="admm_factor",
         )(st.P, st.Ae, st.Ai, st.kd, st.rho[0], st.rho[1], st.exe)
     kern = functools.partial(_kernel, s=s, iters=iters, max_iters=max(s.max_iters, iters),
-                             check_every=max(s.check_every, 1), treedef=treedef, dims=dims,
-                             barrier=None if interpret else plgpu.debug_barrier)
+                             check_every=max(s.check_every, 1), treedef=treedef, dims=dims, sync=sync)
     with jax.named_scope("qp_iterations"):
         i1 = jax.ShapeDtypeStruct((1,), jnp.int32)
         x, z, y, flag, k, prim, dual, rho_out = pl.pallas_call(
