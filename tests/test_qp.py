@@ -8,6 +8,8 @@ and checked against that optimum and against OSQP at eps 1e-9. Float64 tests use
 
 from __future__ import annotations
 
+import itertools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -434,20 +436,21 @@ def test_fused_kernel_flags():
 def test_sweep_inverse_matches_numpy():
     """The fused factorization's in-register inverse (sweep operator, no pivoting) against numpy's inverse, float64,
     on SPD matrices with condition numbers up to ~1e8 (the x-update's K and the Schur complement are SPD), with the
-    last rows and columns identity padding that is not swept."""
+    last rows and columns identity padding that is not swept; an even count (two indices per sweep) and an odd one
+    (one single-index sweep last)."""
     from wbc_jax.qp.fused import sweep_inverse
 
     rng = np.random.default_rng(5)
-    n, N = 28, 32
+    N = 32
     with jax.enable_x64(True):
-        for cond in (1e2, 1e5, 1e8):
+        for n, cond in itertools.product((28, 27), (1e2, 1e5, 1e8)):  # even: pair sweeps only; odd: a single last
             Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
             K = Q @ np.diag(np.geomspace(1.0, 1.0 / cond, n)) @ Q.T
             T = np.eye(N)
             T[:n, :n] = K
             ref = np.linalg.inv(K)
             got = np.asarray(sweep_inverse(jnp.asarray(T), n))[:n, :n]
-            assert np.max(np.abs(got - ref)) <= 1e-14 * cond * np.max(np.abs(ref)), cond
+            assert np.max(np.abs(got - ref)) <= 1e-14 * cond * np.max(np.abs(ref)), (n, cond)
 
 
 @pytest.mark.parametrize("n,ne", [(56, 24), (20, 6), (8, 3), (5, 2)])

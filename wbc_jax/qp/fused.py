@@ -58,6 +58,12 @@ rollout`` physics + WBC at 16384 / 270: XLA preparation 1,035,444 / 196,113 env-
 The factorization (:func:`_factor_kernel`) builds ``K`` from the blocks and inverts it in 2 x 2 blocks of the
 variables' halves by Gauss-Jordan sweeps (:func:`sweep_inverse`), then ``W`` and ``S^-1``: one kernel where XLA
 launched ~50 (Gram products, cuSOLVER's batched Cholesky, triangular solves, the Schur complement's Cholesky).
+The sweeps eliminate two indices at a time (a 2 x 2 pivot block): the course's QP (56 variables, 24 exact rows)
+takes 40 sweeps instead of 80. Measured (H100, batch 270): the factorization kernel 56.9 -> 48.7 us per control
+step (device trace, twice), everything but physics 0.298 / 0.291 / 0.290 / 0.294 against 0.301 / 0.300 / 0.301 /
+0.302 ms (``bench rollout``, 9 rounds, alternated); the paper campaign's flags and iteration counts unchanged. In a
+kernel-only benchmark (random SPD stages, batch 270) the sweeps were half of the kernel (~26 us of ~54); four
+indices per sweep (a 4 x 4 block inverted in scalars) measured no better than two (docs/performance.md).
 
 Measured on H100s (course, Warp physics; ``bench rollout`` physics + WBC, env-steps/s at batch 270 / 16384; each run
 one call on one machine, the earlier variant re-measured in the same run):
@@ -206,26 +212,45 @@ def prepare(P, Ae, Ai, db, q, l, u, wx, wz, wy, rho, *, s: QPSettings, dims: Dim
 
 def sweep_inverse(T, count: int):
     """``T^-1`` of a symmetric positive definite ``T`` (N, N) by Gauss-Jordan elimination without pivoting, in the
-    symmetric form of Beaton's sweep operator (each sweep reads one row, which is also the column).
+    symmetric form of Beaton's sweep operator, two indices per sweep (each sweep reads two rows, which are also the
+    columns, and inverts their 2 x 2 pivot block; an odd count ends with one single-index sweep).
 
     Only the first ``count`` indices are swept: the rest must be padding (identity rows and columns), whose entries
     of the result are then meaningless (the caller masks them). No pivoting is needed for a positive definite
-    matrix (each pivot is a Schur complement's diagonal entry, > 0); the ADMM step's residual form corrects what
-    rounding leaves. Plain ``jnp`` on register tiles (masked reductions instead of dynamic indexing), so it runs
-    inside the Triton kernel and outside it (tests).
+    matrix (each pivot block is a Schur complement's diagonal block, positive definite); the ADMM step's residual
+    form corrects what rounding leaves. Plain ``jnp`` on register tiles (masked reductions instead of dynamic
+    indexing), so it runs inside the Triton kernel and outside it (tests).
     """
     N = T.shape[0]
     ri = jax.lax.broadcasted_iota(jnp.int32, (N, N), 0)
     ci = jax.lax.broadcasted_iota(jnp.int32, (N, N), 1)
     vi = jax.lax.broadcasted_iota(jnp.int32, (N,), 0)
 
-    def sweep(k, T):
-        rk = jnp.sum(jnp.where(ri == k, T, 0.0), axis=0)  # row k = column k
-        d = jnp.sum(jnp.where(vi == k, rk, 0.0))
-        v = jnp.where(vi == k, -1.0, rk) / d
-        return jnp.where(ri == k, v[None, :], jnp.where(ci == k, v[:, None], T - rk[:, None] * (rk[None, :] / d)))
+    def row(T, k):  # row k = column k
+        return jnp.sum(jnp.where(ri == k, T, 0.0), axis=0)
 
-    return -jax.lax.fori_loop(0, count, sweep, T)
+    def entry(v, k):
+        return jnp.sum(jnp.where(vi == k, v, 0.0))
+
+    def single(k, T):  # T_kk = d: T_k. -> T_k. / d, T_kk -> -1 / d, T_ij -> T_ij - T_ik T_kj / d
+        rk = row(T, k)
+        v = jnp.where(vi == k, -1.0, rk) / entry(rk, k)
+        return jnp.where(ri == k, v[None, :], jnp.where(ci == k, v[:, None], T - rk[:, None] * v[None, :]))
+
+    def pair(j, T):  # B = (k, k + 1), T_BB = [[a, b], [b, c]]: T_B. -> T_BB^-1 T_B., T_BB -> -T_BB^-1
+        k = 2 * j
+        r1, r2 = row(T, k), row(T, k + 1)
+        a, b, c = entry(r1, k), entry(r1, k + 1), entry(r2, k + 1)
+        idet = 1.0 / (a * c - b * b)
+        p1 = jnp.where(vi == k, -1.0, jnp.where(vi == k + 1, 0.0, r1))  # the rows with -I in place of T_BB
+        p2 = jnp.where(vi == k + 1, -1.0, jnp.where(vi == k, 0.0, r2))
+        v1, v2 = (c * p1 - b * p2) * idet, (a * p2 - b * p1) * idet
+        rest = T - r1[:, None] * v1[None, :] - r2[:, None] * v2[None, :]
+        return jnp.where(ri == k, v1[None, :], jnp.where(ri == k + 1, v2[None, :], jnp.where(
+            ci == k, v1[:, None], jnp.where(ci == k + 1, v2[:, None], rest))))
+
+    T = jax.lax.fori_loop(0, count // 2, pair, T)
+    return -(single(count - 1, T) if count % 2 else T)
 
 
 def _dot(a, b, contract):  # full-precision matrix product (IEEE float32 on Triton, no TF32)
