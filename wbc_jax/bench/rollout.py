@@ -178,8 +178,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
                   flush=True)
         if n_proc > 1:  # every process its block of B / n_proc runs on its own device (wbc_jax.sim.spread)
             b = random_batch(sim, B // n_proc, seed=1 + jax.process_index())
-            _, _, tp, tw = _physics_and_wbc(sim, b, n_env, _timed_together, rounds)
-            tp, tw = float(np.median(tp)), float(np.median(tw))
+            tp, tw = (float(np.median(t)) for t in _physics_and_wbc(sim, b, n_env, _timed_together, rounds)[2:])
             n = B // n_proc * n_proc
             row.update(processes=n_proc, physics_steps_per_s_processes=n * n_env / tp,
                        wbc_steps_per_s_processes=n * n_env / tw, process_speedup=n / B * t_wbc / tw if t_wbc else None)
