@@ -34,7 +34,7 @@ fi
 # changes of these sessions, so compare CPU time (`time`'s user) as well as the wall time.
 # A test file in none of the lists runs at the end of lane 3.
 lane1=(campaign backends centroidal course aot api distributed clearance)
-lane2=(qp metrics planner interaction kernel_trace reliability snapshots spec_docs stats model)
+lane2=(qp metrics packed planner interaction kernel_trace reliability snapshots spec_docs stats model)
 lane3=(sharding tune window transport substeps factors report)
 named=" ${lane1[*]} ${lane2[*]} ${lane3[*]} "
 paths() { for f in "$@"; do [ -f "tests/test_$f.py" ] && echo "tests/test_$f.py"; done; }

@@ -161,7 +161,8 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
     """Per-run metrics and flags from a (batched, host) rollout ``Accum``.
 
     Args:
-        acc: rollout.Accum with leading run axis; dt: control period [s]; mu: (B,) tray friction;
+        acc: rollout.Accum (or its packed form, ``RunState.acc``) with leading run axis; dt: control period [s];
+            mu: (B,) tray friction;
         course: the scene has obstacles (fall threshold); final_err: (B,) final object error [m];
         substeps: physics steps per control step (``Sim.n_substeps``): ``acc.n_boundary`` counts physics steps.
 

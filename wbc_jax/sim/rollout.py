@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.sim import contacts, metrics, physics
+from wbc_jax.sim.packed import Packed, pack
 from wbc_jax.sim.contacts import CONTACT_DIST, contact_slots  # noqa: F401  (re-exported: tests, trot study)
 from wbc_jax.control.dynamics import dyn_terms
 from wbc_jax.control.transport import (ControlState, ObjectModel, TransportConfig, TransportGains,
@@ -69,7 +70,8 @@ def no_push() -> Push:
 
 class Accum(NamedTuple):
     """Online reductions since the start of the run (per run). Fields marked (physics rate) are updated after
-    every physics step (:func:`substep_monitors`), the others once per control step."""
+    every physics step (:func:`substep_monitors`), the others once per control step. Carried in ``RunState.acc``
+    packed into two arrays (:mod:`wbc_jax.sim.packed`), which reads like this NamedTuple (``acc.max_slip``)."""
 
     min_trunk_z: jax.Array  # [m]
     max_slip: jax.Array  # [m] object displacement on the tray, tray frame, xy
@@ -121,7 +123,7 @@ class RunState(NamedTuple):
     cs: ControlState
     p_lift: jax.Array  # (4, 3)
     rel0: jax.Array  # (3,) object position in the tray frame at t = 0
-    acc: Accum
+    acc: Packed  # the Accum, packed (wbc_jax.sim.packed: reads like it, e.g. acc.max_slip; acc.unpack() is the Accum)
     prev: Any = None  # Sim.sensing "delayed": (qpos (nq,), qvel (nv,), time ()) of the state d's derived fields
     #                   (kinematics, M, contacts, sensors) belong to, the start of the last physics step; else None
 
@@ -271,8 +273,8 @@ def init_state(sim: Sim, m, qpos0, qvel0=None, n_runs: int = 1) -> RunState:
                 n_boundary_plan=jnp.zeros((), jnp.int32), n_boundary_plan_cone=jnp.zeros((), jnp.int32),
                 n_solver_cap=jnp.zeros((), jnp.int32))
     prev = (d.qpos, d.qvel, d.time) if sim.sensing == "delayed" else None
-    return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids), acc=acc,
-                    prev=prev)
+    return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=_tray_rel(d, ids),
+                    acc=pack(acc), prev=prev)
 
 
 def controller_inputs(sim: Sim, m, rs: RunState, plan: TransportPlan, push: Push, mu_ground):
@@ -388,7 +390,7 @@ def _like(old, value):
 
 def with_metric_window(state: RunState, t_end) -> RunState:
     """``state`` (batched or not) with its metric window set to [0, ``t_end``) [s] (scalar or (B,) per run)."""
-    return state._replace(acc=state.acc._replace(t_end=_like(state.acc.t_end, t_end)))
+    return state._replace(acc=state.acc._replace(t_end=t_end))
 
 
 def with_variant(state: RunState, variant: Variant) -> RunState:
@@ -465,7 +467,7 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     on = (d_phys.time >= push.t0) & (d_phys.time < push.t0 + push.duration)
     xfrc = jnp.zeros_like(d.xfrc_applied).at[ids.trunk_body, 0:3].set(jnp.where(on, push.force, 0.0))
     with jax.named_scope("physics"):
-        d_next, a, finite = physics_period(sim, m, om, d_phys.replace(xfrc_applied=xfrc), tau, rs.acc)
+        d_next, a, finite = physics_period(sim, m, om, d_phys.replace(xfrc_applied=xfrc), tau, rs.acc.unpack())
     p_lift = jnp.where(ref.swing[:, None], rs.p_lift, dyn.p_foot)
 
     # control-rate metrics (from the sensed state d at time t)
@@ -499,7 +501,7 @@ def control_step(sim: Sim, m, rs: RunState, plan: TransportPlan, om: ObjectModel
     prev = (d_phys.qpos, d_phys.qvel, d_phys.time) if sim.sensing == "delayed" else None
     log = Log(t=t, p_obj=p_obj, p_obj_ref=ref.p_obj, com=dyn.com, com_ref=ref.p_com, slip=slip,
               trunk_z=dyn.p_base[2], prim_res=qd.prim_res, tau=tau, qpos=d.qpos)
-    return RunState(d=d_next, cs=cs, p_lift=p_lift, rel0=rs.rel0, acc=acc, prev=prev), log
+    return RunState(d=d_next, cs=cs, p_lift=p_lift, rel0=rs.rel0, acc=pack(acc, rs.acc.layout), prev=prev), log
 
 
 def final_results(sim: Sim, state: RunState, p_goal, mu, n: int | None = None) -> dict[str, np.ndarray]:
