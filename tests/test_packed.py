@@ -40,6 +40,15 @@ def test_layout_rejects_other_dtypes():
         layout_of(NT(a=jnp.complex64(1), flag=True, k=1, b=1.0, n=1))
 
 
+def test_pack_needs_both_kinds():
+    class Floats(NamedTuple):
+        x: jax.Array
+        y: jax.Array
+
+    with pytest.raises(ValueError, match="Floats"):
+        pack(Floats(jnp.float32(1), jnp.float32(2)))
+
+
 def test_round_trip_under_vmap_and_jit():
     xs, flags, ks = np.array([0.5, -1.25, 3.0], np.float32), np.array([True, False, True]), np.array([7, -1, 0])
     p = jax.jit(jax.vmap(lambda x, f, k: pack(one(x, f, k))))(xs, flags, ks)

@@ -115,8 +115,11 @@ def _placed_like(old, new: np.ndarray):
 def pack(nt, layout: Layout | None = None) -> Packed:
     """:class:`Packed` of NamedTuple ``nt`` whose fields are scalars (or arrays with the same leading axes, each
     field one value per run). ``layout``: that of ``nt`` (:func:`layout_of`) when None. Floating fields are cast
-    to their common dtype, integer and bool fields to int32."""
+    to their common dtype, integer and bool fields to int32. ``nt`` needs a field of each kind (floating;
+    integer or bool)."""
     layout = layout or layout_of(nt)
+    if "f" not in layout.kinds or set(layout.kinds) == {"f"}:
+        raise ValueError(f"pack({layout.cls.__name__}): needs a floating field and an integer or bool field")
     fs = [v for v, kind in zip(nt, layout.kinds) if kind == "f"]
     ints = [jnp.asarray(v).astype(jnp.int32) for v, kind in zip(nt, layout.kinds) if kind != "f"]
     dt = jnp.result_type(*fs) if fs else jnp.float32
