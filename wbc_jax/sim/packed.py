@@ -101,12 +101,13 @@ class Packed:
                 f[..., col] = v
             else:
                 i[..., col] = np.asarray(v).astype(i.dtype)
-        return Packed(_placed_like(self.f, f), _placed_like(self.i, i), self.layout)
+        return Packed(placed_like(self.f, f), placed_like(self.i, i), self.layout)
 
 
-def _placed_like(old, new: np.ndarray):
-    """Host array ``new`` placed like the leaf ``old``: numpy stays numpy; a device array committed to a sharding
-    keeps it (a change would recompile the chunk function for other input shardings)."""
+def placed_like(old, new: np.ndarray):
+    """Host array ``new`` placed like the leaf ``old``: after a host ``old``, ``new`` itself; after a device array
+    committed to a sharding, on that sharding (another would recompile the chunk function for other input
+    shardings); else a default device array (also after a shapes-only ``old``)."""
     if isinstance(old, np.ndarray):
         return new
     return jax.device_put(new, old.sharding) if getattr(old, "committed", False) else jnp.asarray(new)

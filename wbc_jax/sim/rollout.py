@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.sim import contacts, metrics, physics
-from wbc_jax.sim.packed import Packed, pack
+from wbc_jax.sim.packed import Packed, pack, placed_like
 from wbc_jax.sim.contacts import CONTACT_DIST, contact_slots  # noqa: F401  (re-exported: tests, trot study)
 from wbc_jax.control.dynamics import dyn_terms
 from wbc_jax.control.transport import (ControlState, ObjectModel, TransportConfig, TransportGains,
@@ -384,8 +384,7 @@ def in_window(sim: Sim, a: Accum) -> jax.Array:
 def _like(old, value):
     """``value`` broadcast to the shape and dtype of the leaf ``old`` and placed like it (a leaf committed
     elsewhere would change the chunk function's input shardings)."""
-    new = np.broadcast_to(np.asarray(value, old.dtype), old.shape)
-    return jax.device_put(new, old.sharding) if getattr(old, "committed", False) else jnp.asarray(new)
+    return placed_like(old, np.array(np.broadcast_to(np.asarray(value, old.dtype), old.shape)))
 
 
 def with_metric_window(state: RunState, t_end) -> RunState:
