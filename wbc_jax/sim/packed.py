@@ -123,5 +123,5 @@ def pack(nt, layout: Layout | None = None) -> Packed:
         raise ValueError(f"pack({layout.cls.__name__}): needs a floating field and an integer or bool field")
     fs = [v for v, kind in zip(nt, layout.kinds) if kind == "f"]
     ints = [jnp.asarray(v).astype(jnp.int32) for v, kind in zip(nt, layout.kinds) if kind != "f"]
-    dt = jnp.result_type(*fs) if fs else jnp.float32
+    dt = jnp.result_type(*fs)
     return Packed(jnp.stack([jnp.asarray(v, dt) for v in fs], axis=-1), jnp.stack(ints, axis=-1), layout)
