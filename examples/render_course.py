@@ -10,7 +10,7 @@ import sys
 import mujoco
 from PIL import Image
 
-from wbc_jax.sim.model import Robot
+from wbc_jax.robot.model import Robot
 
 out = sys.argv[1] if len(sys.argv) > 1 else "docs/img/course.png"
 robot = Robot("transport")

@@ -3,8 +3,8 @@ reports/baseline/spec.toml, run once per session (tests/test_campaign.py, tests/
 
 import pytest
 
-from wbc_jax.sim import jaxcfg
-from wbc_jax.study.spec import SWEEPS
+from wbc_jax.runtime import jaxcfg
+from wbc_jax.campaign.spec import SWEEPS
 
 jaxcfg.configure()
 
@@ -17,7 +17,7 @@ def tiny_spec():
 @pytest.fixture(scope="session")
 def full_run(tiny_spec, tmp_path_factory):
     """(out folder, manifest) of the tiny campaign run in this process (one device)."""
-    from wbc_jax.study.campaign import run_campaign
+    from wbc_jax.campaign.runner import run_campaign
 
     out = tmp_path_factory.mktemp("camp") / "full"
     manifest = run_campaign(str(tiny_spec), str(out), progress=False)

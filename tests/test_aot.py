@@ -1,4 +1,4 @@
-"""wbc_jax.sim.aot: exported programs are reloaded without tracing, give the same results, and are keyed safely."""
+"""wbc_jax.runtime.aot: exported programs are reloaded without tracing, give the same results, and are keyed safely."""
 
 from typing import NamedTuple
 
@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wbc_jax.sim import aot
+from wbc_jax.runtime import aot
 
 
 class Pair(NamedTuple):

@@ -15,11 +15,13 @@ import pytest
 
 pytest.importorskip("warp")
 
-from wbc_jax.control.dynamics import mass_matrix  # noqa: E402
-from wbc_jax.sim import contacts, physics, scenario  # noqa: E402
-from wbc_jax.sim.batch import prepare_batch  # noqa: E402
-from wbc_jax.sim.model import Robot  # noqa: E402
-from wbc_jax.sim.rollout import final_results, make_sim, simulate  # noqa: E402
+from wbc_jax.physics.observe import mass_matrix  # noqa: E402
+from wbc_jax.physics import contacts
+from wbc_jax.physics import backend as physics
+from wbc_jax.robot import scenario  # noqa: E402
+from wbc_jax.rollout.batch import prepare_batch  # noqa: E402
+from wbc_jax.robot.model import Robot  # noqa: E402
+from wbc_jax.rollout.core import final_results, make_sim, simulate  # noqa: E402
 from test_transport import CHUNK_SECONDS, TROT_PLAN  # noqa: E402  (the walks share its compiled chunk program)
 
 M_TOL = 1e-5  # relative, float32 CSR scatter vs MuJoCo C float64
@@ -225,8 +227,8 @@ def test_warp_state_run_axes_and_blocks(walks):
     with the run axis first is 0 and the shared contact list and its counters are None; on JAX every leaf is 0. A
     block of the batch (``Spread`` "blocks", one per process) takes its rows of the first and keeps the second
     whole, and the blocks joined back (``runs.concat``, ``runs.first``) are the batch's state."""
-    from wbc_jax.sim import runs
-    from wbc_jax.sim.spread import Spread
+    from wbc_jax.rollout import runs
+    from wbc_jax.rollout.spread import Spread
 
     _, bj, _, _ = walks["jax"]
     assert set(jax.tree_util.tree_leaves(bj.state_axes)) == {0}

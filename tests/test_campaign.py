@@ -8,7 +8,7 @@ import pytest
 
 from wbc_jax import cli
 from wbc_jax.errors import SpecError
-from wbc_jax.study.spec import SWEEPS, design, load_spec, parse_spec
+from wbc_jax.campaign.spec import SWEEPS, design, load_spec, parse_spec
 
 BASELINE = SWEEPS.parent / "reports" / "baseline"  # its spec.toml is the tiny campaign of these tests (conftest.py)
 NUMERIC = ["m", "mu", "d", "rep", "seed", "R", "T", "S", "max_slip_mm", "boundary_fraction", "final_err_mm"]
@@ -103,7 +103,7 @@ def test_campaign_writes_results_report_manifest(full_run):
 
 
 def test_interrupt_and_resume_equal_uninterrupted(full_run, tiny_spec, tmp_path):
-    from wbc_jax.study.campaign import run_campaign
+    from wbc_jax.campaign.runner import run_campaign
 
     ref = pd.read_csv(full_run[0] / "results.csv")
     out = tmp_path / "resumed"
@@ -125,8 +125,8 @@ def test_nan_run_does_not_poison_the_batch(full_run, tiny_spec):
     import jax
     import jax.numpy as jnp
 
-    from wbc_jax.study import campaign as C
-    from wbc_jax.sim import metrics
+    from wbc_jax.campaign import runner as C
+    from wbc_jax.metrics import paper as metrics
 
     sim, dz, b, _, logs_per_chunk, n_chunks = C.build(load_spec(tiny_spec))
     bad = 3
@@ -152,9 +152,9 @@ def test_sensor_noise_is_seeded_and_velocity_only(tiny_spec):
     import jax
     import jax.numpy as jnp
 
-    from wbc_jax.study import campaign as C
-    from wbc_jax.sim.physics import sense_with_view
-    from wbc_jax.sim.rollout import seen_qvel
+    from wbc_jax.campaign import runner as C
+    from wbc_jax.physics.backend import sense_with_view
+    from wbc_jax.rollout.core import seen_qvel
 
     spec = load_spec(tiny_spec)
     sim, dz, b, *_ = C.build(spec)
@@ -181,7 +181,7 @@ def test_sensor_noise_is_seeded_and_velocity_only(tiny_spec):
 def test_regress_passes_on_baseline_and_fails_on_gain_change(full_run, tmp_path, capsys):
     """The committed baseline passes; a deliberate controller-gain change (object position gain 250 -> 50)
     fails with a table of what moved; restoring the gain passes again (the first call)."""
-    from wbc_jax.study.regress import run_regress
+    from wbc_jax.campaign.regress import run_regress
     from wbc_jax.control.transport import default_gains
 
     code, moved = run_regress(str(BASELINE))
@@ -195,7 +195,7 @@ def test_regress_passes_on_baseline_and_fails_on_gain_change(full_run, tmp_path,
 def test_regress_update_and_cli(tmp_path, full_run, capsys):
     import shutil
 
-    from wbc_jax.study.regress import cell_means, compare
+    from wbc_jax.campaign.regress import cell_means, compare
 
     b = tmp_path / "base"
     b.mkdir()
@@ -211,7 +211,7 @@ def test_regress_update_and_cli(tmp_path, full_run, capsys):
 
 
 def test_default_spec_follows_the_device():
-    from wbc_jax.study.spec import default_spec_path
+    from wbc_jax.campaign.spec import default_spec_path
 
     assert default_spec_path(accelerator=False).name == "quick.toml"
     assert default_spec_path(accelerator=True).name == "paper_campaign.toml"
@@ -222,7 +222,7 @@ def test_chunk_function_state_types_are_stable(tiny_spec):
     chunk 2 reuses chunk 1's compilation (a weak-typed initial leaf once made every campaign compile twice)."""
     import jax
 
-    from wbc_jax.study import campaign as C
+    from wbc_jax.campaign import runner as C
 
     sim, _, b, _, logs_per_chunk, _ = C.build(load_spec(tiny_spec))
     fn = C._chunk_fn(sim, b.in_axes, logs_per_chunk)
@@ -236,7 +236,7 @@ def test_chunk_function_state_types_are_stable(tiny_spec):
 def test_regress_noise_band_from_rounding_probes():
     """``regress --update``'s noise floor: means over the run and its rounding probes, noise = the largest deviation
     from that mean; compare() widens only that cell's and metric's band, by NOISE_FACTOR x noise (hand numbers)."""
-    from wbc_jax.study.regress import NOISE_FACTOR, _with_noise, compare
+    from wbc_jax.campaign.regress import NOISE_FACTOR, _with_noise, compare
 
     def cell(R, S, ok=1):
         return dict(m=0.2, mu=0.4, d=0.06, runs=1, n_success=ok, R=R, T=1e-3, S=S, max_slip_mm=None if R is None

@@ -1,4 +1,4 @@
-"""Exact clearance (issue 24, ``wbc_jax.sim.clearance``) against MuJoCo C's ``mj_geomDistance``.
+"""Exact clearance (issue 24, ``wbc_jax.physics.clearance``) against MuJoCo C's ``mj_geomDistance``.
 
 Poses of the course scene: the front-right leg crouched over block2's far edge (tests/test_course.py's poses; the
 shank's closest box feature is the edge), the front legs standing on block2 (closest feature: the top face), the
@@ -14,9 +14,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from wbc_jax.sim import clearance as CL
-from wbc_jax.sim.model import Robot, mjx
-from wbc_jax.sim.rollout import clearance, clearance_name, make_sim
+from wbc_jax.physics import clearance as CL
+from wbc_jax.robot.model import Robot, mjx
+from wbc_jax.rollout.core import clearance, clearance_name, make_sim
 
 POS_TOL = 1e-4  # [m] the acceptance bound (measured: < 1e-6, float32 kinematics vs float64)
 BRUTE_TOL = 2e-5  # [m] vs 200 001 samples of the segment (spacing <= 1.6 um on a 0.32 m segment)
@@ -194,7 +194,7 @@ def test_mjx_slot_distance_overstates_edge_clearance():
     """The cause of issue 24's overstated clearance: MJX's capsule/box contact slots of a shank 2.8 mm above
     block2's far edge read 5.0 mm (and a pair beyond the margin reads 1 m), while the exact clearance reads
     MuJoCo C's distance."""
-    from wbc_jax.sim import physics
+    from wbc_jax.physics import backend as physics
 
     robot = Robot("transport")
     m = robot.mj_model
@@ -225,7 +225,7 @@ def test_same_on_the_warp_backend():
     backend's distances (measured: 2e-8 m over the 54 pairs), separated pairs included (Warp's contact sensors
     report only penetrations)."""
     pytest.importorskip("warp")
-    from wbc_jax.sim import physics
+    from wbc_jax.physics import backend as physics
 
     out = {}
     for backend in ("jax", "warp"):

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
-from wbc_jax.sim.model import Robot, mjcf_dir
+from wbc_jax.robot.model import Robot, mjcf_dir
 from wbc_jax.planner.apf import overhead, plan_dip
 from wbc_jax.planner.scene_geometry import (HIP_DROP, SHIN_MARGIN, clear_of_edges, knee_position, leg_geometry,
                                            scene_geometry, shin_clearance, terrain_height)
 from wbc_jax.planner.spline import eval_path, max_abs_accel_z
 from wbc_jax.planner.transport import course_plan
-from wbc_jax.sim.batch import prepare_batch
-from wbc_jax.sim.rollout import make_sim, simulate
+from wbc_jax.rollout.batch import prepare_batch
+from wbc_jax.rollout.core import make_sim, simulate
 
 LINTEL_UNDERSIDE = 0.65  # [m] scene_transport.xml: lintel box centre 0.925, half-height 0.275
 WALL_Y = -2.45  # [m]
@@ -90,12 +90,12 @@ def test_dip_moves_with_the_wall(tmp_path):
 
 
 def test_plans_come_back_from_disk_equal_and_only_for_their_inputs(tmp_path, monkeypatch):
-    """prepare_batch's plans (wbc_jax.sim.batch._plan) are kept on disk: a second request with the same model,
+    """prepare_batch's plans (wbc_jax.rollout.batch._plan) are kept on disk: a second request with the same model,
     start pose and arguments reads the stored plan, leaf for leaf equal to a fresh course_plan, without planning;
     another object side is planned."""
     import jax
 
-    from wbc_jax.sim import batch
+    from wbc_jax.rollout import batch
 
     monkeypatch.setenv("WBC_JAX_CACHE", str(tmp_path))
     robot = Robot("transport")
@@ -156,8 +156,9 @@ def test_foot_ground_surface_and_friction_match_mujoco_c():
     foot's pairs, pair_friction of the nearest)."""
     import jax
 
-    from wbc_jax.sim import contacts, physics
-    from wbc_jax.sim.model import mjx
+    from wbc_jax.physics import contacts
+    from wbc_jax.physics import backend as physics
+    from wbc_jax.robot.model import mjx
 
     robot = Robot("transport")
     m = robot.mj_model

@@ -1,4 +1,4 @@
-"""Campaigns and gain searches over several processes (``wbc_jax.sim.distributed``): settings from flags, JAX_* and
+"""Campaigns and gain searches over several processes (``wbc_jax.rollout.distributed``): settings from flags, JAX_* and
 SLURM variables, one-line errors for bad ones, and a real 2-process run on this machine (localhost coordinator, one
 CPU device per process, gloo collectives) of `wbc-jax campaign` and then `wbc-jax tune` whose outputs equal, bit for
 bit, the single-process run's over two CPU devices (the same per-device program), with only process 0 writing.
@@ -27,7 +27,7 @@ from jax._src import cache_key
 
 from wbc_jax import cli
 from wbc_jax.errors import InputError
-from wbc_jax.sim.distributed import DEFAULT_PORT, Layout, first_host, resolve
+from wbc_jax.rollout.distributed import DEFAULT_PORT, Layout, first_host, resolve
 
 TIMEOUT_S = 900  # three processes compile at once on 2 cores
 
@@ -107,7 +107,7 @@ ALL_IN_ONE = textwrap.dedent("""
     mp = [a for a in camp if a.startswith(("--coordinator", "--num-processes", "--process-id"))]
     if cli.main(camp):  # out: the plain campaign
         sys.exit(1)
-    from wbc_jax.study.campaign import run_campaign
+    from wbc_jax.campaign.runner import run_campaign
     spec = camp[camp.index("--spec") + 1]
     try:  # cut: the same campaign interrupted after its first chunk ...
         run_campaign(spec, "cut", report=False, progress=False, _interrupt_after=1)
@@ -181,7 +181,7 @@ def test_two_processes_equal_one(tiny_spec, tmp_path, monkeypatch):
     checkpoint, process 1 writes nothing: checked in the processes) and resumed with --resume: the same results.csv
     again. Then `wbc-jax tune` (successive halving: survivors continue from their gathered states) writes the same
     leaderboard, per-run tables and best gains as the reference, from process 0 only. Then the campaign on Warp
-    physics (a block of runs per process, ``wbc_jax.sim.spread``) against its two blocks stepped in this process
+    physics (a block of runs per process, ``wbc_jax.rollout.spread``) against its two blocks stepped in this process
     one after the other, bit for bit. The spec is the CI baseline's
     with d fixed (4 runs): with 3 or more runs per device the one-process reference deadlocks on 2 cores (module
     docstring)."""
@@ -238,7 +238,7 @@ def test_two_processes_equal_one(tiny_spec, tmp_path, monkeypatch):
     assert tman["layout"]["processes"] == 2 and tman["physics_backend"] == "jax"
     assert tman["new_compilations_after_round_1"] in (0, None)
 
-    # Warp physics: a block of runs per process (wbc_jax.sim.spread), equal bit for bit to the same two blocks
+    # Warp physics: a block of runs per process (wbc_jax.rollout.spread), equal bit for bit to the same two blocks
     # stepped here one after the other with the single-device program
     warp = pd.read_csv(dirs[0] / "warp" / "results.csv")
     assert warp["run"].tolist() == list(range(4)) and warp["success"].all()
@@ -254,11 +254,11 @@ def _warp_blocks(spec_path, n_blocks: int) -> pd.DataFrame:
     process: each block (``Spread.place``) stepped alone by the campaign's single-device chunk function."""
     import jax
 
-    from wbc_jax.sim import runs
-    from wbc_jax.sim.rollout import final_results
-    from wbc_jax.sim.spread import Spread
-    from wbc_jax.study import campaign as C
-    from wbc_jax.study.spec import load_spec
+    from wbc_jax.rollout import runs
+    from wbc_jax.rollout.core import final_results
+    from wbc_jax.rollout.spread import Spread
+    from wbc_jax.campaign import runner as C
+    from wbc_jax.campaign.spec import load_spec
 
     spec = C.with_backend(load_spec(spec_path), "warp")
     sim, dz, b, _, logs_per_chunk, n_chunks = C.build(spec)

@@ -1,4 +1,4 @@
-"""Factors beyond the paper (wbc_jax.study.factors) and the controller variants (wbc_jax.control.variants):
+"""Factors beyond the paper (wbc_jax.campaign.factors) and the controller variants (wbc_jax.control.variants):
 spec validation, design, the paper specs' hashes, per-run batching, one batched rollout mixing the four variants,
 two tiny 2-factor campaigns end to end, and the report's success-rate and ablation sections."""
 
@@ -9,8 +9,8 @@ import pandas as pd
 import pytest
 
 from wbc_jax.errors import SpecError
-from wbc_jax.study import factors
-from wbc_jax.study.spec import SWEEPS, design, load_spec, parse_spec
+from wbc_jax.campaign import factors
+from wbc_jax.campaign.spec import SWEEPS, design, load_spec, parse_spec
 
 # the spec hashes checkpoints and regress baselines are keyed on: new keys at their defaults must not change them;
 # changed on purpose: issue 22 (qp_iters 20 -> 10, with the solver's convergence-checked extension), and com_plan
@@ -96,7 +96,7 @@ def test_levels_are_normalised_and_switches_combine():
 
 def test_gain_leaves_match_the_controller_and_multiply():
     from wbc_jax.control.transport import TransportGains, default_gains
-    from wbc_jax.study.campaign import run_gains
+    from wbc_jax.campaign.runner import run_gains
 
     assert factors.GAIN_LEAVES == TransportGains._fields
     dz = design(parse_spec(dict(factors={"gain.kp_com": [0.5, 2.0], "gain.k_obs": [0.0, 1.0]},
@@ -217,7 +217,7 @@ def test_report_reads_the_campaigns_factors_from_its_manifest(tmp_path):
 @pytest.fixture(scope="module")
 def variants_run(tmp_path_factory):
     """The four variants side by side in one batched rollout (4 runs, 0.06 s, no perturbations; SAME_SHAPE)."""
-    from wbc_jax.study import campaign as C
+    from wbc_jax.campaign import runner as C
 
     spec = load_spec(tiny(tmp_path_factory.mktemp("variants"), campaign=SAME_SHAPE,
                           factors='variant = ["full", "no_tray_cone", "no_observer", "no_posture"]'))
@@ -252,7 +252,7 @@ def test_variants_differ_where_they_should(variants_run):
 
 def test_push_and_variant_campaign_end_to_end(variants_run, tmp_path):
     """push_N x variant, 2 x 2, through run_campaign and its report (the rollout shape of variants_run)."""
-    from wbc_jax.study.campaign import run_campaign
+    from wbc_jax.campaign.runner import run_campaign
 
     spec = tiny(tmp_path, campaign=SAME_SHAPE, factors='push_N = [0.0, 30.0]\nvariant = ["full", "no_observer"]',
                 perturbations="push_duration_s = 0.02\npush_window = [0.0, 0.1]\npush_dir_deg = 90.0")
@@ -270,7 +270,7 @@ def test_push_and_variant_campaign_end_to_end(variants_run, tmp_path):
 def test_ground_friction_and_speed_campaign_end_to_end(variants_run, tmp_path):
     """ground_mu x speed, 2 x 2: per-run foot friction in the physics and the controller, per-run plans (the
     rollout shape of variants_run, whose compiled chunk function it reuses)."""
-    from wbc_jax.study import campaign as C
+    from wbc_jax.campaign import runner as C
 
     spec = tiny(tmp_path, factors="ground_mu = [0.5, 1.2]\nspeed = [0.05, 0.2]")
     sim, dz, b, *_ = C.build(load_spec(spec))

@@ -9,8 +9,8 @@ import pytest
 
 from wbc_jax.analysis.interaction import emm_table, interaction_shape, interaction_views, shapes
 from wbc_jax.analysis.report import run_report
-from wbc_jax.study.campaign import zero_noise_warning
-from wbc_jax.study.spec import SWEEPS, design, load_spec, parse_spec
+from wbc_jax.campaign.runner import zero_noise_warning
+from wbc_jax.campaign.spec import SWEEPS, design, load_spec, parse_spec
 
 SS_RTOL = 1e-9  # residual SS vs the hand-computed three-way interaction SS (double precision least squares)
 

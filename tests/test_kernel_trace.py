@@ -94,13 +94,13 @@ def test_real_cpu_trace_attributes_both_scopes():
 
 def test_op_sources_from_hlo_text():
     """Both metadata forms: a stack frame id resolved through the header's tables, and source_file/source_line."""
-    hlo = ('HloModule m\n\nFileNames\n1 "/x/wbc_jax/sim/rollout.py"\n2 "/x/wbc_jax/qp/admm.py"\n\nFunctionNames\n'
+    hlo = ('HloModule m\n\nFileNames\n1 "/x/wbc_jax/rollout/core.py"\n2 "/x/wbc_jax/qp/admm.py"\n\nFunctionNames\n'
            '1 "f"\n\nFileLocations\n1 {file_name_id=2 function_name_id=1 line=7 end_line=7 column=1 end_column=2}\n'
            '2 {file_name_id=1 function_name_id=1 line=88 end_line=88 column=1 end_column=2}\n\nStackFrames\n'
            '1 {file_location_id=2 parent_frame_id=1}\n2 {file_location_id=1 parent_frame_id=1}\n\n'
            '%c (p: f32[4]) -> f32[4] {\n'
            '  %fusion.3 = f32[4]{0} fusion(f32[4]{0} %p), kind=kLoop, calls=%fc, metadata={op_name="jit(f)/add" '
-           'source_file="/x/wbc_jax/sim/rollout.py" source_line=412}\n'
+           'source_file="/x/wbc_jax/rollout/core.py" source_line=412}\n'
            '  %fusion.4 = f32[4]{0} fusion(f32[4]{0} %p), kind=kLoop, calls=%fd, metadata={op_name="jit(f)/mul" '
            'stack_frame_id=2}\n'
            '  ROOT %copy.1 = f32[4]{0} copy(f32[4]{0} %fusion.3)\n}\n')

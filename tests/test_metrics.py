@@ -1,13 +1,13 @@
-"""The transport paper's metrics (wbc_jax.sim.metrics) against hand computations."""
+"""The transport paper's metrics (wbc_jax.metrics.paper) against hand computations."""
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from wbc_jax.sim import metrics
-from wbc_jax.sim.model import mjx
-from wbc_jax.sim.rollout import Accum
+from wbc_jax.metrics import paper as metrics
+from wbc_jax.robot.model import mjx
+from wbc_jax.rollout.core import Accum
 
 TOL = 1e-6
 
@@ -59,14 +59,21 @@ def _x_with(lam_b, seed=0):
     from wbc_jax.control.transport import N_FEET, N_OBJ, TransportConfig
 
     n = TransportConfig().n_var
-    assert n == NV + K * (N_FEET + N_OBJ)  # the layout object_multipliers reads
+    assert n == NV + K * (N_FEET + N_OBJ)  # the layout planned_object_forces reads
     x = np.random.default_rng(seed).uniform(-50, 50, n)
     x[NV + K * N_FEET: NV + K * (N_FEET + N_OBJ)] = np.asarray(lam_b, float).ravel()
     return jnp.asarray(x)
 
 
-def _pih(*a):
-    return metrics.planned_inv_H(*a)[0]
+def _planned(x, mu):
+    """The planned object forces of solution x (the controller's decoding of its own variable layout)."""
+    from wbc_jax.control.transport import planned_object_forces
+
+    return planned_object_forces(x, mu, NV, K)
+
+
+def _pih(x, mu, nv=NV, k=K):
+    return metrics.planned_inv_H(_planned(x, mu), mu)[0]
 
 
 def test_planned_R_by_hand():
@@ -79,7 +86,7 @@ def test_planned_R_by_hand():
                     [3.0, 0.0, 1.0, 0.0],    # f_y = 2 s, f_n = 4 c: tan alpha = mu / 2
                     [1.0, 1.0, 0.0, 0.0],    # f = s (-1, 1), f_n = 2 c: tan alpha = mu / sqrt 2
                     [0.5, 0.5, 0.5, 2.0]])   # f_x = 1.5 s, f_n = 3.5 c: tan alpha = mu 1.5 / 3.5
-    f = np.asarray(metrics.planned_contact_forces(jnp.asarray(lam), mu, K))
+    f = np.asarray(_planned(_x_with(lam), mu))
     np.testing.assert_allclose(f[1], [4 * c, 0.0, 2 * s], atol=1e-5)  # normal first, then x, y
     np.testing.assert_allclose(f[2], [2 * c, -s, s], atol=1e-5)
     alpha = np.arctan(mu * np.array([0.0, 0.5, 1 / np.sqrt(2), 1.5 / 3.5]))
@@ -92,8 +99,8 @@ def test_planned_R_by_hand():
     assert float(_pih(_x_with(np.r_[lam[:3], np.zeros((1, 4))]), mu, NV, K)) == 0.0
     assert float(_pih(_x_with(np.r_[lam[:3], [[0.0, 2.0, 0.0, 0.0]]]), mu, NV, K)) < 1e-5 * th**2
     assert float(_pih(_x_with(np.r_[lam[:3], [[-0.1, 0.0, 1.0, 0.0]]]), mu, NV, K)) == 0.0
-    assert bool(metrics.planned_inv_H(_x_with(np.r_[lam[:3], [[-0.1, 0.0, 1.0, 0.0]]]), mu, NV, K)[1])  # the cone
-    assert not bool(metrics.planned_inv_H(_x_with(np.r_[lam[:3], np.zeros((1, 4))]), mu, NV, K)[1])  # unloaded
+    assert bool(metrics.planned_inv_H(_planned(_x_with(np.r_[lam[:3], [[-0.1, 0.0, 1.0, 0.0]]]), mu), mu)[1])  # the cone
+    assert not bool(metrics.planned_inv_H(_planned(_x_with(np.r_[lam[:3], np.zeros((1, 4))]), mu), mu)[1])  # unloaded
     # the simulator's R path is untouched: the same forces through cone_angle / inv_H give the same value
     alpha_s, loaded = metrics.cone_angle(jnp.asarray(f))
     np.testing.assert_allclose(metrics.inv_H(alpha_s, loaded, mu), hand, rtol=1e-5)

@@ -9,10 +9,10 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-from wbc_jax.control.dynamics import point_jacobians
-from wbc_jax.sim import scenario
+from wbc_jax.physics.observe import point_jacobians
+from wbc_jax.robot import scenario
 from wbc_jax.errors import FactorError, SceneError
-from wbc_jax.sim.model import Robot, mjx, resolve_ids
+from wbc_jax.robot.model import Robot, mjx, resolve_ids
 
 MASS_TARGET = 24.26  # [kg] public code's total robot mass
 MASS_TOL = 0.02  # relative
@@ -176,9 +176,10 @@ def test_static_contact_layout_equals_the_compiled_one(scene):
     """The JAX backend's contact-slot layout (which geom pair each of MJX's contact slots holds) worked out from the
     model alone equals the one a compiled sensing pass returns, on both scenes (the static layout spares a 25-40 s
     compile per scene on a CPU)."""
-    from wbc_jax.sim.contacts import compiled_contact_geoms, contact_geoms_static
+    from wbc_jax.physics.backend import slot_geoms_static
+    from wbc_jax.physics.contacts import compiled_contact_geoms
 
     robot = Robot(scene)
-    static = contact_geoms_static(robot.mjx_model)
+    static = slot_geoms_static(robot.mjx_model)
     assert static is not None and len(static) > 0
     np.testing.assert_array_equal(static, compiled_contact_geoms(robot))

@@ -1,4 +1,4 @@
-"""wbc_jax.sim.packed: a NamedTuple of per-run scalars carried as one float and one int array (the rollout's Accum).
+"""wbc_jax.rollout.packed: a NamedTuple of per-run scalars carried as one float and one int array (the rollout's Accum).
 
 Against hand-built values: the fields read back with their values and dtypes (bools as bool), under vmap and jit;
 ``_replace`` edits only the named field, per run or broadcast, and keeps the leaves' placement; the pytree
@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from wbc_jax.sim.packed import Packed, layout_of, pack
+from wbc_jax.rollout.packed import Packed, layout_of, pack
 
 
 class NT(NamedTuple):

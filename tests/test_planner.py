@@ -588,7 +588,7 @@ def test_apf_band_newton_is_the_minimiser():
 
     from wbc_jax.planner.apf import band, plan_dip
     from wbc_jax.planner.scene_geometry import scene_geometry
-    from wbc_jax.sim.model import Robot
+    from wbc_jax.robot.model import Robot
 
     obstacles = scene_geometry(Robot("transport")).obstacles
     wall_y = float(np.mean(obstacles[:, :, 1]))

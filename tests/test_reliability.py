@@ -19,7 +19,7 @@ import pandas as pd
 import pytest
 
 from wbc_jax import cli
-from wbc_jax.study.spec import SWEEPS
+from wbc_jax.campaign.spec import SWEEPS
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = SWEEPS.parent / "reports" / "baseline" / "spec.toml"  # the tiny campaign of tests/test_campaign.py
@@ -28,7 +28,7 @@ HUGE_SPEC = ("[campaign]\nreps = 1000\n[factors]\nm = [{}]\nmu = [{}]\nd = [0.06
 
 
 def campaign_table(reps: int = 1, seed: int = 0) -> pd.DataFrame:
-    """A table with the columns of a campaign's results.csv (wbc_jax.study.campaign.results_table), all runs
+    """A table with the columns of a campaign's results.csv (wbc_jax.campaign.runner.results_table), all runs
     successful, 2 x 2 x 2 cells."""
     rng = np.random.default_rng(seed)
     df = pd.DataFrame([dict(m=m, mu=mu, d=d, rep=r) for m, mu, d in itertools.product([0.2, 0.4], [0.4, 1.0],
@@ -83,7 +83,7 @@ BAD_INPUTS = [
     # physics backend: the spec key and the flag name the expected values
     ("campaign_spec_backend", ["campaign", "--spec", "backend.toml", "--out", "new_b"],
      'campaign.backend: = \'bullet\': expected one of auto, jax, warp'),
-    # factors beyond the paper (wbc_jax.study.factors): an unknown name, a bad level
+    # factors beyond the paper (wbc_jax.campaign.factors): an unknown name, a bad level
     ("campaign_spec_unknown_factor", ["campaign", "--spec", "factor.toml", "--out", "new_f"],
      "factor.toml: factors.wind: unknown factor; expected one of m, mu, d, ground_mu, speed, push_N"),
     ("campaign_spec_bad_variant", ["campaign", "--spec", "variant.toml", "--out", "new_v"],
@@ -218,7 +218,7 @@ def test_report_failure_keeps_results_and_report_can_be_rerun(tmp_path, monkeypa
     the error is one line, and ``wbc-jax report`` on the kept results.csv works."""
     from wbc_jax.analysis import report
     from wbc_jax.errors import ReportError
-    from wbc_jax.study import campaign
+    from wbc_jax.campaign import runner as campaign
 
     out = tmp_path / "camp"
     out.mkdir()
@@ -298,9 +298,9 @@ def _fake_ckpt(tmp_path, gains=None, **meta_over):
     """A checkpoint next to ``tmp_path/out`` with the identity of the tiny spec (and ``gains``)."""
     import hashlib
 
-    from wbc_jax.study.campaign import run_identity
-    from wbc_jax.study.checkpoint import ckpt_dir as _ckpt_dir
-    from wbc_jax.study.spec import load_spec
+    from wbc_jax.campaign.runner import run_identity
+    from wbc_jax.campaign.checkpoint import ckpt_dir as _ckpt_dir
+    from wbc_jax.campaign.spec import load_spec
 
     ck = _ckpt_dir(tmp_path / "out")
     ck.mkdir()
@@ -328,7 +328,7 @@ def test_resume_refuses_a_foreign_or_damaged_checkpoint(tmp_path, monkeypatch, c
     """``--resume`` with a checkpoint of other gains, versions or spec, or a damaged one: one line naming what and
     how to restart, before anything is built (build is not reached)."""
     from wbc_jax.control.transport import default_gains
-    from wbc_jax.study import campaign
+    from wbc_jax.campaign import runner as campaign
 
     ck = _fake_ckpt(tmp_path, gains=default_gains()._replace(kp_obj=default_gains().kp_obj * 0.5)
                     if damage == "gains" else None)
@@ -361,8 +361,8 @@ def test_resume_refuses_a_foreign_or_damaged_checkpoint(tmp_path, monkeypatch, c
 
 def test_run_identity_names_what_determines_the_result():
     from wbc_jax.control.transport import default_gains
-    from wbc_jax.study.campaign import run_identity
-    from wbc_jax.study.spec import load_spec
+    from wbc_jax.campaign.runner import run_identity
+    from wbc_jax.campaign.spec import load_spec
 
     spec = load_spec(TINY)
     a = run_identity(spec)
@@ -377,7 +377,7 @@ def test_run_identity_names_what_determines_the_result():
 
 
 def test_regress_spec_mismatch_found_before_rerun(tmp_path, monkeypatch, capsys):
-    from wbc_jax.study import regress
+    from wbc_jax.campaign import regress
 
     b = tmp_path / "base"
     b.mkdir()
@@ -410,7 +410,7 @@ def test_bench_defaults_are_cpu_sized(monkeypatch):
 
 
 def test_git_commit_is_this_projects_or_none(tmp_path):
-    from wbc_jax.study.campaign import _git_commit
+    from wbc_jax.campaign.runner import _git_commit
 
     head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
     if not head:

@@ -15,8 +15,8 @@ import textwrap
 import jax
 import numpy as np
 
-from wbc_jax.study import campaign as C
-from wbc_jax.study.spec import SWEEPS, load_spec
+from wbc_jax.campaign import runner as C
+from wbc_jax.campaign.spec import SWEEPS, load_spec
 
 BASELINE_SPEC = SWEEPS.parent / "reports" / "baseline" / "spec.toml"
 N_CHUNKS = 2  # campaign chunks compared (2 x 40 control steps)
@@ -30,10 +30,10 @@ SCRIPT = textwrap.dedent("""
     import os, sys, pickle
     os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
     import numpy as np, jax
-    from wbc_jax.sim import jaxcfg; jaxcfg.configure()
-    from wbc_jax.study import campaign as C
-    from wbc_jax.sim.rollout import simulate
-    from wbc_jax.sim.sharding import shard_batch
+    from wbc_jax.runtime import jaxcfg; jaxcfg.configure
+    from wbc_jax.campaign import runner as C
+    from wbc_jax.rollout.core import simulate
+    from wbc_jax.rollout.sharding import shard_batch
     assert len(jax.devices()) == 2
     with open(sys.argv[1], "rb") as f:
         a = pickle.load(f)
@@ -47,7 +47,7 @@ SCRIPT = textwrap.dedent("""
                         (a["n_logs"] - 0.5) * log_dt, chunk_seconds=a["logs_per_chunk"] * log_dt)
     assert logs.t.shape[1] == a["n_logs"]
     assert len(st.d.qpos.sharding.device_set) == 2
-    from wbc_jax.sim import rollout
+    from wbc_jax.rollout import core as rollout
     assert [f._cache_size() for f in rollout._CHUNK_FNS.values()] == [1]  # chunk 2 reused chunk 1's program
     np.savez(sys.argv[2], qpos=np.asarray(st.d.qpos)[:n], max_slip=np.asarray(st.acc.max_slip)[:n], n=n)
 """)

@@ -2,12 +2,13 @@
 
 import pytest
 
-from wbc_jax.study import spec, spec_docs
+from wbc_jax.campaign import spec
+from wbc_jax.studies import spec_docs
 
 
 def test_committed_specs_md_is_the_generators_output():
     assert spec_docs.DOCS.read_text() == spec_docs.render(), \
-        "docs/specs.md is out of date: run python -m wbc_jax.study.spec_docs"
+        "docs/specs.md is out of date: run python -m wbc_jax.studies.spec_docs"
 
 
 def test_every_campaign_key_is_documented():

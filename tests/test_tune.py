@@ -19,13 +19,13 @@ import pytest
 
 from wbc_jax import cli
 from wbc_jax.errors import SpecError
-from wbc_jax.study.gains import gains_toml, load_gains
-from wbc_jax.study.spec import SWEEPS
-from wbc_jax.study.tune_eval import score
-from wbc_jax.study.tune_report import paired_comparison
-from wbc_jax.study.tune_search import (CEMSearch, GridSearch, Space, halving_cost, halving_schedule, pareto_mask,
+from wbc_jax.campaign.gains import gains_toml, load_gains
+from wbc_jax.campaign.spec import SWEEPS
+from wbc_jax.studies.tune_eval import score
+from wbc_jax.studies.tune_report import paired_comparison
+from wbc_jax.studies.tune_search import (CEMSearch, GridSearch, Space, halving_cost, halving_schedule, pareto_mask,
                                        rank_key)
-from wbc_jax.study.tune_spec import load_tune_spec
+from wbc_jax.studies.tune_spec import load_tune_spec
 
 BASELINE_SPEC = SWEEPS.parent / "reports" / "baseline" / "spec.toml"
 CELLS = [[0.2, 0.4, 0.06], [0.4, 1.0, 0.10]]
@@ -62,7 +62,7 @@ def _write(tmp_path, text, name="tune.toml"):
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
-    from wbc_jax.study.tune import run_tune
+    from wbc_jax.studies.tune import run_tune
 
     d = tmp_path_factory.mktemp("tune")
     spec = _write(d, TINY)
@@ -86,7 +86,7 @@ def test_shipped_spec_loads():
     assert course.confirm_campaign.path.endswith("paper_campaign.toml") and course.confirm_campaign.reps == 10
     cpu = load_tune_spec(SWEEPS / "gain_tuning_cpu.toml")  # the CPU default
     assert cpu.tune["method"] == "halving" and cpu.confirm_campaign.reps == 1
-    from wbc_jax.study.tune_spec import CPU_SPEC, GPU_SPEC, default_tune_spec_path
+    from wbc_jax.studies.tune_spec import CPU_SPEC, GPU_SPEC, default_tune_spec_path
 
     assert default_tune_spec_path(True) == GPU_SPEC and default_tune_spec_path(False) == CPU_SPEC
 
@@ -224,7 +224,7 @@ def test_cem_carries_the_best_and_grid_covers_the_box(tmp_path):
 
 
 def test_halving_schedule_and_survivors():
-    from wbc_jax.study.tune_search import HalvingSearch
+    from wbc_jax.studies.tune_search import HalvingSearch
 
     assert halving_schedule(32, 3, 3, 14) == ([32, 11, 4], [2, 5, 14])
     assert halving_schedule(6, 3, 2, 6) == ([6, 2], [2, 6])
@@ -257,10 +257,10 @@ def test_paired_comparison_names_the_test_and_finds_a_shift():
 
 
 def test_compare_replay_pairs_by_seed(tmp_path):
-    """`python -m wbc_jax.study.tune_report TUNE_DIR CAMPAIGN_DIR`: the replay's results.csv paired with the tuning's
+    """`python -m wbc_jax.studies.tune_report TUNE_DIR CAMPAIGN_DIR`: the replay's results.csv paired with the tuning's
     default-gain runs by seed; a replay of another campaign is an error naming the file."""
     from wbc_jax.errors import WbcJaxError
-    from wbc_jax.study.tune_report import compare_replay
+    from wbc_jax.studies.tune_report import compare_replay
 
     rng = np.random.default_rng(1)
     n = 30
@@ -294,12 +294,12 @@ def test_cpu_batch_keeps_lapack_kernels_inline(monkeypatch):
     compile) and checks every factorisation in it, so a larger QP or model breaks this test, not a user's run."""
     import jax
 
-    from wbc_jax.sim import batch as batch_module
-    from wbc_jax.sim.rollout import make_chunk_fn
-    from wbc_jax.study import campaign
-    from wbc_jax.study.spec import load_spec, parse_spec
-    from wbc_jax.study.tune_eval import take
-    from wbc_jax.study.tune_spec import CPU_BATCH
+    from wbc_jax.rollout import batch as batch_module
+    from wbc_jax.rollout.core import make_chunk_fn
+    from wbc_jax.campaign import runner as campaign
+    from wbc_jax.campaign.spec import load_spec, parse_spec
+    from wbc_jax.studies.tune_eval import take
+    from wbc_jax.studies.tune_spec import CPU_BATCH
 
     paper = load_spec(SWEEPS / "paper_campaign.toml")  # the course scene (the larger model), 8 runs to build
     spec = parse_spec(dict(campaign=dict(paper.campaign, reps=1), perturbations=paper.perturbations,
@@ -432,7 +432,7 @@ def test_tiny_successive_halving_end_to_end(tmp_path):
     assert man["new_compilations_after_round_1"] in (0, None)
     # one compiled chunk function for every rung, bracket and the confirmation (continued states keep their types)
     assert man["compiled_variants_per_round"][-1] in (1, None) and man["compiled_variants_after_confirmation"] in (1, None)
-    from wbc_jax.study.campaign import has_accelerator
+    from wbc_jax.campaign.runner import has_accelerator
 
     if not has_accelerator():
         assert man["runs_per_call"] == 1

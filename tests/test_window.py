@@ -16,10 +16,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from wbc_jax.sim import metrics
-from wbc_jax.sim.rollout import clearance, clearance_name, final_results, with_metric_window
-from wbc_jax.study import campaign as C
-from wbc_jax.study.spec import SWEEPS, load_spec
+from wbc_jax.metrics import paper as metrics
+from wbc_jax.rollout.core import clearance, clearance_name, final_results, with_metric_window
+from wbc_jax.campaign import runner as C
+from wbc_jax.campaign.spec import SWEEPS, load_spec
 
 TINY = SWEEPS.parent / "reports" / "baseline" / "spec.toml"
 WINDOW_RTOL = 1e-6  # R, T, S of one window at two simulated lengths: float rounding only (same operations)
@@ -90,7 +90,7 @@ def test_tail_after_the_window_is_excluded(windowed):
 
 def _pairs(sim):
     """The clearance's pairs (robot geom, scene geom), in its index order."""
-    from wbc_jax.sim.clearance import clearance_pairs
+    from wbc_jax.physics.clearance import clearance_pairs
 
     p = clearance_pairs(sim.robot)
     return [(int(a), int(b)) for a, b in zip(p.robot, p.env)]
@@ -111,9 +111,9 @@ def _c_clearance(sim, qpos):
 @pytest.mark.parametrize("drop", [0.0, 0.03])
 def test_clearance_equals_mujoco_geom_distance(windowed, drop):
     """Home poses (about 1 cm clearance) and the robot lowered 3 cm (shanks into the floor): the clearance
-    (exact geometry, wbc_jax.sim.clearance) and its pair equal MuJoCo C's smallest geom distance over the same
+    (exact geometry, wbc_jax.physics.clearance) and its pair equal MuJoCo C's smallest geom distance over the same
     pairs."""
-    from wbc_jax.sim.batch import _init_fn
+    from wbc_jax.rollout.batch import _init_fn
 
     sim, dz, b, *_ = windowed
     qpos = np.asarray(b.state.d.qpos, float).copy()

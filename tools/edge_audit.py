@@ -23,7 +23,7 @@ def main(argv=None):
     from wbc_jax.planner.scene_geometry import HIP_DROP, scene_geometry, shin_clearance
     from wbc_jax.planner.spline import eval_path
     from wbc_jax.planner.transport import _com_from_object, course_plan, reference
-    from wbc_jax.sim.model import Robot
+    from wbc_jax.robot.model import Robot
 
     robot = Robot("transport")
     geo = scene_geometry(robot)

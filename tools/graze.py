@@ -47,11 +47,11 @@ def build_runs(spec, idx, log_every: int):
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
     from wbc_jax.control.variants import Variant
     from wbc_jax.planner.transport import plan_duration
-    from wbc_jax.sim.batch import prepare_batch
-    from wbc_jax.sim.model import Robot
-    from wbc_jax.sim.rollout import make_push, make_sim, with_metric_window, with_variant
-    from wbc_jax.study.campaign import initial_configuration
-    from wbc_jax.study.spec import design
+    from wbc_jax.rollout.batch import prepare_batch
+    from wbc_jax.robot.model import Robot
+    from wbc_jax.rollout.core import make_push, make_sim, with_metric_window, with_variant
+    from wbc_jax.campaign.runner import initial_configuration
+    from wbc_jax.campaign.spec import design
 
     c = spec.campaign
     dz = subset_design(design(spec), np.asarray(idx))
@@ -104,8 +104,8 @@ def main(argv=None):
 
     import jax
 
-    from wbc_jax.sim.rollout import final_results, simulate
-    from wbc_jax.study.spec import load_spec
+    from wbc_jax.rollout.core import final_results, simulate
+    from wbc_jax.campaign.spec import load_spec
 
     idx = [int(x) for x in a.runs.split(",")]
     spec = load_spec(a.spec)

@@ -2,7 +2,7 @@
 campaign metrics (issue 21): one campaign spec run at several caps and physics backends, each in a fresh process,
 then per setting the success count, the metric means, Warp's share of physics steps that ended at the cap
 (``solver_cap_fraction``) and the cell means that leave the regress tolerance band
-(``wbc_jax.study.regress.DEFAULT_TOL``: rel |ref| + abs) of the reference setting (the first cap, same backend)
+(``wbc_jax.campaign.regress.DEFAULT_TOL``: rel |ref| + abs) of the reference setting (the first cap, same backend)
 and of the other backend at the same cap. Usage::
 
     PYTHONPATH=$PWD python tools/solver_iters.py --spec sweeps/quick.toml --iterations 4,20,100 \
@@ -45,8 +45,8 @@ def spec_variant(text: str, iters: int, backend: str, reps: int, max_seconds: fl
 
 def moved(ref: pd.DataFrame, new: pd.DataFrame) -> list[str]:
     """Cell means of ``new`` outside the regress band around ``ref``'s, and success count changes
-    (``wbc_jax.study.regress.compare`` with ``ref`` as the baseline and DEFAULT_TOL, no rounding noise)."""
-    from wbc_jax.study.regress import DEFAULT_TOL, cell_means, compare
+    (``wbc_jax.campaign.regress.compare`` with ``ref`` as the baseline and DEFAULT_TOL, no rounding noise)."""
+    from wbc_jax.campaign.regress import DEFAULT_TOL, cell_means, compare
 
     base = dict(tolerance={k: dict(rel=rel, abs=ab) for k, (rel, ab) in DEFAULT_TOL.items()}, cells=cell_means(ref))
     return [f"{r['cell']} {r['metric']} {r['baseline']:.4g} -> {r['now']:.4g}" if r["metric"] in METRICS
@@ -63,7 +63,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="out/solver_iters")
     args = ap.parse_args(argv)
 
-    from wbc_jax.study.campaign import run_in_fresh_process
+    from wbc_jax.campaign.runner import run_in_fresh_process
 
     caps = [int(x) for x in args.iterations.split(",")]
     backends = args.backends.split(",")

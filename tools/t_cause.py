@@ -48,9 +48,9 @@ def _batch(cells, stand, distance, speed, iters, gains, lever, course, log_every
     """(robot, cfg, sim, batch) of the cells: flat ground (a ``distance`` walk) or the course's full plan."""
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
     from wbc_jax.planner.gait import GaitParams
-    from wbc_jax.sim.batch import prepare_batch
-    from wbc_jax.sim.model import Robot
-    from wbc_jax.sim.rollout import make_sim
+    from wbc_jax.rollout.batch import prepare_batch
+    from wbc_jax.robot.model import Robot
+    from wbc_jax.rollout.core import make_sim
 
     robot = Robot("transport" if course else "flat")
     cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=control_qp_settings(iters), object_lever=lever)
@@ -71,7 +71,7 @@ def run(cells, stand=1.0, distance=0.2, speed=0.13, settle=0.5, iters=20, log_ev
 
     from wbc_jax.planner.spline import eval_path
     from wbc_jax.planner.transport import plan_duration
-    from wbc_jax.sim.rollout import final_results, simulate, with_metric_window
+    from wbc_jax.rollout.core import final_results, simulate, with_metric_window
 
     robot, cfg, sim, b = _batch(cells, stand, distance, speed, iters, gains, lever, course, log_every)
     mu = np.array([c[1] for c in cells], float)
@@ -100,10 +100,11 @@ def wrench_trace(cells, stand=1.0, distance=0.2, speed=0.13, settle=0.5, iters=2
     import jax
     import jax.numpy as jnp
 
-    from wbc_jax.control.dynamics import GRAVITY, cone_edges, wrench_map
+    from wbc_jax.spatial import GRAVITY, cone_edges
+    from wbc_jax.physics.observe import wrench_map
     from wbc_jax.control.transport import N_FEET, assemble, contact_points, object_state
     from wbc_jax.planner.transport import plan_duration
-    from wbc_jax.sim.rollout import control_step, controller_inputs
+    from wbc_jax.rollout.core import control_step, controller_inputs
 
     robot, cfg, sim, b = _batch(cells, stand, distance, speed, iters, gains, lever, course)
     ids = robot.ids

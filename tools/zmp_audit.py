@@ -45,7 +45,7 @@ def main(argv=None):
     from wbc_jax.planner.gait import gait_phase
     from wbc_jax.planner.transport import _landings, course_plan, reference
     from wbc_jax.planner.zmp import support_margin, zmp_xy
-    from wbc_jax.sim.model import Robot
+    from wbc_jax.robot.model import Robot
 
     robot = Robot("transport")
     plan = course_plan(robot, robot.home_qpos(a.d), side=a.d, com_plan=a.com_plan)

@@ -20,12 +20,12 @@ def load_spec(path: str | Path):
     """Read and validate a campaign spec (``sweeps/*.toml``; keys in ``docs/specs.md``).
 
     Returns:
-        The validated :class:`wbc_jax.study.spec.Spec` (defaults filled in).
+        The validated :class:`wbc_jax.campaign.spec.Spec` (defaults filled in).
 
     Raises:
         wbc_jax.errors.SpecError: one line naming the file, the key and the expected range.
     """
-    from wbc_jax.study.spec import load_spec as _load
+    from wbc_jax.campaign.spec import load_spec as _load
 
     return _load(path)
 
@@ -39,7 +39,7 @@ def run_campaign(spec_path: str | Path | None, out: str | Path, *, gains: str | 
             ``sweeps/paper_campaign.toml`` when an accelerator is present.
         out: output directory: ``results.csv``, ``report/``, ``manifest.json`` (replaced atomically on success).
         gains: optional gains TOML (``best_gains.toml`` of ``wbc-jax tune``) instead of the default gains.
-        **options: passed to :func:`wbc_jax.study.campaign.run_campaign`, e.g. ``resume=True``,
+        **options: passed to :func:`wbc_jax.campaign.runner.run_campaign`, e.g. ``resume=True``,
             ``report=False``, ``progress=False``.
 
     Returns:
@@ -48,10 +48,10 @@ def run_campaign(spec_path: str | Path | None, out: str | Path, *, gains: str | 
     Raises:
         wbc_jax.errors.SpecError: a bad spec or gains file, before anything runs.
     """
-    from wbc_jax.study.campaign import run_campaign as _run
+    from wbc_jax.campaign.runner import run_campaign as _run
 
     if gains is not None:
-        from wbc_jax.study.gains import load_gains
+        from wbc_jax.campaign.gains import load_gains
 
         options["gains"] = load_gains(gains)
     return _run(None if spec_path is None else str(spec_path), str(out), **options)

@@ -58,8 +58,8 @@ def _check_bench_args(args: argparse.Namespace) -> list[int] | None:
         except ValueError as e:
             raise InputError(f"--qp: {e}") from None
     if args.what in ("rollout", "trace"):
-        from wbc_jax.sim.physics import BACKENDS, resolve_backend
-        from wbc_jax.sim.rollout import resolve_sensing
+        from wbc_jax.physics.backend import BACKENDS, resolve_backend
+        from wbc_jax.rollout.core import resolve_sensing
 
         names = [x for x in str(args.backend).split(",") if x]
         try:
@@ -150,11 +150,11 @@ def _check_out(args: argparse.Namespace, inputs=()) -> None:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     _check_demo_args(args)
-    from wbc_jax.study.demo import demo_backend
+    from wbc_jax.studies.demo import demo_backend
 
     demo_backend(args.backend)  # a bad --backend before anything is written
     _check_out(args, [args.scene if args.scene.endswith(".xml") else None])
-    from wbc_jax.study.demo import run_demo
+    from wbc_jax.studies.demo import run_demo
 
     run_demo(out=args.out, scene=args.scene, seconds=args.seconds, all_cells=args.all_cells, push=args.push,
              observer=not args.no_observer, iters=args.iters, distance=args.distance, push_at=args.push_at,
@@ -163,7 +163,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_trot(args: argparse.Namespace) -> int:
-    from wbc_jax.study.trot import run_trot, validate
+    from wbc_jax.studies.trot import run_trot, validate
 
     try:
         errors = [float(x) for x in args.mass_errors.split(",")]
@@ -179,8 +179,8 @@ def _cmd_trot(args: argparse.Namespace) -> int:
 
 def _join_processes(args: argparse.Namespace) -> None:
     """``jax.distributed`` from the ``--coordinator`` / ``--num-processes`` / ``--process-id`` flags or the
-    environment (``wbc_jax.sim.distributed``), before anything touches a device; nothing when none is set."""
-    from wbc_jax.sim import distributed
+    environment (``wbc_jax.rollout.distributed``), before anything touches a device; nothing when none is set."""
+    from wbc_jax.rollout import distributed
 
     distributed.initialize(distributed.resolve(args.coordinator, args.num_processes, args.process_id,
                                                args.local_device_ids))
@@ -188,11 +188,11 @@ def _join_processes(args: argparse.Namespace) -> None:
 
 def _cmd_campaign(args: argparse.Namespace) -> int:
     _join_processes(args)
-    from wbc_jax.study.campaign import run_campaign
+    from wbc_jax.campaign.runner import run_campaign
 
     gains = None
     if args.gains is not None:
-        from wbc_jax.study.gains import load_gains
+        from wbc_jax.campaign.gains import load_gains
 
         gains = load_gains(args.gains)  # validated before anything runs or is written
         print(f"gains from {args.gains}", flush=True)
@@ -203,7 +203,7 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
 
 def _cmd_tune(args: argparse.Namespace) -> int:
     _join_processes(args)
-    from wbc_jax.study.tune import run_tune
+    from wbc_jax.studies.tune import run_tune
 
     run_tune(args.spec, args.out, candidates=args.candidates, rounds=args.rounds, batch=args.batch,
              progress=not args.no_progress, force=args.force, backend=args.backend)
@@ -211,21 +211,21 @@ def _cmd_tune(args: argparse.Namespace) -> int:
 
 
 def _cmd_regress(args: argparse.Namespace) -> int:
-    from wbc_jax.study.regress import run_regress
+    from wbc_jax.campaign.regress import run_regress
 
     code, _ = run_regress(args.baseline, update=args.update)
     return code
 
 
 def _backend_flag(parser: argparse.ArgumentParser, default: str) -> None:
-    """``--backend auto|jax|warp``: the MJX physics implementation (``wbc_jax.sim.physics.resolve_backend``)."""
+    """``--backend auto|jax|warp``: the MJX physics implementation (``wbc_jax.physics.backend.resolve_backend``)."""
     parser.add_argument("--backend", choices=("auto", "jax", "warp"), default=None,
                         help=f"MJX physics implementation (default: {default}; 'auto' = MuJoCo Warp on a CUDA GPU "
                              "with warp-lang installed (pip install -e '.[cuda]'), else MJX's JAX implementation)")
 
 
 def _process_flags(parser: argparse.ArgumentParser) -> None:
-    """The flags that join a multi-process run (``wbc_jax.sim.distributed``, docs/cluster.md)."""
+    """The flags that join a multi-process run (``wbc_jax.rollout.distributed``, docs/cluster.md)."""
     parser.add_argument("--coordinator", default=None, metavar="HOST:PORT",
                         help="several processes (one per host or GPU; docs/cluster.md): process 0's address, the "
                              "same in every process (default: $JAX_COORDINATOR_ADDRESS, or the first node of a "
@@ -371,7 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    from wbc_jax.sim import jaxcfg
+    from wbc_jax.runtime import jaxcfg
 
     if args.command != "report":
         jaxcfg.configure()

@@ -62,7 +62,7 @@ SCHEMA = "wbc_jax.analysis.report/1"
 COMMAND = "wbc-jax report"
 CAMPAIGN_METRICS = ("R", "T", "S")
 QP_FLAG = "qp_flag_fraction"  # a campaign's results.csv column: the report's QP convergence section
-QP_FLAG_LINE = 0.001  # wbc_jax.sim.metrics.QP_FLAG_FRACTION (not imported: the report stays JAX-free)
+QP_FLAG_LINE = 0.001  # wbc_jax.metrics.paper.QP_FLAG_FRACTION (not imported: the report stays JAX-free)
 R_PLAN = "R_plan"  # a campaign's results.csv column: the report's "R: simulator vs planned forces" section
 R_SOURCE_COLUMNS = (("R", "R (simulator)"), ("R_plan", "R (QP plan)"), ("boundary_fraction", "rule share, simulator [%]"),
                     ("boundary_cone_fraction", "of which on/outside the cone [%]"),
@@ -383,7 +383,7 @@ def _one_line(e: Exception) -> str:
 
 
 def _versions() -> dict:
-    from wbc_jax import __version__
+    from wbc_jax.version import __version__
 
     return {"wbc_jax": __version__, "python": platform.python_version(), "numpy": np.__version__,
             "scipy": _version("scipy"), "pandas": pd.__version__, "statsmodels": _version("statsmodels"),

@@ -7,7 +7,7 @@ count, rho adaptation, polishing) are chosen here instead, on the QPs the transp
 1. a closed-loop rollout (batch of factor cells, the scene's plan) runs **with that variant** in the control
    loop, so each sampled QP carries the warm start the variant itself produced;
 2. every ``sample_every_s`` simulated seconds the QP of the next control step is rebuilt from the state
-   (same code path as :func:`wbc_jax.sim.rollout.control_step`: sense, controller view, dynamics terms, reference,
+   (same code path as :func:`wbc_jax.rollout.core.control_step`: sense, controller view, dynamics terms, reference,
    observer and assembly) and solved once more by the variant from its warm start, in the default dtype
    (float32 unless x64 is enabled);
 3. each sampled QP is solved by OSQP at eps 1e-9 (polished) in float64, the reference.
@@ -28,13 +28,13 @@ import time
 import jax
 import numpy as np
 
-from wbc_jax.sim.batch import prepare_batch
+from wbc_jax.rollout.batch import prepare_batch
 from wbc_jax.control.transport import TransportConfig, assemble, control_qp_settings
-from wbc_jax.sim.model import Robot
+from wbc_jax.robot.model import Robot
 from wbc_jax.bench import qp_problems as pr
 from wbc_jax.qp import solve_qp
 from wbc_jax.bench.qp import REF_EPS, osqp_solve
-from wbc_jax.sim.rollout import controller_inputs, make_sim, simulate
+from wbc_jax.rollout.core import controller_inputs, make_sim, simulate
 
 OBJ_TOL = 1e-3  # relative objective error (issue 22, float32)
 VIOL_TOL = 1e-4  # max violation relative to max(1, |Ax|_inf)
@@ -84,8 +84,8 @@ def _sample_fn(sim):
     cfg = sim.cfg
 
     def one(m, rs, plan, om, gains, push, mu_ground):
-        _, d_ctl, dyn, ref, mu = controller_inputs(sim, m, rs, plan, push, mu_ground)
-        _, (P, q, A, l, u, A_tau, h_a, _) = assemble(m, d_ctl, dyn, ref, om, gains, rs.cs, ids, cfg, mu)
+        _, obs, ref, mu = controller_inputs(sim, m, rs, plan, push, mu_ground)
+        _, (P, q, A, l, u, A_tau, h_a, _) = assemble(obs, ref, om, gains, rs.cs, ids, cfg, mu)
         return P, q, A, l, u, A_tau, h_a
 
     return one

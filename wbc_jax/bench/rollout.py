@@ -15,7 +15,7 @@ and 0.465 ms in another on the same machine, and 9 rounds in one process spread 
 
 Several devices: one process with several (JAX physics) also times the same batch with its runs over every
 device (:func:`sharded_chunk_fn`, as a campaign runs it). Several processes (``--coordinator`` etc., one device
-each; the layout of Warp physics on several GPUs, ``wbc_jax.sim.spread``): process 0 first times the whole batch
+each; the layout of Warp physics on several GPUs, ``wbc_jax.rollout.spread``): process 0 first times the whole batch
 alone on its device, then every process times a block of batch / processes runs on its own device, all starting
 together; the slowest process's time gives the aggregate figure and the speed-up over the one-device time.
 """
@@ -29,12 +29,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.sim.batch import prepare_batch
+from wbc_jax.rollout.batch import prepare_batch
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
-from wbc_jax.sim.model import Robot, mjx
-from wbc_jax.sim.rollout import make_chunk_fn, make_sim, resolve_sensing
-from wbc_jax.sim import distributed
-from wbc_jax.sim.sharding import over_runs, run_mesh, shard_batch
+from wbc_jax.robot.model import Robot, mjx
+from wbc_jax.rollout.core import make_chunk_fn, make_sim, resolve_sensing
+from wbc_jax.rollout import distributed
+from wbc_jax.rollout.sharding import over_runs, run_mesh, shard_batch
 
 
 def _timed(f, *args):
@@ -67,7 +67,7 @@ def wbc_chunk_fn(sim, b):
 
 def sharded_chunk_fn(sim, b):
     """(f, args): :func:`wbc_chunk_fn` with the run axis over every device, each device stepping its own runs
-    (``wbc_jax.sim.sharding.over_runs``, as a campaign on several devices), and ``b``'s arguments placed so."""
+    (``wbc_jax.rollout.sharding.over_runs``, as a campaign on several devices), and ``b``'s arguments placed so."""
     f = over_runs(make_chunk_fn(sim, 1, b.in_axes), run_mesh(), (b.in_axes, b.state_axes, 0, 0, 0, 0, 0),
                   (b.state_axes, 0))
     bs, _ = shard_batch(b)
@@ -138,12 +138,12 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         to ``json_path``.
     """
     if campaign is not None:
-        from wbc_jax.study.spec import load_spec
+        from wbc_jax.campaign.spec import load_spec
 
         load_spec(campaign)  # a bad spec fails here (file, key, range), before any timing
     from wbc_jax.bench.qp_audit import variants
 
-    from wbc_jax.sim.physics import resolve_backend
+    from wbc_jax.physics.backend import resolve_backend
 
     qs = variants([qp])[qp] if qp else control_qp_settings(iters)
     iters = qs.iters
@@ -176,7 +176,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
                   f"{hi:.3f})   compile {row['compile_wbc_s']:.1f} s"
                   + (f"   peak memory {row['peak_device_bytes'] / 2**30:.2f} GiB" if row["peak_device_bytes"] else ""),
                   flush=True)
-        if n_proc > 1:  # every process its block of B / n_proc runs on its own device (wbc_jax.sim.spread)
+        if n_proc > 1:  # every process its block of B / n_proc runs on its own device (wbc_jax.rollout.spread)
             b = random_batch(sim, B // n_proc, seed=1 + jax.process_index())
             tp, tw = (float(np.median(t)) for t in _physics_and_wbc(sim, b, n_env, _timed_together, rounds)[2:])
             n = B // n_proc * n_proc
@@ -188,7 +188,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
                       f"speed-up {row['process_speedup']:.2f}x", flush=True)
         elif jax.device_count() > 1 and backend == "warp":
             print(f"{'':>{len(device)}} batch {B:6d}: Warp on several devices needs one process per device "
-                  f"(wbc_jax.sim.spread; --coordinator, --num-processes, --process-id, --local-device-ids)", flush=True)
+                  f"(wbc_jax.rollout.spread; --coordinator, --num-processes, --process-id, --local-device-ids)", flush=True)
         elif jax.device_count() > 1:  # the same batch with the run axis over every device, as a campaign runs it
             f_sh, sargs = sharded_chunk_fn(sim, b)
             _timed(f_sh, *sargs)
@@ -207,13 +207,13 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
 
 def campaign_cold_warm(spec: str) -> dict:
     """Run ``wbc-jax campaign --spec SPEC --no-report`` twice, each in a fresh process, with a new (empty)
-    compilation cache shared by both: the first run compiles everything, the second loads it (``wbc_jax.sim.aot`` and
+    compilation cache shared by both: the first run compiles everything, the second loads it (``wbc_jax.runtime.aot`` and
     the persistent cache). Prints and returns, per run, the manifest's wall time, import / setup / compile estimate
     [s], rollout env-steps/s and successes."""
     import tempfile
     from pathlib import Path
 
-    from wbc_jax.study.campaign import run_in_fresh_process
+    from wbc_jax.campaign.runner import run_in_fresh_process
 
     keys = ("wall_s_total", "wall_s_rollout", "import_s", "setup_s", "compile_s_estimate", "env_steps_per_s",
             "n_success", "n_runs")
@@ -293,12 +293,14 @@ def run_components(batch: int = 256, iters: int = 50, scene: str = "transport", 
     """Latency of each stage of one control step, each stage its own jit(vmap) call on a state ``warm_steps`` into
     the run (median of ``reps`` calls; includes one dispatch per call, so the stages sum to more than the fused step).
     """
-    from wbc_jax.sim import contacts, metrics, physics
-    from wbc_jax.control.dynamics import dyn_terms
+    from wbc_jax.physics import contacts
+    from wbc_jax.metrics import paper as metrics
+    from wbc_jax.physics import backend as physics
+    from wbc_jax.physics.observe import observe
     from wbc_jax.control.transport import assemble
     from wbc_jax.planner.transport import reference
     from wbc_jax.qp import solve_qp
-    from wbc_jax.sim.rollout import CONTACT_DIST, control_step
+    from wbc_jax.rollout.core import CONTACT_DIST, control_step
 
     robot = Robot(scene)
     ids = robot.ids
@@ -311,17 +313,17 @@ def run_components(batch: int = 256, iters: int = 50, scene: str = "transport", 
     V = lambda f, n_run: jax.jit(jax.vmap(f, in_axes=(ax,) + (0,) * n_run))  # noqa: E731
     f_sense = V(physics.sense, 1)
     ds = f_sense(b.model, rs.d)
-    f_dyn = V(lambda m, d: dyn_terms(m, d, ids), 1)
-    dyn = f_dyn(b.model, ds)
+    f_obs = V(lambda m, d: observe(m, d, ids), 1)
+    obs = f_obs(b.model, ds)
 
-    def ref_fn(m, d, dyn, plan, p_lift):
+    def ref_fn(m, d, obs, plan, p_lift):
         contact = contacts.foot_dist(sim, m, d) < CONTACT_DIST
-        return reference(plan, d.time, p_lift, contact, dyn.p_foot)
+        return reference(plan, d.time, p_lift, contact, obs.robot.p_foot)
 
     f_ref = V(ref_fn, 4)
-    ref = f_ref(b.model, ds, dyn, b.plan, rs.p_lift)
-    f_asm = V(lambda m, d, dyn, ref, om, g, cs, mg: assemble(m, d, dyn, ref, om, g, cs, ids, cfg, mg), 7)
-    _, (P, q, A, l, u, A_tau, h_a, _) = f_asm(b.model, ds, dyn, ref, b.om, b.gains, rs.cs, b.mu_ground)
+    ref = f_ref(b.model, ds, obs, b.plan, rs.p_lift)
+    f_asm = jax.jit(jax.vmap(lambda obs, ref, om, g, cs, mg: assemble(obs, ref, om, g, cs, ids, cfg, mg)))
+    _, (P, q, A, l, u, A_tau, h_a, _) = f_asm(obs, ref, b.om, b.gains, rs.cs, b.mu_ground)
     f_qp = jax.jit(jax.vmap(lambda P, q, A, l, u, w: solve_qp(P, q, A, l, u, warm=w, settings=cfg.qp)))
     res = f_qp(P, q, A, l, u, rs.cs.warm)
     tau = jnp.clip(jnp.einsum("bij,bj->bi", A_tau, res.x) + h_a, -ids.tau_max, ids.tau_max)
@@ -333,10 +335,9 @@ def run_components(batch: int = 256, iters: int = 50, scene: str = "transport", 
     f_step = V(lambda m, rs, plan, om, g, push, mg: control_step(sim, m, rs, plan, om, g, push, mg), 6)
     f_phys = V(mjx.step, 1)
     stages = [("sense (fwd_position + fwd_velocity)", f_sense, (b.model, rs.d)),
-              ("dyn_terms", f_dyn, (b.model, ds)),
-              ("reference", f_ref, (b.model, ds, dyn, b.plan, rs.p_lift)),
-              ("assemble (observer, jacobians, build_qp)", f_asm, (b.model, ds, dyn, ref, b.om, b.gains, rs.cs,
-                                                                   b.mu_ground)),
+              ("observe (dynamics terms, jacobians)", f_obs, (b.model, ds)),
+              ("reference", f_ref, (b.model, ds, obs, b.plan, rs.p_lift)),
+              ("assemble (observer, build_qp)", f_asm, (obs, ref, b.om, b.gains, rs.cs, b.mu_ground)),
               (f"solve_qp ({iters} iterations)", f_qp, (P, q, A, l, u, rs.cs.warm)),
               ("advance (actuation, constraint solve, integrate)", f_adv, (b.model, ds, tau)),
               ("metrics.step_integrands", f_met, (b.model, ds, d_next, b.om.mu)),

@@ -33,10 +33,10 @@ import jax
 import jax.numpy as jnp
 
 from wbc_jax.control.centroidal_dynamics import centroidal_terms
-from wbc_jax.control.dynamics import GRAVITY, DynTerms, full_precision, point_jacobians, rot_error
 from wbc_jax.control.transport import control_qp_settings
-from wbc_jax.sim.model import RobotIds
 from wbc_jax.qp import QPResult, QPSettings, solve_qp
+from wbc_jax.spatial import GRAVITY, full_precision, rot_error
+from wbc_jax.types import DynTerms, Observation, RobotIds
 
 N_FEET = 4
 N_ROWS = 6 + 12 + 16 + 4 + 18  # QP rows (see the module docstring)
@@ -290,22 +290,24 @@ def swing_leg_feedback(dyn: DynTerms, ref: CentroidalRef, gains: CentroidalGains
 
 
 @full_precision
-def centroidal_control(m, d, dyn: DynTerms, ref: CentroidalRef, gains: CentroidalGains, cs: CentroidalState,
+def centroidal_control(obs: Observation, ref: CentroidalRef, gains: CentroidalGains, cs: CentroidalState,
                        ids: RobotIds, cfg: CentroidalConfig):
     """One control step: momentum references, QP, torques (eqs. 34-36).
 
     Args:
-        m, d: mjx.Model and sensed mjx.Data; dyn: the true DynTerms (``dyn_terms(m, d, ids)``).
+        obs: what the controller reads of the state (:func:`wbc_jax.physics.observe.observe`; its ``robot`` terms
+            are the true ones, which ``gains.mass_scale`` rescales into the controller's model).
 
     Returns:
         (tau (18,) actuator torques [N m], new CentroidalState, CentroidalDiag).
     """
     nv = ids.nv_robot
-    dyn_c = scaled_model(dyn, gains.mass_scale, m.dof_armature[:nv])
-    J_t = point_jacobians(m, d, ids, dyn.p_tray[None], [ids.tray_body])[0][0]  # (3, nv)
+    dyn = obs.robot
+    dyn_c = scaled_model(dyn, gains.mass_scale, obs.armature)
+    J_t = obs.J_tray_top  # (3, nv)
     sw_int = jnp.where(ref.swing[:, None], cs.sw_int + (ref.p_sw - dyn.p_foot) * cfg.dt, 0.0)
     P, q, A, l, u, A_tau, b_tau, hdot_d = build_qp(dyn_c, J_t, ref, gains, sw_int, cs.q_post,
-                                                         d.qpos[ids.act_qpos[12:]], ids)
+                                                         obs.qpos[ids.act_qpos[12:]], ids)
     res = solve_qp(P, q, A, l, u, warm=cs.warm, settings=cfg.qp)
     tau_qp = A_tau @ res.x + b_tau  # (34)
     sw_leg = jnp.concatenate([jnp.repeat(ref.swing, 3), jnp.zeros(6, bool)])

@@ -1,6 +1,6 @@
 """Centroidal dynamics terms (centroidal paper Sec. 2.2; Wensing and Orin's CMM from the mass matrix).
 
-From the floating-base rows of MuJoCo's joint-space equations (:class:`~wbc_jax.control.dynamics.DynTerms`):
+From the floating-base rows of MuJoCo's joint-space equations (:class:`~wbc_jax.physics.observe.DynTerms`):
 
     A_G     = X^T M[0:6, :]                           centroidal momentum matrix        (eq. 13)
     Adot v  = X^T h[0:6] - [0, 0, m g, 0, 0, 0]^T     bias with gravity removed          (eq. 14)
@@ -23,7 +23,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from wbc_jax.control.dynamics import GRAVITY, DynTerms, skew
+from wbc_jax.spatial import GRAVITY, skew
+from wbc_jax.types import DynTerms
 
 
 class CentroidalTerms(NamedTuple):

@@ -35,12 +35,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from wbc_jax.control.dynamics import (GRAVITY, DynTerms, cone_edges, edge_wrenches, full_precision,
-                                      point_jacobians, rot_error)
 from wbc_jax.control.variants import FULL, Variant
-from wbc_jax.sim.model import RobotIds
 from wbc_jax.qp import QPResult, QPSettings, solve_qp
-from wbc_jax.sim.scenario import cube_inertia
+from wbc_jax.spatial import GRAVITY, cone_edges, cube_inertia, edge_wrenches, full_precision, rot_error
+from wbc_jax.types import DynTerms, ObjectModel, ObjectState, Observation, Reference, RobotIds
 
 N_FEET = 4
 N_OBJ = 4
@@ -106,55 +104,6 @@ def default_gains() -> TransportGains:
         w_com=f(50.0, 50.0, 50.0, 50.0, 50.0, 50.0), w_obj_f=f(1000.0), w_obj_t=f(10000.0), w_post=f(1.0),
         r_vdot=f(1e-3), r_lam=f(1e-3), r_slack=f(1000.0), k_obs=f(10.0), f_min=f(2.0), f_max=f(400.0), tau_margin=f(0.98),
     )
-
-
-class ObjectModel(NamedTuple):
-    """What the controller knows about the object (assumptions A1, A2, A5), per run.
-
-    Attributes:
-        mass: () [kg]; side: () cube side d [m]; mu: () tray friction [-];
-        inset: () horizontal inset of the contact points from the cube's edges [m].
-    """
-
-    mass: jax.Array
-    side: jax.Array
-    mu: jax.Array
-    inset: jax.Array
-
-
-class ObjectState(NamedTuple):
-    """Measured object state: p (3,) [m], R (3, 3), v (3,) [m/s], omega (3,) world [rad/s]."""
-
-    p: jax.Array
-    R: jax.Array
-    v: jax.Array
-    omega: jax.Array
-
-
-class Reference(NamedTuple):
-    """Planner output at one instant (world frame).
-
-    Attributes:
-        p_obj, v_obj, a_obj: (3,) object reference; R_obj: (3, 3) object orientation reference.
-        p_com, v_com, a_com: (3,) CoM reference; R_base: (3, 3) trunk orientation reference.
-        swing: (4,) bool swing mask; p_sw, v_sw, a_sw: (4, 3) swing-foot references.
-        load: (4,) in [0, 1], fraction of the normal-force cap a stance foot may carry (ramps to 0
-            before liftoff and back up after touchdown so the force distribution changes smoothly).
-    """
-
-    p_obj: jax.Array
-    v_obj: jax.Array
-    a_obj: jax.Array
-    R_obj: jax.Array
-    p_com: jax.Array
-    v_com: jax.Array
-    a_com: jax.Array
-    R_base: jax.Array
-    swing: jax.Array
-    p_sw: jax.Array
-    v_sw: jax.Array
-    a_sw: jax.Array
-    load: jax.Array
 
 
 class ObserverState(NamedTuple):
@@ -259,7 +208,8 @@ class TransportConfig:
 class QPDiag(NamedTuple):
     """Per-step QP health and command: tau (18,) applied (clipped) torques [N m], prim_res, dual_res, flag,
     tau_excess: () largest amount by which the unclipped QP torque exceeded its limit [N m] (< 0: within),
-    iters: () int32 ADMM iterations the step took."""
+    iters: () int32 ADMM iterations the step took, obj_forces: (4, 3) the object contact forces the solution
+    plans, tray contact frame, normal first [N] (:func:`planned_object_forces`)."""
 
     tau: jax.Array
     prim_res: jax.Array
@@ -267,12 +217,19 @@ class QPDiag(NamedTuple):
     flag: jax.Array
     tau_excess: jax.Array
     iters: jax.Array
+    obj_forces: jax.Array
 
 
-def object_state(d, ids: RobotIds) -> ObjectState:
-    a = ids.obj_dof_adr
-    R = d.xmat[ids.obj_body]
-    return ObjectState(p=d.xpos[ids.obj_body], R=R, v=d.qvel[a : a + 3], omega=R @ d.qvel[a + 3 : a + 6])
+def planned_object_forces(x, mu, nv: int, k: int) -> jax.Array:
+    """The object contact forces F_c,i = E_c Lambda_b,i of a QP solution ``x`` (n,), in the tray's contact frame
+    (E_c = ``cone_edges(mu, k)``, z = the contact normal), normal first: (N_OBJ, 3) [N].
+
+    Args:
+        x: [vdot (nv), Lambda_gr (k N_FEET), Lambda_b (k N_OBJ)]; mu: () tray friction; nv, k: static sizes.
+    """
+    lam_b = x[nv + k * N_FEET: nv + k * (N_FEET + N_OBJ)].reshape(N_OBJ, k)
+    f = lam_b @ cone_edges(mu, k).T  # (N_OBJ, 3) x, y tangential, z normal
+    return jnp.concatenate([f[:, 2:3], f[:, 0:2]], axis=1)
 
 
 def contact_points(obj: ObjectState, om: ObjectModel):
@@ -314,7 +271,7 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     ``variant``: ablation switches (:mod:`wbc_jax.control.variants`): ``tray_cone`` scales the object-wrench
     weights and, at 0, pins the object's contact multipliers to 0; ``posture`` scales the posture weight.
     ``mu_ground``: () or (4,) friction coefficient of the ground under each foot (the rollout passes the
-    surface each foot is nearest to: floor or a block, :func:`wbc_jax.sim.contacts.foot_ground`).
+    surface each foot is nearest to: floor or a block, :func:`wbc_jax.physics.contacts.foot_ground`).
 
     Returns:
         (P (n, n), q (n,), A (m, n), l (m,), u (m,), A_tau (18, n), h_a (18,), H_com (6, n)) where
@@ -422,34 +379,38 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
 
 
 @full_precision
-def assemble(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gains: TransportGains, cs: ControlState,
+def assemble(obs: Observation, ref: Reference, om: ObjectModel, gains: TransportGains, cs: ControlState,
              ids: RobotIds, cfg: TransportConfig, mu_ground=1.0):
     """Observer step and the QP of this control step: (new ObserverState, :func:`build_qp`'s outputs)."""
-    obs = observer_update(cs.obs, dyn, gains.k_obs * cs.variant.observer, cfg.dt)
-    obj = object_state(d, ids)
-    Jp, Jr, Jdp, Jdr = point_jacobians(m, d, ids, obj.p[None], [ids.tray_body])
-    J_o = jnp.concatenate([Jp[0], Jr[0]])  # (6, nv)
-    Jdv_o = jnp.concatenate([Jdp[0], Jdr[0]])
-    return obs, build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, obs.r, ids, cfg, mu_ground, cs.q_post, cs.variant)
+    dyn = obs.robot
+    observer = observer_update(cs.obs, dyn, gains.k_obs * cs.variant.observer, cfg.dt)
+    return observer, build_qp(dyn, obs.obj, obs.J_tray_obj, obs.Jdv_tray_obj, ref, om, gains, observer.r, ids, cfg,
+                              mu_ground, cs.q_post, cs.variant)
 
 
 @full_precision
-def transport_control(m, d, dyn: DynTerms, ref: Reference, om: ObjectModel, gains: TransportGains,
+def transport_control(obs: Observation, ref: Reference, om: ObjectModel, gains: TransportGains,
                       cs: ControlState, ids: RobotIds, cfg: TransportConfig, mu_ground=1.0):
     """One control step: observer, QP, torques.
+
+    Args:
+        obs: what the controller reads of the state (:func:`wbc_jax.physics.observe.observe`); ref: the planner's
+            reference; om: the controller's object model; gains; cs: its state; ids: static ids; cfg: its
+            static configuration; mu_ground: () or (4,) friction under each foot.
 
     Returns:
         (tau (18,) actuator torques [N m], new ControlState, QPDiag).
     """
     with jax.named_scope("qp_assemble"):
-        obs, (P, q, A, l, u, A_tau, h_a, H_com) = assemble(m, d, dyn, ref, om, gains, cs, ids, cfg, mu_ground)
+        observer, (P, q, A, l, u, A_tau, h_a, H_com) = assemble(obs, ref, om, gains, cs, ids, cfg, mu_ground)
     # the multiplier rows (12) are the QP's last rows, each bounding one of its last variables (QPSettings.box_rows)
     res = solve_qp(P, q, A, l, u, warm=cs.warm, settings=cfg.qp._replace(box_rows=cfg.k * (N_FEET + N_OBJ)))
     tau_raw = A_tau @ res.x + h_a
     tmax = jnp.asarray(ids.tau_max)
     tau = jnp.clip(tau_raw, -tmax, tmax)
     # commanded net contact wrench about the CoM, for the observer's next step
-    obs = obs._replace(w_cmd=H_com @ res.x)
+    observer = observer._replace(w_cmd=H_com @ res.x)
     diag = QPDiag(tau=tau, prim_res=res.prim_res, dual_res=res.dual_res, flag=res.flag,
-                  tau_excess=jnp.max(jnp.abs(tau_raw) - tmax), iters=res.iters)
-    return tau, cs._replace(warm=res, obs=obs), diag
+                  tau_excess=jnp.max(jnp.abs(tau_raw) - tmax), iters=res.iters,
+                  obj_forces=planned_object_forces(res.x, om.mu, ids.nv_robot, cfg.k))
+    return tau, cs._replace(warm=res, obs=observer), diag

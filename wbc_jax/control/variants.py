@@ -3,7 +3,7 @@
 A variant is three 0/1 switches (:class:`Variant`) carried in each run's ``ControlState``
 (:mod:`wbc_jax.control.transport`). They are data, not static structure: one compiled rollout serves every
 variant and a campaign may mix variants in one batched rollout (the ``variant`` and ``observer`` factors of
-:mod:`wbc_jax.study.factors`). A switch at 1 leaves the controller exactly as without switches (products with
+:mod:`wbc_jax.campaign.factors`). A switch at 1 leaves the controller exactly as without switches (products with
 1.0 and unchanged bounds), so ``full`` reproduces earlier results bit for bit.
 
 - ``tray_cone`` 0: the object's contact forces leave the whole-body QP. Their multipliers Lambda_b (the

@@ -46,7 +46,7 @@ def _aabb(m: mujoco.MjModel, d: mujoco.MjData, g: int) -> np.ndarray:
 
 
 def scene_geometry(robot) -> SceneGeometry:
-    """Terrain and obstacle boxes of a :class:`wbc_jax.sim.model.Robot`'s scene."""
+    """Terrain and obstacle boxes of a :class:`wbc_jax.robot.model.Robot`'s scene."""
     m, ids = robot.mj_model, robot.ids
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)
@@ -106,7 +106,7 @@ class LegGeometry(NamedTuple):
 
 
 def leg_geometry(robot, leg: str = "FR") -> LegGeometry:
-    """The :class:`LegGeometry` of a :class:`wbc_jax.sim.model.Robot`, read from the MJCF (bodies ``{leg}_thigh``
+    """The :class:`LegGeometry` of a :class:`wbc_jax.robot.model.Robot`, read from the MJCF (bodies ``{leg}_thigh``
     and ``{leg}_calf``, geoms ``{leg}_shank`` (a capsule) and ``{leg}_foot``)."""
     m = robot.mj_model
     d = mujoco.MjData(m)

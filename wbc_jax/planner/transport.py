@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from wbc_jax.control.transport import Reference
+from wbc_jax.types import Reference
 from wbc_jax.planner.gait import FOOT_NAMES, PAIRS, GaitParams, foot_stance_time, gait_phase, half_cycle
 from wbc_jax.planner.apf import APFParams, overhead, plan_dip
 from wbc_jax.planner.scene_geometry import clear_of_edges, leg_geometry, scene_geometry, terrain_height
@@ -169,7 +169,7 @@ def straight_plan(robot, qpos0: np.ndarray, distance: float = 3.4, speed: float 
     """Plan a straight transport of ``distance`` metres along ``direction`` at ``speed`` (flat ground).
 
     Args:
-        robot: wbc_jax.sim.model.Robot; qpos0: (nq,) initial configuration (object on the tray).
+        robot: wbc_jax.robot.model.Robot; qpos0: (nq,) initial configuration (object on the tray).
         terrain: as :func:`course_plan` (on flat ground both give the same plan).
         com_plan: as :func:`course_plan`.
     """

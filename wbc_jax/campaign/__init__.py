@@ -1,0 +1,1 @@
+"""Campaigns: spec, design, runner with checkpoints, results, regress."""

@@ -1,0 +1,121 @@
+"""A campaign's checkpoint: the batched rollout state after the last finished chunk, next to the output folder.
+
+``.<DIR name>.campaign-ckpt/`` holds ``state_K.npz`` (every leaf of the batched RunState after chunk K) and
+``meta.json`` (chunks done, wall time so far, the run's identity (``wbc_jax.campaign.runner.run_identity``: spec,
+gains, backend, numerics versions, run count) and the state file's SHA-256). :func:`save_state` writes the state
+first and then the meta that names it, so an interruption at any point leaves a consistent pair;
+:func:`read_meta` checks the meta against this run's identity before anything is built or compiled, and
+:func:`load_state` the state against the fresh state's structure. Damage or a mismatch is a one-line
+``CheckpointError`` that says how to restart; a checkpoint is never trusted silently.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wbc_jax.errors import CheckpointError
+from wbc_jax.io_utils import write_json_atomic
+
+
+def ckpt_dir(out: Path) -> Path:
+    return out.parent / f".{out.name}.campaign-ckpt"
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def save_state(ck: Path, state, meta: dict) -> None:
+    """State of chunk k to ``state_k.npz`` first, then ``meta.json`` (naming that file and its SHA-256)
+    atomically, then the older state files go: an interruption at any point leaves a consistent (meta, state)
+    pair."""
+    ck.mkdir(parents=True, exist_ok=True)
+    leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(jax.device_get(state))]
+    name = f"state_{meta['chunks_done']}.npz"
+    fd, tmp = tempfile.mkstemp(prefix=".state.", suffix=".npz", dir=ck)
+    with os.fdopen(fd, "wb") as f:
+        np.savez(f, *leaves)
+    digest = sha256_file(Path(tmp))
+    os.replace(tmp, ck / name)
+    write_json_atomic(ck / "meta.json", dict(meta, state_file=name, state_sha256=digest))
+    for old in ck.glob("state_*.npz"):
+        if old.name != name:
+            old.unlink(missing_ok=True)
+
+
+def read_meta(ck: Path, identity: dict, n_chunks: int) -> dict | None:
+    """The checked ``meta.json`` of checkpoint ``ck`` (None when there is no checkpoint).
+
+    Raises:
+        CheckpointError: meta.json missing beside state files, unreadable, incomplete or with values out of
+            range; an identity entry that differs from ``identity``; the state file missing or not matching its
+            SHA-256. The message says how to restart.
+    """
+    restart = f"delete {ck} or run without --resume to start over"
+    if not ck.exists():
+        return None
+    meta_p = ck / "meta.json"
+    if not meta_p.exists():
+        if any(ck.iterdir()):
+            raise CheckpointError(f"{ck}: damaged checkpoint (meta.json missing); {restart}")
+        return None
+    try:
+        meta = json.loads(meta_p.read_text())
+        done, name, digest = int(meta["chunks_done"]), str(meta["state_file"]), str(meta["state_sha256"])
+        float(meta["wall_s"]), list(meta["marks"]), dict(meta["identity"])  # noqa: B018
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise CheckpointError(f"{ck}: damaged checkpoint (meta.json unreadable or incomplete: "
+                              f"{type(e).__name__} {e}); {restart}") from None
+    differ = sorted(k for k in set(identity) | set(meta["identity"]) if meta["identity"].get(k) != identity.get(k))
+    if differ:
+        raise CheckpointError(f"{ck}: checkpoint belongs to another run ({', '.join(differ)} differ"
+                              f"{': started with other --gains' if 'gains_hash' in differ else ''}); {restart}")
+    if not (1 <= done <= n_chunks) or meta.get("n_chunks") != n_chunks or name != f"state_{done}.npz":
+        raise CheckpointError(f"{ck}: damaged checkpoint (chunks_done {meta.get('chunks_done')!r} of "
+                              f"{meta.get('n_chunks')!r}, state file {name!r}; this run has {n_chunks}); {restart}")
+    state_p = ck / name
+    if not state_p.is_file() or sha256_file(state_p) != digest:
+        raise CheckpointError(f"{ck}: damaged checkpoint ({name} missing or its SHA-256 differs); {restart}")
+    return meta
+
+
+def load_state(ck: Path, state_like, identity: dict, n_chunks: int):
+    meta = read_meta(ck, identity, n_chunks)
+    if meta is None:
+        return None, None
+    try:
+        with np.load(ck / meta["state_file"]) as z:
+            leaves = [z[f"arr_{i}"] for i in range(len(z.files))]
+    except (OSError, ValueError, KeyError) as e:
+        raise CheckpointError(f"{ck}: damaged checkpoint ({meta['state_file']}: {e}); delete {ck} or run "
+                              "without --resume to start over") from None
+    treedef = jax.tree_util.tree_structure(state_like)
+    like = jax.tree_util.tree_leaves(state_like)
+    if treedef.num_leaves != len(leaves) or any(x.shape != a.shape for x, a in zip(leaves, like)):
+        raise CheckpointError(f"{ck}: checkpoint does not match this version's rollout state; delete {ck} or "
+                              "run without --resume to start over")
+    # placed like the fresh state (committed to its device where that is): an uncommitted leaf changes the lowered
+    # program's input shardings, so the chunk function would compile a second time and miss the compilation cache
+    out = [jax.device_put(x, a.sharding) if getattr(a, "committed", False) else jnp.asarray(x)
+           for x, a in zip(leaves, like)]
+    return jax.tree_util.tree_unflatten(treedef, out), meta
+
+
+def n_chunks_hint(ck: Path) -> int:
+    """The chunk count a checkpoint's meta.json claims (checked again against the build); 0 when unreadable."""
+    try:
+        return int(json.loads((ck / "meta.json").read_text())["n_chunks"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0

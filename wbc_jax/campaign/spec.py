@@ -1,0 +1,409 @@
+"""Campaign specs (``sweeps/*.toml``): loading with stdlib ``tomllib``, validation, the design table.
+
+A spec has up to four tables (every key optional except ``factors``; an example with the paper specs' values below;
+every key's default, unit and range: ``docs/specs.md``, generated from the key tables ``CAMPAIGN``, ``FACTORS``,
+``PERTURBATIONS`` and ``ANALYSIS`` by :mod:`wbc_jax.studies.spec_docs`)::
+
+    [campaign]                 # what is simulated
+    name = "paper"             # free text
+    reps = 10                  # repetitions per cell, 1..1000
+    seed = 2024                # base seed, 0 <= seed < 2**32
+    scene = "transport"        # "transport" (obstacle course) or "flat"
+    distance = 3.4             # object travel [m], 0.05..10
+    speed = 0.13               # cruise speed [m/s], 0.01..0.5
+    extra_seconds = 0.5        # simulated time after the planned path ends [s], 0..10
+    max_seconds = 0.0          # cap on the simulated time [s] (0: no cap; a capped run stops mid-path), 0..600
+    qp_iters = 4               # ADMM iterations per control step before the convergence checks (up to 200), 1..1000
+    control_substeps = 1       # physics steps per control step (zero-order hold), 1..10; 1 = control at the
+                               # physics rate (the control period is this x the scene's timestep; the metrics'
+                               # physics-rate monitors still run every physics step, see wbc_jax.rollout.core)
+    chunk_seconds = 2.0        # simulated seconds per jit call / checkpoint, 0.02..60
+    m = 0.3                    # object mass [kg], tray friction, object side [m], foot/ground friction (0: the
+    mu = 0.7                   # scene's) and controller variant of every run, for those of them that are not
+    d = 0.08                   # factors
+    ground_mu = 0.0
+    variant = "full"
+    terrain = "known"          # "known": footholds on the blocks' tops from the scene file; "blind": at the
+                               # floor's height, the touchdown rules handle the blocks (wbc_jax.planner.transport)
+    com_plan = "zmp"           # "zmp": the CoM replanned per footstep, ZMP on the stance pair's line (the paper's;
+                               # wbc_jax.planner.transport.zmp_com_path); "spline": it follows the object (+ offset)
+    sensing = "auto"           # Warp: "exact" (a forward call gives the controller the current state) or "delayed"
+                               # (it reads what Warp's step left: the state one physics step old; one call fewer);
+                               # "auto": delayed on Warp (same statistics, measured), exact on JAX
+
+    [factors]                  # 1 to 5 factors of wbc_jax.campaign.factors, at least 2 levels each: here the
+    m = [0.2, 0.3, 0.4]        # paper's 3 x 3 x 3: object mass [kg], 0 < m <= 20
+    mu = [0.4, 0.7, 1.0]       # tray friction, 0 < mu <= 5
+    d = [0.06, 0.08, 0.10]     # object side [m], 0.008 < d <= 0.2 (the robot's tray narrows it further)
+                               # others: ground_mu, speed, push_N, qvel_noise_std, observer, variant, gain.<leaf>
+
+    [perturbations]            # per run, drawn from the run's own seed; all zero = deterministic repetitions
+    object_xy_mm = 3.0         # object placement on the tray: uniform in +-value along x and y [mm], 0..20
+    object_yaw_deg = 3.0       # object yaw on the tray: uniform in +-value [deg], 0..30
+    base_speed_std = 0.02      # initial horizontal velocity of robot and object, Gaussian std per axis [m/s], 0..0.5
+    push_max_N = 20.0          # trunk push: magnitude uniform in [0, value] [N], random horizontal direction, 0..200
+    push_duration_s = 0.2      # push duration [s], 0..2
+    push_window = [0.2, 0.7]   # push start: uniform in this fraction of the planned duration, 0 <= a <= b < 1
+    qvel_noise_std = 0.01      # noise on the state the controller sees: white Gaussian std added every control step
+                               # to each generalized velocity it reads [m/s, rad/s], 0..1 (the physics stays exact;
+                               # drawn from the run's seed, see wbc_jax.rollout.core.Push)
+    push_dir_deg = 0.0         # direction of the push_N factor's pushes from world +x [deg] (only with push_N)
+
+    [analysis]                 # the report's statistics (not hashed)
+    order = 2                  # highest ANOVA interaction order
+    alpha = 0.05
+
+Run i (cells in the design order of the factors' product, :func:`wbc_jax.campaign.factors.design_order`, then reps)
+has seed ``SeedSequence([seed, i]).generate_state(1)[0]``; its perturbations are drawn from
+``numpy.random.default_rng(run_seed)`` in the order dx, dy, yaw, vx, vy, push magnitude, push angle, push start.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import math
+import tomllib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from wbc_jax.control.variants import VARIANTS
+from wbc_jax.errors import InputError, SpecError
+from wbc_jax.io_utils import read_capped
+from wbc_jax.campaign import factors as factors_mod
+
+SWEEPS = Path(__file__).resolve().parents[2] / "sweeps"
+
+# The validator's key tables (docs/specs.md is generated from them: wbc_jax.studies.spec_docs).
+# key: (type, default, lo, hi, lo_open, unit/description)
+CAMPAIGN = {
+    "name": (str, "campaign", None, None, False, "text"),
+    "reps": (int, 10, 1, 1000, False, "repetitions per cell"),
+    "seed": (int, 0, 0, 2**32 - 1, False, "base seed"),
+    "scene": (str, "transport", None, None, False, '"transport" or "flat"'),
+    "distance": (float, 3.4, 0.05, 10.0, False, "[m]"),
+    "speed": (float, 0.13, 0.01, 0.5, False, "[m/s]"),
+    "extra_seconds": (float, 0.5, 0.0, 10.0, False, "[s]"),
+    "max_seconds": (float, 0.0, 0.0, 600.0, False, "[s], 0 = no cap"),
+    "qp_iters": (int, 4, 1, 1000, False, "ADMM iterations before the convergence checks"),
+    "control_substeps": (int, 1, 1, 10, False,
+                         "physics steps per control step (zero-order hold); 1 = control at the physics rate"),
+    "chunk_seconds": (float, 2.0, 0.02, 60.0, False, "[s]"),
+    "solver_iterations": (int, 0, 0, 1000, False, "MuJoCo constraint-solver iterations per physics step; 0 = the scene's"),
+    "backend": (str, "auto", None, None, False,
+                '"auto" (Warp on a CUDA GPU with warp-lang, else JAX), "jax" or "warp": the MJX physics implementation'),
+    # a run's value of a factor the spec does not vary (wbc_jax.campaign.factors.REGISTRY: FactorDef.fixed)
+    "m": (float, 0.3, 0.0, 20.0, True, "[kg]"),
+    "mu": (float, 0.7, 0.0, 5.0, True, "[-]"),
+    "d": (float, 0.08, 0.008, 0.2, True, "[m]"),
+    "ground_mu": (float, 0.0, 0.0, 5.0, False, "[-], 0 = the scene's"),
+    "variant": (str, "full", None, None, False, '"full", "no_tray_cone", "no_observer" or "no_posture"'),
+    "terrain": (str, "known", None, None, False,
+                '"known" (footholds on the blocks, from the scene file) or "blind" (footholds at the floor\'s '
+                'height; the touchdown rules handle the blocks)'),
+    "com_plan": (str, "zmp", None, None, False,
+                 '"spline" (the CoM follows the object) or "zmp" (replanned per footstep: ZMP on the stance pair\'s '
+                 'line)'),
+    "sensing": (str, "auto", None, None, False,
+                '"auto" (delayed on Warp, exact on JAX), "exact" or "delayed" (Warp only: the controller reads the '
+                'state one physics step old and Warp\'s forward call is saved; wbc_jax.rollout.core.SENSING)'),
+}
+# the factors a spec may vary: wbc_jax.campaign.factors (name -> FactorDef; plus gain.<leaf> multipliers)
+FACTORS = factors_mod.REGISTRY
+PERTURBATIONS = {
+    "object_xy_mm": (float, 0.0, 0.0, 20.0, False, "[mm]"),
+    "object_yaw_deg": (float, 0.0, 0.0, 30.0, False, "[deg]"),
+    "base_speed_std": (float, 0.0, 0.0, 0.5, False, "[m/s]"),
+    "push_max_N": (float, 0.0, 0.0, 200.0, False, "[N]"),
+    "push_duration_s": (float, 0.2, 0.0, 2.0, False, "[s]"),
+    "push_window": (list, [0.2, 0.7], 0.0, 1.0, False, "fractions of the planned duration, 0 <= a <= b < 1"),
+    "qvel_noise_std": (float, 0.0, 0.0, 1.0, False, "[m/s, rad/s]"),
+    "push_dir_deg": (float, 0.0, 0.0, 360.0, False, "[deg]"),
+}
+# the report's statistics (not hashed: they do not change a run)
+ANALYSIS = {
+    "order": (int, 2, 1, factors_mod.MAX_FACTORS, False, "highest interaction order of the ANOVA model"),
+    "alpha": (float, 0.05, 0.0, 0.5, True, "significance level"),
+}
+SCENES = ("transport", "flat")
+SENSING = ("auto", "exact", "delayed")  # wbc_jax.rollout.core.SENSING (not imported: spec loading stays JAX-free)
+TERRAINS = ("known", "blind")  # wbc_jax.planner.transport.TERRAINS (not imported: spec loading stays JAX-free)
+COM_PLANS = ("spline", "zmp")  # wbc_jax.planner.transport.COM_PLANS (not imported, as above)
+BACKENDS = ("auto", "jax", "warp")  # wbc_jax.physics.backend.BACKENDS (not imported here: spec loading stays JAX-free)
+# keys added after specs were first hashed: left out of Spec.hash at these values (which reproduce the behaviour
+# from before the key existed), so the hashes of existing baselines and checkpoints stay valid (a default that
+# differs from its neutral value, com_plan "zmp" since 2026-11-25, changes the hash of every spec that omits the key:
+# the behaviour changed)
+_HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_iterations": 0, "m": 0.3, "mu": 0.7,
+                               "d": 0.08, "ground_mu": 0.0, "variant": "full", "terrain": "known",
+                               "com_plan": "spline", "sensing": "auto"},
+                 "perturbations": {"push_dir_deg": 0.0}}
+
+
+@dataclass(frozen=True)
+class Spec:
+    """A validated campaign spec (units as in the module docstring)."""
+
+    path: str
+    campaign: dict
+    factors: dict
+    perturbations: dict
+    text_sha256: str = field(default="")
+    analysis: dict = field(default_factory=lambda: {k: v[1] for k, v in ANALYSIS.items()})
+
+    @property
+    def reps(self) -> int:
+        return self.campaign["reps"]
+
+    def canonical(self) -> dict:
+        return dict(campaign=self.campaign, factors=self.factors, perturbations=self.perturbations,
+                    analysis=self.analysis)
+
+    def hashed(self) -> dict:
+        """:meth:`canonical` less ``analysis`` and the keys of ``_HASH_NEUTRAL`` that are at their neutral value."""
+        out = self.canonical()
+        del out["analysis"]
+        for table, keys in _HASH_NEUTRAL.items():
+            out[table] = {k: v for k, v in out[table].items() if not (k in keys and v == keys[k])}
+        return out
+
+    @property
+    def hash(self) -> str:
+        """sha256 of the validated content (defaults filled in, key order fixed; :meth:`hashed`)."""
+        return hashlib.sha256(json.dumps(self.hashed(), sort_keys=True).encode()).hexdigest()
+
+    @property
+    def zero_noise(self) -> bool:
+        """No per-run randomness: the repetitions of a cell are identical."""
+        p, f = self.perturbations, self.factors
+        a, b = p["push_window"]
+        pushed = p["push_max_N"] > 0 or (max(f.get("push_N", [0.0])) > 0 and a < b)  # random size or start
+        return not (p["object_xy_mm"] > 0 or p["object_yaw_deg"] > 0 or p["base_speed_std"] > 0
+                    or (pushed and p["push_duration_s"] > 0) or p["qvel_noise_std"] > 0
+                    or max(f.get("qvel_noise_std", [0.0])) > 0)
+
+
+def _err(path, key, msg):
+    return SpecError(f"{path}: {key}: {msg}")
+
+
+def _number(path, key, v, typ, lo, hi, lo_open, unit):
+    if typ is int:
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise _err(path, key, f"expected an integer {lo}..{hi} ({unit}), got {v!r}")
+    elif isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise _err(path, key, f"expected a number {lo}..{hi} {unit}, got {v!r}")
+    v = typ(v)
+    if not math.isfinite(v) or v < lo or v > hi or (lo_open and v == lo):
+        rng = f"{lo} < value <= {hi}" if lo_open else f"{lo} <= value <= {hi}"
+        raise _err(path, key, f"= {v}: out of range, expected {rng} {unit}")
+    return v
+
+
+def _table(path, name, raw, schema):
+    if not isinstance(raw, dict):
+        raise _err(path, name, f"expected a table [{name}], got {type(raw).__name__}")
+    unknown = sorted(set(raw) - set(schema))
+    if unknown:
+        raise _err(path, f"{name}.{unknown[0]}", f"unknown key; expected one of {', '.join(schema)}")
+    out = {}
+    for key, (typ, default, lo, hi, lo_open, unit) in schema.items():
+        full = f"{name}.{key}"
+        v = raw.get(key, default)
+        if typ is str:
+            if not isinstance(v, str):
+                raise _err(path, full, f"expected a string ({unit}), got {v!r}")
+            out[key] = v
+        elif typ is list:
+            if (not isinstance(v, list) or len(v) != 2
+                    or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)):
+                raise _err(path, full, f"expected a list of 2 numbers ({unit}), got {v!r}")
+            a, b = float(v[0]), float(v[1])
+            if not (0.0 <= a <= b < 1.0):
+                raise _err(path, full, f"= {v}: out of range, expected {unit}")
+            out[key] = [a, b]
+        else:
+            out[key] = _number(path, full, v, typ, lo, hi, lo_open, unit)
+    return out
+
+
+def _level(path, key, x, fd: factors_mod.FactorDef):
+    """One level of a factor, validated and normalised (numbers: float; bool: 1/0; choice: the string)."""
+    if fd.kind == "bool":
+        if x in (True, False) or (isinstance(x, int) and x in (0, 1)):
+            return int(x)
+        raise _err(path, key, f"level {x!r}: expected true, false, 1 or 0")
+    if fd.kind == "choice":
+        if isinstance(x, str) and x in fd.choices:
+            return x
+        raise _err(path, key, f"level {x!r}: expected one of {', '.join(fd.choices)}")
+    return _number(path, key, x, float, fd.lo, fd.hi, fd.lo_open, fd.unit)
+
+
+def _parse_factors(path, raw_f) -> dict:
+    """The [factors] table: 1..MAX_FACTORS known factors, each a list of >= 2 distinct valid levels; returned
+    in design order (:func:`wbc_jax.campaign.factors.design_order`)."""
+    if not isinstance(raw_f, dict):
+        raise _err(path, "factors", "expected a table")
+    for key in sorted(raw_f):
+        if factors_mod.factor_def(key) is None:
+            raise _err(path, f"factors.{key}", f"unknown factor; expected one of {factors_mod.known_names()}")
+    if not 1 <= len(raw_f) <= factors_mod.MAX_FACTORS:
+        raise _err(path, "factors", f"{len(raw_f)} factors: expected 1 to {factors_mod.MAX_FACTORS}")
+    out = {}
+    for key in factors_mod.design_order(raw_f):
+        full, v = f"factors.{key}", raw_f[key]
+        if not isinstance(v, list) or len(v) < 2:
+            raise _err(path, full, f"expected a list of at least 2 levels, got {v!r}")
+        levels = [_level(path, full, x, factors_mod.factor_def(key)) for x in v]
+        if len(set(levels)) != len(levels):
+            raise _err(path, full, f"= {v}: levels must be distinct")
+        out[key] = levels
+    return out
+
+
+def _check_fixed(path, camp: dict, pert: dict, factors: dict) -> None:
+    """A varied factor's fixed-value key (FactorDef.fixed) must stay at its default; ``push_dir_deg`` needs the
+    push_N factor."""
+    tables = {"campaign": (camp, CAMPAIGN), "perturbations": (pert, PERTURBATIONS)}
+    for key in factors:
+        table, _, name = factors_mod.factor_def(key).fixed.partition(".")
+        if table in tables and tables[table][0][name] != tables[table][1][name][1]:
+            raise _err(path, f"{table}.{name}", f"= {tables[table][0][name]!r}: the factor {key} is varied; "
+                                                "leave this key out (or at its default)")
+    if pert["push_dir_deg"] != PERTURBATIONS["push_dir_deg"][1] and "push_N" not in factors:
+        raise _err(path, "perturbations.push_dir_deg", "used only with the push_N factor (random pushes have a "
+                                                      "random direction)")
+
+
+def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
+    """Validate a spec dict (as read by tomllib). Raises SpecError naming ``path``, the key and the range."""
+    unknown = sorted(set(data) - {"campaign", "factors", "perturbations", "analysis"})
+    if unknown:
+        raise _err(path, unknown[0], "unknown table; expected campaign, factors, perturbations, analysis")
+    camp = _table(path, "campaign", data.get("campaign", {}), CAMPAIGN)
+    for key, allowed in (("backend", BACKENDS), ("scene", SCENES), ("variant", tuple(VARIANTS)),
+                         ("terrain", TERRAINS), ("com_plan", COM_PLANS), ("sensing", SENSING)):
+        if camp[key] not in allowed:
+            raise _err(path, f"campaign.{key}", f"= {camp[key]!r}: expected one of {', '.join(allowed)}")
+    if "factors" not in data:
+        raise _err(path, "factors", "missing table [factors] (level lists, e.g. m, mu, d)")
+    factors = _parse_factors(path, data["factors"])
+    pert = _table(path, "perturbations", data.get("perturbations", {}), PERTURBATIONS)
+    _check_fixed(path, camp, pert, factors)
+    analysis = _table(path, "analysis", data.get("analysis", {}), ANALYSIS)
+    return Spec(path=str(path), campaign=camp, factors=factors, perturbations=pert, text_sha256=text_sha256,
+                analysis=analysis)
+
+
+def load_spec(path: str | Path) -> Spec:
+    """Read and validate a TOML spec (at most 1 MiB). Raises SpecError (one line: file, key, expected) on any
+    problem."""
+    try:
+        raw = read_capped(path, what="spec")
+    except OSError as e:
+        raise SpecError(f"{path}: cannot read spec file ({e.strerror or e})") from None
+    except InputError as e:
+        raise SpecError(str(e)) from None
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise SpecError(f"{path}: not valid TOML ({str(e).splitlines()[0]})") from None
+    return parse_spec(data, str(path), hashlib.sha256(raw).hexdigest())
+
+
+def default_spec_path(accelerator: bool) -> Path:
+    """The paper spec when an accelerator is present, else the CPU-sized quick spec."""
+    return SWEEPS / ("paper_campaign.toml" if accelerator else "quick.toml")
+
+
+@dataclass(frozen=True)
+class Design:
+    """One row per run (cells in the product order of the spec's factors, in design order, then reps), with the
+    run's perturbations and controller settings.
+
+    Attributes (each (B,) unless shown): m, mu, d (object mass [kg], tray friction, side [m]: the level of the
+    factor or the campaign's value), rep, seed; obj_dx, obj_dy [m] and obj_yaw [rad] (placement on the
+    tray, tray-aligned world x/y), v0 (B, 2) [m/s] initial horizontal velocity, push_force (B, 3) [N],
+    push_frac (push start as a fraction of the planned duration, known once the plan is: see
+    :func:`wbc_jax.campaign.runner.build`), push_duration [s]; qvel_noise_std [m/s, rad/s] (controller-view
+    velocity noise, drawn during the rollout from the run's seed); ground_mu (foot/ground friction, 0: the
+    scene's), speed [m/s] (cruise speed of the run's plan); variant (B, 3) the controller's ablation switches
+    (tray_cone, observer, posture; :mod:`wbc_jax.control.variants`); gain_scale: leaf -> (B,) multiplier of that
+    ``TransportGains`` leaf (the ``gain.*`` factors); levels: factor name -> (B,) the run's level of each
+    varied factor (the results table's factor columns).
+    """
+
+    m: np.ndarray
+    mu: np.ndarray
+    d: np.ndarray
+    rep: np.ndarray
+    seed: np.ndarray
+    obj_dx: np.ndarray
+    obj_dy: np.ndarray
+    obj_yaw: np.ndarray
+    v0: np.ndarray
+    push_force: np.ndarray
+    push_frac: np.ndarray
+    push_duration: np.ndarray
+    qvel_noise_std: np.ndarray
+    ground_mu: np.ndarray
+    speed: np.ndarray
+    variant: np.ndarray
+    gain_scale: dict
+    levels: dict
+
+    @property
+    def n(self) -> int:
+        return int(self.m.shape[0])
+
+    def asdict(self):
+        return asdict(self)
+
+
+def run_seed(base: int, i: int) -> int:
+    return int(np.random.SeedSequence([int(base), int(i)]).generate_state(1)[0])
+
+
+def design(spec: Spec) -> Design:
+    """The design table of a spec with every run's seed and perturbations (host-side, deterministic)."""
+    f, p, c = spec.factors, spec.perturbations, spec.campaign
+    cells = list(itertools.product(*f.values()))  # spec.factors is in design order
+    rows = [(cell, r) for cell in cells for r in range(spec.reps)]
+    B = len(rows)
+    levels = {k: np.array([cell[j] for cell, _ in rows]) for j, k in enumerate(f)}
+
+    def value(key, fixed):
+        """(B,) the run's level of factor ``key``, or ``fixed`` for every run when it is not varied."""
+        return levels[key] if key in levels else np.full(B, fixed)
+
+    seeds = np.array([run_seed(c["seed"], i) for i in range(B)], dtype=np.uint64)
+    draws = np.zeros((B, 8))
+    for i, s in enumerate(seeds):
+        rng = np.random.default_rng(int(s))
+        draws[i] = [rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-1, 1), rng.normal(), rng.normal(),
+                    rng.uniform(0, 1), rng.uniform(0, 2 * np.pi), rng.uniform(0, 1)]
+    a, b = p["push_window"]
+    on = p["push_duration_s"] > 0
+    if "push_N" in levels:  # a fixed magnitude and direction; the start still drawn in the window
+        mag, angle = levels["push_N"] * on, np.full(B, np.deg2rad(p["push_dir_deg"]))
+    else:  # random magnitude in [0, push_max_N] and direction
+        mag, angle = (draws[:, 5] * p["push_max_N"] if on else np.zeros(B)), draws[:, 6]
+    push = np.stack([mag * np.cos(angle), mag * np.sin(angle), np.zeros(B)], axis=1)
+    pushed = levels["push_N"] > 0 if "push_N" in levels else np.full(B, p["push_max_N"] > 0)
+    switches = np.array([VARIANTS[v] for v in value("variant", c["variant"])], dtype=float)  # (B, 3)
+    switches[:, 1] *= value("observer", 1)
+    return Design(
+        m=value("m", c["m"]), mu=value("mu", c["mu"]), d=value("d", c["d"]), rep=np.array([r for _, r in rows]),
+        seed=seeds, obj_dx=draws[:, 0] * p["object_xy_mm"] * 1e-3, obj_dy=draws[:, 1] * p["object_xy_mm"] * 1e-3,
+        obj_yaw=np.deg2rad(draws[:, 2] * p["object_yaw_deg"]), v0=draws[:, 3:5] * p["base_speed_std"],
+        push_force=push, push_frac=a + (b - a) * draws[:, 7],
+        push_duration=np.where(pushed, p["push_duration_s"], 0.0),
+        qvel_noise_std=value("qvel_noise_std", p["qvel_noise_std"]), ground_mu=value("ground_mu", c["ground_mu"]),
+        speed=value("speed", c["speed"]), variant=switches,
+        gain_scale={k[len(factors_mod.GAIN_PREFIX):]: v for k, v in levels.items()
+                    if k.startswith(factors_mod.GAIN_PREFIX)},
+        levels=levels)

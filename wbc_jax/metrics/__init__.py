@@ -1,0 +1,1 @@
+"""The paper's metrics: per-step integrands and the per-run finalization."""

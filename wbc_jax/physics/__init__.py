@@ -1,0 +1,1 @@
+"""The physics backend adapter (MJX JAX / MuJoCo Warp), contacts, observation, clearance."""

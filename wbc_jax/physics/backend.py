@@ -1,0 +1,293 @@
+"""MJX physics on either backend, split so the controller reads fresh kinematics once per control step.
+
+Two MJX implementations (``Robot(backend=...)``): **JAX** (``impl="jax"``, any device, the CPU path) and **Warp**
+(``impl="warp"``, MuJoCo Warp kernels called through XLA; NVIDIA GPUs, and the CPU for tests). Warp runs only
+``forward`` and ``step``, so on Warp :func:`sense` is ``mjx.forward`` (the whole forward pass, constraint solve
+with the held torques included) and :func:`finish` is ``mjx.step`` with the new torques: two Warp calls per control
+step, both exact (the controller reads the state it acts on, no delay; ``sensing = "delayed"`` drops the first,
+``wbc_jax.rollout.core.resolve_sensing``). :func:`resolve_backend` turns "auto" into Warp on a CUDA GPU with
+warp-lang installed, else JAX, by measurement (H100, 2026-11-25, with the fused QP kernel): the paper campaign
+gives the same statistics on both (270/270 each) in 103.0 s on Warp (delayed sensing) vs 207.8-258.0 s on JAX;
+physics + WBC 80,636 vs 71,645 env-steps/s at batch 270 and 530,978 vs 273,202 at 16384 (docs/performance.md).
+(Before the QP kernel the QP dominated a step at batch 270 and Warp gained nothing end to end: 84 k vs 87 k.)
+The earlier Warp failure on the course (a front foot sliding off block1 at 5.8 s in 259/270 runs) was the
+controller planning the floor's friction on block1, fixed in ``wbc_jax.physics.contacts.foot_ground``. On the CPU
+"auto" stays JAX (MuJoCo Warp's CPU path is for tests).
+
+JAX backend: ``mjx.step`` = forward (position, velocity, actuation, acceleration, constraint solve) + integrate.
+:func:`sense` runs the position and velocity stages; the controller reads M, bias forces,
+Jacobians and contacts from its output; :func:`finish` completes that same forward pass with the
+controller's torques and integrates: one physics step. A control period of ``n_substeps`` physics steps
+(zero-order hold: ``ctrl`` and ``xfrc_applied`` stay as set) is :func:`finish` followed by
+``n_substeps - 1`` plain ``mjx.step`` calls in a ``lax.scan`` (:func:`advance`; the rollout runs its own scan
+that also samples its physics-rate monitors after every step, ``wbc_jax.rollout.core.physics_period``).
+
+After any of these steps, ``d.contact`` (and ``efc_force``) belong to the positions at the *start* of that
+step (collision runs before integration): after :func:`finish` they are the sensed ``d``'s contacts.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+with contextlib.redirect_stdout(io.StringIO()):
+    # MJX prints a notice on stdout when the optional Warp backend (warp-lang) is absent.
+    from mujoco import mjx
+
+BACKENDS = ("auto", "jax", "warp")
+NACON_PER_RUN = 32  # Warp: contacts listed per run on average (the list is shared: naconmax = runs x this); a
+#                     standing or walking robot with the object lists 8-12 (feet, object spheres)
+NJMAX_PER_CONTACT = 4  # constraint rows of one pyramidal condim-3 contact
+
+
+def warp_available() -> bool:
+    """warp-lang importable (MJX's Warp implementation can run)."""
+    try:
+        import warp  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def resolve_backend(name: str) -> str:
+    """"auto" -> "warp" on a CUDA GPU with warp-lang, else "jax" (module docstring); "jax", "warp" unchanged.
+
+    Raises:
+        ValueError: an unknown name, or "warp" without warp-lang.
+    """
+    if name not in BACKENDS:
+        raise ValueError(f"backend {name!r}: expected one of {', '.join(BACKENDS)}")
+    if name == "auto":
+        return "warp" if jax.default_backend() == "gpu" and warp_available() else "jax"
+    if name == "warp" and not warp_available():
+        raise ValueError("backend 'warp' needs warp-lang (pip install -e '.[cuda]', or pip install warp-lang)")
+    return name
+
+
+def is_warp(d) -> bool:
+    """``d`` is MuJoCo Warp data (static: the type of its implementation part)."""
+    return type(d._impl).__name__ == "DataWarp"
+
+
+def make_data(robot, n_runs: int = 1):
+    """A fresh mjx.Data of ``robot``'s backend. Warp: the contact list is shared by the ``n_runs`` runs of a batch
+    (``naconmax = n_runs x NACON_PER_RUN``), constraint rows are per run (``njmax``); call it inside the vmap
+    over runs, as MJX's Warp examples do."""
+    if robot.backend != "warp":
+        return mjx.make_data(robot.mjx_model, device=jax.local_devices()[0])  # (several processes: not process 0's)
+    m = robot.mj_model
+    njmax = NJMAX_PER_CONTACT * NACON_PER_RUN + 2 * m.njnt
+    return mjx.make_data(m, impl="warp", naconmax=NACON_PER_RUN * max(int(n_runs), 1), njmax=njmax,
+                         device=jax.local_devices()[0])
+
+
+_DATA_AXES: dict = {}
+
+
+def data_axes(robot, d):
+    """The run axes of ``d``, a batched mjx.Data of ``robot``'s backend (``vmap`` of :func:`make_data`): a pytree
+    of ``d``'s structure with 0 where a leaf has the run axis first and None where the runs share it.
+
+    JAX: every leaf is per run. Warp: the contact list (``naconmax`` slots shared by the batch, each tagged with
+    its run) and its counters (``nacon``, ``ncollision``) have no run axis; ``vmap`` passes them through whole.
+    They are scratch: every ``step`` rebuilds them from the runs' states (the rollout reads contacts through the
+    contact sensors, per run). Sharding places them whole on every device (each device's runs use part of the
+    list), and taking or padding runs leaves them as they are (``wbc_jax.rollout.runs``).
+
+    Found, not listed: the leaves whose first dimension follows the vmapped size when ``d``'s own
+    :func:`make_data` is vmapped over 2 and over 3 runs (shapes only, nothing is computed).
+    """
+    if not is_warp(d):
+        return jax.tree_util.tree_map(lambda _: 0, d)
+    n_runs = int(d._impl.naconmax) // NACON_PER_RUN
+    key = (id(robot), n_runs)
+    if key not in _DATA_AXES:
+        two, three = (jax.eval_shape(jax.vmap(lambda _: make_data(robot, n_runs)), jnp.zeros(k)) for k in (2, 3))
+        _DATA_AXES[key] = jax.tree_util.tree_map(lambda a, b: 0 if a.shape != b.shape else None, two, three)
+    return _DATA_AXES[key]
+
+
+STATE_FIELDS = ("time", "qpos", "qvel", "act", "qacc_warmstart", "history", "plugin_state")
+"""The fields of mjx.Data a physics step reads that it does not recompute (the integrated state and the solver's
+warm start); every other field is derived from them (and the inputs ``ctrl``, ``xfrc_applied``, which the rollout
+sets every step)."""
+
+
+def freeze(ok, new, old):
+    """``new`` with its :data:`STATE_FIELDS` taken from ``old`` where ``ok`` is False (per run, under ``vmap``).
+
+    A run whose step went non-finite keeps its last finite state, so its next step recomputes every derived field
+    (contacts included) from that state and cannot fill Warp's shared contact list with garbage; the derived fields
+    ``new`` holds belong to the step's start (``old``'s state) on both backends. Cheaper than ``Data.where`` over
+    every field: Warp's ``step`` updates its data in place, so each field of ``old`` still read after it would be
+    copied first (137 such copies per control step in the rollout's compiled loop, H100, batch 270, 2026-11-26).
+    """
+    return new.replace(**{f: jnp.where(ok, getattr(new, f), getattr(old, f)) for f in STATE_FIELDS
+                          if hasattr(new, f)})
+
+
+def overflow(d) -> jax.Array:
+    """() bool: this step's contacts or constraint rows may not all fit (Warp: the shared contact list is full,
+    or this run's rows reached ``njmax``); always False on JAX (fixed slots)."""
+    if not is_warp(d):
+        return jnp.bool_(False)
+    i = d._impl
+    return (jnp.max(i.nacon) >= i.naconmax) | (i.nefc >= i.njmax)
+
+
+def solver_capped(m, d) -> jax.Array:
+    """() bool: the physics step that produced ``d`` ended its constraint solve at the iteration cap
+    (``opt.iterations``, 4 in the shipped scenes) instead of at its tolerance. Warp counts the solver's iterations
+    in ``solver_niter``; counted per run (``Accum.n_solver_cap``), since Warp's console warning for it is switched
+    off (``wbc_jax.robot.model``). MJX's JAX solver does not report its count (its ``solver_niter`` stays 0): False
+    there, and :func:`reports_solver_cap` says so."""
+    if not is_warp(d):
+        return jnp.bool_(False)
+    return d._impl.solver_niter >= m.opt.iterations
+
+
+def reports_solver_cap(robot) -> bool:
+    """Whether :func:`solver_capped` is measured on ``robot``'s backend (Warp) rather than always False (JAX)."""
+    return robot.backend == "warp"
+
+
+def sense(m, d):
+    """The forward pass's position- and velocity-dependent stages (JAX), or the whole forward pass (Warp)."""
+    if is_warp(d):
+        return mjx.forward(m, d)
+    d = mjx.fwd_position(m, d)
+    return mjx.fwd_velocity(m, d)
+
+
+def sense_with_view(m, d, qvel_seen=None):
+    """:func:`sense` of ``d``, and the controller's view of it with generalized velocities ``qvel_seen`` (positions,
+    hence kinematics and contacts, exact; None: the view is the sensed data itself).
+
+    Returns:
+        (sensed d, view). JAX: the view recomputes only the velocity stage. Warp: one forward pass of the view;
+        the sensed d is the view with the true velocities put back (what the rollout reads from it is
+        position-level, and :func:`finish` recomputes the rest), so noise costs no second Warp call.
+    """
+    if qvel_seen is None:
+        d = sense(m, d)
+        return d, d
+    if is_warp(d):
+        view = mjx.forward(m, d.replace(qvel=qvel_seen))
+        return view.replace(qvel=d.qvel), view
+    d = sense(m, d)
+    return d, mjx.fwd_velocity(m, d.replace(qvel=qvel_seen))
+
+
+def finish(m, d, ctrl):
+    """One physics step from a sensed ``d``: finish its forward pass with ``ctrl`` and integrate.
+
+    Args:
+        m: mjx.Model; d: mjx.Data returned by :func:`sense`; ctrl: (nu,) actuator torques [N m].
+
+    Returns:
+        mjx.Data one timestep later (``ctrl`` kept, contacts and constraint forces of the step's start).
+    """
+    d = d.replace(ctrl=ctrl)
+    if is_warp(d):
+        return mjx.step(m, d)
+    d = mjx.fwd_actuation(m, d)
+    d = mjx.fwd_acceleration(m, d)
+    d = mjx.solve(m, d)
+    return mjx.euler(m, d)
+
+
+def hold(m, d, n: int):
+    """``n`` (static, >= 0) further plain ``mjx.step`` calls with ``d.ctrl`` held (``lax.scan``, one traced step)."""
+    if n <= 0:
+        return d
+    return jax.lax.scan(lambda d, _: (mjx.step(m, d), None), d, None, length=n)[0]
+
+
+def advance(m, d, ctrl, n_substeps: int = 1):
+    """Finish the forward pass of a sensed ``d`` with ``ctrl``, integrate, then n_substeps - 1 more steps.
+
+    Args:
+        m: mjx.Model; d: mjx.Data returned by :func:`sense`; ctrl: (nu,) actuator torques [N m].
+        n_substeps: physics steps per control step (static, >= 1); the torques are held over all of them.
+    """
+    return hold(m, finish(m, d, ctrl), n_substeps - 1)
+
+
+# ---- the package's only reads of MJX internals (``mujoco.mjx._src``, ``Data._impl``, ``Option._impl``)
+
+
+def put_model(mj_model, impl: str, device):
+    """``mjx.put_model`` on ``device``; a Warp model (``impl == "warp"``) does not print "solver/linesearch
+    iterations limit reached": the scenes cap the constraint solver at ``opt.iterations`` on purpose (fixed cost
+    per step), so reaching it is normal. Capacity overflows (contacts, constraint rows) still print, and the rollout
+    fails the runs they touch."""
+    if impl != "warp":
+        return mjx.put_model(mj_model, device=device)
+    from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
+
+    mx = mjx.put_model(mj_model, impl="warp", device=device)
+    opt = mx.opt
+    quiet = int(opt._impl.warn_overflow) & ~int(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)
+    return mx.replace(opt=opt.replace(_impl=dataclasses.replace(opt._impl, warn_overflow=quiet)))
+
+
+def motion_cross(u, v):
+    """MJX's spatial motion cross product u x v of two (6,) motion vectors [angular; linear]."""
+    from mujoco.mjx._src.math import motion_cross as _motion_cross
+
+    return _motion_cross(u, v)
+
+
+def slot_dist(d, slots) -> jax.Array:
+    """JAX backend: the distances [m] of MJX's contact slots ``slots`` (static ints; filled whether or not the pair
+    touches)."""
+    return d._impl.contact.dist[slots]
+
+
+def slot_friction(d, slots) -> jax.Array:
+    """JAX backend: the tangential friction coefficient of MJX's contact slots ``slots``."""
+    return d._impl.contact.friction[slots, 0]
+
+
+def slot_geoms(d) -> jax.Array:
+    """JAX backend: (ncon, 2) geom ids of every MJX contact slot of ``d``."""
+    return d._impl.contact.geom
+
+
+def slot_forces(m, d, slots) -> jax.Array:
+    """JAX backend: (n, 3) [N] simulator forces at contact slots ``slots`` in their contact frames, normal first."""
+    from mujoco.mjx._src.support import contact_force
+
+    return jnp.stack([contact_force(m, d, int(s))[:3] for s in slots])
+
+
+def slot_geoms_static(mjx_model) -> np.ndarray | None:
+    """(ncon, 2) geom ids of MJX's contact slots (JAX backend), from the model alone: MJX's collision driver runs one
+    collision function per group of geom pairs (``collision_driver._geom_groups``: by geom types, mesh and condim),
+    repeats each group's rows by the function's contact count and concatenates the groups by ascending condim, in
+    the groups' order. None where that layout is not static (a broad phase: ``max_geom_pairs`` or
+    ``max_contact_points`` set) or does not add up to the model's contact count; :func:`wbc_jax.physics.contacts.compiled_contact_geoms`
+    reads it from a compiled step instead (a test compares the two)."""
+    from mujoco.mjx._src import collision_driver as cd
+
+    if cd._numeric(mjx_model, "max_geom_pairs") > -1 or cd._numeric(mjx_model, "max_contact_points") > -1:
+        return None
+    by_condim: dict[int, list[np.ndarray]] = {}
+    for key, ids in cd._geom_groups(mjx_model).items():
+        func = cd._COLLISION_FUNC.get(key.types)
+        if func is None:  # SDF and other groups whose count is not the function's
+            return None
+        geom = np.asarray(ids, dtype=np.int64)[:, :2]
+        by_condim.setdefault(int(key.condim), []).append(np.repeat(geom, func.ncon, axis=0))
+    if not by_condim:
+        return None
+    dims = np.concatenate([np.full(len(g), c) for c in sorted(by_condim) for g in by_condim[c]])
+    if not np.array_equal(dims, cd.make_condim(mjx_model)):  # MJX's own count of the slots and their dims
+        return None
+    return np.concatenate([g for c in sorted(by_condim) for g in by_condim[c]])

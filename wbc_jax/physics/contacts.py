@@ -1,0 +1,173 @@
+"""The contacts the rollout reads, on either physics backend.
+
+The controller needs each foot's distance to the ground (touchdown), the metrics need the simulator's forces and
+distances at the object's four contact spheres (R, object off the tray), and the monitors need every non-foot robot
+part's and the wall's penetration (falls, grazes). The two MJX implementations keep contacts differently:
+
+* **JAX** (``impl="jax"``): one fixed slot per candidate contact of every ``<pair>``, per run, with the distance
+  filled in whether or not the pair touches, and its force (read through :mod:`wbc_jax.physics.backend`'s
+  ``slot_*`` accessors). :func:`contact_slots` finds the slots of each role once per model.
+* **Warp** (``impl="warp"``): one list of the contacts that exist, shared by all runs (``naconmax`` in total), so a
+  run's contacts are read through MJCF contact sensors, which MuJoCo evaluates per run into ``sensordata``
+  (as MJX's documentation and Playground do). :func:`wbc_jax.robot.sensors.with_contact_sensors` adds them: per object sphere its contact
+  with the tray (``found``, contact-frame ``force``, ``dist``), per non-foot ground pair and per wall pair ``found``
+  and ``dist``. The pairs' margin is 0, so a listed contact is a penetrating one. The near-contact distances the
+  rollout also needs (a foot within 1 mm of the ground, an object sphere more than 1 mm off the tray) are computed
+  from the geometry (:func:`sphere_distance`: sphere vs plane or box, as MuJoCo's collision functions do). Listing
+  contacts up to 1 mm through ``margin = gap = 1 mm`` instead is not the same physics on Warp: MuJoCo Warp 1.18
+  does not subtract ``gap`` from the constraint's margin (measured: the object's normal forces rose from 0.74 N to
+  18 N per sphere at rest).
+
+:class:`wbc_jax.rollout.core.Sim` holds the indices of both kinds in the same fields (``foot_slots``,
+``obj_slots``, ``nonfoot_slots``, ``wall_slots``): contact slots on JAX, sensordata addresses on Warp; the
+readers below take a Sim and dispatch on ``sim.robot.backend`` (static). A distance that the backend does not
+report (no contact listed) reads as ``+inf``.
+
+The run's clearance (``wbc_jax.rollout.core.clearance``) does not read contacts: neither backend reports a
+separated pair's distance exactly (JAX: a capsule/box slot reads its candidate points' distance, not the edge's;
+a pair beyond the margin reads 1 m; Warp: penetrations only), so it is measured from the geoms' poses
+(:mod:`wbc_jax.physics.clearance`). The non-foot and wall readers here serve the contact flags (dist < 0).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from wbc_jax.physics import backend as physics
+
+CONTACT_DIST = 1e-3  # [m] a foot closer than this to the floor or terrain counts as touching; an object sphere
+#                      farther than this from the tray counts as off it
+
+def contact_forces(m, d, slots) -> jax.Array:
+    """Simulator forces at the given contact slots in their contact frames: (n, 3) [N], column 0 normal.
+
+    Args:
+        m: mjx.Model; d: mjx.Data after the constraint solve (``efc_force`` filled); slots: static (n,) ints.
+    """
+    if len(slots) == 0:
+        return jnp.zeros((0, 3))
+    return physics.slot_forces(m, d, slots)
+
+
+def contact_slots(robot):
+    """JAX backend: indices of MJX contact slots: non-foot parts vs floor or terrain, anything vs a wall, (4, K) each
+    foot vs floor and terrain, the object's contact spheres vs the tray; then the (k, 2) geom ids of the non-foot
+    slots (MJX's layout, computed once per model and kept on disk: :func:`wbc_jax.runtime.aot.cached_value`)."""
+    from wbc_jax.runtime import aot
+
+    return aot.cached_value("slots", aot.describe(robot), lambda: _contact_slots(robot))
+
+
+def compiled_contact_geoms(robot) -> np.ndarray:
+    """(ncon, 2) geom ids of MJX's contact slots read from one compiled sensing pass (25-40 s of compile on a CPU)."""
+    d = jax.jit(physics.sense)(robot.mjx_model, physics.mjx.make_data(robot.mjx_model,
+                                                                       device=jax.local_devices()[0]))
+    return np.asarray(physics.slot_geoms(d)).astype(np.int64)
+
+
+def _contact_slots(robot):
+    m = robot.mj_model
+    geom = physics.slot_geoms_static(robot.mjx_model)
+    if geom is None:
+        geom = compiled_contact_geoms(robot)
+    pairs = {(int(m.pair_geom1[i]), int(m.pair_geom2[i])): i for i in range(m.npair)}
+    slot_pair = np.array([pairs.get((int(a), int(b)), pairs.get((int(b), int(a)), -1)) for a, b in geom])
+    foot = np.array([np.where(np.isin(slot_pair, fp))[0] for fp in robot.ids.foot_pair])
+    nonfoot = np.where(np.isin(slot_pair, robot.ids.nonfoot_floor_pair))[0]
+    return (nonfoot, np.where(np.isin(slot_pair, robot.ids.wall_pair))[0], foot,
+            np.where(np.isin(slot_pair, robot.ids.obj_pair))[0], geom[nonfoot].reshape(-1, 2).astype(np.int64))
+
+
+def sim_indices(robot):
+    """(nonfoot, wall, foot, obj, nonfoot_geoms) indices of ``robot``'s backend: contact slots (JAX; foot (4, K))
+    or sensordata addresses (Warp; foot (4, 1))."""
+    s = robot.sensors
+    if s is None:
+        return contact_slots(robot)
+    return s.nonfoot, s.wall, np.asarray(robot.ids.foot_pair), s.obj, s.nonfoot_geoms
+
+
+def _sensor_dist(d, adr):
+    """Distance field of contact sensors whose values are (found, dist): +inf where nothing was found."""
+    sd = d.sensordata
+    return jnp.where(sd[adr] > 0, sd[adr + 1], jnp.inf)
+
+
+def _slot_dist(d, slots):
+    return physics.slot_dist(d, slots)
+
+
+def sphere_distance(m, d, sphere: int, other: int) -> jax.Array:
+    """() signed distance [m] between sphere geom ``sphere`` and geom ``other`` (plane or box; static ids), from
+    the geoms' world poses (``geom_xpos``, ``geom_xmat``) and sizes, as MuJoCo's sphere-plane and sphere-box
+    collision functions measure it (negative: penetration)."""
+    c, r = d.geom_xpos[sphere], m.geom_size[sphere][0]
+    pos, R = d.geom_xpos[other], d.geom_xmat[other]
+    if int(m.geom_type[other]) == int(mujoco.mjtGeom.mjGEOM_PLANE):
+        return jnp.dot(c - pos, R[:, 2]) - r
+    p = R.T @ (c - pos)  # sphere centre in the box frame
+    q = jnp.abs(p) - m.geom_size[other]
+    outside = jnp.linalg.norm(jnp.maximum(q, 0.0))
+    return outside + jnp.minimum(jnp.max(q), 0.0) - r
+
+
+def _pair_distances(sim, m, d, pairs) -> jax.Array:
+    """Distances of sphere pairs (any shape of pair ids) on the Warp backend, same shape."""
+    g1, g2 = sim.robot.mj_model.pair_geom1, sim.robot.mj_model.pair_geom2
+    sphere = int(mujoco.mjtGeom.mjGEOM_SPHERE)
+
+    def one(p):
+        a, b = int(g1[p]), int(g2[p])
+        if int(m.geom_type[a]) != sphere:
+            a, b = b, a
+        return sphere_distance(m, d, a, b)
+
+    flat = np.asarray(pairs).ravel()
+    return jnp.stack([one(p) for p in flat]).reshape(np.shape(pairs))
+
+
+def foot_ground(sim, m, d) -> tuple[jax.Array, jax.Array]:
+    """Each foot's nearest ground surface (floor or a terrain block): (4,) distance [m] and (4,) its sliding
+    friction coefficient (the contact pair's, from the model: per run where the batch varies it)."""
+    if sim.robot.backend == "warp":
+        dist = _pair_distances(sim, m, d, sim.foot_slots)  # (4, K) over ids.foot_pair
+        mu = m.pair_friction[jnp.asarray(sim.foot_slots), 0]
+    else:
+        dist = _slot_dist(d, sim.foot_slots)  # (4, K) MJX slots
+        mu = physics.slot_friction(d, sim.foot_slots)
+    k = jnp.argmin(dist, axis=1)[:, None]
+    return jnp.take_along_axis(dist, k, 1)[:, 0], jnp.take_along_axis(mu, k, 1)[:, 0]
+
+
+def foot_dist(sim, m, d) -> jax.Array:
+    """(4,) each foot's distance to the nearest ground surface [m]."""
+    return foot_ground(sim, m, d)[0]
+
+
+def object_contacts(sim, m, d) -> tuple[jax.Array, jax.Array]:
+    """Simulator forces (4, 3) [N] (contact frame, normal first) and distances (4,) [m] at the object's contact
+    spheres (zero force where nothing touches)."""
+    if sim.robot.backend == "warp":
+        sd, a = d.sensordata, sim.obj_slots
+        found = sd[a] > 0
+        f = jnp.stack([sd[a + 1], sd[a + 2], sd[a + 3]], axis=1)
+        return jnp.where(found[:, None], f, 0.0), _pair_distances(sim, m, d, sim.robot.ids.obj_pair)
+
+    return contact_forces(m, d, sim.obj_slots), _slot_dist(d, sim.obj_slots)
+
+
+def nonfoot_dist(sim, d) -> jax.Array:
+    """(k,) distance of each non-foot ground slot (JAX) or pair (Warp) [m]; < 0 is penetration."""
+    if sim.robot.backend == "warp":
+        return _sensor_dist(d, sim.nonfoot_slots)
+    return _slot_dist(d, sim.nonfoot_slots)
+
+
+def wall_dist(sim, d) -> jax.Array:
+    """(w,) distance of each wall slot (JAX) or pair (Warp) [m]; < 0 is penetration."""
+    if sim.robot.backend == "warp":
+        return _sensor_dist(d, sim.wall_slots)
+    return _slot_dist(d, sim.wall_slots)

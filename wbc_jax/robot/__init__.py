@@ -1,0 +1,1 @@
+"""The robot: MJCF scene loading, static ids, the batched object model."""

@@ -1,0 +1,85 @@
+"""The MJCF contact sensors the Warp backend reads (:mod:`wbc_jax.physics.contacts` explains why).
+
+Per object contact sphere its contact with the tray (``found``, contact-frame ``force``, ``dist``), per non-foot
+ground pair and per wall pair ``found`` and ``dist``; added to the scene's spec before it is compiled.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from wbc_jax.errors import SceneError
+
+_FOUND, _FORCE, _DIST = 0, 1, 3  # bits of mjtConDataField: found, force (3), dist
+_MINDIST = 1  # mjtConReduce: the nearest contact first
+_DIST_TYPES = (int(mujoco.mjtGeom.mjGEOM_SPHERE), int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_BOX))
+
+
+@dataclass(frozen=True, eq=False)
+class ContactSensors:
+    """Addresses in ``sensordata`` of the contact sensors (see the module docstring); each sensor's values start
+    with ``found`` (number of matching contacts), then its fields in MuJoCo's order (force (3), dist).
+
+    Attributes:
+        obj: (4,) per object contact sphere vs the tray: found, force (3, contact frame, normal first) [N], dist.
+        nonfoot: (k,) per non-foot robot part vs ground pair (``RobotIds.nonfoot_floor_pair`` order): found, dist.
+        nonfoot_geoms: (k, 2) the geom ids of each of those pairs.
+        wall: (w,) per wall pair (``RobotIds.wall_pair`` order): found, dist.
+    """
+
+    obj: np.ndarray
+    nonfoot: np.ndarray
+    nonfoot_geoms: np.ndarray
+    wall: np.ndarray
+
+
+def with_contact_sensors(path: Path, base: mujoco.MjModel, ids) -> tuple[mujoco.MjModel, ContactSensors]:
+    """The scene at ``path`` compiled with the contact sensors the Warp backend reads (module docstring).
+
+    Args:
+        path: scene XML; base: the same scene compiled as is; ids: its ``RobotIds`` (pair and geom ids are the
+            same in the returned model: sensors add no geoms or pairs).
+
+    Returns:
+        (MuJoCo model with the sensors, ContactSensors).
+    """
+    spec = mujoco.MjSpec.from_file(str(path))
+    g1, g2 = base.pair_geom1, base.pair_geom2
+    for p in np.concatenate([ids.foot_pair.ravel(), ids.obj_pair]).astype(int):
+        for g in (g1[p], g2[p]):
+            if base.geom_type[g] not in _DIST_TYPES:
+                raise SceneError(f"scene {path}: geom {base.geom(int(g)).name!r} of a foot or object pair is neither "
+                                 "a sphere, a plane nor a box (the Warp backend measures those distances itself)")
+
+    def geom_name(g) -> str:
+        return base.geom(int(g)).name
+
+    def add(name, fields, geom1, geom2=None):
+        s = spec.add_sensor(name=name, type=mujoco.mjtSensor.mjSENS_CONTACT, objtype=mujoco.mjtObj.mjOBJ_GEOM,
+                            objname=geom_name(geom1))
+        if geom2 is not None:  # same order as the pair, so the force's normal points as the pair's contact does
+            s.reftype = mujoco.mjtObj.mjOBJ_GEOM
+            s.refname = geom_name(geom2)
+        s.intprm[0] = sum(1 << f for f in (_FOUND, *fields))
+        s.intprm[1] = _MINDIST
+        s.intprm[2] = 1
+        return name
+
+    names = {"obj": [add(f"wbc_obj{i}", (_FORCE, _DIST), g1[p], g2[p]) for i, p in enumerate(ids.obj_pair)],
+             "nonfoot": [add(f"wbc_nonfoot{i}", (_DIST,), g1[p], g2[p]) for i, p in enumerate(ids.nonfoot_floor_pair)],
+             "wall": [add(f"wbc_wall{i}", (_DIST,), g1[p], g2[p]) for i, p in enumerate(ids.wall_pair)]}
+    m = spec.compile()
+    if m.npair != base.npair or m.ngeom != base.ngeom:
+        raise AssertionError("adding contact sensors changed the scene's pairs or geoms")
+
+    def adr(key):
+        return np.array([m.sensor_adr[m.sensor(n).id] for n in names[key]], dtype=np.int64)
+
+    nf = ids.nonfoot_floor_pair.astype(int)
+    return m, ContactSensors(obj=adr("obj"), nonfoot=adr("nonfoot"),
+                             nonfoot_geoms=np.stack([g1[nf], g2[nf]], axis=1).astype(np.int64).reshape(-1, 2),
+                             wall=adr("wall"))

@@ -1,0 +1,1 @@
+"""The batched closed-loop rollout: config, state, step, loop, batching, sharding, caches."""

@@ -1,0 +1,165 @@
+"""Build everything one batched transport rollout needs from factor values.
+
+:func:`prepare_batch` returns the batched MJX model and its in_axes, per-run initial states,
+plans, object models, gains, pushes and ground friction, each with a leading run axis B.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wbc_jax.runtime import aot
+from wbc_jax.rollout import runs
+from wbc_jax.robot import scenario
+from wbc_jax.types import ObjectModel
+from wbc_jax.control.transport import TransportGains, default_gains
+from wbc_jax.planner.scene_geometry import scene_geometry
+from wbc_jax.planner.spline import pad_path
+from wbc_jax.planner.transport import TransportPlan, course_plan, straight_plan
+from wbc_jax.rollout.core import Push, RunState, Sim, init_state, no_push, state_axes
+
+
+class Batch(NamedTuple):
+    model: object  # batched mjx.Model
+    in_axes: object  # the model's run axes (0 per run, None shared)
+    state: RunState
+    plan: TransportPlan
+    om: ObjectModel
+    gains: TransportGains
+    push: Push
+    mu_ground: jax.Array
+    factors: scenario.Factors
+    state_axes: object = 0  # the state's run axes (wbc_jax.rollout.core.state_axes: Warp's contact list is shared)
+
+
+
+def take_runs(b: Batch, rows, state=None, gains=None) -> Batch:
+    """The runs ``rows`` (indices into ``b``) of every per-run field of ``b`` (:func:`wbc_jax.rollout.runs.take`, the
+    model and the state with their run axes; shared leaves stay whole). ``state``, ``gains``: already selected
+    replacements for those fields (e.g. runs continued from earlier states, candidate gains) instead of ``b``'s
+    rows."""
+    return b._replace(model=runs.take(b.model, rows, b.in_axes),
+                      state=runs.take(b.state, rows, b.state_axes) if state is None else state,
+                      plan=runs.take(b.plan, rows), om=runs.take(b.om, rows),
+                      gains=runs.take(b.gains, rows) if gains is None else gains, push=runs.take(b.push, rows),
+                      mu_ground=runs.take(b.mu_ground, rows), factors=runs.take(b.factors, rows))
+
+# Setup arithmetic is done in numpy and each leaf is placed on the device once: eager jnp operations would each
+# compile a small program (hundreds per campaign, seconds of a warm start).
+
+
+def _device(x):
+    """One host -> device transfer of a numpy leaf (dtype as jnp.asarray gives it, converted on the host: a
+    conversion on the device compiles a program per shape)."""
+    x = np.asarray(x)
+    return jax.device_put(x.astype(jax.dtypes.canonicalize_dtype(x.dtype), copy=False))
+
+
+def stack(trees, index=None):
+    """Leafwise stack of pytrees along a new leading axis, optionally gathered with ``index`` (host arithmetic)."""
+    def one(*xs):
+        x = np.stack([np.asarray(v) for v in xs])
+        return _device(x if index is None else x[index])
+
+    return jax.tree_util.tree_map(one, *trees)
+
+
+def broadcast(tree, B: int):
+    """Every leaf repeated along a new leading axis of size B (host arithmetic, one transfer per leaf)."""
+    return jax.tree_util.tree_map(lambda x: _device(np.broadcast_to(np.asarray(x), (B,) + np.shape(x))), tree)
+
+
+def _plan(robot, course: bool, qpos0, kw: dict) -> TransportPlan:
+    """One plan (:func:`course_plan` when ``course``, else :func:`straight_plan`, with keyword arguments ``kw``) and
+    numpy leaves, kept on disk like a compiled program (:func:`wbc_jax.runtime.aot.cached_value`: keyed by the model's
+    bytes, the start pose, ``kw``, the package's sources and the versions; off with ``WBC_JAX_CACHE=off``).
+
+    A plan is a deterministic function of those. Computing the course's takes seconds (tracing and loading the
+    landing table's and the ZMP path's programs; about 1.6 s per object side on a 2-core CPU), most of a warm
+    campaign's setup: the paper campaign's setup took 6.85 s without this and 4.29 s with it (H100 host, JAX cache
+    warm, one machine, 2026-11-26)."""
+    def compute():
+        p = course_plan(robot, qpos0, **kw) if course else straight_plan(robot, qpos0, **kw)
+        return jax.tree_util.tree_map(np.asarray, p)
+
+    static = aot.describe(robot, np.asarray(qpos0, float), "course" if course else "straight",
+                          *(f"{k}={aot.describe(v)}" for k, v in sorted(kw.items())))
+    return aot.cached_value("plan", static, compute)
+
+
+_INIT_FNS: dict = {}
+
+
+def _init_fn(sim: Sim, in_axes, n_runs: int):
+    """jit(vmap(init_state)) over (model, qpos0, qvel0), one per Sim and batched-model layout (one compile; on
+    the Warp backend also one per batch size, which sizes its shared contact list)."""
+    n = n_runs if sim.robot.backend == "warp" else 1
+    key = (id(sim), str(in_axes), n)
+    if key not in _INIT_FNS:
+        fn = jax.vmap(functools.partial(init_state, sim, n_runs=n), in_axes=(in_axes, 0, 0))
+        _INIT_FNS[key] = aot.cached_jit("init", fn, aot.describe(sim, in_axes, n),
+                                        exportable=sim.robot.backend != "warp")
+    return _INIT_FNS[key]
+
+
+def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push: Push | None = None,
+                  plan_kwargs: dict | None = None, qpos0=None, qvel0=None, speed=None, ground_mu=None) -> Batch:
+    """Validated factors (each (B,) or scalar) -> a ready Batch.
+
+    Args:
+        sim: static rollout structure; m, mu, d: object mass [kg], tray friction, object side [m].
+        gains: per-run gains with leading axis B, or unbatched (broadcast), default gains if None.
+        push: per-run or unbatched Push (none if None).
+        plan_kwargs: keyword arguments of the planner: :func:`wbc_jax.planner.transport.course_plan` when
+            the scene has obstacles or terrain (blocks, a wall), else :func:`~wbc_jax.planner.transport.straight_plan`.
+        qpos0, qvel0: (B, nq), (B, nv) initial configurations and velocities; None: the home pose of each run's
+            object side, at rest.
+        speed: (B,) cruise speed of each run's plan [m/s] instead of ``plan_kwargs``' (None: that one).
+        ground_mu: (B,) foot/ground friction of each run, in the physics and the controller (None: the scene's).
+    """
+    robot = sim.robot
+    f = scenario.validate_factors(robot.ids, m, mu, d)
+    B = f.m.shape[0]
+    bm, in_axes = scenario.batch_model(robot.mjx_model, robot.mj_model, robot.ids, f, ground_mu)
+    kw = plan_kwargs or {}
+    course = scene_geometry(robot).is_course
+    # start pose and plan depend on the run only through d (carried height) and the speed: each pair once
+    keys = f.d[:, None] if speed is None else np.stack([f.d, np.broadcast_to(speed, f.d.shape)], axis=1)
+    levels, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    q_levels = [robot.home_qpos(key[0]) for key in levels]
+    if qpos0 is None:
+        qpos0 = np.stack(q_levels)[inverse]
+    if qvel0 is None:
+        qvel0 = np.zeros((B, robot.mj_model.nv))
+    kws = [kw if speed is None else dict(kw, speed=float(key[1])) for key in levels]
+    unique = [_plan(robot, course, q, dict(k, side=float(key[0])) if course else k)
+              for q, key, k in zip(q_levels, levels, kws)]
+    if unique[0].com_xy is not None:  # per-footstep CoM paths: as many knots as the longest plan's
+        n = max(len(p.com_xy.t_knots) for p in unique)
+        unique = [p._replace(com_xy=pad_path(p.com_xy, n)) for p in unique]
+    n = max(len(p.landing) for p in unique)  # landing tables: as many half-cycles as the longest plan's
+    unique = [p._replace(landing=np.pad(np.asarray(p.landing), ((0, n - len(p.landing)), (0, 0), (0, 0)), mode="edge"))
+              for p in unique]
+    plans = stack(unique, index=inverse)
+    state = _init_fn(sim, in_axes, B)(bm, jnp.asarray(qpos0, float), jnp.asarray(qvel0, float))
+    om = ObjectModel(mass=jnp.asarray(f.m), side=jnp.asarray(f.d), mu=jnp.asarray(f.mu),
+                     inset=jnp.full(B, robot.ids.obj_sphere_radius))
+    gains = default_gains() if gains is None else gains
+    if jnp.ndim(gains.kp_obj) == 0:
+        gains = broadcast(gains, B)
+    push = no_push() if push is None else push
+    if jnp.ndim(push.t0) == 0:
+        push = broadcast(push, B)
+    if ground_mu is None:
+        # the scene's value as a strong-typed array like a ground_mu factor's (_device: float32, or float64 under
+        # x64): a weak-typed jnp.full made batches with and without that factor compile separate programs
+        mu_ground = _device(np.full(B, float(robot.mj_model.pair_friction[robot.ids.foot_pair[0, 0], 0])))
+    else:
+        mu_ground = _device(np.broadcast_to(np.asarray(ground_mu, float), (B,)))
+    return Batch(bm, in_axes, state, plans, om, gains, push, mu_ground, f, state_axes(sim, state))

@@ -1,0 +1,215 @@
+"""One process per host (or per GPU): ``jax.distributed`` set up from flags or the cluster's environment.
+
+A multi-process run needs three things in every process, before anything touches a device: the coordinator's
+``host:port`` (process 0 serves it), the process count and this process's id. :func:`resolve` takes them, in
+this order, from the command's flags (``--coordinator``, ``--num-processes``, ``--process-id``), from
+``JAX_COORDINATOR_ADDRESS`` / ``JAX_NUM_PROCESSES`` / ``JAX_PROCESS_ID``, or from a SLURM job step
+(``SLURM_STEP_NUM_TASKS`` or ``SLURM_NTASKS`` > 1, ``SLURM_PROCID``; the coordinator is the step's first node,
+from ``SLURM_STEP_NODELIST`` / ``SLURM_JOB_NODELIST``, else ``SLURM_LAUNCH_NODE_IPADDR``, at port
+``JAX_COORDINATOR_PORT`` or :data:`DEFAULT_PORT`). Nothing configured, or one process: no distributed
+initialisation at all (a single-process run is unchanged).
+
+:func:`initialize` then calls ``jax.distributed.initialize`` (with the CPU's cross-process collectives, gloo,
+switched on: without them a CPU computation cannot span processes). ``jax.devices()`` lists every device of
+every process; a campaign spreads its run axis over all of them (:func:`wbc_jax.rollout.sharding.run_mesh`), every
+process builds the same batch (the design is deterministic), and only :func:`is_writer` (process 0) writes.
+:func:`agree` makes a user error found by process 0 alone (its output folder, its checkpoint) every process's
+error, so that no process waits for a partner that has left.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from typing import Mapping, NamedTuple
+
+from wbc_jax.errors import InputError, WbcJaxError
+
+DEFAULT_PORT = 12355  # coordinator port when only the host is known (SLURM)
+MESSAGE_BYTES = 4096  # longest error message :func:`agree` carries to the other processes
+
+
+class Layout(NamedTuple):
+    """How to join a multi-process run (see the module docstring)."""
+
+    coordinator: str  # host:port of process 0's coordination service
+    num_processes: int
+    process_id: int
+    local_device_ids: tuple[int, ...] | None  # the devices this process uses (None: all it sees)
+    source: str  # where the settings came from: "flags", "JAX_* environment" or "SLURM"
+
+
+_ACTIVE: Layout | None = None
+
+
+def _int(text, what: str, lo: int, hi: int | None = None) -> int:
+    try:
+        v = int(str(text).strip())
+    except ValueError:
+        v = None
+    if v is None or v < lo or (hi is not None and v > hi):
+        rng = f"{lo} <= value" + (f" <= {hi}" if hi is not None else "")
+        raise InputError(f"{what} = {text!r}: expected an integer, {rng}")
+    return v
+
+
+def _address(text: str, what: str) -> str:
+    host, sep, port = str(text).strip().rpartition(":")
+    if not sep or not host or not re.fullmatch(r"[A-Za-z0-9_.\-\[\]:]+", host):
+        raise InputError(f"{what} = {text!r}: expected HOST:PORT, e.g. 10.0.0.1:12355 or localhost:12355")
+    _int(port, f"{what} port", 1, 65535)
+    return f"{host}:{int(port)}"
+
+
+def first_host(nodelist: str) -> str:
+    """The first host of a SLURM node list: ``"gpu[003-005,9],cpu1"`` -> ``"gpu003"``."""
+    m = re.match(r"\s*([^,\[]*)(?:\[([^\]]*)\])?", nodelist)
+    prefix, ranges = (m.group(1), m.group(2)) if m else ("", None)
+    if ranges:
+        prefix += re.split(r"[-,]", ranges)[0]
+    if not prefix:
+        raise InputError(f"SLURM node list {nodelist!r}: no host name")
+    return prefix
+
+
+def _device_ids(text: str, what: str) -> tuple[int, ...]:
+    parts = [p for p in str(text).split(",") if p.strip()]
+    if not parts:
+        raise InputError(f"{what} = {text!r}: expected comma-separated device ids, e.g. 0 or 0,1")
+    return tuple(_int(p, what, 0) for p in parts)
+
+
+def resolve(coordinator: str | None = None, num_processes: int | str | None = None,
+            process_id: int | str | None = None, local_device_ids: str | None = None,
+            env: Mapping[str, str] | None = None) -> Layout | None:
+    """This process's place in a multi-process run, or None for a single-process run.
+
+    Args:
+        coordinator, num_processes, process_id, local_device_ids: the command's flags (None: not given); a flag
+            wins over the environment.
+        env: environment variables (default ``os.environ``).
+
+    Returns:
+        The validated Layout; None when nothing is configured or the run has one process.
+
+    Raises:
+        InputError: a value is malformed or out of range (one line naming the flag or variable), or a
+            multi-process run lacks the coordinator or this process's id.
+    """
+    env = os.environ if env is None else env
+    flags = dict(coordinator=coordinator, num_processes=num_processes, process_id=process_id)
+    names = dict(coordinator="--coordinator", num_processes="--num-processes", process_id="--process-id")
+    source = "flags" if any(v is not None for v in flags.values()) else None
+    jax_env = dict(coordinator="JAX_COORDINATOR_ADDRESS", num_processes="JAX_NUM_PROCESSES",
+                   process_id="JAX_PROCESS_ID")
+    for k, var in jax_env.items():
+        if flags[k] is None and env.get(var, "").strip():
+            flags[k], names[k] = env[var], var
+            source = source or "JAX_* environment"
+    slurm_n = env.get("SLURM_STEP_NUM_TASKS") or env.get("SLURM_NTASKS")
+    if source is None and slurm_n and "SLURM_PROCID" in env and _int(slurm_n, "SLURM_NTASKS", 1) > 1:
+        source = "SLURM"
+        flags["num_processes"], names["num_processes"] = slurm_n, "SLURM_NTASKS"
+        flags["process_id"], names["process_id"] = env["SLURM_PROCID"], "SLURM_PROCID"
+        nodes = env.get("SLURM_STEP_NODELIST") or env.get("SLURM_JOB_NODELIST")
+        host = first_host(nodes) if nodes else env.get("SLURM_LAUNCH_NODE_IPADDR")
+        if host:
+            port = env.get("JAX_COORDINATOR_PORT", str(DEFAULT_PORT))
+            flags["coordinator"], names["coordinator"] = f"{host}:{port}", "SLURM node list:JAX_COORDINATOR_PORT"
+    if source is None:
+        return None
+    n = _int(flags["num_processes"], names["num_processes"], 1) if flags["num_processes"] is not None else None
+    if n is None:
+        raise InputError(f"{names['num_processes']} missing: a multi-process run needs the process count "
+                         "(--num-processes or JAX_NUM_PROCESSES)")
+    if n == 1:
+        return None
+    missing = [names[k] for k in ("coordinator", "process_id") if flags[k] is None]
+    if missing:
+        raise InputError(f"{' and '.join(missing)} missing: a run of {n} processes needs the coordinator's "
+                         "HOST:PORT and this process's id in every process")
+    pid = _int(flags["process_id"], names["process_id"], 0, n - 1)
+    ids = _device_ids(local_device_ids, "--local-device-ids") if local_device_ids is not None else None
+    return Layout(_address(flags["coordinator"], names["coordinator"]), n, pid, ids, source)
+
+
+def initialize(layout: Layout | None) -> None:
+    """``jax.distributed.initialize`` for ``layout`` (nothing for None); call before anything touches a device.
+    A second call with the same layout does nothing."""
+    global _ACTIVE
+    if layout is None or _ACTIVE == layout:
+        return
+    if _ACTIVE is not None:
+        raise WbcJaxError(f"this process already joined {_ACTIVE.coordinator} as process {_ACTIVE.process_id}")
+    import jax
+
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")  # CPU programs across processes
+    try:
+        jax.distributed.initialize(layout.coordinator, layout.num_processes, layout.process_id,
+                                   local_device_ids=list(layout.local_device_ids) if layout.local_device_ids
+                                   else None)
+    except (RuntimeError, ValueError) as e:  # unreachable coordinator, timeout, a second process with this id
+        why = " ".join(str(e).split())[:300]
+        raise WbcJaxError(f"process {layout.process_id} of {layout.num_processes} could not join the coordinator "
+                          f"{layout.coordinator} ({layout.source}): {why}") from None
+    _ACTIVE = layout
+
+
+def is_multiprocess() -> bool:
+    """Whether this process is one of several (:func:`initialize` was called with more than one)."""
+    return _ACTIVE is not None
+
+
+def is_writer() -> bool:
+    """Whether this process writes results, reports, manifests and checkpoints: process 0 (or the only one)."""
+    import jax
+
+    return _ACTIVE is None or jax.process_index() == 0
+
+
+def layout_record() -> dict:
+    """The process and device layout, for a manifest: process count, this process's index, where the settings
+    came from, and every device as (id, process, kind)."""
+    import jax
+
+    return dict(processes=jax.process_count(), process_index=jax.process_index(),
+                source=_ACTIVE.source if _ACTIVE else "single process",
+                coordinator=_ACTIVE.coordinator if _ACTIVE else None,
+                local_device_count=jax.local_device_count(),
+                devices=[dict(id=d.id, process=d.process_index, kind=d.device_kind) for d in jax.devices()])
+
+
+def agree(error: WbcJaxError | None) -> None:
+    """Raise process 0's user error (None: none) in every process.
+
+    Single process: raises ``error`` if given. Several: a collective (every process must call it at the same
+    point); process 0's message reaches the others, which raise it as a WbcJaxError.
+    """
+    if _ACTIVE is None:
+        if error is not None:
+            raise error
+        return
+    import numpy as np
+    from jax.experimental import multihost_utils
+
+    buf = np.zeros(MESSAGE_BYTES + 1, np.uint8)
+    if error is not None:
+        text = str(error).encode()[:MESSAGE_BYTES]
+        buf[0], buf[1:1 + len(text)] = 1, np.frombuffer(text, np.uint8)
+    got = np.asarray(multihost_utils.broadcast_one_to_all(buf))
+    if error is not None and is_writer():
+        raise error
+    if got[0]:
+        raise WbcJaxError(bytes(got[1:]).rstrip(b"\0").decode(errors="replace"))
+
+
+def gather(tree):
+    """A pytree of global arrays (sharded over every process's devices) as host numpy arrays, whole, in every
+    process (a collective); single process: ``jax.device_get``."""
+    import jax
+
+    if _ACTIVE is None:
+        return jax.device_get(tree)
+    from jax.experimental import multihost_utils
+
+    return multihost_utils.process_allgather(tree, tiled=True)

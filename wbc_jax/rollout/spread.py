@@ -1,0 +1,114 @@
+"""Where a batch's runs run: one device, one program over every device, or one block of runs per process.
+
+:func:`choose` picks a :class:`Spread` from the device and process counts and the physics backend:
+
+* ``one``: a single device.
+* ``mesh`` (JAX physics, several devices): the run axis padded and split over every device of every process,
+  one SPMD program in which each device steps its own runs (:mod:`wbc_jax.rollout.sharding`).
+* ``blocks`` (Warp physics, several processes): the runs padded to a multiple of the process count and cut into
+  contiguous blocks; process i steps block i on its first local device with the single-device program, and the
+  processes meet only to gather results (host collectives). XLA cannot put MuJoCo Warp's kernels into one program
+  over several devices with mujoco-mjx 3.17 and warp-lang 1.18: a ``shard_map`` or ``pmap`` program crashes
+  XLA's compiler (segmentation fault) and a GSPMD one runs at 0.49x one GPU's speed, while two processes, one
+  per GPU, each keep a whole GPU's speed (2 x H200, physics only at batch 8192-16384, 2026-11-26). For the same
+  reason one process that sees several GPUs runs Warp on its first GPU only (``one``; :attr:`Spread.note`
+  says so): start one process per GPU (docs/cluster.md).
+
+Every process builds the same whole batch (the design is deterministic); :meth:`Spread.place` keeps this
+process's part, :meth:`Spread.gather` brings every run's results back to every process's host.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import numpy as np
+
+from wbc_jax.rollout import distributed
+from wbc_jax.rollout import runs
+
+
+@dataclass(frozen=True)
+class Spread:
+    """A batch's layout over devices and processes (module docstring).
+
+    Attributes:
+        mode: "one", "mesh" or "blocks".
+        mesh: the run mesh over every device ("mesh"), else None.
+        note: a line for the console when a layout leaves devices idle, else "".
+        process, processes: ("blocks") this process's block and the number of blocks (process index and count).
+    """
+
+    mode: str
+    mesh: object = None
+    note: str = ""
+    process: int = 0
+    processes: int = 1
+
+    def describe(self) -> str:
+        """" x N ..." after a device name for the console ("" on one device)."""
+        if self.mode == "blocks":
+            return f" x {self.processes} processes, a block of runs each"
+        if self.mode == "mesh":
+            procs = jax.process_count()
+            return f" x {self.mesh.size}" + (f" over {procs} processes" if procs > 1 else "")
+        return ""
+
+    def block(self, n: int) -> np.ndarray:
+        """("blocks") This process's rows of an n-run batch: block ``process`` of ``ceil(n / processes)`` rows,
+        past the last run padded with the last run."""
+        k = -(-n // self.processes)
+        return np.minimum(np.arange(k) + self.process * k, n - 1)
+
+    def place(self, b):
+        """``b`` (a :class:`wbc_jax.rollout.batch.Batch`, whole in every process) as this process steps it: itself
+        ("one"), padded and sharded over the mesh ("mesh"), or this process's block on its device ("blocks")."""
+        if self.mode == "mesh":
+            from wbc_jax.rollout.sharding import shard_batch
+
+            return shard_batch(b, self.mesh)[0]
+        if self.mode == "blocks":
+            from wbc_jax.rollout.batch import take_runs
+
+            return take_runs(b, self.block(int(np.shape(b.mu_ground)[0])))
+        return b
+
+    def place_state(self, state, n: int, axes=0):
+        """A host state of all ``n`` runs (the same in every process) placed as :meth:`place` places a batch's."""
+        if self.mode == "mesh":
+            from wbc_jax.rollout.sharding import shard_runs
+
+            return shard_runs(state, self.mesh, axes)
+        if self.mode == "blocks":
+            return jax.device_put(runs.take(state, self.block(n), axes))
+        return state
+
+    def gather(self, tree, n: int, axes=0):
+        """The first ``n`` runs of ``tree`` (placed as :meth:`place` places them; run axes ``axes``) as host
+        numpy arrays, whole, in every process (a collective with several processes)."""
+        if self.mode == "blocks":
+            from jax.experimental import multihost_utils
+
+            leaves, treedef, ax = runs.leaves_and_axes(tree, axes)
+            host = [np.asarray(x) for x in jax.device_get(leaves)]
+            mine = [x for x, a in zip(host, ax) if a is not None]
+            every = iter(multihost_utils.process_allgather(mine, tiled=True))  # blocks in process order
+            host = [x if a is None else next(every) for x, a in zip(host, ax)]
+            return runs.first(jax.tree_util.tree_unflatten(treedef, host), n, axes)
+        return runs.first(distributed.gather(tree) if self.mode == "mesh" else jax.device_get(tree), n, axes)
+
+
+def choose(backend: str) -> Spread:
+    """The layout for a batch of ``backend`` ("jax" or "warp") physics on this process's devices."""
+    if jax.device_count() == 1:
+        return Spread("one")
+    if backend != "warp":
+        from wbc_jax.rollout.sharding import run_mesh
+
+        return Spread("mesh", run_mesh())
+    note = (f"note: Warp physics runs on 1 of this process's {jax.local_device_count()} GPUs (one process per GPU "
+            f"uses them all: docs/cluster.md)" if jax.local_device_count() > 1 else "")
+    if jax.process_count() == 1:
+        return Spread("one", note=note)
+    return Spread("blocks", note=note, process=jax.process_index(), processes=jax.process_count())

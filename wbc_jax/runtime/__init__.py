@@ -1,0 +1,1 @@
+"""JAX runtime: its configuration (precision, compilation cache) and the compiled-program cache."""

@@ -1,0 +1,1 @@
+"""Studies built on the rollout: demo, trot, gain tuning."""
