@@ -1,6 +1,6 @@
 """The ANOVA report of an existing results table, without JAX: print the significant terms per metric.
 
-    python examples/report_only.py RESULTS.csv [OUT_DIR]
+python examples/report_only.py RESULTS.csv [OUT_DIR]
 """
 
 import sys

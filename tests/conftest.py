@@ -3,8 +3,8 @@ reports/baseline/spec.toml, run once per session (tests/test_campaign.py, tests/
 
 import pytest
 
-from wbc_jax.runtime import jaxcfg
 from wbc_jax.campaign.spec import SWEEPS
+from wbc_jax.runtime import jaxcfg
 
 jaxcfg.configure()
 

@@ -15,14 +15,15 @@ import pytest
 
 pytest.importorskip("warp")
 
-from wbc_jax.physics.observe import mass_matrix  # noqa: E402
-from wbc_jax.physics import contacts
-from wbc_jax.physics import backend as physics
-from wbc_jax.robot import scenario  # noqa: E402
-from wbc_jax.rollout.batch import prepare_batch  # noqa: E402
-from wbc_jax.robot.model import Robot  # noqa: E402
-from wbc_jax.rollout.core import final_results, make_sim, simulate  # noqa: E402
 from test_transport import CHUNK_SECONDS, TROT_PLAN  # noqa: E402  (the walks share its compiled chunk program)
+
+from wbc_jax.physics import backend as physics
+from wbc_jax.physics import contacts
+from wbc_jax.physics.observe import mass_matrix  # noqa: E402
+from wbc_jax.robot import scenario  # noqa: E402
+from wbc_jax.robot.model import Robot  # noqa: E402
+from wbc_jax.rollout.batch import prepare_batch  # noqa: E402
+from wbc_jax.rollout.core import final_results, make_sim, simulate  # noqa: E402
 
 M_TOL = 1e-5  # relative, float32 CSR scatter vs MuJoCo C float64
 DIST_TOL = 1e-5  # [m] geometric sphere distances vs MJX's collision functions (float32)

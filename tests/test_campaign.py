@@ -7,8 +7,8 @@ import pandas as pd
 import pytest
 
 from wbc_jax import cli
-from wbc_jax.errors import SpecError
 from wbc_jax.campaign.spec import SWEEPS, design, load_spec, parse_spec
+from wbc_jax.errors import SpecError
 
 BASELINE = SWEEPS.parent / "reports" / "baseline"  # its spec.toml is the tiny campaign of these tests (conftest.py)
 NUMERIC = ["m", "mu", "d", "rep", "seed", "R", "T", "S", "max_slip_mm", "boundary_fraction", "final_err_mm"]

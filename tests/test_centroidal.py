@@ -9,15 +9,21 @@ import osqp
 import pytest
 import scipy.sparse as sp
 
-from wbc_jax.physics import backend as physics
-from wbc_jax.control.centroidal import (CentroidalConfig, CentroidalRef, build_qp, centroidal_qp_settings,
-                                        default_gains, scaled_model)
+from wbc_jax.control.centroidal import (
+    CentroidalConfig,
+    CentroidalRef,
+    build_qp,
+    centroidal_qp_settings,
+    default_gains,
+    scaled_model,
+)
 from wbc_jax.control.centroidal_dynamics import centroidal_terms
+from wbc_jax.physics import backend as physics
 from wbc_jax.physics.observe import dyn_terms
-from wbc_jax.robot.model import Robot, mjx
 from wbc_jax.planner import capture_point as cpm
 from wbc_jax.planner.gait import GaitParams
 from wbc_jax.qp import QPSettings, solve_qp
+from wbc_jax.robot.model import Robot, mjx
 from wbc_jax.rollout.core import contact_slots
 from wbc_jax.studies.trot import SNAPSHOT_SIZE, TrotSim, init_run, make_plan, simulate, write_snapshots
 

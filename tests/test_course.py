@@ -6,12 +6,20 @@ import numpy as np
 import pytest
 
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
-from wbc_jax.robot.model import Robot, mjcf_dir
 from wbc_jax.planner.apf import overhead, plan_dip
-from wbc_jax.planner.scene_geometry import (HIP_DROP, SHIN_MARGIN, clear_of_edges, knee_position, leg_geometry,
-                                           scene_geometry, shin_clearance, terrain_height)
+from wbc_jax.planner.scene_geometry import (
+    HIP_DROP,
+    SHIN_MARGIN,
+    clear_of_edges,
+    knee_position,
+    leg_geometry,
+    scene_geometry,
+    shin_clearance,
+    terrain_height,
+)
 from wbc_jax.planner.spline import eval_path, max_abs_accel_z
 from wbc_jax.planner.transport import course_plan
+from wbc_jax.robot.model import Robot, mjcf_dir
 from wbc_jax.rollout.batch import prepare_batch
 from wbc_jax.rollout.core import make_sim, simulate
 
@@ -156,8 +164,8 @@ def test_foot_ground_surface_and_friction_match_mujoco_c():
     foot's pairs, pair_friction of the nearest)."""
     import jax
 
-    from wbc_jax.physics import contacts
     from wbc_jax.physics import backend as physics
+    from wbc_jax.physics import contacts
     from wbc_jax.robot.model import mjx
 
     robot = Robot("transport")

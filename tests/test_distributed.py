@@ -254,11 +254,11 @@ def _warp_blocks(spec_path, n_blocks: int) -> pd.DataFrame:
     process: each block (``Spread.place``) stepped alone by the campaign's single-device chunk function."""
     import jax
 
+    from wbc_jax.campaign import runner as C
+    from wbc_jax.campaign.spec import load_spec
     from wbc_jax.rollout import runs
     from wbc_jax.rollout.core import final_results
     from wbc_jax.rollout.spread import Spread
-    from wbc_jax.campaign import runner as C
-    from wbc_jax.campaign.spec import load_spec
 
     spec = C.with_backend(load_spec(spec_path), "warp")
     sim, dz, b, _, logs_per_chunk, n_chunks = C.build(spec)

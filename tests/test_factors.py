@@ -8,9 +8,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from wbc_jax.errors import SpecError
 from wbc_jax.campaign import factors
 from wbc_jax.campaign.spec import SWEEPS, design, load_spec, parse_spec
+from wbc_jax.errors import SpecError
 
 # the spec hashes checkpoints and regress baselines are keyed on: new keys at their defaults must not change them;
 # changed on purpose: issue 22 (qp_iters 20 -> 10, with the solver's convergence-checked extension), and com_plan
@@ -95,8 +95,8 @@ def test_levels_are_normalised_and_switches_combine():
 
 
 def test_gain_leaves_match_the_controller_and_multiply():
-    from wbc_jax.control.transport import TransportGains, default_gains
     from wbc_jax.campaign.runner import run_gains
+    from wbc_jax.control.transport import TransportGains, default_gains
 
     assert factors.GAIN_LEAVES == TransportGains._fields
     dz = design(parse_spec(dict(factors={"gain.kp_com": [0.5, 2.0], "gain.k_obs": [0.0, 1.0]},

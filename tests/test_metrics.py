@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from wbc_jax.physics import contacts
 from wbc_jax.metrics import paper as metrics
 from wbc_jax.robot.model import mjx
 from wbc_jax.rollout.core import Accum
@@ -217,7 +218,7 @@ CUBE = """
 
 def test_simulator_contact_forces_on_an_incline():
     """A cube at rest under gravity tilted by phi (an incline, phi < atan mu): the simulator's contact forces
-    read by metrics.contact_forces carry the weight, with total tangential / normal = tan(phi) (hand statics)."""
+    read by contacts.contact_forces carry the weight, with total tangential / normal = tan(phi) (hand statics)."""
     m_obj, mu, phi, g = 0.3, 0.7, 0.2, 9.81
     mj = mujoco.MjModel.from_xml_string(CUBE.format(gx=g * np.sin(phi), gz=-g * np.cos(phi), m=m_obj, mu=mu))
     mx = mjx.put_model(mj)
@@ -227,7 +228,7 @@ def test_simulator_contact_forces_on_an_incline():
 
     d, _ = jax.jit(lambda d: jax.lax.scan(step, d, None, length=600))(mjx.make_data(mx))
     d = jax.jit(mjx.forward)(mx, d)
-    f = np.asarray(metrics.contact_forces(mx, d, np.arange(4)))  # (4, 3) contact frames, normal first
+    f = np.asarray(contacts.contact_forces(mx, d, np.arange(4)))  # (4, 3) contact frames, normal first
     total = mj.body_mass[1] * g
     fn = f[:, 0].sum()
     ft = np.linalg.norm(f[:, 1:].sum(axis=0))

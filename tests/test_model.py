@@ -9,9 +9,10 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+
+from wbc_jax.errors import FactorError, SceneError
 from wbc_jax.physics.observe import point_jacobians
 from wbc_jax.robot import scenario
-from wbc_jax.errors import FactorError, SceneError
 from wbc_jax.robot.model import Robot, mjx, resolve_ids
 
 MASS_TARGET = 24.26  # [kg] public code's total robot mass

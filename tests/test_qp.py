@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from wbc_jax.bench import qp_problems as pr
 from wbc_jax.qp import (
     FLAG_DUAL_INFEASIBLE,
     FLAG_NONFINITE,
@@ -24,7 +25,6 @@ from wbc_jax.qp import (
     QPSettings,
     solve_qp,
 )
-from wbc_jax.bench import qp_problems as pr
 
 SEED = 20240603
 N_PROBLEMS = 200

@@ -217,8 +217,8 @@ def test_report_failure_keeps_results_and_report_can_be_rerun(tmp_path, monkeypa
     """The statistics failing after the simulation: results.csv and manifest.json stay, report_error.txt says why,
     the error is one line, and ``wbc-jax report`` on the kept results.csv works."""
     from wbc_jax.analysis import report
-    from wbc_jax.errors import ReportError
     from wbc_jax.campaign import runner as campaign
+    from wbc_jax.errors import ReportError
 
     out = tmp_path / "camp"
     out.mkdir()
@@ -298,8 +298,8 @@ def _fake_ckpt(tmp_path, gains=None, **meta_over):
     """A checkpoint next to ``tmp_path/out`` with the identity of the tiny spec (and ``gains``)."""
     import hashlib
 
-    from wbc_jax.campaign.runner import run_identity
     from wbc_jax.campaign.checkpoint import ckpt_dir as _ckpt_dir
+    from wbc_jax.campaign.runner import run_identity
     from wbc_jax.campaign.spec import load_spec
 
     ck = _ckpt_dir(tmp_path / "out")
@@ -327,8 +327,8 @@ def _fake_ckpt(tmp_path, gains=None, **meta_over):
 def test_resume_refuses_a_foreign_or_damaged_checkpoint(tmp_path, monkeypatch, capsys, damage, msg):
     """``--resume`` with a checkpoint of other gains, versions or spec, or a damaged one: one line naming what and
     how to restart, before anything is built (build is not reached)."""
-    from wbc_jax.control.transport import default_gains
     from wbc_jax.campaign import runner as campaign
+    from wbc_jax.control.transport import default_gains
 
     ck = _fake_ckpt(tmp_path, gains=default_gains()._replace(kp_obj=default_gains().kp_obj * 0.5)
                     if damage == "gains" else None)
@@ -360,9 +360,9 @@ def test_resume_refuses_a_foreign_or_damaged_checkpoint(tmp_path, monkeypatch, c
 
 
 def test_run_identity_names_what_determines_the_result():
-    from wbc_jax.control.transport import default_gains
     from wbc_jax.campaign.runner import run_identity
     from wbc_jax.campaign.spec import load_spec
+    from wbc_jax.control.transport import default_gains
 
     spec = load_spec(TINY)
     a = run_identity(spec)

@@ -13,15 +13,15 @@ import numpy as np
 import pytest
 
 from wbc_jax import cli
-from wbc_jax.physics import contacts
-from wbc_jax.metrics import paper as metrics
-from wbc_jax.rollout.batch import prepare_batch
+from wbc_jax.campaign.spec import load_spec, parse_spec
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
 from wbc_jax.errors import SpecError, WbcJaxError
-from wbc_jax.robot.model import Robot, mjx
+from wbc_jax.metrics import paper as metrics
+from wbc_jax.physics import contacts
 from wbc_jax.planner.gait import GaitParams
+from wbc_jax.robot.model import Robot, mjx
+from wbc_jax.rollout.batch import prepare_batch
 from wbc_jax.rollout.core import CONTACT_DIST, contact_name, control_step, make_sim
-from wbc_jax.campaign.spec import load_spec, parse_spec
 
 N_SUB = 2
 PERIODS = 3  # control periods checked (6 physics steps)

@@ -10,14 +10,14 @@ import osqp
 import pytest
 import scipy.sparse as sp
 
-from wbc_jax.physics import backend as physics
-from wbc_jax.rollout.batch import prepare_batch
 from wbc_jax.control.transport import TransportConfig, build_qp, control_qp_settings
+from wbc_jax.physics import backend as physics
 from wbc_jax.physics.observe import dyn_terms, object_state, point_jacobians
-from wbc_jax.robot.model import Robot
 from wbc_jax.planner.gait import GaitParams
 from wbc_jax.planner.transport import reference
 from wbc_jax.qp import QPSettings, solve_qp
+from wbc_jax.robot.model import Robot
+from wbc_jax.rollout.batch import prepare_batch
 from wbc_jax.rollout.core import make_sim, simulate
 
 OBJ_RTOL = 1e-3  # relative objective error, ADMM (float32, ACCURATE_ITERS cold iterations) vs OSQP eps 1e-9

@@ -18,13 +18,20 @@ import pandas as pd
 import pytest
 
 from wbc_jax import cli
-from wbc_jax.errors import SpecError
 from wbc_jax.campaign.gains import gains_toml, load_gains
 from wbc_jax.campaign.spec import SWEEPS
+from wbc_jax.errors import SpecError
 from wbc_jax.studies.tune_eval import score
 from wbc_jax.studies.tune_report import paired_comparison
-from wbc_jax.studies.tune_search import (CEMSearch, GridSearch, Space, halving_cost, halving_schedule, pareto_mask,
-                                       rank_key)
+from wbc_jax.studies.tune_search import (
+    CEMSearch,
+    GridSearch,
+    Space,
+    halving_cost,
+    halving_schedule,
+    pareto_mask,
+    rank_key,
+)
 from wbc_jax.studies.tune_spec import load_tune_spec
 
 BASELINE_SPEC = SWEEPS.parent / "reports" / "baseline" / "spec.toml"
@@ -294,10 +301,10 @@ def test_cpu_batch_keeps_lapack_kernels_inline(monkeypatch):
     compile) and checks every factorisation in it, so a larger QP or model breaks this test, not a user's run."""
     import jax
 
-    from wbc_jax.rollout import batch as batch_module
-    from wbc_jax.rollout.core import make_chunk_fn
     from wbc_jax.campaign import runner as campaign
     from wbc_jax.campaign.spec import load_spec, parse_spec
+    from wbc_jax.rollout import batch as batch_module
+    from wbc_jax.rollout.core import make_chunk_fn
     from wbc_jax.studies.tune_eval import take
     from wbc_jax.studies.tune_spec import CPU_BATCH
 

@@ -16,10 +16,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from wbc_jax.metrics import paper as metrics
-from wbc_jax.rollout.core import clearance, clearance_name, final_results, with_metric_window
 from wbc_jax.campaign import runner as C
 from wbc_jax.campaign.spec import SWEEPS, load_spec
+from wbc_jax.metrics import paper as metrics
+from wbc_jax.rollout.core import clearance, clearance_name, final_results, with_metric_window
 
 TINY = SWEEPS.parent / "reports" / "baseline" / "spec.toml"
 WINDOW_RTOL = 1e-6  # R, T, S of one window at two simulated lengths: float rounding only (same operations)

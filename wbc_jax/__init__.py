@@ -17,6 +17,7 @@ if "MUJOCO_GL" not in _os.environ and not _os.environ.get("DISPLAY"):
     _os.environ["MUJOCO_GL"] = "egl"
 
 from wbc_jax.version import __version__  # noqa: E402
+
 __all__ = ["load_results", "load_spec", "report", "run_campaign"]
 
 

@@ -121,7 +121,7 @@ class Pending:
         self._jobs, self._sent, self._local, self._answered = jobs, sent, local, answered
 
     def result(self) -> dict[str, Any]:
-        """name -> the figure function's result, in the jobs' order. A job without a worker, or whose worker
+        """Name -> the figure function's result, in the jobs' order. A job without a worker, or whose worker
         failed, is drawn in this process (its own error is raised here)."""
         out = {name: _figure(fn, args) for name, (fn, args) in self._local.items()}
         self._answered.update(dict.fromkeys(self._local, "lost"))

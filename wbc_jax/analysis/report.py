@@ -55,8 +55,8 @@ import numpy as np
 import pandas as pd
 
 from wbc_jax.analysis import interaction, render, stats
-from wbc_jax.io_utils import atomic_dir, check_out_dir, read_capped
 from wbc_jax.errors import InputError, WbcJaxError
+from wbc_jax.io_utils import atomic_dir, check_out_dir, read_capped
 
 SCHEMA = "wbc_jax.analysis.report/1"
 COMMAND = "wbc-jax report"

@@ -34,13 +34,23 @@ from collections.abc import Sequence
 
 import pandas as pd
 
-from wbc_jax.analysis.anova import (PERFECT_FIT_RTOL, SS_NAMES, ZERO_SD_RTOL, AnovaFit, fit_anova,
-                                    model_terms)
+from wbc_jax.analysis.anova import PERFECT_FIT_RTOL, SS_NAMES, ZERO_SD_RTOL, AnovaFit, fit_anova, model_terms
 from wbc_jax.analysis.assumptions import assumption_tests
 from wbc_jax.analysis.emm import CONF, ESTIMABLE_TOL, emmeans, simple_effects
-from wbc_jax.analysis.table import (BOOKKEEPING, DEFAULT_FACTORS, PREFERRED_METRICS, cell_means, design_table,
-                                    infer_factors, infer_metrics, level_means, levels, prepare, success_column,
-                                    successful)
+from wbc_jax.analysis.table import (
+    BOOKKEEPING,
+    DEFAULT_FACTORS,
+    PREFERRED_METRICS,
+    cell_means,
+    design_table,
+    infer_factors,
+    infer_metrics,
+    level_means,
+    levels,
+    prepare,
+    success_column,
+    successful,
+)
 from wbc_jax.errors import InputError
 
 __all__ = [

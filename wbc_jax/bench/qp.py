@@ -78,6 +78,7 @@ def osqp_solve(P, q, A, l, u, max_iter: int = 200_000) -> tuple[np.ndarray, floa
 
     Args:
         P: (n, n), q: (n,), A: (m, n), l, u: (m,) with +-inf for absent bounds (passed as OSQP's +-1e30).
+
     Returns:
         (x (n,), seconds spent in OSQP's solve).
     """

@@ -28,12 +28,12 @@ import time
 import jax
 import numpy as np
 
-from wbc_jax.rollout.batch import prepare_batch
-from wbc_jax.control.transport import TransportConfig, assemble, control_qp_settings
-from wbc_jax.robot.model import Robot
 from wbc_jax.bench import qp_problems as pr
-from wbc_jax.qp import solve_qp
 from wbc_jax.bench.qp import REF_EPS, osqp_solve
+from wbc_jax.control.transport import TransportConfig, assemble, control_qp_settings
+from wbc_jax.qp import solve_qp
+from wbc_jax.robot.model import Robot
+from wbc_jax.rollout.batch import prepare_batch
 from wbc_jax.rollout.core import controller_inputs, make_sim, simulate
 
 OBJ_TOL = 1e-3  # relative objective error (issue 22, float32)

@@ -29,11 +29,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.rollout.batch import prepare_batch
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
 from wbc_jax.robot.model import Robot, mjx
-from wbc_jax.rollout.core import make_chunk_fn, make_sim, resolve_sensing
 from wbc_jax.rollout import distributed
+from wbc_jax.rollout.batch import prepare_batch
+from wbc_jax.rollout.core import make_chunk_fn, make_sim, resolve_sensing
 from wbc_jax.rollout.sharding import over_runs, run_mesh, shard_batch
 
 
@@ -142,7 +142,6 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
 
         load_spec(campaign)  # a bad spec fails here (file, key, range), before any timing
     from wbc_jax.bench.qp_audit import variants
-
     from wbc_jax.physics.backend import resolve_backend
 
     qs = variants([qp])[qp] if qp else control_qp_settings(iters)
@@ -293,11 +292,11 @@ def run_components(batch: int = 256, iters: int = 50, scene: str = "transport", 
     """Latency of each stage of one control step, each stage its own jit(vmap) call on a state ``warm_steps`` into
     the run (median of ``reps`` calls; includes one dispatch per call, so the stages sum to more than the fused step).
     """
-    from wbc_jax.physics import contacts
+    from wbc_jax.control.transport import assemble
     from wbc_jax.metrics import paper as metrics
     from wbc_jax.physics import backend as physics
+    from wbc_jax.physics import contacts
     from wbc_jax.physics.observe import observe
-    from wbc_jax.control.transport import assemble
     from wbc_jax.planner.transport import reference
     from wbc_jax.qp import solve_qp
     from wbc_jax.rollout.core import CONTACT_DIST, control_step

@@ -239,11 +239,11 @@ def run_trace(batch: int = 270, steps: int = 50, scene: str = "transport", qp: s
     ``campaign.sensing``). ``warmup_s``: simulated seconds run (untraced) before the traced
     steps, so that they come from the walk rather than the first standing steps (the QP's convergence-checked
     extension costs most at contact events)."""
+    from wbc_jax.bench.qp_audit import variants
     from wbc_jax.bench.rollout import physics_only_fn, random_batch, wbc_chunk_fn
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
-    from wbc_jax.robot.model import Robot
-    from wbc_jax.bench.qp_audit import variants
     from wbc_jax.physics.backend import resolve_backend
+    from wbc_jax.robot.model import Robot
     from wbc_jax.rollout.core import make_sim, resolve_sensing
 
     # The persistent cache's key leaves out op metadata: an executable cached from an edit with other scopes would

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from wbc_jax.campaign.spec import _err, _number
 from wbc_jax.errors import InputError, SpecError
 from wbc_jax.io_utils import read_capped
-from wbc_jax.campaign.spec import _err, _number
 
 GAIN_MAX = 1e9  # largest accepted value of any leaf (a typo guard, far above any sensible gain)
 

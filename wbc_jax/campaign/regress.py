@@ -15,10 +15,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from wbc_jax.errors import InputError, SpecError, WbcJaxError
-from wbc_jax.io_utils import read_capped, write_json_atomic
 from wbc_jax.campaign.runner import run_campaign, run_in_fresh_process
 from wbc_jax.campaign.spec import load_spec
+from wbc_jax.errors import InputError, SpecError, WbcJaxError
+from wbc_jax.io_utils import read_capped, write_json_atomic
 
 REGRESS_METRICS = ("R", "T", "S", "max_slip_mm")
 DEFAULT_TOL = {"R": (0.02, 1e-3), "T": (0.05, 2e-5), "S": (0.05, 1e-3), "max_slip_mm": (0.10, 0.05)}  # (rel, abs)

@@ -41,14 +41,13 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from wbc_jax.runtime import aot
-from wbc_jax.rollout import distributed
-from wbc_jax.rollout import runs
-from wbc_jax.rollout.spread import choose
-from wbc_jax.errors import LimitError, ReportError, SpecError, WbcJaxError
-from wbc_jax.io_utils import atomic_dir, check_out_dir, write_json_atomic
 from wbc_jax.campaign import checkpoint
 from wbc_jax.campaign.spec import Design, Spec, default_spec_path, design, load_spec
+from wbc_jax.errors import LimitError, ReportError, SpecError, WbcJaxError
+from wbc_jax.io_utils import atomic_dir, check_out_dir, write_json_atomic
+from wbc_jax.rollout import distributed, runs
+from wbc_jax.rollout.spread import choose
+from wbc_jax.runtime import aot
 
 LOG_EVERY = 20  # control steps per logged sample (the rollout's outer scan)
 PACKAGES = ("wbc_jax", "jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy", "scipy", "statsmodels", "pandas")
@@ -182,8 +181,8 @@ def build(spec: Spec, gains=None):
     """Spec -> (sim, design, Batch with perturbed initial states and pushes, simulated seconds, chunk plan).
     ``gains``: controller gains (TransportGains, unbatched) instead of the defaults."""
     from wbc_jax.control.variants import Variant
-    from wbc_jax.rollout.batch import prepare_batch
     from wbc_jax.planner.transport import plan_duration
+    from wbc_jax.rollout.batch import prepare_batch
     from wbc_jax.rollout.core import make_push, with_metric_window, with_variant
 
     c = spec.campaign

@@ -70,10 +70,10 @@ from pathlib import Path
 
 import numpy as np
 
+from wbc_jax.campaign import factors as factors_mod
 from wbc_jax.control.variants import VARIANTS
 from wbc_jax.errors import InputError, SpecError
 from wbc_jax.io_utils import read_capped
-from wbc_jax.campaign import factors as factors_mod
 
 SWEEPS = Path(__file__).resolve().parents[2] / "sweeps"
 

@@ -77,7 +77,7 @@ QP_FLAG_FRACTION = 0.001  # more than this fraction of flagged QPs sets `qp_flag
 
 
 def cone_angle(f) -> tuple[jax.Array, jax.Array]:
-    """alpha (n,) [rad] between normal and force, and loaded (n,) bool, from contact-frame forces f (n, 3)."""
+    """Alpha (n,) [rad] between normal and force, and loaded (n,) bool, from contact-frame forces f (n, 3)."""
     fn = f[..., 0]
     ft = jnp.linalg.norm(f[..., 1:3], axis=-1)
     loaded = fn > LOAD_EPS

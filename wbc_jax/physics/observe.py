@@ -14,11 +14,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from wbc_jax.physics.backend import motion_cross, mjx
+from wbc_jax.physics.backend import mjx, motion_cross
 from wbc_jax.spatial import full_precision
 from wbc_jax.types import DynTerms, ObjectState, Observation, RobotIds
-
-
 
 
 def chain_dofs(m, body: int) -> np.ndarray:

@@ -27,14 +27,13 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from wbc_jax.types import Reference
-from wbc_jax.planner.gait import FOOT_NAMES, PAIRS, GaitParams, foot_stance_time, gait_phase, half_cycle
 from wbc_jax.planner.apf import APFParams, overhead, plan_dip
+from wbc_jax.planner.gait import FOOT_NAMES, PAIRS, GaitParams, foot_stance_time, gait_phase, half_cycle
 from wbc_jax.planner.scene_geometry import clear_of_edges, leg_geometry, scene_geometry, terrain_height
-from wbc_jax.planner.spline import (CubicPath, cubic_path, eval_path, max_abs_accel_z, path_end_time,
-                                    straight_path)
+from wbc_jax.planner.spline import CubicPath, cubic_path, eval_path, max_abs_accel_z, path_end_time, straight_path
 from wbc_jax.planner.swing import swing_reference
 from wbc_jax.planner.zmp import preview_com_xy
+from wbc_jax.types import Reference
 
 GRAVITY = 9.81
 EDGE_MARGIN = 0.01  # [m] footholds keep foot radius + this from a block's edge

@@ -165,7 +165,7 @@ def _finite(*vs):  # () bool, every entry finite (Triton-friendly: x - x is 0 on
 
 
 def _row_masks(dims: Dims, sizes) -> tuple:
-    """bool masks of each block's real rows (the box block's over the variables ``n - nb .. n - 1``)."""
+    """Bool masks of each block's real rows (the box block's over the variables ``n - nb .. n - 1``)."""
     NE, MI, N = sizes
     ie, ii, ib = (jax.lax.broadcasted_iota(jnp.int32, (k,), 0) for k in (NE, MI, N))
     return ie < dims.ne, ii < dims.mi, (ib >= dims.n - dims.nb) & (ib < dims.n)

@@ -14,8 +14,15 @@ import functools
 import jax.numpy as jnp
 
 from wbc_jax.qp.scaling import Scaled, absmax, mv
-from wbc_jax.qp.settings import (BIG, FLAG_DUAL_INFEASIBLE, FLAG_MAX_ITER, FLAG_NONFINITE, FLAG_PRIMAL_INFEASIBLE,
-                                 FLAG_SOLVED, QPSettings)
+from wbc_jax.qp.settings import (
+    BIG,
+    FLAG_DUAL_INFEASIBLE,
+    FLAG_MAX_ITER,
+    FLAG_NONFINITE,
+    FLAG_PRIMAL_INFEASIBLE,
+    FLAG_SOLVED,
+    QPSettings,
+)
 
 EQ_TOL = 1e-4  # scaled |u - l| below this marks an equality row (OSQP's RHO_TOL)
 

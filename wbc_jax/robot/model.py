@@ -20,10 +20,9 @@ import mujoco
 import numpy as np
 
 from wbc_jax.errors import SceneError
+from wbc_jax.physics.backend import mjx, put_model  # noqa: F401  (mjx re-exported: the package's one quiet import)
 from wbc_jax.robot.sensors import with_contact_sensors
 from wbc_jax.types import RobotIds
-
-from wbc_jax.physics.backend import mjx, put_model  # noqa: F401  (mjx re-exported: the package's one quiet import)
 
 FEET = ("FL", "FR", "BL", "BR")
 LEG_JOINTS = ("roll", "pitch", "knee")

@@ -13,15 +13,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.runtime import aot
-from wbc_jax.rollout import runs
-from wbc_jax.robot import scenario
-from wbc_jax.types import ObjectModel
 from wbc_jax.control.transport import TransportGains, default_gains
 from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.planner.spline import pad_path
 from wbc_jax.planner.transport import TransportPlan, course_plan, straight_plan
+from wbc_jax.robot import scenario
+from wbc_jax.rollout import runs
 from wbc_jax.rollout.core import Push, RunState, Sim, init_state, no_push, state_axes
+from wbc_jax.runtime import aot
+from wbc_jax.types import ObjectModel
 
 
 class Batch(NamedTuple):

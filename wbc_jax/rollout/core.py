@@ -25,17 +25,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.physics import contacts
+from wbc_jax.control.transport import (
+    ControlState,
+    TransportConfig,
+    TransportGains,
+    init_control_state,
+    transport_control,
+)
+from wbc_jax.control.variants import Variant
 from wbc_jax.metrics import paper as metrics
 from wbc_jax.physics import backend as physics
-from wbc_jax.rollout.packed import Packed, pack, placed_like
+from wbc_jax.physics import contacts
 from wbc_jax.physics.contacts import CONTACT_DIST, contact_slots  # noqa: F401  (re-exported: tests, trot study)
 from wbc_jax.physics.observe import dyn_terms, observe
-from wbc_jax.control.transport import ControlState, TransportConfig, TransportGains, init_control_state, transport_control
-from wbc_jax.types import ObjectModel
-from wbc_jax.control.variants import Variant
-from wbc_jax.robot.model import Robot, mjx
 from wbc_jax.planner.transport import TransportPlan, reference
+from wbc_jax.robot.model import Robot, mjx
+from wbc_jax.rollout.packed import Packed, pack, placed_like
+from wbc_jax.types import ObjectModel
 
 
 class Push(NamedTuple):

@@ -25,8 +25,7 @@ from dataclasses import dataclass
 import jax
 import numpy as np
 
-from wbc_jax.rollout import distributed
-from wbc_jax.rollout import runs
+from wbc_jax.rollout import distributed, runs
 
 
 @dataclass(frozen=True)

@@ -17,17 +17,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.metrics import paper as metrics
-from wbc_jax.rollout.batch import broadcast, prepare_batch
+from wbc_jax.analysis.video import render_gif
 from wbc_jax.control.transport import TransportConfig, control_qp_settings, default_gains
 from wbc_jax.io_utils import atomic_dir
-from wbc_jax.robot.model import Robot
+from wbc_jax.metrics import paper as metrics
+from wbc_jax.physics.backend import resolve_backend
 from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.planner.transport import plan_duration
-from wbc_jax.physics.backend import resolve_backend
-from wbc_jax.rollout.core import make_push, make_sim, resolve_sensing, simulate
+from wbc_jax.robot.model import Robot
 from wbc_jax.robot.scenario import single_run_mj_model
-from wbc_jax.analysis.video import render_gif
+from wbc_jax.rollout.batch import broadcast, prepare_batch
+from wbc_jax.rollout.core import make_push, make_sim, resolve_sensing, simulate
 
 LEVELS = dict(m=(0.2, 0.3, 0.4), mu=(0.4, 0.7, 1.0), d=(0.06, 0.08, 0.10))
 DEFAULT = dict(m=0.3, mu=0.7, d=0.08)

@@ -18,8 +18,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from wbc_jax.campaign import factors
-from wbc_jax.campaign import spec
+from wbc_jax.campaign import factors, spec
 
 DOCS = Path(__file__).resolve().parents[2] / "docs" / "specs.md"
 

@@ -29,16 +29,24 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from wbc_jax.physics import backend as physics
-from wbc_jax.physics import contacts
-from wbc_jax.control.centroidal import (CentroidalConfig, CentroidalGains, CentroidalRef, CentroidalState,
-                                        centroidal_control, centroidal_qp_settings, default_gains, init_state)
-from wbc_jax.physics.observe import dyn_terms, observe
+from wbc_jax.control.centroidal import (
+    CentroidalConfig,
+    CentroidalGains,
+    CentroidalRef,
+    CentroidalState,
+    centroidal_control,
+    centroidal_qp_settings,
+    default_gains,
+    init_state,
+)
 from wbc_jax.errors import WbcJaxError
 from wbc_jax.io_utils import atomic_dir
-from wbc_jax.robot.model import Robot, mjx
+from wbc_jax.physics import backend as physics
+from wbc_jax.physics import contacts
+from wbc_jax.physics.observe import dyn_terms, observe
 from wbc_jax.planner.capture_point import CPWalkPlan, cp_walk_plan, cp_walk_reference
 from wbc_jax.planner.gait import GaitParams
+from wbc_jax.robot.model import Robot, mjx
 from wbc_jax.rollout.core import contact_slots
 
 MASS_ERRORS = (-0.2, -0.1, 0.0, 0.1, 0.2)  # controller model mass error levels (Fig. 12)

@@ -56,10 +56,24 @@ import numpy as np
 
 from wbc_jax.rollout.runs import take
 from wbc_jax.studies.tune_eval import Evaluator, score
-from wbc_jax.studies.tune_report import (SUMMARY, leaderboard, make_rows, paired_comparison, report_md, row_key,
-                                       runs_table)
-from wbc_jax.studies.tune_search import CEMSearch, HalvingSearch, Space, halving_cost, halving_schedule, \
-    make_search, rank_key
+from wbc_jax.studies.tune_report import (
+    SUMMARY,
+    leaderboard,
+    make_rows,
+    paired_comparison,
+    report_md,
+    row_key,
+    runs_table,
+)
+from wbc_jax.studies.tune_search import (
+    CEMSearch,
+    HalvingSearch,
+    Space,
+    halving_cost,
+    halving_schedule,
+    make_search,
+    rank_key,
+)
 from wbc_jax.studies.tune_spec import CPU_BATCH, TuneSpec, default_tune_spec_path, load_tune_spec
 
 
@@ -148,12 +162,12 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
     """
     import jax
 
+    from wbc_jax.campaign import runner as campaign
+    from wbc_jax.campaign.gains import gains_toml
+    from wbc_jax.campaign.runner import backend_of, has_accelerator, sensing_of
     from wbc_jax.errors import WbcJaxError
     from wbc_jax.io_utils import atomic_dir, check_out_dir, write_json_atomic
     from wbc_jax.rollout import distributed
-    from wbc_jax.campaign import runner as campaign
-    from wbc_jax.campaign.runner import backend_of, has_accelerator, sensing_of
-    from wbc_jax.campaign.gains import gains_toml
 
     t_start = time.perf_counter()
     path = spec_path if spec_path is not None else default_tune_spec_path(has_accelerator())

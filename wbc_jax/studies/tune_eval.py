@@ -23,8 +23,8 @@ from __future__ import annotations
 import numpy as np
 
 from wbc_jax.control.transport import TransportGains
-from wbc_jax.rollout.spread import choose
 from wbc_jax.rollout.runs import concat, take
+from wbc_jax.rollout.spread import choose
 
 
 class Evaluator:

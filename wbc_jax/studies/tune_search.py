@@ -48,7 +48,7 @@ class Space:
         return len(self.names)
 
     def multipliers(self, x: np.ndarray) -> dict[str, np.ndarray]:
-        """x (C, k) -> every leaf's multiplier, (C,) each."""
+        """X (C, k) -> every leaf's multiplier, (C,) each."""
         x = np.atleast_2d(x)
         mult = {leaf: np.full(x.shape[0], s) for leaf, s in self.start.items()}
         for j, n in enumerate(self.names):
@@ -56,7 +56,7 @@ class Space:
         return mult
 
     def gains(self, x: np.ndarray, mult: dict | None = None) -> TransportGains:
-        """x (C, k) -> TransportGains with leading axis C (host numpy, the default gains' dtypes).
+        """X (C, k) -> TransportGains with leading axis C (host numpy, the default gains' dtypes).
         ``mult``: every leaf's multiplier (C,) instead (e.g. all ones: the defaults)."""
         mult = self.multipliers(x) if mult is None else mult
         out = {}

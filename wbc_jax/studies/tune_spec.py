@@ -1,4 +1,4 @@
-'''Tuning specs of ``wbc-jax tune`` (``sweeps/gain_tuning*.toml``): loading with stdlib ``tomllib``, validation.
+"""Tuning specs of ``wbc-jax tune`` (``sweeps/gain_tuning*.toml``): loading with stdlib ``tomllib``, validation.
 
 Spec::
 
@@ -34,7 +34,7 @@ Spec::
     top = 3                     # candidates confirmed (1..100), best first by the search's ranking
     reps = 0                    # repetitions per cell (0: the campaign's), 0..1000
     alpha = 0.01                # significance level of the paired tests in report.md, 0 < alpha < 1
-'''
+"""
 
 from __future__ import annotations
 
@@ -46,9 +46,9 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+from wbc_jax.campaign.spec import SWEEPS, Spec, _err, _number, _table, load_spec, parse_spec
 from wbc_jax.control.transport import TransportGains
 from wbc_jax.errors import SpecError
-from wbc_jax.campaign.spec import SWEEPS, Spec, _err, _number, _table, load_spec, parse_spec
 
 LEAVES = TransportGains._fields
 GROUPS = {"kp": tuple(f for f in LEAVES if f.startswith("kp_")), "kd": tuple(f for f in LEAVES if f.startswith("kd_"))}
