@@ -128,29 +128,44 @@ def random_generic_qp(rng: np.random.Generator, n=68, m_eq=24, m_in=70, frac_act
     return _finish(P, A, x, m_eq, act_lo, act_up, gap_lo, gap_up, one_lo, one_up, y)
 
 
-def random_wbc_qp(rng: np.random.Generator, nv=18, nrho=40, nslack=10, n_eq_contact=18,
-                  n_torque=12, n_swing=18):
-    """One QP with the structure and scales of a whole-body-control step.
+class _WbcRows(NamedTuple):
+    """Row and column layout of :func:`random_wbc_qp`'s problem."""
 
-    Variables ``x = [qdd (nv), rho (nrho), s (nslack)]``. Rows: 6 floating-base dynamics
-    + ``n_eq_contact`` contact-acceleration equalities (the first ``nslack`` of them
-    softened by a slack), then ``nrho`` multiplier rows ``rho >= 0``, ``n_torque``
-    torque-limit rows ``|M_j qdd + h_j - (J'W)_j rho| <= 60`` and ``n_swing`` swing
-    bands. Defaults give n = 68, m_eq = 24, m_in = 70.
-    """
-    n = nv + nrho + nslack
-    iq, ir, is_ = slice(0, nv), slice(nv, nv + nrho), slice(nv + nrho, n)
+    nv: int  # joint accelerations qdd
+    nrho: int  # contact-force edge multipliers rho
+    nslack: int  # slacks of the first contact-acceleration rows
+    n_eq_contact: int  # contact-acceleration equalities
+    n_torque: int  # torque-limit rows
+    n_swing: int  # swing-band rows
+
+    @property
+    def n(self) -> int:
+        return self.nv + self.nrho + self.nslack
+
+    @property
+    def m_eq(self) -> int:
+        return 6 + self.n_eq_contact
+
+    @property
+    def m_in(self) -> int:
+        return self.nrho + self.n_torque + self.n_swing
+
+
+def _wbc_constraints(rng: np.random.Generator, k: _WbcRows) -> np.ndarray:
+    """(m, n) constraint matrix: base dynamics, contact accelerations (slack-softened), multipliers, torques,
+    swing bands."""
+    nv, nrho, nslack, n_torque = k.nv, k.nrho, k.nslack, k.n_torque
+    iq, ir, is_ = slice(0, nv), slice(nv, nv + nrho), slice(nv + nrho, k.n)
     # Mass matrix: SPD with entries 0.01..25 (heavy base, light distal links).
     link = np.exp(rng.uniform(np.log(0.01), np.log(25.0), nv))
     Lm = rng.standard_normal((nv, nv)) * 0.3
     M = np.sqrt(np.outer(link, link)) * (Lm @ Lm.T / nv + np.eye(nv))
     # Contact Jacobian-transpose times friction-pyramid edges: entries ~0.3-1.
     JtW = rng.standard_normal((nv, nrho)) * 0.3
-    Jc = rng.standard_normal((n_eq_contact, nv)) * 0.3
-    Jc[:, :6] += rng.standard_normal((n_eq_contact, 6))  # base columns matter most
-    m_eq = 6 + n_eq_contact
-    m_in = nrho + n_torque + n_swing
-    A = np.zeros((m_eq + m_in, n))
+    Jc = rng.standard_normal((k.n_eq_contact, nv)) * 0.3
+    Jc[:, :6] += rng.standard_normal((k.n_eq_contact, 6))  # base columns matter most
+    m_eq = k.m_eq
+    A = np.zeros((m_eq + k.m_in, k.n))
     A[:6, iq] = M[:6]
     A[:6, ir] = -JtW[:6]
     A[6:m_eq, iq] = Jc
@@ -162,10 +177,16 @@ def random_wbc_qp(rng: np.random.Generator, nv=18, nrho=40, nslack=10, n_eq_cont
     A[r1:r1 + n_torque, iq] = M[jrows]
     A[r1:r1 + n_torque, ir] = -JtW[jrows]
     r2 = r1 + n_torque
-    A[r2:, iq] = rng.standard_normal((n_swing, nv)) * 0.3
-    # Cost ||H x - r||_Q^2 + ||x||_R^2 -> P = 2 (H'QH + R).
+    A[r2:, iq] = rng.standard_normal((k.n_swing, nv)) * 0.3
+    return A
+
+
+def _wbc_cost(rng: np.random.Generator, k: _WbcRows) -> np.ndarray:
+    """(n, n) Hessian of ``||H x - r||_Q^2 + ||x||_R^2``: P = 2 (H'QH + R), task weights 50..1e4."""
+    nv, nrho, nslack = k.nv, k.nrho, k.nslack
+    iq = slice(0, nv)
     n_task = 6 + (nv - 6) + 6
-    H = np.zeros((n_task, n))
+    H = np.zeros((n_task, k.n))
     H[:6, iq] = rng.standard_normal((6, nv)) * 0.5  # CoM / base task
     H[6:nv, 6:nv] = np.eye(nv - 6)  # posture
     H[nv:, iq] = rng.standard_normal((6, nv)) * 0.3  # end effector
@@ -176,7 +197,70 @@ def random_wbc_qp(rng: np.random.Generator, nv=18, nrho=40, nslack=10, n_eq_cont
         np.exp(rng.uniform(np.log(1e2), np.log(1e3), nslack)),
     ])
     P = 2.0 * (H.T @ (Q[:, None] * H) + np.diag(R))
-    P = 0.5 * (P + P.T)
+    return 0.5 * (P + P.T)
+
+
+class _Activity(NamedTuple):
+    """Which inequality rows of :func:`random_wbc_qp` are active at the optimum, and how."""
+
+    act_lo: np.ndarray  # (m_in,) bool: at the lower bound
+    act_up: np.ndarray  # (m_in,) bool: at the upper bound
+    t_act: np.ndarray  # (n_torque,) bool: torque row active
+    s_act: np.ndarray  # (n_swing,) bool: swing row active
+
+
+def _wbc_activity(rng: np.random.Generator, k: _WbcRows, on: np.ndarray) -> _Activity:
+    """Active set: multipliers at 0 where not ``on``, about 30 % of torque and swing rows at a random side."""
+    nrho, n_torque = k.nrho, k.n_torque
+    act_lo = np.zeros(k.m_in, bool)
+    act_up = np.zeros(k.m_in, bool)
+    act_lo[:nrho] = ~on
+    t_act = rng.random(n_torque) < 0.3
+    t_up = rng.random(n_torque) < 0.5
+    act_lo[nrho:nrho + n_torque] = t_act & ~t_up
+    act_up[nrho:nrho + n_torque] = t_act & t_up
+    s_act = rng.random(k.n_swing) < 0.3
+    s_up = rng.random(k.n_swing) < 0.5
+    act_lo[nrho + n_torque:] = s_act & ~s_up
+    act_up[nrho + n_torque:] = s_act & s_up
+    return _Activity(act_lo, act_up, t_act, s_act)
+
+
+def _wbc_gaps(rng: np.random.Generator, k: _WbcRows, x_rho: np.ndarray, act: _Activity):
+    """(gap_lo, gap_up) (m_in,) of the inequality rows: multipliers >= 0, torque bands 120 N m wide around a bias,
+    swing bands 0.5..5 wide; zero on the active side."""
+    nrho, n_torque = k.nrho, k.n_torque
+    gap_lo = np.empty(k.m_in)
+    gap_up = np.empty(k.m_in)
+    gap_lo[:nrho] = x_rho  # lower bound 0 exactly
+    gap_up[:nrho] = np.inf
+    frac = rng.uniform(0.1, 0.9, n_torque)
+    gl = np.where(act.act_lo[nrho:nrho + n_torque], 0.0, np.where(act.t_act, 120.0, 120.0 * frac))
+    gap_lo[nrho:nrho + n_torque] = gl
+    gap_up[nrho:nrho + n_torque] = 120.0 - gl
+    width = rng.uniform(0.5, 5.0, k.n_swing)
+    fs = rng.uniform(0.1, 0.9, k.n_swing)
+    gs = np.where(act.act_lo[nrho + n_torque:], 0.0, np.where(act.s_act, width, width * fs))
+    gap_lo[nrho + n_torque:] = gs
+    gap_up[nrho + n_torque:] = width - gs
+    return gap_lo, gap_up
+
+
+def random_wbc_qp(rng: np.random.Generator, nv=18, nrho=40, nslack=10, n_eq_contact=18,
+                  n_torque=12, n_swing=18):
+    """One QP with the structure and scales of a whole-body-control step.
+
+    Variables ``x = [qdd (nv), rho (nrho), s (nslack)]``. Rows: 6 floating-base dynamics
+    + ``n_eq_contact`` contact-acceleration equalities (the first ``nslack`` of them
+    softened by a slack), then ``nrho`` multiplier rows ``rho >= 0``, ``n_torque``
+    torque-limit rows ``|M_j qdd + h_j - (J'W)_j rho| <= 60`` and ``n_swing`` swing
+    bands. Defaults give n = 68, m_eq = 24, m_in = 70.
+    """
+    k = _WbcRows(nv, nrho, nslack, n_eq_contact, n_torque, n_swing)
+    n, m_eq, m_in = k.n, k.m_eq, k.m_in
+    iq, ir, is_ = slice(0, nv), slice(nv, nv + nrho), slice(nv + nrho, n)
+    A = _wbc_constraints(rng, k)
+    P = _wbc_cost(rng, k)
     # Known optimum: accelerations ~10, half the multipliers at 0, the rest 0..200 N.
     x = np.zeros(n)
     x[iq] = rng.standard_normal(nv) * 10.0
@@ -185,37 +269,14 @@ def random_wbc_qp(rng: np.random.Generator, nv=18, nrho=40, nslack=10, n_eq_cont
     x[is_] = rng.standard_normal(nslack) * 0.05
     y = np.zeros(m_eq + m_in)
     y[:m_eq] = rng.standard_normal(m_eq) * np.exp(rng.uniform(0.0, np.log(1e3), m_eq))
-    act_lo = np.zeros(m_in, bool)
-    act_up = np.zeros(m_in, bool)
-    act_lo[:nrho] = ~on
-    t_act = rng.random(n_torque) < 0.3
-    t_up = rng.random(n_torque) < 0.5
-    act_lo[nrho:nrho + n_torque] = t_act & ~t_up
-    act_up[nrho:nrho + n_torque] = t_act & t_up
-    s_act = rng.random(n_swing) < 0.3
-    s_up = rng.random(n_swing) < 0.5
-    act_lo[nrho + n_torque:] = s_act & ~s_up
-    act_up[nrho + n_torque:] = s_act & s_up
+    act = _wbc_activity(rng, k, on)
     mag = np.exp(rng.uniform(np.log(1.0), np.log(1e3), m_in))
-    y[m_eq:] = np.where(act_up, mag, np.where(act_lo, -mag, 0.0))
-    # Gaps: torque limits are +-60 around a bias h, so the band is 120 wide.
-    gap_lo = np.empty(m_in)
-    gap_up = np.empty(m_in)
-    gap_lo[:nrho] = x[ir]  # lower bound 0 exactly
-    gap_up[:nrho] = np.inf
-    frac = rng.uniform(0.1, 0.9, n_torque)
-    gl = np.where(act_lo[nrho:nrho + n_torque], 0.0, np.where(t_act, 120.0, 120.0 * frac))
-    gap_lo[nrho:nrho + n_torque] = gl
-    gap_up[nrho:nrho + n_torque] = 120.0 - gl
-    width = rng.uniform(0.5, 5.0, n_swing)
-    fs = rng.uniform(0.1, 0.9, n_swing)
-    gs = np.where(act_lo[nrho + n_torque:], 0.0, np.where(s_act, width, width * fs))
-    gap_lo[nrho + n_torque:] = gs
-    gap_up[nrho + n_torque:] = width - gs
+    y[m_eq:] = np.where(act.act_up, mag, np.where(act.act_lo, -mag, 0.0))
+    gap_lo, gap_up = _wbc_gaps(rng, k, x[ir], act)
     one_lo = np.zeros(m_in, bool)
     one_up = np.zeros(m_in, bool)
     one_up[:nrho] = True
-    prob = _finish(P, A, x, m_eq, act_lo, act_up, gap_lo, gap_up, one_lo, one_up, y)
+    prob = _finish(P, A, x, m_eq, act.act_lo, act.act_up, gap_lo, gap_up, one_lo, one_up, y)
     # The multiplier rows' lower bound is exactly 0 (not ax - x, which rounds).
     l = prob.l.copy()
     l[m_eq:m_eq + nrho] = 0.0
