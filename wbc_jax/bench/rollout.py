@@ -1,4 +1,4 @@
-"""``wbc-jax bench rollout``: env-steps/s of physics-only MJX and of physics + transport WBC.
+"""``wbc-jax bench rollout``: env steps per second of physics-only MJX and of physics + transport WBC.
 
 Both are measured in the same process on the current device, on the flat scene (or ``scene``) with the object,
 excluding compile time (reported separately); the ratio WBC / physics-only is printed next to the
@@ -8,10 +8,8 @@ WBC runs the loaded stand-and-walk plan from t = 0.
 
 Each batch is timed in ``rounds`` rounds, a round being one physics-only call then one physics + WBC call, so slow
 drifts of the device (clocks, other processes) reach both; the figures are the rounds' medians, and everything but
-physics is also given as its smallest and largest round. One call of each is a single sample of a difference of
-two timings: on an H100 at batch 270 (course, Warp) one such sample of the same code gave 0.302 ms in one process
-and 0.465 ms in another on the same machine, and 9 rounds in one process spread from 0.204 to 0.329 ms (median
-0.309; 2026-11-27).
+physics is also given as its smallest and largest round: one call of each is a single sample of a difference of
+two timings, which varies between processes and rounds by more than most changes it is meant to measure.
 
 Several devices: one process with several (JAX physics) also times the same batch with its runs over every
 device (:func:`sharded_chunk_fn`, as a campaign runs it). Several processes (``--coordinator`` etc., one device
@@ -23,21 +21,28 @@ together; the slowest process's time gives the aggregate figure and the speed-up
 from __future__ import annotations
 
 import json
+import tempfile
 import time
+from pathlib import Path
+from typing import NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
+from jax.experimental import multihost_utils
 
+from wbc_jax.bench.qp_audit import variants as variants_named
+from wbc_jax.campaign.runner import run_in_fresh_process
+from wbc_jax.campaign.spec import load_spec
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
+from wbc_jax.physics.backend import resolve_backend
 from wbc_jax.robot.model import Robot, mjx
-from wbc_jax.rollout import distributed
+from wbc_jax.rollout import distributed, make_chunk_fn, make_sim, resolve_sensing
 from wbc_jax.rollout.batch import prepare_batch
-from wbc_jax.rollout.core import make_chunk_fn, make_sim, resolve_sensing
 from wbc_jax.rollout.sharding import over_runs, run_mesh, shard_batch
 
 
-def _timed(f, *args):
+def timed(f, *args):
+    """(f(*args) once it is ready on the device, seconds it took)."""
     t0 = time.perf_counter()
     out = jax.block_until_ready(f(*args))
     return out, time.perf_counter() - t0
@@ -51,7 +56,8 @@ def random_batch(sim, batch: int, seed: int = 0):
 
 
 def physics_only_fn(b, n_steps: int):
-    """jit(vmap) of ``n_steps`` plain ``mjx.step`` calls per run (scope ``physics``), called as f(b.model, b.state.d)."""
+    """jit(vmap) of ``n_steps`` plain ``mjx.step`` calls per run (scope ``physics``), called as
+    f(b.model, b.state.d)."""
 
     def phys(m, d):
         with jax.named_scope("physics"):
@@ -75,16 +81,14 @@ def sharded_chunk_fn(sim, b):
 
 
 def _timed_together(f, *args):
-    """:func:`_timed` in every process at once (a barrier first): (output, the slowest process's seconds)."""
-    from jax.experimental import multihost_utils
-
+    """:func:`timed` in every process at once (a barrier first): (output, the slowest process's seconds)."""
     multihost_utils.sync_global_devices("bench rollout")
-    out, t = _timed(f, *args)
+    out, t = timed(f, *args)
     return out, float(np.max(multihost_utils.process_allgather(np.array([t]))))
 
 
 def _physics_and_wbc(sim, b, n_env: int, timer, rounds: int):
-    """Physics only and physics + WBC on batch ``b``, timed with ``timer`` (:func:`_timed` or
+    """Physics only and physics + WBC on batch ``b``, timed with ``timer`` (:func:`timed` or
     :func:`_timed_together`): each called once (the call that compiles), then ``rounds`` rounds of one physics call
     and one physics + WBC call. Returns (first physics call s, first physics + WBC call s, (rounds,) physics s,
     (rounds,) physics + WBC s)."""
@@ -114,10 +118,79 @@ def _peak_bytes() -> int | None:
     return stats.get("peak_bytes_in_use")
 
 
+class _Case(NamedTuple):
+    """One measured configuration of :func:`run_bench`: the simulation and the row's fixed fields."""
+
+    sim: object  # wbc_jax.rollout.config.Sim
+    device: str
+    label: str  # "<backend>:<sensing>"
+    batch: int
+    n_env: int  # env-steps per run per timed call
+    steps: int  # control steps per timed call
+    rounds: int
+
+
+def _make_case(spec: str, scene: str, qs, substeps: int, steps: int):
+    """(sim, backend, sensing) for one ``backends`` entry ("jax", "warp:exact", ...)."""
+    name, _, sensing = spec.partition(":")  # "warp:exact": campaign.sensing
+    backend = resolve_backend(name)
+    sensing = resolve_sensing(sensing or "auto", backend, substeps)
+    robot = Robot(scene, backend=backend)
+    sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=qs),
+                   n_substeps=substeps, log_every=steps, sensing=sensing)
+    return sim, backend, sensing
+
+
+def _time_one_device(case: _Case, row: dict):
+    """The whole batch on this process's device: figures into ``row``, printed. Returns (batch, median physics +
+    WBC call [s], the base of the speed-ups)."""
+    B, rounds = case.batch, case.rounds
+    b = random_batch(case.sim, B)
+    c_phys, c_wbc, phys_rounds, wbc_rounds = _physics_and_wbc(case.sim, b, case.n_env, timed, rounds)
+    t_phys, t_wbc = float(np.median(phys_rounds)), float(np.median(wbc_rounds))
+    row.update(round_figures(phys_rounds, wbc_rounds, B, case.n_env, case.steps), peak_device_bytes=_peak_bytes(),
+               compile_physics_s=c_phys - t_phys, compile_wbc_s=c_wbc - t_wbc)
+    lo, hi = row["non_physics_ms_per_step_range"]
+    print(f"{case.device} {case.label:4s} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   "
+          f"physics+WBC {row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   everything but "
+          f"physics {row['non_physics_ms_per_step']:.3f} ms per control step ({rounds} rounds: {lo:.3f} to "
+          f"{hi:.3f})   compile {row['compile_wbc_s']:.1f} s"
+          + (f"   peak memory {row['peak_device_bytes'] / 2**30:.2f} GiB" if row["peak_device_bytes"] else ""),
+          flush=True)
+    return b, t_wbc
+
+
+def _time_processes(case: _Case, row: dict, t_wbc: float | None, writer: bool) -> None:
+    """Every process its block of batch / processes runs on its own device, all at once (wbc_jax.rollout.spread):
+    the aggregate figures and the speed-up over ``t_wbc`` into ``row``."""
+    B, n_env, n_proc = case.batch, case.n_env, jax.process_count()
+    b = random_batch(case.sim, B // n_proc, seed=1 + jax.process_index())
+    tp, tw = (float(np.median(t)) for t in _physics_and_wbc(case.sim, b, n_env, _timed_together, case.rounds)[2:])
+    n = B // n_proc * n_proc
+    row.update(processes=n_proc, physics_steps_per_s_processes=n * n_env / tp,
+               wbc_steps_per_s_processes=n * n_env / tw, process_speedup=n / B * t_wbc / tw if t_wbc else None)
+    if writer:
+        print(f"{'':>{len(case.device)}} batch {B:6d}: on {n_proc} processes (one device each, {B // n_proc} runs "
+              f"each): physics {n * n_env / tp:12.0f} steps/s   physics+WBC {n * n_env / tw:12.0f} steps/s   "
+              f"speed-up {row['process_speedup']:.2f}x", flush=True)
+
+
+def _time_sharded(case: _Case, row: dict, b, t_wbc: float) -> None:
+    """The same batch with the run axis over every device, as a campaign runs it: figures into ``row``."""
+    B, n_env = case.batch, case.n_env
+    f_sh, sargs = sharded_chunk_fn(case.sim, b)
+    timed(f_sh, *sargs)
+    t_sh = float(np.median([timed(f_sh, *sargs)[1] for _ in range(case.rounds)]))
+    n_dev = jax.device_count()
+    row.update(n_devices=n_dev, wbc_steps_per_s_sharded=B * n_env / t_sh, sharded_speedup=t_wbc / t_sh)
+    print(f"{'':>{len(case.device)}} batch {B:6d}: physics+WBC on {n_dev} devices {B * n_env / t_sh:12.0f} "
+          f"steps/s   speed-up {t_wbc / t_sh:.2f}x", flush=True)
+
+
 def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30, json_path: str | None = None,
               scene: str = "flat", qp: str | None = None, substeps: int = 1, campaign: str | None = None,
               backends=("jax",), rounds: int = 5):
-    """Physics-only and physics + WBC env-steps/s per batch size (see module docstring).
+    """Physics-only and physics + WBC env steps per second per batch size (see module docstring).
 
     An env-step is one physics step (``robot``'s timestep); with ``substeps`` > 1 the controller runs once per
     ``substeps`` physics steps (zero-order hold), so ``steps`` control steps are ``steps * substeps`` env-steps.
@@ -126,8 +199,8 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         backends: MJX physics implementations to measure, each at every batch size ("jax", "warp"; "auto"
             resolved; with ``:exact`` / ``:delayed`` / ``:auto`` (the default): ``campaign.sensing``), in this one
             process, so their ratios are read from one run.
-        qp: control-loop ADMM variant name (``wbc_jax.bench.qp_audit.variants``, e.g. ``"it20_a0"``); None: ``iters``
-            iterations with the control loop's default settings.
+        qp: control-loop ADMM variant name (``wbc_jax.bench.qp_audit.variants``, e.g. ``"it20_a0"``); None:
+            ``iters`` iterations with the control loop's default settings.
         rounds: timed rounds per batch (module docstring); the figures are their medians.
         campaign: a campaign spec (e.g. ``sweeps/paper_campaign.toml``) also run end to end, twice, in fresh
             processes sharing a new compilation cache (:func:`campaign_cold_warm`): wall time, compile and setup
@@ -138,64 +211,30 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         to ``json_path``.
     """
     if campaign is not None:
-        from wbc_jax.campaign.spec import load_spec
-
         load_spec(campaign)  # a bad spec fails here (file, key, range), before any timing
-    from wbc_jax.bench.qp_audit import variants
-    from wbc_jax.physics.backend import resolve_backend
-
-    qs = variants([qp])[qp] if qp else control_qp_settings(iters)
+    qs = variants_named([qp])[qp] if qp else control_qp_settings(iters)
     iters = qs.iters
     device = jax.devices()[0].device_kind
     n_env = steps * substeps  # env-steps per run per timed call
     rows = []
     n_proc, writer = jax.process_count(), distributed.is_writer()
     for k, B in [(k, B) for k in backends for B in batches]:
-        name, _, sensing = k.partition(":")  # "warp:exact": campaign.sensing
-        backend = resolve_backend(name)
-        sensing = resolve_sensing(sensing or "auto", backend, substeps)
-        robot = Robot(scene, backend=backend)
-        sim = make_sim(robot, TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=qs),
-                       n_substeps=substeps, log_every=steps, sensing=sensing)
-        row = dict(device=device, backend=backend, sensing=sensing, scene=robot.path.name, batch=B, steps=steps,
+        sim, backend, sensing = _make_case(k, scene, qs, substeps, steps)
+        row = dict(device=device, backend=backend, sensing=sensing, scene=sim.robot.path.name, batch=B, steps=steps,
                    substeps=substeps, qp_iters=iters, qp=qp or f"it{iters}", adapt_every=qs.adapt_every,
                    ruiz_iters=qs.ruiz_iters)
-        label = f"{backend}:{sensing}"
+        case = _Case(sim, device, f"{backend}:{sensing}", B, n_env, steps, rounds)
         t_wbc = None
         if writer:  # the whole batch on one device (with several processes: process 0's, the others wait)
-            b = random_batch(sim, B)
-            c_phys, c_wbc, phys_rounds, wbc_rounds = _physics_and_wbc(sim, b, n_env, _timed, rounds)
-            t_phys, t_wbc = float(np.median(phys_rounds)), float(np.median(wbc_rounds))  # t_wbc: the speed-ups' base
-            row.update(round_figures(phys_rounds, wbc_rounds, B, n_env, steps), peak_device_bytes=_peak_bytes(),
-                       compile_physics_s=c_phys - t_phys, compile_wbc_s=c_wbc - t_wbc)
-            lo, hi = row["non_physics_ms_per_step_range"]
-            print(f"{device} {label:4s} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   "
-                  f"physics+WBC {row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   everything but "
-                  f"physics {row['non_physics_ms_per_step']:.3f} ms per control step ({rounds} rounds: {lo:.3f} to "
-                  f"{hi:.3f})   compile {row['compile_wbc_s']:.1f} s"
-                  + (f"   peak memory {row['peak_device_bytes'] / 2**30:.2f} GiB" if row["peak_device_bytes"] else ""),
-                  flush=True)
-        if n_proc > 1:  # every process its block of B / n_proc runs on its own device (wbc_jax.rollout.spread)
-            b = random_batch(sim, B // n_proc, seed=1 + jax.process_index())
-            tp, tw = (float(np.median(t)) for t in _physics_and_wbc(sim, b, n_env, _timed_together, rounds)[2:])
-            n = B // n_proc * n_proc
-            row.update(processes=n_proc, physics_steps_per_s_processes=n * n_env / tp,
-                       wbc_steps_per_s_processes=n * n_env / tw, process_speedup=n / B * t_wbc / tw if t_wbc else None)
-            if writer:
-                print(f"{'':>{len(device)}} batch {B:6d}: on {n_proc} processes (one device each, {B // n_proc} runs "
-                      f"each): physics {n * n_env / tp:12.0f} steps/s   physics+WBC {n * n_env / tw:12.0f} steps/s   "
-                      f"speed-up {row['process_speedup']:.2f}x", flush=True)
+            b, t_wbc = _time_one_device(case, row)
+        if n_proc > 1:
+            _time_processes(case, row, t_wbc, writer)
         elif jax.device_count() > 1 and backend == "warp":
             print(f"{'':>{len(device)}} batch {B:6d}: Warp on several devices needs one process per device "
-                  f"(wbc_jax.rollout.spread; --coordinator, --num-processes, --process-id, --local-device-ids)", flush=True)
-        elif jax.device_count() > 1:  # the same batch with the run axis over every device, as a campaign runs it
-            f_sh, sargs = sharded_chunk_fn(sim, b)
-            _timed(f_sh, *sargs)
-            t_sh = float(np.median([_timed(f_sh, *sargs)[1] for _ in range(rounds)]))
-            n_dev = jax.device_count()
-            row.update(n_devices=n_dev, wbc_steps_per_s_sharded=B * n_env / t_sh, sharded_speedup=t_wbc / t_sh)
-            print(f"{'':>{len(device)}} batch {B:6d}: physics+WBC on {n_dev} devices {B * n_env / t_sh:12.0f} "
-                  f"steps/s   speed-up {t_wbc / t_sh:.2f}x", flush=True)
+                  f"(wbc_jax.rollout.spread; --coordinator, --num-processes, --process-id, --local-device-ids)",
+                  flush=True)
+        elif jax.device_count() > 1:
+            _time_sharded(case, row, b, t_wbc)
         rows.append(row)
     out = dict(device=device, batches=rows, campaign=campaign_cold_warm(campaign) if campaign and writer else None)
     if json_path and writer:
@@ -206,14 +245,9 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
 
 def campaign_cold_warm(spec: str) -> dict:
     """Run ``wbc-jax campaign --spec SPEC --no-report`` twice, each in a fresh process, with a new (empty)
-    compilation cache shared by both: the first run compiles everything, the second loads it (``wbc_jax.runtime.aot`` and
-    the persistent cache). Prints and returns, per run, the manifest's wall time, import / setup / compile estimate
-    [s], rollout env-steps/s and successes."""
-    import tempfile
-    from pathlib import Path
-
-    from wbc_jax.campaign.runner import run_in_fresh_process
-
+    compilation cache shared by both: the first run compiles everything, the second loads it
+    (``wbc_jax.runtime.aot`` and the persistent cache). Prints and returns, per run, the manifest's wall time,
+    import / setup / compile estimate [s], rollout env steps per second and successes."""
     keys = ("wall_s_total", "wall_s_rollout", "import_s", "setup_s", "compile_s_estimate", "env_steps_per_s",
             "n_success", "n_runs")
     out = dict(spec=str(spec))
@@ -224,8 +258,9 @@ def campaign_cold_warm(spec: str) -> dict:
             out[label] = {k: man.get(k) for k in keys}
             m = out[label]
             print(f"campaign {spec}, {label} compilation cache: wall {m['wall_s_total']:.1f} s (import "
-                  f"{m['import_s']:.1f} s, setup {m['setup_s']:.1f} s, compile about {m['compile_s_estimate'] or 0:.1f} "
-                  f"s, rollout {m['wall_s_rollout']:.1f} s, {m['env_steps_per_s']:,.0f} env-steps/s), "
+                  f"{m['import_s']:.1f} s, setup {m['setup_s']:.1f} s, compile about "
+                  f"{m['compile_s_estimate'] or 0:.1f} s, rollout {m['wall_s_rollout']:.1f} s, "
+                  f"{m['env_steps_per_s']:,.0f} env steps/s), "
                   f"{m['n_success']}/{m['n_runs']} runs succeed", flush=True)
     return out
 
@@ -239,9 +274,10 @@ def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: st
 
     Times (per env-step, excluding compile) physics only; physics + WBC with 1 ADMM iteration; with ``iters``
     iterations (the default rho adaptation, i.e. a refactor every ``adapt_every``); with ``iters`` iterations and
-    no refactor; with the Cholesky solve (``variants`` picks others, e.g. the
-    unrolled solver ``wbc_n_unroll``; the default linear solve is the backend's, see ``control_qp_settings``). Differences give the controller's fixed cost (sensing,
-    QP assembly, equilibration, one factorization), the cost of one ADMM iteration and of one refactor.
+    no refactor; with the Cholesky solve (``variants`` picks others, e.g. the unrolled solver ``wbc_n_unroll``;
+    the default linear solve is the backend's, see ``control_qp_settings``). Differences give the controller's
+    fixed cost (sensing, QP assembly, equilibration, one factorization), the cost of one ADMM iteration and of one
+    refactor.
     """
     robot = Robot(scene)
     device = jax.devices()[0].device_kind
@@ -250,9 +286,7 @@ def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: st
                  wbc_n_inv=base._replace(linsolve="inv"), wbc_n_chol=base._replace(linsolve="chol"),
                  wbc_n_unroll=base._replace(unroll=True),
                  wbc_n_unroll_norefactor=base._replace(unroll=True, adapt_every=0))
-    from wbc_jax.bench.qp_audit import variants as named
-
-    variants = [(k, known[k] if k in known else named([k])[k]) for k in (variants or PROFILE_VARIANTS)]
+    variants = [(k, known[k] if k in known else variants_named([k])[k]) for k in (variants or PROFILE_VARIANTS)]
     out = dict(device=device, scene=robot.path.name, batch=batch, steps=steps, iters=iters)
     b = None
     for label, qs in [("physics", None)] + variants:
@@ -263,12 +297,12 @@ def run_profile(batch: int = 16384, steps: int = 100, iters: int = 50, scene: st
             f, args = physics_only_fn(b, steps), (b.model, b.state.d)
         else:
             f, args = wbc_chunk_fn(sim, b)
-        _, c = _timed(f, *args)
-        _, t = _timed(f, *args)
+        _, c = timed(f, *args)
+        _, t = timed(f, *args)
         out[label + "_us"] = 1e6 * t / (batch * steps)
         out[label + "_compile_s"] = c - t
         print(f"{device} batch {batch}: {label:18s} {out[label + '_us']:8.3f} us/env-step "
-              f"({batch * steps / t:10.0f} env-steps/s), compile {c - t:.1f} s", flush=True)
+              f"({batch * steps / t:10.0f} env steps/s), compile {c - t:.1f} s", flush=True)
     if all(k in out for k in ("wbc_1_us", "wbc_n_us", "wbc_n_norefactor_us")):
         _split(out, iters, base)
     if json_path:
@@ -283,75 +317,6 @@ def _split(out: dict, iters: int, base) -> None:
     out["controller_fixed_us"] = out["wbc_1_us"] - out["physics_us"]
     out["per_iteration_us"] = (out["wbc_n_norefactor_us"] - out["wbc_1_us"]) / max(iters - 1, 1)
     out["per_refactor_us"] = (out["wbc_n_us"] - out["wbc_n_norefactor_us"]) / max(n_ref, 1)
-    print(f"controller fixed cost {out['controller_fixed_us']:.3f} us, one ADMM iteration {out['per_iteration_us']:.4f} us, "
-          f"one refactor {out['per_refactor_us']:.3f} us (per env-step; physics {out['physics_us']:.3f} us)", flush=True)
-
-
-def run_components(batch: int = 256, iters: int = 50, scene: str = "transport", warm_steps: int = 100,
-                   reps: int = 20, json_path: str | None = None):
-    """Latency of each stage of one control step, each stage its own jit(vmap) call on a state ``warm_steps`` into
-    the run (median of ``reps`` calls; includes one dispatch per call, so the stages sum to more than the fused step).
-    """
-    from wbc_jax.control.transport import assemble
-    from wbc_jax.metrics import paper as metrics
-    from wbc_jax.physics import backend as physics
-    from wbc_jax.physics import contacts
-    from wbc_jax.physics.observe import observe
-    from wbc_jax.planner.transport import reference
-    from wbc_jax.qp import solve_qp
-    from wbc_jax.rollout.core import CONTACT_DIST, control_step
-
-    robot = Robot(scene)
-    ids = robot.ids
-    cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep), qp=control_qp_settings(iters))
-    sim = make_sim(robot, cfg, log_every=warm_steps)
-    b = random_batch(sim, batch)
-    ax = b.in_axes
-    chunk, args = wbc_chunk_fn(sim, b)
-    rs, _ = chunk(*args)
-    V = lambda f, n_run: jax.jit(jax.vmap(f, in_axes=(ax,) + (0,) * n_run))  # noqa: E731
-    f_sense = V(physics.sense, 1)
-    ds = f_sense(b.model, rs.d)
-    f_obs = V(lambda m, d: observe(m, d, ids), 1)
-    obs = f_obs(b.model, ds)
-
-    def ref_fn(m, d, obs, plan, p_lift):
-        contact = contacts.foot_dist(sim, m, d) < CONTACT_DIST
-        return reference(plan, d.time, p_lift, contact, obs.robot.p_foot)
-
-    f_ref = V(ref_fn, 4)
-    ref = f_ref(b.model, ds, obs, b.plan, rs.p_lift)
-    f_asm = jax.jit(jax.vmap(lambda obs, ref, om, g, cs, mg: assemble(obs, ref, om, g, cs, ids, cfg, mg)))
-    _, (P, q, A, l, u, A_tau, h_a, _) = f_asm(obs, ref, b.om, b.gains, rs.cs, b.mu_ground)
-    f_qp = jax.jit(jax.vmap(lambda P, q, A, l, u, w: solve_qp(P, q, A, l, u, warm=w, settings=cfg.qp)))
-    res = f_qp(P, q, A, l, u, rs.cs.warm)
-    tau = jnp.clip(jnp.einsum("bij,bj->bi", A_tau, res.x) + h_a, -ids.tau_max, ids.tau_max)
-    f_adv = V(lambda m, d, tau: physics.advance(m, d, tau), 2)
-    d_next = f_adv(b.model, ds, tau)
-    oa = ids.obj_dof_adr
-    f_met = V(lambda m, d0, d1, mu: metrics.step_integrands(contacts.object_contacts(sim, m, d1)[0], mu,
-                                                            d0.qvel[oa:oa + 3], d1.qvel[oa:oa + 3], sim.dt_control), 3)
-    f_step = V(lambda m, rs, plan, om, g, push, mg: control_step(sim, m, rs, plan, om, g, push, mg), 6)
-    f_phys = V(mjx.step, 1)
-    stages = [("sense (fwd_position + fwd_velocity)", f_sense, (b.model, rs.d)),
-              ("observe (dynamics terms, jacobians)", f_obs, (b.model, ds)),
-              ("reference", f_ref, (b.model, ds, obs, b.plan, rs.p_lift)),
-              ("assemble (observer, build_qp)", f_asm, (obs, ref, b.om, b.gains, rs.cs, b.mu_ground)),
-              (f"solve_qp ({iters} iterations)", f_qp, (P, q, A, l, u, rs.cs.warm)),
-              ("advance (actuation, constraint solve, integrate)", f_adv, (b.model, ds, tau)),
-              ("metrics.step_integrands", f_met, (b.model, ds, d_next, b.om.mu)),
-              ("whole control step", f_step, (b.model, rs, b.plan, b.om, b.gains, b.push, b.mu_ground)),
-              ("physics only (mjx.step)", f_phys, (b.model, rs.d))]
-    device = jax.devices()[0].device_kind
-    out = dict(device=device, scene=robot.path.name, batch=batch, iters=iters, stages_ms={})
-    for name, f, args in stages:
-        jax.block_until_ready(f(*args))
-        ts = []
-        for _ in range(reps):
-            ts.append(_timed(f, *args)[1])
-        out["stages_ms"][name] = 1e3 * float(np.median(ts))
-        print(f"{device} batch {batch}: {name:50s} {out['stages_ms'][name]:8.3f} ms per call", flush=True)
-    if json_path:
-        with open(json_path, "w") as fh:
-            json.dump(out, fh, indent=2)
-    return out
+    print(f"controller fixed cost {out['controller_fixed_us']:.3f} us, one ADMM iteration "
+          f"{out['per_iteration_us']:.4f} us, one refactor {out['per_refactor_us']:.3f} us (per env-step; physics "
+          f"{out['physics_us']:.3f} us)", flush=True)

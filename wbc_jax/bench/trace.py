@@ -25,6 +25,13 @@ import time
 import jax
 import numpy as np
 
+from wbc_jax.bench.qp_audit import variants
+from wbc_jax.bench.rollout import physics_only_fn, random_batch, wbc_chunk_fn
+from wbc_jax.control.transport import TransportConfig, control_qp_settings
+from wbc_jax.physics.backend import resolve_backend
+from wbc_jax.robot.model import Robot
+from wbc_jax.rollout import make_sim, resolve_sensing
+
 # Scope names, innermost wins when a path holds several (the QP's scopes sit inside the controller's).
 STAGES = ("sense", "dynamics_reference", "qp_assemble", "qp_equilibrate", "qp_factor", "qp_iterations",
           "qp_residuals", "physics")
@@ -217,12 +224,12 @@ def print_summary(label: str, s: dict) -> None:
     print(f"    ({100 * s['inferred_share']:.0f} % of the ops had no scope metadata and took the stage of the op "
           f"before them; heaviest ops:)", flush=True)
     for t in s["top_ops"][:12]:
-        print(f"      {t['stage']:20s} {t['op'][:40]:40s} {t['calls_per_step']:5.1f} x  {t['device_us_per_step']:8.1f} us",
-              flush=True)
+        print(f"      {t['stage']:20s} {t['op'][:40]:40s} {t['calls_per_step']:5.1f} x  "
+              f"{t['device_us_per_step']:8.1f} us", flush=True)
     print("    source lines with the most ops per step:", flush=True)
     for t in s.get("lines", [])[:20]:
-        print(f"      {t['stage']:20s} {t['line'][:48]:48s} {t['ops_per_step']:5.1f} ops  {t['device_us_per_step']:8.1f} us",
-              flush=True)
+        print(f"      {t['stage']:20s} {t['line'][:48]:48s} {t['ops_per_step']:5.1f} ops  "
+              f"{t['device_us_per_step']:8.1f} us", flush=True)
     if any(t["op"].startswith("command_buffer") for t in s["top_ops"]):
         print("    (kernels ran inside CUDA graphs, which the trace names by graph, not by kernel: set "
               "XLA_FLAGS=--xla_gpu_enable_command_buffer= for a per-kernel attribution)", flush=True)
@@ -239,13 +246,6 @@ def run_trace(batch: int = 270, steps: int = 50, scene: str = "transport", qp: s
     ``campaign.sensing``). ``warmup_s``: simulated seconds run (untraced) before the traced
     steps, so that they come from the walk rather than the first standing steps (the QP's convergence-checked
     extension costs most at contact events)."""
-    from wbc_jax.bench.qp_audit import variants
-    from wbc_jax.bench.rollout import physics_only_fn, random_batch, wbc_chunk_fn
-    from wbc_jax.control.transport import TransportConfig, control_qp_settings
-    from wbc_jax.physics.backend import resolve_backend
-    from wbc_jax.robot.model import Robot
-    from wbc_jax.rollout.core import make_sim, resolve_sensing
-
     # The persistent cache's key leaves out op metadata: an executable cached from an edit with other scopes would
     # carry stale scope names. Compile afresh.
     jax.config.update("jax_enable_compilation_cache", False)
@@ -263,15 +263,14 @@ def run_trace(batch: int = 270, steps: int = 50, scene: str = "transport", qp: s
         args = (args[0], jax.block_until_ready(chunk(*args))[0]) + tuple(args[2:])
     f_phys = physics_only_fn(b, steps * substeps)
     device = jax.devices()[0].device_kind
-    out = dict(device=device, backend=backend, sensing=sensing, scene=robot.path.name, batch=batch, steps=steps, qp=qp or "control",
-               substeps=substeps, warmup_s=n_warm * steps * sim.dt_control)
+    out = dict(device=device, backend=backend, sensing=sensing, scene=robot.path.name, batch=batch, steps=steps,
+               qp=qp or "control", substeps=substeps, warmup_s=n_warm * steps * sim.dt_control)
     out["wbc"] = trace_call(chunk, args, steps)
-    print_summary(f"{device}, {backend}:{sensing}, {robot.path.name}, batch {batch}, after {out['warmup_s']:.2f} s, physics + WBC "
-                  f"({qp or 'control loop QP'}, substeps {substeps})",
-                  out["wbc"])
+    print_summary(f"{device}, {backend}:{sensing}, {robot.path.name}, batch {batch}, after {out['warmup_s']:.2f} s, "
+                  f"physics + WBC ({qp or 'control loop QP'}, substeps {substeps})", out["wbc"])
     out["physics_only"] = trace_call(f_phys, (b.model, b.state.d), steps)
-    print_summary(f"{device}, {backend}, {robot.path.name}, batch {batch}, physics only ({substeps} mjx.step per control step)",
-                  out["physics_only"])
+    print_summary(f"{device}, {backend}, {robot.path.name}, batch {batch}, physics only ({substeps} mjx.step per "
+                  "control step)", out["physics_only"])
     if json_path:
         with open(json_path, "w") as fh:
             json.dump(out, fh, indent=2)
