@@ -22,8 +22,8 @@ from wbc_jax.physics import contacts
 from wbc_jax.physics.observe import mass_matrix  # noqa: E402
 from wbc_jax.robot import scenario  # noqa: E402
 from wbc_jax.robot.model import Robot  # noqa: E402
+from wbc_jax.rollout import final_results, make_sim, simulate  # noqa: E402
 from wbc_jax.rollout.batch import prepare_batch  # noqa: E402
-from wbc_jax.rollout.core import final_results, make_sim, simulate  # noqa: E402
 
 M_TOL = 1e-5  # relative, float32 CSR scatter vs MuJoCo C float64
 DIST_TOL = 1e-5  # [m] geometric sphere distances vs MJX's collision functions (float32)
@@ -83,10 +83,8 @@ def test_warp_mass_matrix_and_distances_match_references(walks):
     penetration, so the statically indeterminate split of the load over four corners does not follow float32
     rounding; with MuJoCo's default impedance the backends' splits were 0.13 N off C's).
 
-    Why each backend's own state for the forces: the warm start is the solver's, not the model's. Given the Warp
-    walk's warm start, MJX's JAX solver (float32) stopped 8.5 % off C's split at one corner on 2026-11-27 (the
-    same with 4 or 100 iterations and tolerance 0), while from a cold start or from C's solution it agreed with C
-    to 0.2 %; C's own forces moved 0.3 % under +-2 float32 ulp of the positions."""
+    Why each backend's own state for the forces: the warm start is the solver's, not the model's; given the other
+    backend's warm start, MJX's JAX solver (float32) stops off C's split of the load (whatever its iterations)."""
     out, own = {}, {}
     for backend in ("jax", "warp"):
         sim, b, st, _ = walks[backend]
@@ -99,7 +97,7 @@ def test_warp_mass_matrix_and_distances_match_references(walks):
 
         f = jax.jit(jax.vmap(one, in_axes=(b.in_axes, 0)))
 
-        def at(src):  # this backend's data at a walk's final state, torques and warm start included
+        def at(src, b=b):  # this backend's data at a walk's final state, torques and warm start included
             return b.state.d.replace(**{k: jax.numpy.asarray(getattr(src, k))
                                         for k in ("qpos", "qvel", "ctrl", "qacc_warmstart")})
 

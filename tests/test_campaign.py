@@ -154,7 +154,7 @@ def test_sensor_noise_is_seeded_and_velocity_only(tiny_spec):
 
     from wbc_jax.campaign import runner as C
     from wbc_jax.physics.backend import sense_with_view
-    from wbc_jax.rollout.core import seen_qvel
+    from wbc_jax.rollout import seen_qvel
 
     spec = load_spec(tiny_spec)
     sim, dz, b, *_ = C.build(spec)

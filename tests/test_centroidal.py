@@ -24,7 +24,7 @@ from wbc_jax.planner import capture_point as cpm
 from wbc_jax.planner.gait import GaitParams
 from wbc_jax.qp import QPSettings, solve_qp
 from wbc_jax.robot.model import Robot, mjx
-from wbc_jax.rollout.core import contact_slots
+from wbc_jax.physics.contacts import contact_slots
 from wbc_jax.studies.trot import SNAPSHOT_SIZE, TrotSim, init_run, make_plan, simulate, write_snapshots
 
 MOM_RTOL = 2e-5  # float32 A_G v vs float64 references, relative to ||h||

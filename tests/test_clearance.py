@@ -1,4 +1,4 @@
-"""Exact clearance (issue 24, ``wbc_jax.physics.clearance``) against MuJoCo C's ``mj_geomDistance``.
+"""Exact clearance (``wbc_jax.physics.clearance``) against MuJoCo C's ``mj_geomDistance``.
 
 Poses of the course scene: the front-right leg crouched over block2's far edge (tests/test_course.py's poses; the
 shank's closest box feature is the edge), the front legs standing on block2 (closest feature: the top face), the
@@ -16,7 +16,7 @@ import pytest
 
 from wbc_jax.physics import clearance as CL
 from wbc_jax.robot.model import Robot, mjx
-from wbc_jax.rollout.core import clearance, clearance_name, make_sim
+from wbc_jax.rollout import clearance, clearance_name, make_sim
 
 POS_TOL = 1e-4  # [m] the acceptance bound (measured: < 1e-6, float32 kinematics vs float64)
 BRUTE_TOL = 2e-5  # [m] vs 200 001 samples of the segment (spacing <= 1.6 um on a 0.32 m segment)
@@ -191,7 +191,7 @@ def test_rollout_clearance_is_the_min_over_the_pairs(course):
 
 
 def test_mjx_slot_distance_overstates_edge_clearance():
-    """The cause of issue 24's overstated clearance: MJX's capsule/box contact slots of a shank 2.8 mm above
+    """Why the clearance is not read from contacts: MJX's capsule/box contact slots of a shank 2.8 mm above
     block2's far edge read 5.0 mm (and a pair beyond the margin reads 1 m), while the exact clearance reads
     MuJoCo C's distance."""
     from wbc_jax.physics import backend as physics
@@ -231,7 +231,7 @@ def test_same_on_the_warp_backend():
     for backend in ("jax", "warp"):
         robot = Robot("transport", backend=backend)
         m = robot.mj_model
-        jq = lambda n: m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)]  # noqa: E731
+        jq = lambda n, m=m: m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)]  # noqa: E731
         q = robot.home_qpos(0.08)
         dy, dz, pitch, knee = CROUCH[0]
         q[1] += dy
@@ -239,7 +239,8 @@ def test_same_on_the_warp_backend():
         q[jq("FR_pitch")], q[jq("FR_knee")] = pitch, knee
         d = physics.make_data(robot, 1).replace(qpos=jnp.asarray(q))
         pairs = CL.clearance_pairs(robot)
-        out[backend] = np.asarray(jax.jit(lambda d: CL.pair_distances(pairs, physics.sense(robot.mjx_model, d)))(d))
+        distances = jax.jit(lambda d, pairs=pairs, m=robot.mjx_model: CL.pair_distances(pairs, physics.sense(m, d)))
+        out[backend] = np.asarray(distances(d))
     np.testing.assert_allclose(out["warp"], out["jax"], atol=1e-6)
     assert np.sum(out["warp"] > 0.0) > 40
 

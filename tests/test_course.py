@@ -20,8 +20,8 @@ from wbc_jax.planner.scene_geometry import (
 from wbc_jax.planner.spline import eval_path, max_abs_accel_z
 from wbc_jax.planner.transport import course_plan
 from wbc_jax.robot.model import Robot, mjcf_dir
+from wbc_jax.rollout import make_sim, simulate
 from wbc_jax.rollout.batch import prepare_batch
-from wbc_jax.rollout.core import make_sim, simulate
 
 LINTEL_UNDERSIDE = 0.65  # [m] scene_transport.xml: lintel box centre 0.925, half-height 0.275
 WALL_Y = -2.45  # [m]
@@ -247,7 +247,7 @@ def test_knee_and_leg_clearance_match_mujoco():
 
 def test_far_edge_rule_by_hand():
     """Stepping down from block2 in the crouch (planned hip 0.336 m high, checked HIP_DROP lower): with the hip
-    56 mm past the far edge at touchdown (the graze of issue 24) the shin cannot clear the edge anywhere near the
+    56 mm past the far edge at touchdown (a shank graze of the course) the shin cannot clear the edge anywhere near the
     nominal foothold, so the foot stays on the block; with the hip 125 mm past it the nominal foothold is kept; a
     nominal foothold just past the edge moves to the first landing that clears it."""
     robot = Robot("transport")
@@ -341,7 +341,7 @@ def test_zmp_com_plan_keeps_the_zmp_on_the_support():
 
     from wbc_jax.planner.gait import gait_phase
     from wbc_jax.planner.scene_geometry import terrain_height
-    from wbc_jax.planner.transport import _landings, landing_at, reference
+    from wbc_jax.planner.transport import _landings, reference
     from wbc_jax.planner.zmp import support_margin, zmp_xy
 
     robot = Robot("transport")

@@ -4,12 +4,10 @@ CPU device per process, gloo collectives) of `wbc-jax campaign` and then `wbc-ja
 bit, the single-process run's over two CPU devices (the same per-device program), with only process 0 writing.
 
 A one-device reference rounds differently (it compiles the rollout for all runs at once; the low-friction cells
-amplify that: S 0.530 vs 0.455 in one cell, 2026-11-25), hence the two-device one. That reference needs at most 2
-runs per device on this 2-core machine: with 3 or more it deadlocks, diagnosed with gdb (2026-11-25, jaxlib
-0.10.2): both threads of XLA's CPU intra-op pool (its size is the core count) run one device's program each; each
-is in a batched LAPACK triangular solve (``lapack_strsm_ffi``, from the vmapped Cholesky solves), whose
-``jax::ParallelBatchMap`` queues the batch's slices on that same pool and waits for them. No collective is
-involved (the program has none). One device per process, as on a cluster, does not meet it."""
+amplify that), hence the two-device one. That reference keeps at most 2 runs per device: with more, on a 2-core
+machine, both threads of XLA's CPU intra-op pool can each wait in a batched LAPACK triangular solve whose slices
+are queued on that same pool (a deadlock without any collective). One device per process, as on a cluster, does
+not meet it."""
 
 import io
 import json
@@ -60,7 +58,8 @@ def test_slurm_step():
 
 @pytest.mark.parametrize("kw, env, expect", [
     (dict(num_processes=2), {}, "--coordinator and --process-id missing"),
-    (dict(num_processes=2, process_id=2, coordinator="h:1"), {}, "--process-id = 2: expected an integer, 0 <= value <= 1"),
+    (dict(num_processes=2, process_id=2, coordinator="h:1"), {},
+     "--process-id = 2: expected an integer, 0 <= value <= 1"),
     (dict(num_processes="two"), {}, "--num-processes = 'two'"),
     (dict(num_processes=2, process_id=0, coordinator="nohost"), {}, "--coordinator = 'nohost': expected HOST:PORT"),
     (dict(num_processes=2, process_id=0, coordinator="h:70000"), {}, "--coordinator port = '70000'"),
@@ -107,13 +106,16 @@ ALL_IN_ONE = textwrap.dedent("""
     mp = [a for a in camp if a.startswith(("--coordinator", "--num-processes", "--process-id"))]
     if cli.main(camp):  # out: the plain campaign
         sys.exit(1)
-    from wbc_jax.campaign.runner import run_campaign
+    from wbc_jax.campaign import runner
     spec = camp[camp.index("--spec") + 1]
+    def _cut(done, n_chunks):
+        raise KeyboardInterrupt
+    runner.after_chunk, keep = _cut, runner.after_chunk
     try:  # cut: the same campaign interrupted after its first chunk ...
-        run_campaign(spec, "cut", report=False, progress=False, _interrupt_after=1)
+        runner.run_campaign(spec, "cut", report=False, progress=False)
         sys.exit("not interrupted")
     except KeyboardInterrupt:
-        pass
+        runner.after_chunk = keep
     kept = sorted(os.listdir("."))
     want = [] if "--process-id=1" in mp else [".cut.campaign-ckpt", "out"]  # process 1 writes nothing
     if kept != want:
@@ -256,12 +258,11 @@ def _warp_blocks(spec_path, n_blocks: int) -> pd.DataFrame:
 
     from wbc_jax.campaign import runner as C
     from wbc_jax.campaign.spec import load_spec
-    from wbc_jax.rollout import runs
-    from wbc_jax.rollout.core import final_results
+    from wbc_jax.rollout import final_results, runs
     from wbc_jax.rollout.spread import Spread
 
     spec = C.with_backend(load_spec(spec_path), "warp")
-    sim, dz, b, _, logs_per_chunk, n_chunks = C.build(spec)
+    sim, design, b, _, logs_per_chunk, n_chunks = C.build(spec)
     fn = C._chunk_fn(sim, b.in_axes, logs_per_chunk, None, b.state_axes)
     states, goals = [], []
     for i in range(n_blocks):
@@ -271,5 +272,5 @@ def _warp_blocks(spec_path, n_blocks: int) -> pd.DataFrame:
             st, logs = fn(sub.model, st, sub.plan, sub.om, sub.gains, sub.push, sub.mu_ground)
         states.append(jax.device_get(st))
         goals.append(np.asarray(logs.p_obj_ref[:, -1]))
-    state = runs.first(runs.concat(states, b.state_axes), dz.n, b.state_axes)
-    return C.results_table(spec, dz, final_results(sim, state, np.concatenate(goals)[:dz.n], dz.mu))
+    state = runs.first(runs.concat(states, b.state_axes), design.n, b.state_axes)
+    return C.results_table(spec, design, final_results(sim, state, np.concatenate(goals)[:design.n], design.mu))

@@ -5,10 +5,10 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from wbc_jax.physics import contacts
 from wbc_jax.metrics import paper as metrics
+from wbc_jax.metrics.accumulate import Accum
+from wbc_jax.physics import contacts
 from wbc_jax.robot.model import mjx
-from wbc_jax.rollout.core import Accum
 
 TOL = 1e-6
 
@@ -100,7 +100,8 @@ def test_planned_R_by_hand():
     assert float(_pih(_x_with(np.r_[lam[:3], np.zeros((1, 4))]), mu, NV, K)) == 0.0
     assert float(_pih(_x_with(np.r_[lam[:3], [[0.0, 2.0, 0.0, 0.0]]]), mu, NV, K)) < 1e-5 * th**2
     assert float(_pih(_x_with(np.r_[lam[:3], [[-0.1, 0.0, 1.0, 0.0]]]), mu, NV, K)) == 0.0
-    assert bool(metrics.planned_inv_H(_planned(_x_with(np.r_[lam[:3], [[-0.1, 0.0, 1.0, 0.0]]]), mu), mu)[1])  # the cone
+    outside = _planned(_x_with(np.r_[lam[:3], [[-0.1, 0.0, 1.0, 0.0]]]), mu)
+    assert bool(metrics.planned_inv_H(outside, mu)[1])  # the cone
     assert not bool(metrics.planned_inv_H(_planned(_x_with(np.r_[lam[:3], np.zeros((1, 4))]), mu), mu)[1])  # unloaded
     # the simulator's R path is untouched: the same forces through cone_angle / inv_H give the same value
     alpha_s, loaded = metrics.cone_angle(jnp.asarray(f))

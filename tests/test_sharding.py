@@ -32,7 +32,7 @@ SCRIPT = textwrap.dedent("""
     import numpy as np, jax
     from wbc_jax.runtime import jaxcfg; jaxcfg.configure
     from wbc_jax.campaign import runner as C
-    from wbc_jax.rollout.core import simulate
+    from wbc_jax.rollout import simulate
     from wbc_jax.rollout.sharding import shard_batch
     assert len(jax.devices()) == 2
     with open(sys.argv[1], "rb") as f:
@@ -47,15 +47,15 @@ SCRIPT = textwrap.dedent("""
                         (a["n_logs"] - 0.5) * log_dt, chunk_seconds=a["logs_per_chunk"] * log_dt)
     assert logs.t.shape[1] == a["n_logs"]
     assert len(st.d.qpos.sharding.device_set) == 2
-    from wbc_jax.rollout import core as rollout
-    assert [f._cache_size() for f in rollout._CHUNK_FNS.values()] == [1]  # chunk 2 reused chunk 1's program
+    from wbc_jax.rollout import loop
+    assert [f._cache_size() for f in loop._CHUNK_FNS.values()] == [1]  # chunk 2 reused chunk 1's program
     np.savez(sys.argv[2], qpos=np.asarray(st.d.qpos)[:n], max_slip=np.asarray(st.acc.max_slip)[:n], n=n)
 """)
 
 
 def test_sharded_rollout_matches_single_device(tmp_path):
     spec = load_spec(BASELINE_SPEC)
-    sim, dz, b, _, logs_per_chunk, _ = C.build(spec)
+    sim, _, b, _, logs_per_chunk, _ = C.build(spec)
     fn = C._chunk_fn(sim, b.in_axes, logs_per_chunk)  # the campaign's (one device)
     s1 = b.state
     for _ in range(N_CHUNKS):

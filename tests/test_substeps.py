@@ -6,6 +6,8 @@ One compile of a 2-run control step with n_substeps = 2 (and one of the hand ref
 2-core CPU.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -18,10 +20,11 @@ from wbc_jax.control.transport import TransportConfig, control_qp_settings
 from wbc_jax.errors import SpecError, WbcJaxError
 from wbc_jax.metrics import paper as metrics
 from wbc_jax.physics import contacts
+from wbc_jax.physics.contacts import CONTACT_DIST
 from wbc_jax.planner.gait import GaitParams
 from wbc_jax.robot.model import Robot, mjx
+from wbc_jax.rollout import contact_name, control_step, make_sim
 from wbc_jax.rollout.batch import prepare_batch
-from wbc_jax.rollout.core import CONTACT_DIST, contact_name, control_step, make_sim
 
 N_SUB = 2
 PERIODS = 3  # control periods checked (6 physics steps)
@@ -55,8 +58,8 @@ def _reference(sim, b):
     h = float(sim.robot.mj_model.opt.timestep)
     step = jax.jit(jax.vmap(mjx.step, in_axes=(b.in_axes, 0)))
     integrands = jax.jit(jax.vmap(
-        lambda m, d, d1, mu: metrics.step_integrands(contacts.object_contacts(sim, m, d1)[0], mu, d.qvel[oa:oa + 3], d1.qvel[oa:oa + 3],
-                                                     h),
+        lambda m, d, d1, mu: metrics.step_integrands(contacts.object_contacts(sim, m, d1)[0], mu,
+                                                     d.qvel[oa:oa + 3], d1.qvel[oa:oa + 3], h),
         in_axes=(b.in_axes, 0, 0, 0)))
 
     def period(d0, tau):
@@ -80,8 +83,7 @@ def _reference(sim, b):
 def step(setup):
     """The jitted, vmapped control step (one control period of N_SUB physics steps) of the module's batch."""
     robot, sim, b = setup
-    return jax.jit(jax.vmap(lambda m, rs, p, om, g, pu, mg: control_step(sim, m, rs, p, om, g, pu, mg),
-                            in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0)))
+    return jax.jit(jax.vmap(functools.partial(control_step, sim), in_axes=(b.in_axes, 0, 0, 0, 0, 0, 0)))
 
 
 def test_substep_monitors_equal_hand_stepping(setup, step):
@@ -89,14 +91,14 @@ def test_substep_monitors_equal_hand_stepping(setup, step):
     h = sim.dt_physics
     assert sim.dt_control == pytest.approx(N_SUB * h)
     ref = _reference(sim, b)
-    rs = b.state
+    run_state = b.state
     total_acc, coarse_gap = 0.0, 0.0
     for _ in range(PERIODS):
-        rs_next, log = step(b.model, rs, b.plan, b.om, b.gains, b.push, b.mu_ground)
-        qpos, inv_h, a, nonfoot, off, dv = ref(rs.d, log.tau)
-        a0, a1 = jax.device_get(rs.acc), jax.device_get(rs_next.acc)
+        run_state_next, log = step(b.model, run_state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+        qpos, inv_h, a, nonfoot, off, dv = ref(run_state.d, log.tau)
+        a0, a1 = jax.device_get(run_state.acc), jax.device_get(run_state_next.acc)
         # the state after the period is two physics steps with the held torques
-        np.testing.assert_allclose(np.asarray(rs_next.d.qpos), qpos, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(run_state_next.d.qpos), qpos, rtol=0, atol=1e-6)
         # integrals: sum over the physics steps x the physics timestep (not one sample x the control period)
         d_acc = np.asarray(a1.sum_acc - a0.sum_acc)
         np.testing.assert_allclose(d_acc, (a * h).sum(axis=1), rtol=1e-4, atol=2 * N_SUB * V_TOL)
@@ -110,7 +112,7 @@ def test_substep_monitors_equal_hand_stepping(setup, step):
         np.testing.assert_array_equal(a1.n_steps, np.asarray(a0.n_steps) + 1)  # control steps
         assert np.all(np.asarray(a1.n_boundary_cone - a0.n_boundary_cone) <= np.asarray(a1.n_boundary - a0.n_boundary))
         # R of the QP's planned object forces: once per control step, by hand from the solution's Lambda_b
-        inv_h_plan, fn_plan = _planned_by_hand(np.asarray(rs_next.cs.warm.x, float), np.asarray(b.om.mu, float))
+        inv_h_plan, fn_plan = _planned_by_hand(np.asarray(run_state_next.cs.warm.x, float), np.asarray(b.om.mu, float))
         np.testing.assert_allclose(a1.sum_invH_plan - a0.sum_invH_plan, inv_h_plan * sim.dt_control, rtol=1e-4,
                                    atol=1e-10)
         np.testing.assert_array_equal(a1.n_boundary_plan - a0.n_boundary_plan, inv_h_plan <= 0)
@@ -120,12 +122,12 @@ def test_substep_monitors_equal_hand_stepping(setup, step):
         total_acc += (a * h).sum()
         # one sample per control period, ||v(t + 2h) - v(t)|| / (2h) x 2h, would have given this instead
         coarse_gap = max(coarse_gap, float(np.max(np.abs(d_acc - np.linalg.norm(dv, axis=1)) / d_acc)))
-        rs = rs_next
+        run_state = run_state_next
     assert total_acc > 0 and coarse_gap > 1e-2  # the check is not vacuous: per-period sampling differs here
     # finalize: time averages over the control steps, boundary fraction over the physics steps
-    res = metrics.finalize(jax.device_get(rs.acc), sim.dt_control, np.asarray(b.om.mu), course=False,
+    res = metrics.finalize(jax.device_get(run_state.acc), sim.dt_control, np.asarray(b.om.mu), course=False,
                            final_err=np.zeros(2), substeps=N_SUB)
-    acc = jax.device_get(rs.acc)
+    acc = jax.device_get(run_state.acc)
     np.testing.assert_allclose(res["R"], np.asarray(acc.sum_invH) / (PERIODS * sim.dt_control), rtol=1e-6)
     np.testing.assert_allclose(res["boundary_fraction"], np.asarray(acc.n_boundary) / (PERIODS * N_SUB))
     np.testing.assert_allclose(res["R_plan"], np.asarray(acc.sum_invH_plan) / (PERIODS * sim.dt_control), rtol=1e-6)
@@ -203,12 +205,12 @@ def test_first_body_contact_time_and_pair(setup, step):
     qpos = np.asarray(b.state.d.qpos).copy()
     qpos[0, 2] -= SINK
     # the same values as jnp.asarray(qpos), set into the batch's (committed) array: an uncommitted input would make
-    # the module's jitted step compile a second program (~45 s on 2 cores) for the same shapes
-    rs = b.state._replace(d=b.state.d.replace(qpos=b.state.d.qpos.at[0, 2].set(qpos[0, 2])))
+    # the module's jitted step compile a second program for the same shapes
+    run_state = b.state._replace(d=b.state.d.replace(qpos=b.state.d.qpos.at[0, 2].set(qpos[0, 2])))
     args = (b.plan, b.om, b.gains, b.push, b.mu_ground)
-    rs1, _ = step(b.model, rs, *args)
-    rs2, _ = step(b.model, rs1, *args)
-    a1, a2 = jax.device_get(rs1.acc), jax.device_get(rs2.acc)
+    run_state1, _ = step(b.model, run_state, *args)
+    run_state2, _ = step(b.model, run_state1, *args)
+    a1, a2 = jax.device_get(run_state1.acc), jax.device_get(run_state2.acc)
     # reference: MuJoCo C collision at run 0's start positions, restricted to the non-foot pairs
     m = robot.mj_model
     d = mujoco.MjData(m)

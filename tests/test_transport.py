@@ -18,7 +18,7 @@ from wbc_jax.planner.transport import reference
 from wbc_jax.qp import QPSettings, solve_qp
 from wbc_jax.robot.model import Robot
 from wbc_jax.rollout.batch import prepare_batch
-from wbc_jax.rollout.core import make_sim, simulate
+from wbc_jax.rollout import make_sim, simulate
 
 OBJ_RTOL = 1e-3  # relative objective error, ADMM (float32, ACCURATE_ITERS cold iterations) vs OSQP eps 1e-9
 VIOL_TOL = 1e-2  # max constraint violation of the ADMM solution [rows mix N, N m, m/s^2]

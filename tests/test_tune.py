@@ -304,7 +304,7 @@ def test_cpu_batch_keeps_lapack_kernels_inline(monkeypatch):
     from wbc_jax.campaign import runner as campaign
     from wbc_jax.campaign.spec import load_spec, parse_spec
     from wbc_jax.rollout import batch as batch_module
-    from wbc_jax.rollout.core import make_chunk_fn
+    from wbc_jax.rollout import make_chunk_fn
     from wbc_jax.studies.tune_eval import take
     from wbc_jax.studies.tune_spec import CPU_BATCH
 

@@ -1,4 +1,4 @@
-"""Metric window and clearance (issue 23 item 1, issue 24).
+"""Metric window and clearance.
 
 * R, T, S integrate over each run's window [0, t_end), t_end = T_plan + extra_seconds capped by max_seconds, not
   over the whole simulated time, so ``chunk_seconds`` (which rounds the simulation up to whole chunks) does not
@@ -19,7 +19,7 @@ import pytest
 from wbc_jax.campaign import runner as C
 from wbc_jax.campaign.spec import SWEEPS, load_spec
 from wbc_jax.metrics import paper as metrics
-from wbc_jax.rollout.core import clearance, clearance_name, final_results, with_metric_window
+from wbc_jax.rollout import clearance, clearance_name, final_results, with_metric_window
 
 TINY = SWEEPS.parent / "reports" / "baseline" / "spec.toml"
 WINDOW_RTOL = 1e-6  # R, T, S of one window at two simulated lengths: float rounding only (same operations)
@@ -32,9 +32,9 @@ def _spec(**campaign):
     return dataclasses.replace(s, campaign={**s.campaign, **campaign})
 
 
-def _finalize(sim, dz, state):
-    return metrics.finalize(jax.device_get(state.acc), sim.dt_control, dz.mu, course=False,
-                            final_err=np.zeros(dz.n), substeps=sim.n_substeps)
+def _finalize(sim, design, state):
+    return metrics.finalize(jax.device_get(state.acc), sim.dt_control, design.mu, course=False,
+                            final_err=np.zeros(design.n), substeps=sim.n_substeps)
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +43,7 @@ def windowed():
     function run for 2, 3 and 4 chunks (0.08, 0.12, 0.16 s simulated: chunk_seconds 0.04, 0.06 (2 chunks of 3 logs)
     and 0.08 (2 of 4) round 0.08 s up to these) and, from the 2-chunk state, one more chunk with no window."""
     spec_a, spec_b = _spec(max_seconds=0.08, chunk_seconds=0.04), _spec(max_seconds=0.08, chunk_seconds=0.06)
-    sim, dz, b, T_plan, lpc, n_chunks = C.build(spec_a)
+    sim, design, b, T_plan, lpc, n_chunks = C.build(spec_a)
     _, _, b6, _, lpc6, n6 = C.build(spec_b)
     assert (lpc, n_chunks) == (2, 2) and (lpc6, n6) == (3, 2)  # 0.08 s and 0.12 s simulated
     fn = C._chunk_fn(sim, b.in_axes, lpc)
@@ -52,11 +52,11 @@ def windowed():
         state, _ = fn(b.model, state, b.plan, b.om, b.gains, b.push, b.mu_ground)
         states[k] = state
     open_tail, _ = fn(b.model, with_metric_window(states[2], np.inf), b.plan, b.om, b.gains, b.push, b.mu_ground)
-    return sim, dz, b, b6, T_plan, states, open_tail
+    return sim, design, b, b6, T_plan, states, open_tail
 
 
 def test_window_is_per_run_plan_end_capped_and_independent_of_chunking(windowed):
-    sim, dz, b, b6, T_plan, states, _ = windowed
+    sim, design, b, b6, T_plan, states, _ = windowed
     t_end = np.asarray(b.state.acc.t_end)
     np.testing.assert_array_equal(t_end, np.asarray(b6.state.acc.t_end))  # chunk_seconds does not enter
     np.testing.assert_allclose(t_end, 0.08, rtol=1e-6)  # T_plan (> 2 s) + 0 s, capped at max_seconds
@@ -70,9 +70,9 @@ def test_window_is_per_run_plan_end_capped_and_independent_of_chunking(windowed)
 def test_tail_after_the_window_is_excluded(windowed):
     """0.08 s simulated (window = simulation) vs 0.12 and 0.16 s with the same 0.08 s window: equal integrals,
     R, T, S and window; the flags and counters still see the tail; without the window the tail adds to them."""
-    sim, dz, b, _, _, states, open_tail = windowed
+    sim, design, b, _, _, states, open_tail = windowed
     acc = {k: jax.device_get(states[k].acc) for k in (2, 3, 4)}
-    res = {k: _finalize(sim, dz, states[k]) for k in (2, 3, 4)}
+    res = {k: _finalize(sim, design, states[k]) for k in (2, 3, 4)}
     for k in (3, 4):
         np.testing.assert_array_equal(acc[k].n_steps, 40 * k)
         np.testing.assert_array_equal(acc[k].n_win, 80)
@@ -115,13 +115,13 @@ def test_clearance_equals_mujoco_geom_distance(windowed, drop):
     pairs."""
     from wbc_jax.rollout.batch import _init_fn
 
-    sim, dz, b, *_ = windowed
+    sim, design, b, *_ = windowed
     qpos = np.asarray(b.state.d.qpos, float).copy()
     qpos[:, 2] -= drop
-    st = _init_fn(sim, b.in_axes, dz.n)(b.model, qpos, np.asarray(b.state.d.qvel))  # sensed: contacts filled
+    st = _init_fn(sim, b.in_axes, design.n)(b.model, qpos, np.asarray(b.state.d.qvel))  # sensed: contacts filled
     c, k = jax.jit(jax.vmap(lambda d: clearance(sim, d)))(st.d)
     c, k = np.asarray(c), np.asarray(k)
-    for i in range(dz.n):
+    for i in range(design.n):
         ref, pair = _c_clearance(sim, np.asarray(st.d.qpos[i], float))
         assert abs(c[i] - ref) < CLEAR_TOL, (i, c[i], ref)
         got = _pairs(sim)[k[i]]
@@ -142,15 +142,15 @@ def _c_dist(sim, qpos, pair):
 def test_run_clearance_bounds_logged_configurations_and_is_reported(windowed):
     """The run's min clearance is at most MuJoCo C's clearance at every logged configuration (every 20 steps) and
     lies in the run; final_results names its pair."""
-    sim, dz, b, _, _, states, _ = windowed
+    sim, design, b, _, _, states, _ = windowed
     fn = C._chunk_fn(sim, b.in_axes, 2)
     _, logs = fn(b.model, states[1], b.plan, b.om, b.gains, b.push, b.mu_ground)  # chunk 2 again: its logs
     acc = jax.device_get(states[2].acc)
     q = np.asarray(logs.qpos, float)  # (B, 2, nq)
-    for i in range(dz.n):
+    for i in range(design.n):
         logged = min(_c_clearance(sim, q[i, j])[0] for j in range(q.shape[1]))
         assert acc.min_clear[i] <= logged + CLEAR_TOL
         assert 0.0 <= acc.min_clear_t[i] < 0.08
-    res = final_results(sim, states[2], np.zeros((dz.n, 3)), dz.mu)
+    res = final_results(sim, states[2], np.zeros((design.n, 3)), design.mu)
     np.testing.assert_allclose(res["min_clearance_mm"], acc.min_clear * 1e3)
     assert all(" (body " in p and p.endswith("/ floor") for p in res["min_clearance_pair"])

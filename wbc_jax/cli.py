@@ -59,7 +59,7 @@ def _check_bench_args(args: argparse.Namespace) -> list[int] | None:
             raise InputError(f"--qp: {e}") from None
     if args.what in ("rollout", "trace"):
         from wbc_jax.physics.backend import BACKENDS, resolve_backend
-        from wbc_jax.rollout.core import resolve_sensing
+        from wbc_jax.rollout import resolve_sensing
 
         names = [x for x in str(args.backend).split(",") if x]
         try:

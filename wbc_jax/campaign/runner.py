@@ -89,8 +89,8 @@ def with_backend(spec: Spec, backend: str | None) -> Spec:
 
 
 def sensing_of(spec: Spec) -> str:
-    """The spec's ``campaign.sensing`` resolved for its backend (:func:`wbc_jax.rollout.core.resolve_sensing`)."""
-    from wbc_jax.rollout.core import resolve_sensing
+    """The spec's ``campaign.sensing`` resolved for its backend (:func:`wbc_jax.rollout.config.resolve_sensing`)."""
+    from wbc_jax.rollout import resolve_sensing
 
     c = spec.campaign
     backend = backend_of(spec)
@@ -106,7 +106,7 @@ def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, 
     """The (cached) Sim of a scene: ``iters`` ADMM iterations, control period ``substeps`` x the scene's timestep."""
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
     from wbc_jax.robot.model import Robot
-    from wbc_jax.rollout.core import make_sim
+    from wbc_jax.rollout import make_sim
 
     key = (scene, iters, sensor_noise, substeps, backend, solver_iterations, sensing)
     if key not in _SIMS:
@@ -118,14 +118,14 @@ def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, 
 
 
 def _chunk_fn(sim, in_axes, n_logs: int, mesh=None, state_axes=0):
-    """The jitted chunk function (:func:`wbc_jax.rollout.core.make_chunk_fn`); with a ``mesh`` (several devices),
+    """The jitted chunk function (:func:`wbc_jax.rollout.loop.make_chunk_fn`); with a ``mesh`` (several devices),
     each device steps its own runs. ``in_axes``, ``state_axes``: the batch's model and state run axes
     (``Batch.in_axes``, ``Batch.state_axes``)."""
-    from wbc_jax.rollout.core import make_chunk_fn
+    from wbc_jax.rollout import make_chunk_fn
     from wbc_jax.rollout.sharding import over_runs
 
     leaves, tree = jax.tree_util.tree_flatten(state_axes, is_leaf=lambda v: v is None)
-    key = (id(sim), n_logs, mesh, tuple(leaves), tree)
+    key = (sim, n_logs, mesh, tuple(leaves), tree)
     if key not in _FNS:  # jit, with the lowered program kept on disk for the next process (wbc_jax.runtime.aot)
         # (vmap takes the Warp data whole: MJX batches its shared contact list itself)
         fn = make_chunk_fn(sim, n_logs, in_axes)
@@ -183,7 +183,7 @@ def build(spec: Spec, gains=None):
     from wbc_jax.control.variants import Variant
     from wbc_jax.planner.transport import plan_duration
     from wbc_jax.rollout.batch import prepare_batch
-    from wbc_jax.rollout.core import make_push, with_metric_window, with_variant
+    from wbc_jax.rollout import make_push, with_metric_window, with_variant
 
     c = spec.campaign
     dz = design(spec)
@@ -395,7 +395,6 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     """
     t_import = time.perf_counter()
     import wbc_jax.rollout.batch  # noqa: F401  (MJX, the controllers, the planner: timed apart from setup)
-    import wbc_jax.rollout.core  # noqa: F401,I001
 
     t_start = time.perf_counter()
     spec = load_spec(spec_path if spec_path is not None else default_spec_path(has_accelerator()))
@@ -509,7 +508,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         print(f"process {jax.process_index()}: done; process 0 writes {out}", flush=True)
         return None
 
-    from wbc_jax.rollout.core import final_results
+    from wbc_jax.rollout import final_results
 
     res = final_results(sim, state, p_goal, dz.mu)
     df = results_table(spec, dz, res)

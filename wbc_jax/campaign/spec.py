@@ -16,7 +16,7 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     qp_iters = 4               # ADMM iterations per control step before the convergence checks (up to 200), 1..1000
     control_substeps = 1       # physics steps per control step (zero-order hold), 1..10; 1 = control at the
                                # physics rate (the control period is this x the scene's timestep; the metrics'
-                               # physics-rate monitors still run every physics step, see wbc_jax.rollout.core)
+                               # physics-rate monitors still run every physics step, see wbc_jax.rollout.step)
     chunk_seconds = 2.0        # simulated seconds per jit call / checkpoint, 0.02..60
     m = 0.3                    # object mass [kg], tray friction, object side [m], foot/ground friction (0: the
     mu = 0.7                   # scene's) and controller variant of every run, for those of them that are not
@@ -46,7 +46,7 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     push_window = [0.2, 0.7]   # push start: uniform in this fraction of the planned duration, 0 <= a <= b < 1
     qvel_noise_std = 0.01      # noise on the state the controller sees: white Gaussian std added every control step
                                # to each generalized velocity it reads [m/s, rad/s], 0..1 (the physics stays exact;
-                               # drawn from the run's seed, see wbc_jax.rollout.core.Push)
+                               # drawn from the run's seed, see wbc_jax.rollout.state.Push)
     push_dir_deg = 0.0         # direction of the push_N factor's pushes from world +x [deg] (only with push_N)
 
     [analysis]                 # the report's statistics (not hashed)
@@ -109,7 +109,7 @@ CAMPAIGN = {
                  'line)'),
     "sensing": (str, "auto", None, None, False,
                 '"auto" (delayed on Warp, exact on JAX), "exact" or "delayed" (Warp only: the controller reads the '
-                'state one physics step old and Warp\'s forward call is saved; wbc_jax.rollout.core.SENSING)'),
+                'state one physics step old and Warp\'s forward call is saved; wbc_jax.rollout.config.SENSING)'),
 }
 # the factors a spec may vary: wbc_jax.campaign.factors (name -> FactorDef; plus gain.<leaf> multipliers)
 FACTORS = factors_mod.REGISTRY
@@ -129,7 +129,7 @@ ANALYSIS = {
     "alpha": (float, 0.05, 0.0, 0.5, True, "significance level"),
 }
 SCENES = ("transport", "flat")
-SENSING = ("auto", "exact", "delayed")  # wbc_jax.rollout.core.SENSING (not imported: spec loading stays JAX-free)
+SENSING = ("auto", "exact", "delayed")  # wbc_jax.rollout.config.SENSING (not imported: spec loading stays JAX-free)
 TERRAINS = ("known", "blind")  # wbc_jax.planner.transport.TERRAINS (not imported: spec loading stays JAX-free)
 COM_PLANS = ("spline", "zmp")  # wbc_jax.planner.transport.COM_PLANS (not imported, as above)
 BACKENDS = ("auto", "jax", "warp")  # wbc_jax.physics.backend.BACKENDS (not imported here: spec loading stays JAX-free)

@@ -1,6 +1,6 @@
 """The transport paper's metrics (Sec. V-B), computed online inside the rollout, plus safety flags.
 
-Per physics step (inside the jitted scan, after every ``mjx.step`` of a control period, ``wbc_jax.rollout.core``;
+Per physics step (inside the jitted scan, after every ``mjx.step`` of a control period, ``wbc_jax.rollout.step``;
 cheap: four contact forces and a few norms):
 
 * **Robustness** integrand 1/H(t), with
@@ -11,7 +11,8 @@ cheap: four contact forces and a few norms):
   **Boundary rule** (documented choice): a contact carrying no load (f_n <= :data:`LOAD_EPS`, e.g. a
   corner lifted off the tray or a slot not active this step) or a force on or outside the circular cone
   (alpha_i >= theta_i; MuJoCo's pyramidal cone, |f_t1| + |f_t2| <= mu f_n, is inscribed in the circular one, so
-  this is a guard for solver slack rather than a regular case) counts as *at the cone boundary*: its term 1/((theta-alpha)(theta+alpha)) is +inf, so H = inf and 1/H(t) = 0 at that step.
+  this is a guard for solver slack rather than a regular case) counts as *at the cone boundary*: its term
+  1/((theta-alpha)(theta+alpha)) is +inf, so H = inf and 1/H(t) = 0 at that step.
   1/H is therefore in [0, lambda / (n_c / theta^2)] = [0, theta^2] for n_c = 4 = lambda: a cube resting
   still on a level tray scores theta^2 = atan(mu)^2.
 * **Robustness of the planned forces** (``R_plan``): the same integrand 1/H, boundary rule included, of the
@@ -36,9 +37,9 @@ The integrals sum these over physics steps times the physics timestep (the track
 quantity, is sampled once per control step times the control period).
 
 **Metric window.** The integrals and their duration cover the run's *task window* [0, t_end), not the whole
-simulated time: a control period counts when its midpoint is before t_end (``wbc_jax.rollout.core.in_window``;
+simulated time: a control period counts when its midpoint is before t_end (``wbc_jax.metrics.accumulate.in_window``;
 all physics steps of a period count or none). t_end is per-run data carried in the rollout state
-(``Accum.t_end``, set by ``wbc_jax.rollout.core.with_metric_window``; +inf = the whole simulation), so one
+(``Accum.t_end``, set by ``wbc_jax.rollout.state.with_metric_window``; +inf = the whole simulation), so one
 compiled chunk serves every window. The campaign (``wbc_jax.campaign.runner.build``) sets
 t_end = T_plan + settle, T_plan = the run's own plan duration (end of its object path; plans differ by d) and
 settle = the spec's ``campaign.extra_seconds`` (default 0.5 s: standing after the path ends, while the object
@@ -50,7 +51,7 @@ control period:
 R = (1/T_win) int 1/H dt [rad^2]; T = (1/T_win) int ||p_ref - p|| dt [m]; S = T_win / int ||vdot_b|| dt
 [s^2/m] (the paper's S uses the duration T, not the tracking metric T).
 
-**Clearance** (``wbc_jax.rollout.core.clearance``, every physics step): the smallest signed distance between a
+**Clearance** (``wbc_jax.rollout.step.clearance``, every physics step): the smallest signed distance between a
 non-foot robot geom and the floor, the terrain blocks or a wall over the whole run, with its time and pair. Exact
 geometry from the geoms' poses (``wbc_jax.physics.clearance``: capsules and boxes vs planes and boxes; exact when
 positive, the deepest point's depth when penetrating), the same on both backends; +inf only for a scene with no
@@ -73,7 +74,7 @@ MAX_OFF_S = 0.05  # [s] object touching nothing on the tray for longer than this
 FALL_Z_FLAT = 0.3  # [m] trunk below this on flat ground sets `fell`
 FALL_Z_COURSE = 0.15  # [m] the same on the obstacle course (the robot crouches under the wall)
 DONE_TOL = 0.05  # [m] final object error above this: transport not completed
-QP_FLAG_FRACTION = 0.001  # more than this fraction of flagged QPs sets `qp_flagged` (issue 22's line: 0.1 %)
+QP_FLAG_FRACTION = 0.001  # more than this fraction of flagged QPs sets `qp_flagged`
 
 
 def cone_angle(f) -> tuple[jax.Array, jax.Array]:
@@ -147,11 +148,11 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
         min_clearance_mm (non-foot robot geom vs floor, terrain, wall; +inf: none reported) and min_clearance_s
         (its time; NaN: none), flags fell (= trunk_low or body_contact),
         trunk_low, body_contact, dropped, slid, hit_wall, qp_flag_fraction (of the control steps), qp_flagged,
-        qp_iters_mean and qp_iters_max (ADMM iterations per control step: mean and most),
-        nonfinite, overflow (Warp's contact or
-        constraint capacity reached), solver_cap_fraction (of all physics steps: the constraint solver stopped at
-        its iteration cap, opt.iterations; Warp only, ``wbc_jax.physics.backend.solver_capped``), success (no fall, no drop, finite, no overflow,
-        final object error <= DONE_TOL) and fail_reason (text, "" for a success).
+        qp_iters_mean and qp_iters_max (ADMM iterations per control step: mean and most), nonfinite, overflow
+        (Warp's contact or constraint capacity reached), solver_cap_fraction (of all physics steps: the constraint
+        solver stopped at its iteration cap, opt.iterations; Warp only, ``wbc_jax.physics.backend.solver_capped``),
+        success (no fall, no drop, finite, no overflow, final object error <= DONE_TOL) and fail_reason (text, ""
+        for a success).
     """
     n = np.asarray(acc.n_steps, float)
     n_win = np.asarray(acc.n_win, float)

@@ -5,14 +5,9 @@ Two MJX implementations (``Robot(backend=...)``): **JAX** (``impl="jax"``, any d
 ``forward`` and ``step``, so on Warp :func:`sense` is ``mjx.forward`` (the whole forward pass, constraint solve
 with the held torques included) and :func:`finish` is ``mjx.step`` with the new torques: two Warp calls per control
 step, both exact (the controller reads the state it acts on, no delay; ``sensing = "delayed"`` drops the first,
-``wbc_jax.rollout.core.resolve_sensing``). :func:`resolve_backend` turns "auto" into Warp on a CUDA GPU with
-warp-lang installed, else JAX, by measurement (H100, 2026-11-25, with the fused QP kernel): the paper campaign
-gives the same statistics on both (270/270 each) in 103.0 s on Warp (delayed sensing) vs 207.8-258.0 s on JAX;
-physics + WBC 80,636 vs 71,645 env-steps/s at batch 270 and 530,978 vs 273,202 at 16384 (docs/performance.md).
-(Before the QP kernel the QP dominated a step at batch 270 and Warp gained nothing end to end: 84 k vs 87 k.)
-The earlier Warp failure on the course (a front foot sliding off block1 at 5.8 s in 259/270 runs) was the
-controller planning the floor's friction on block1, fixed in ``wbc_jax.physics.contacts.foot_ground``. On the CPU
-"auto" stays JAX (MuJoCo Warp's CPU path is for tests).
+``wbc_jax.rollout.config.resolve_sensing``). :func:`resolve_backend` turns "auto" into Warp on a CUDA GPU with
+warp-lang installed (the same campaign statistics as JAX in less time), else JAX; on the CPU "auto" stays JAX
+(MuJoCo Warp's CPU path is for tests).
 
 JAX backend: ``mjx.step`` = forward (position, velocity, actuation, acceleration, constraint solve) + integrate.
 :func:`sense` runs the position and velocity stages; the controller reads M, bias forces,
@@ -20,7 +15,7 @@ Jacobians and contacts from its output; :func:`finish` completes that same forwa
 controller's torques and integrates: one physics step. A control period of ``n_substeps`` physics steps
 (zero-order hold: ``ctrl`` and ``xfrc_applied`` stay as set) is :func:`finish` followed by
 ``n_substeps - 1`` plain ``mjx.step`` calls in a ``lax.scan`` (:func:`advance`; the rollout runs its own scan
-that also samples its physics-rate monitors after every step, ``wbc_jax.rollout.core.physics_period``).
+that also samples its physics-rate monitors after every step, ``wbc_jax.rollout.step.physics_period``).
 
 After any of these steps, ``d.contact`` (and ``efc_force``) belong to the positions at the *start* of that
 step (collision runs before integration): after :func:`finish` they are the sensed ``d``'s contacts.
@@ -106,7 +101,7 @@ def data_axes(robot, d):
     if not is_warp(d):
         return jax.tree_util.tree_map(lambda _: 0, d)
     n_runs = int(d._impl.naconmax) // NACON_PER_RUN
-    key = (id(robot), n_runs)
+    key = (robot, n_runs)  # Robots hash by value
     if key not in _DATA_AXES:
         two, three = (jax.eval_shape(jax.vmap(lambda _: make_data(robot, n_runs)), jnp.zeros(k)) for k in (2, 3))
         _DATA_AXES[key] = jax.tree_util.tree_map(lambda a, b: 0 if a.shape != b.shape else None, two, three)
@@ -126,7 +121,7 @@ def freeze(ok, new, old):
     (contacts included) from that state and cannot fill Warp's shared contact list with garbage; the derived fields
     ``new`` holds belong to the step's start (``old``'s state) on both backends. Cheaper than ``Data.where`` over
     every field: Warp's ``step`` updates its data in place, so each field of ``old`` still read after it would be
-    copied first (137 such copies per control step in the rollout's compiled loop, H100, batch 270, 2026-11-26).
+    copied first.
     """
     return new.replace(**{f: jnp.where(ok, getattr(new, f), getattr(old, f)) for f in STATE_FIELDS
                           if hasattr(new, f)})
@@ -272,8 +267,9 @@ def slot_geoms_static(mjx_model) -> np.ndarray | None:
     collision function per group of geom pairs (``collision_driver._geom_groups``: by geom types, mesh and condim),
     repeats each group's rows by the function's contact count and concatenates the groups by ascending condim, in
     the groups' order. None where that layout is not static (a broad phase: ``max_geom_pairs`` or
-    ``max_contact_points`` set) or does not add up to the model's contact count; :func:`wbc_jax.physics.contacts.compiled_contact_geoms`
-    reads it from a compiled step instead (a test compares the two)."""
+    ``max_contact_points`` set) or does not add up to the model's contact count;
+    :func:`wbc_jax.physics.contacts.compiled_contact_geoms` reads it from a compiled step instead (a test compares
+    the two)."""
     from mujoco.mjx._src import collision_driver as cd
 
     if cd._numeric(mjx_model, "max_geom_pairs") > -1 or cd._numeric(mjx_model, "max_contact_points") > -1:

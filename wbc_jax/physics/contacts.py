@@ -9,21 +9,20 @@ part's and the wall's penetration (falls, grazes). The two MJX implementations k
   ``slot_*`` accessors). :func:`contact_slots` finds the slots of each role once per model.
 * **Warp** (``impl="warp"``): one list of the contacts that exist, shared by all runs (``naconmax`` in total), so a
   run's contacts are read through MJCF contact sensors, which MuJoCo evaluates per run into ``sensordata``
-  (as MJX's documentation and Playground do). :func:`wbc_jax.robot.sensors.with_contact_sensors` adds them: per object sphere its contact
-  with the tray (``found``, contact-frame ``force``, ``dist``), per non-foot ground pair and per wall pair ``found``
-  and ``dist``. The pairs' margin is 0, so a listed contact is a penetrating one. The near-contact distances the
-  rollout also needs (a foot within 1 mm of the ground, an object sphere more than 1 mm off the tray) are computed
-  from the geometry (:func:`sphere_distance`: sphere vs plane or box, as MuJoCo's collision functions do). Listing
-  contacts up to 1 mm through ``margin = gap = 1 mm`` instead is not the same physics on Warp: MuJoCo Warp 1.18
-  does not subtract ``gap`` from the constraint's margin (measured: the object's normal forces rose from 0.74 N to
-  18 N per sphere at rest).
+  (as MJX's documentation and Playground do). :func:`wbc_jax.robot.sensors.with_contact_sensors` adds them: per
+  object sphere its contact with the tray (``found``, contact-frame ``force``, ``dist``), per non-foot ground pair
+  and per wall pair ``found`` and ``dist``. The pairs' margin is 0, so a listed contact is a penetrating one. The
+  near-contact distances the rollout also needs (a foot within 1 mm of the ground, an object sphere more than 1 mm
+  off the tray) are computed from the geometry (:func:`sphere_distance`: sphere vs plane or box, as MuJoCo's
+  collision functions do). Listing contacts up to 1 mm through ``margin = gap = 1 mm`` instead is not the same
+  physics on Warp: MuJoCo Warp 1.18 does not subtract ``gap`` from the constraint's margin.
 
-:class:`wbc_jax.rollout.core.Sim` holds the indices of both kinds in the same fields (``foot_slots``,
+:class:`wbc_jax.rollout.config.Sim` holds the indices of both kinds in the same fields (``foot_slots``,
 ``obj_slots``, ``nonfoot_slots``, ``wall_slots``): contact slots on JAX, sensordata addresses on Warp; the
 readers below take a Sim and dispatch on ``sim.robot.backend`` (static). A distance that the backend does not
 report (no contact listed) reads as ``+inf``.
 
-The run's clearance (``wbc_jax.rollout.core.clearance``) does not read contacts: neither backend reports a
+The run's clearance (``wbc_jax.rollout.step.clearance``) does not read contacts: neither backend reports a
 separated pair's distance exactly (JAX: a capsule/box slot reads its candidate points' distance, not the edge's;
 a pair beyond the margin reads 1 m; Warp: penetrations only), so it is measured from the geoms' poses
 (:mod:`wbc_jax.physics.clearance`). The non-foot and wall readers here serve the contact flags (dist < 0).

@@ -2,7 +2,8 @@
 
 One :class:`Robot` is built once per process (it is not a pytree): it holds the MuJoCo C
 model, its MJX twin and every static index the controllers, metrics and tests need. Ids are
-plain Python ints / numpy int arrays so they stay static under ``jax.jit``.
+plain Python ints / numpy int arrays so they stay static under ``jax.jit``. Robots compare and hash by value
+(backend and compiled model), so caches of compiled programs key on them.
 
 Conventions (see ``mjcf/legged_manipulator.xml``):
     * generalized velocities: ``qvel[0:6]`` floating base (world linear, body-frame angular, MuJoCo
@@ -22,6 +23,7 @@ import numpy as np
 from wbc_jax.errors import SceneError
 from wbc_jax.physics.backend import mjx, put_model  # noqa: F401  (mjx re-exported: the package's one quiet import)
 from wbc_jax.robot.sensors import with_contact_sensors
+from wbc_jax.runtime.aot import model_digest
 from wbc_jax.types import RobotIds
 
 FEET = ("FL", "FR", "BL", "BR")
@@ -124,7 +126,7 @@ class Robot:
 
     Args:
         scene: 'flat', 'transport' or a path to a scene XML.
-        backend: MJX implementation of the physics, "jax" or "warp" (:mod:`wbc_jax.sim.backend`; resolve "auto"
+        backend: MJX implementation of the physics, "jax" or "warp" (:mod:`wbc_jax.physics.backend`; resolve "auto"
             before). With "warp" the scene gets the contact sensors the rollout reads
             (:func:`wbc_jax.physics.contacts.add_contact_sensors`); the physics is the same model's.
         solver_iterations: MuJoCo constraint-solver iterations per physics step (``opt.iterations``); 0: the
@@ -154,6 +156,13 @@ class Robot:
             self.mj_model, self.sensors = base, None
             self.mjx_model = put_model(self.mj_model, "jax", jax.local_devices()[0])
         self.total_robot_mass = float(self.mj_model.body_subtreemass[self.ids.trunk_body])
+        self.key = (backend, model_digest(self.mj_model))
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Robot) and other.key == self.key
+
+    def __hash__(self) -> int:
+        return hash(self.key)
 
     def home_qpos(self, d: float | None = None) -> np.ndarray:
         """Home configuration (nq,) with the object (side d [m]) resting centred on the tray."""

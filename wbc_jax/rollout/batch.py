@@ -19,22 +19,26 @@ from wbc_jax.planner.spline import pad_path
 from wbc_jax.planner.transport import TransportPlan, course_plan, straight_plan
 from wbc_jax.robot import scenario
 from wbc_jax.rollout import runs
-from wbc_jax.rollout.core import Push, RunState, Sim, init_state, no_push, state_axes
+from wbc_jax.rollout.config import Sim
+from wbc_jax.rollout.state import Push, RunState, init_state, no_push, state_axes
 from wbc_jax.runtime import aot
+from wbc_jax.runtime.static import axes_key
 from wbc_jax.types import ObjectModel
 
 
 class Batch(NamedTuple):
+    """Everything one batched rollout takes, each per-run field with a leading run axis B."""
+
     model: object  # batched mjx.Model
     in_axes: object  # the model's run axes (0 per run, None shared)
     state: RunState
     plan: TransportPlan
-    om: ObjectModel
+    om: ObjectModel  # the object model of each run
     gains: TransportGains
     push: Push
     mu_ground: jax.Array
     factors: scenario.Factors
-    state_axes: object = 0  # the state's run axes (wbc_jax.rollout.core.state_axes: Warp's contact list is shared)
+    state_axes: object = 0  # the state's run axes (wbc_jax.rollout.state.state_axes: Warp's contact list is shared)
 
 
 
@@ -79,10 +83,8 @@ def _plan(robot, course: bool, qpos0, kw: dict) -> TransportPlan:
     numpy leaves, kept on disk like a compiled program (:func:`wbc_jax.runtime.aot.cached_value`: keyed by the model's
     bytes, the start pose, ``kw``, the package's sources and the versions; off with ``WBC_JAX_CACHE=off``).
 
-    A plan is a deterministic function of those. Computing the course's takes seconds (tracing and loading the
-    landing table's and the ZMP path's programs; about 1.6 s per object side on a 2-core CPU), most of a warm
-    campaign's setup: the paper campaign's setup took 6.85 s without this and 4.29 s with it (H100 host, JAX cache
-    warm, one machine, 2026-11-26)."""
+    A plan is a deterministic function of those, and computing the course's (tracing and loading the landing
+    table's and the ZMP path's programs) is most of a warm campaign's setup."""
     def compute():
         p = course_plan(robot, qpos0, **kw) if course else straight_plan(robot, qpos0, **kw)
         return jax.tree_util.tree_map(np.asarray, p)
@@ -96,10 +98,10 @@ _INIT_FNS: dict = {}
 
 
 def _init_fn(sim: Sim, in_axes, n_runs: int):
-    """jit(vmap(init_state)) over (model, qpos0, qvel0), one per Sim and batched-model layout (one compile; on
-    the Warp backend also one per batch size, which sizes its shared contact list)."""
+    """jit(vmap(init_state)) over (model, qpos0, qvel0), one per Sim (by value) and batched-model layout (one
+    compile; on the Warp backend also one per batch size, which sizes its shared contact list)."""
     n = n_runs if sim.robot.backend == "warp" else 1
-    key = (id(sim), str(in_axes), n)
+    key = (sim, axes_key(in_axes), n)
     if key not in _INIT_FNS:
         fn = jax.vmap(functools.partial(init_state, sim, n_runs=n), in_axes=(in_axes, 0, 0))
         _INIT_FNS[key] = aot.cached_jit("init", fn, aot.describe(sim, in_axes, n),
@@ -148,8 +150,8 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
               for p in unique]
     plans = stack(unique, index=inverse)
     state = _init_fn(sim, in_axes, B)(bm, jnp.asarray(qpos0, float), jnp.asarray(qvel0, float))
-    om = ObjectModel(mass=jnp.asarray(f.m), side=jnp.asarray(f.d), mu=jnp.asarray(f.mu),
-                     inset=jnp.full(B, robot.ids.obj_sphere_radius))
+    obj_model = ObjectModel(mass=jnp.asarray(f.m), side=jnp.asarray(f.d), mu=jnp.asarray(f.mu),
+                            inset=jnp.full(B, robot.ids.obj_sphere_radius))
     gains = default_gains() if gains is None else gains
     if jnp.ndim(gains.kp_obj) == 0:
         gains = broadcast(gains, B)
@@ -162,4 +164,4 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
         mu_ground = _device(np.full(B, float(robot.mj_model.pair_friction[robot.ids.foot_pair[0, 0], 0])))
     else:
         mu_ground = _device(np.broadcast_to(np.asarray(ground_mu, float), (B,)))
-    return Batch(bm, in_axes, state, plans, om, gains, push, mu_ground, f, state_axes(sim, state))
+    return Batch(bm, in_axes, state, plans, obj_model, gains, push, mu_ground, f, state_axes(sim, state))

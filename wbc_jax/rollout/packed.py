@@ -1,10 +1,9 @@
 """A NamedTuple of per-run scalars carried as two arrays: one of its floating fields, one of its integer and bool
 fields.
 
-Why: the rollout's accumulators (``wbc_jax.rollout.core.Accum``, 32 scalars per run) are updated at every control
-step inside the rollout's loop. Carried as separate leaves, each update is an output of its own, and XLA on a GPU
-wrote them in 11 small kernels per control step (H100, course, batch 270: 18.6 us); carried as two arrays, the
-updates are two outputs, written by one fused kernel each (6.9 us; device busy per control step 797 -> 788 us).
+Why: the rollout's accumulators (``wbc_jax.metrics.accumulate.Accum``, 32 scalars per run) are updated at every
+control step inside the rollout's loop; carried as separate leaves, each update is an output of its own, which XLA
+on a GPU writes in many small kernels, while two arrays are written by one fused kernel each.
 
 A :class:`Packed` reads like the NamedTuple it packs: ``p.max_slip`` is that field's column (shape ``batch`` +
 ``()``), as a jax or a numpy array like the leaves (``jax.device_get`` gives numpy leaves); bool fields read as

@@ -2,7 +2,7 @@
 
 A batch's leaves carry the run axis first, except those marked None in its ``in_axes`` pytree: the fields of a
 batched mjx.Model that every run shares, and the Warp data's shared contact list
-(:func:`wbc_jax.rollout.core.state_axes`). Those pass through whole. Host (numpy) leaves stay on the host, device
+(:func:`wbc_jax.rollout.state.state_axes`). Those pass through whole. Host (numpy) leaves stay on the host, device
 leaves on the device.
 """
 

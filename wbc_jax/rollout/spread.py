@@ -8,9 +8,8 @@
 * ``blocks`` (Warp physics, several processes): the runs padded to a multiple of the process count and cut into
   contiguous blocks; process i steps block i on its first local device with the single-device program, and the
   processes meet only to gather results (host collectives). XLA cannot put MuJoCo Warp's kernels into one program
-  over several devices with mujoco-mjx 3.17 and warp-lang 1.18: a ``shard_map`` or ``pmap`` program crashes
-  XLA's compiler (segmentation fault) and a GSPMD one runs at 0.49x one GPU's speed, while two processes, one
-  per GPU, each keep a whole GPU's speed (2 x H200, physics only at batch 8192-16384, 2026-11-26). For the same
+  over several devices with mujoco-mjx 3.17 and warp-lang 1.18 (``shard_map`` and ``pmap`` crash XLA's compiler, a
+  GSPMD program runs slower than one GPU), while one process per GPU keeps each GPU's speed. For the same
   reason one process that sees several GPUs runs Warp on its first GPU only (``one``; :attr:`Spread.note`
   says so): start one process per GPU (docs/cluster.md).
 

@@ -27,7 +27,7 @@ from wbc_jax.planner.transport import plan_duration
 from wbc_jax.robot.model import Robot
 from wbc_jax.robot.scenario import single_run_mj_model
 from wbc_jax.rollout.batch import broadcast, prepare_batch
-from wbc_jax.rollout.core import make_push, make_sim, resolve_sensing, simulate
+from wbc_jax.rollout import make_push, make_sim, resolve_sensing, simulate
 
 LEVELS = dict(m=(0.2, 0.3, 0.4), mu=(0.4, 0.7, 1.0), d=(0.06, 0.08, 0.10))
 DEFAULT = dict(m=0.3, mu=0.7, d=0.08)
@@ -48,7 +48,7 @@ def run_demo(out: str, scene: str = "transport", seconds: float | None = None, a
              speed: float = 0.13, push_at: float = 0.35, video: bool = True, backend: str | None = None) -> dict:
     """Run the demo and write DIR. ``push_at``: push start as a fraction of the planned duration (0.35 is
     mid-course, before the wall). ``backend``: MJX physics implementation ("auto" for None; sensing as the
-    campaign's default, ``wbc_jax.rollout.core.resolve_sensing``)."""
+    campaign's default, ``wbc_jax.rollout.config.resolve_sensing``)."""
     backend = demo_backend(backend)
     robot = Robot(scene, backend=backend)
     sim = make_sim(robot, TransportConfig(qp=control_qp_settings(iters)), log_every=20,

@@ -47,7 +47,8 @@ from wbc_jax.physics.observe import dyn_terms, observe
 from wbc_jax.planner.capture_point import CPWalkPlan, cp_walk_plan, cp_walk_reference
 from wbc_jax.planner.gait import GaitParams
 from wbc_jax.robot.model import Robot, mjx
-from wbc_jax.rollout.core import contact_slots
+from wbc_jax.runtime.static import ByValue
+from wbc_jax.physics.contacts import contact_slots
 
 MASS_ERRORS = (-0.2, -0.1, 0.0, 0.1, 0.2)  # controller model mass error levels (Fig. 12)
 FALL_Z = 0.3  # [m] trunk height below which a run counts as fallen
@@ -58,9 +59,10 @@ PROGRESS_MIN = 0.8  # a run "walks" when it stays up and covers this fraction of
 SNAPSHOT_SIZE = (240, 320)  # [px] (height, width) of one frame of fig9_snapshots.png
 
 
-@dataclass(frozen=True)
-class TrotSim:
-    """Static rollout structure: robot, controller config, log decimation, non-foot floor contact slots."""
+@dataclass(frozen=True, eq=False)
+class TrotSim(ByValue):
+    """Static rollout structure: robot, controller config, log decimation, non-foot floor contact slots (hashed by
+    value: the key of the compiled chunk functions)."""
 
     robot: Robot
     cfg: CentroidalConfig
@@ -185,8 +187,8 @@ def simulate(sim: TrotSim, rs: TrotRun, plan: CPWalkPlan, R0, gains: CentroidalG
     dt = sim.cfg.dt
     n_chunks = max(1, int(np.ceil(seconds / chunk_seconds - 1e-9)))
     n_logs = max(1, int(np.ceil(seconds / n_chunks / (dt * sim.log_every) - 1e-9)))
-    key = (id(sim), n_logs)
-    if key not in _CHUNKS:  # the runs batched inside each step, traced once (wbc_jax.rollout.core.make_chunk_fn)
+    key = (sim, n_logs)
+    if key not in _CHUNKS:  # the runs batched inside each step, traced once (wbc_jax.rollout.loop.make_chunk_fn)
         step = jax.vmap(functools.partial(control_step, sim), in_axes=(None, 0, None, None, 0))
 
         def chunk(m, rs, plan, R0, gains):

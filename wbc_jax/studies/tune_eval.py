@@ -85,7 +85,7 @@ class Evaluator:
         import jax.numpy as jnp
 
         from wbc_jax.rollout.batch import take_runs
-        from wbc_jax.rollout.core import final_results
+        from wbc_jax.rollout import final_results
 
         c0, c1 = chunks[0], self.n_chunks if chunks[1] < 0 else chunks[1]
         C = int(np.shape(gains.kp_com)[0])

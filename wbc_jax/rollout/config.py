@@ -1,0 +1,102 @@
+"""The rollout's static configuration: :class:`Sim` (frozen, hashed by value: the key of the compiled programs)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from wbc_jax.control.transport import TransportConfig
+from wbc_jax.physics import contacts
+from wbc_jax.robot.model import Robot
+from wbc_jax.runtime.static import ByValue
+
+SENSING = ("auto", "exact", "delayed")
+"""What the controller reads on the Warp backend (:func:`resolve_sensing`; "auto": "delayed" on Warp with one
+physics step per control step, else "exact"). "exact": a ``forward`` call (Warp) computes the kinematics, mass
+matrix, bias forces, contacts and sensors of the current state before the controller acts (two Warp calls per
+control step). "delayed": no such call; the controller reads the fields Warp's ``step`` left, which belong to the
+state at the start of that step, so the controller sees the state one physics step (1 ms) old and its torques act
+on the current one; control-rate metrics and the log are taken at that (consistent) older state; with sensor noise,
+the noise reaches the velocities the controller reads but not its bias forces (computed by the step with the true
+velocities)."""
+
+
+def resolve_sensing(sensing: str, backend: str, n_substeps: int = 1) -> str:
+    """``sensing`` (:data:`SENSING`) for a resolved physics ``backend``: "auto" -> "delayed" on Warp with one
+    physics step per control step (the same campaign outcome, one Warp call fewer per step), else "exact".
+
+    Raises:
+        ValueError: an unknown value, or "delayed" where it saves nothing.
+    """
+    if sensing not in SENSING:
+        raise ValueError(f"sensing = {sensing!r}: expected one of {', '.join(SENSING)}")
+    if sensing == "auto":
+        return "delayed" if backend == "warp" and n_substeps == 1 else "exact"
+    if sensing == "delayed" and (backend != "warp" or n_substeps != 1):
+        raise ValueError(f"sensing = 'delayed' needs the Warp backend and one physics step per control step (got "
+                         f"backend {backend!r}, {n_substeps} substeps): it drops Warp's forward call, which the "
+                         f"JAX backend does not make")
+    return sensing
+
+
+@dataclass(frozen=True, eq=False)
+class Sim(ByValue):
+    """Static rollout structure: the robot, controller config, physics substeps and contact indices.
+
+    Compared and hashed by value (:class:`wbc_jax.runtime.static.ByValue`): equal Sims share compiled programs.
+    The ``*_slots`` fields index MJX contact slots on the JAX backend and contact-sensor addresses in ``sensordata``
+    on Warp (``wbc_jax.physics.contacts``, whose readers take the Sim); ``nonfoot_geoms`` names each non-foot entry.
+    """
+
+    robot: Robot
+    cfg: TransportConfig
+    n_substeps: int
+    log_every: int
+    nonfoot_slots: np.ndarray
+    nonfoot_geoms: np.ndarray  # (len(nonfoot_slots), 2) geom ids of each non-foot slot's pair (robot part, ground)
+    wall_slots: np.ndarray
+    foot_slots: np.ndarray
+    obj_slots: np.ndarray
+    sensor_noise: bool = False  # the controller sees qvel + noise (Push.qvel_noise_std); costs a velocity pass
+    sensing: str = "exact"  # "exact" (Warp: a forward call for the controller) or "delayed" (:data:`SENSING`)
+
+    @property
+    def dt_control(self) -> float:
+        """Control period [s] (= n_substeps x dt_physics)."""
+        return self.cfg.dt
+
+    @property
+    def dt_physics(self) -> float:
+        """Physics timestep [s] (the model's ``opt.timestep``)."""
+        return float(self.robot.mj_model.opt.timestep)
+
+
+def make_sim(robot: Robot, cfg: TransportConfig | None = None, n_substeps: int = 1, log_every: int = 20,
+             sensor_noise: bool = False, sensing: str = "exact") -> Sim:
+    """The Sim of ``robot``.
+
+    Args:
+        robot: the scene. cfg: controller settings; ``cfg.dt`` (the control period [s]) must equal ``n_substeps``
+            x the model's timestep; None: default settings with that period.
+        n_substeps: physics steps per control step (>= 1). log_every: control steps per logged row.
+        sensor_noise: the controller sees noisy velocities (``Push.qvel_noise_std``).
+        sensing: :data:`SENSING` (:func:`resolve_sensing`).
+
+    Raises:
+        ValueError: ``n_substeps`` < 1, a control period that is not ``n_substeps`` physics steps, or a sensing
+            mode the backend does not support.
+    """
+    h = float(robot.mj_model.opt.timestep)
+    n_substeps = int(n_substeps)
+    if n_substeps < 1:
+        raise ValueError(f"n_substeps = {n_substeps}: expected >= 1")
+    sensing = resolve_sensing(sensing, robot.backend, n_substeps)
+    cfg = cfg or TransportConfig(dt=h * n_substeps)
+    if abs(cfg.dt - h * n_substeps) > 1e-9 * h:
+        raise ValueError(f"control period cfg.dt = {cfg.dt} s != n_substeps ({n_substeps}) x the model's timestep "
+                         f"({h} s)")
+    nonfoot, wall, foot, obj, nonfoot_geoms = contacts.sim_indices(robot)
+    return Sim(robot=robot, cfg=cfg, n_substeps=n_substeps, log_every=log_every, nonfoot_slots=nonfoot,
+               nonfoot_geoms=nonfoot_geoms, wall_slots=wall, foot_slots=foot, obj_slots=obj,
+               sensor_noise=sensor_noise, sensing=sensing)

@@ -1,0 +1,136 @@
+"""The rollout's per-run data: disturbances (:class:`Push`), carried state (:class:`RunState`), the log."""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wbc_jax.control.transport import ControlState, init_control_state
+from wbc_jax.control.variants import Variant
+from wbc_jax.metrics.accumulate import init_accum
+from wbc_jax.physics import backend as physics
+from wbc_jax.physics.observe import dyn_terms
+from wbc_jax.robot.model import mjx
+from wbc_jax.rollout.config import Sim
+from wbc_jax.rollout.packed import Packed, pack, placed_like
+from wbc_jax.types import RobotIds
+
+
+class Push(NamedTuple):
+    """Per-run disturbances: an external force on the trunk and noise on the state the controller sees.
+
+    Attributes:
+        force: (3,) world-frame force on the trunk [N], applied for t in [t0, t0 + duration).
+        t0, duration: () [s].
+        qvel_noise_std: () std of white Gaussian noise added, every control step, to every generalized velocity
+            the controller reads (robot and object; [m/s] for translations, [rad/s] for rotations). The physics
+            integrates the true state; only the controller's view (its Jacobian-dot terms, CoM and foot
+            velocities, observer momentum, object velocity) is noisy. Used only when ``Sim.sensor_noise``.
+        key: (2,) uint32 raw PRNG key of the run's noise; step k draws from ``fold_in(key, k)``.
+    """
+
+    force: jax.Array
+    t0: jax.Array
+    duration: jax.Array
+    qvel_noise_std: jax.Array
+    key: jax.Array
+
+
+def make_push(force, t0, duration, qvel_noise_std=0.0, seed=0) -> Push:
+    """A Push from plain values (one run; or arrays with a leading run axis: ``seed`` (B,) then gives (B, 2) keys)."""
+    seed = np.asarray(seed, dtype=np.uint64)
+    key = np.stack([np.zeros_like(seed), seed], axis=-1).astype(np.uint32)
+    return Push(jnp.asarray(force, dtype=float), jnp.asarray(t0, dtype=float), jnp.asarray(duration, dtype=float),
+                jnp.asarray(qvel_noise_std, dtype=float), jnp.asarray(key))
+
+
+def no_push() -> Push:
+    """A Push of no force and no noise (one run)."""
+    return make_push(np.zeros(3), 0.0, 0.0)
+
+
+class RunState(NamedTuple):
+    """Carried state of one run: MJX data, controller memory, swing bookkeeping, accumulators."""
+
+    d: mjx.Data
+    cs: ControlState  # the controller's state
+    p_lift: jax.Array  # (4, 3) [m] each foot's lift-off position
+    rel0: jax.Array  # (3,) [m] object position in the tray frame at t = 0
+    acc: Packed  # the run's wbc_jax.metrics.accumulate.Accum, packed (acc.max_slip reads a field; acc.unpack())
+    prev: Any = None  # Sim.sensing "delayed": (qpos (nq,), qvel (nv,), time ()) of the state d's derived fields
+    #                   (kinematics, M, contacts, sensors) belong to, the start of the last physics step; else None
+
+
+class Log(NamedTuple):
+    """Logged every ``log_every`` steps (per run): time, object and CoM actual vs reference, QP residual,
+    torques, and the full configuration qpos (nq,) for replay and video."""
+
+    t: jax.Array
+    p_obj: jax.Array
+    p_obj_ref: jax.Array
+    com: jax.Array
+    com_ref: jax.Array
+    slip: jax.Array
+    trunk_z: jax.Array
+    prim_res: jax.Array
+    tau: jax.Array
+    qpos: jax.Array
+
+
+def empty_log(d, nu: int) -> Log:
+    """A Log of zeros shaped like one run's (``d``: that run's mjx.Data; ``nu``: actuators): the inner loop's
+    initial carry, which the first control step overwrites."""
+    z, z3 = jnp.zeros_like(d.time), jnp.zeros(3, d.qpos.dtype)
+    return Log(t=z, p_obj=z3, p_obj_ref=z3, com=z3, com_ref=z3, slip=z, trunk_z=z, prim_res=z,
+               tau=jnp.zeros(nu, d.qpos.dtype), qpos=jnp.zeros_like(d.qpos))
+
+
+def state_axes(sim: Sim, state: RunState) -> RunState:
+    """The run axes of a batched RunState: 0 on every leaf but the Warp data's shared contact list (None:
+    :func:`wbc_jax.physics.backend.data_axes`). The ``in_axes`` of the state in ``vmap``, sharding and row selection
+    (``wbc_jax.rollout.runs``)."""
+    zeros = jax.tree_util.tree_map(lambda _: 0, state)
+    return zeros._replace(d=physics.data_axes(sim.robot, state.d))
+
+
+def object_in_tray(d, ids: RobotIds) -> jax.Array:
+    """(3,) [m] the object's position in the tray-top frame."""
+    R = d.site_xmat[ids.tray_site]
+    return R.T @ (d.xpos[ids.obj_body] - d.site_xpos[ids.tray_site])
+
+
+def init_state(sim: Sim, m, qpos0, qvel0=None, n_runs: int = 1) -> RunState:
+    """Initial RunState of one run (vmappable over m, qpos0 and qvel0; qvel0 None: at rest). ``n_runs``: the size
+    of the batch it is vmapped over (sizes the Warp backend's shared contact list)."""
+    ids = sim.robot.ids
+    d = physics.make_data(sim.robot, n_runs).replace(qpos=qpos0)
+    if qvel0 is not None:
+        d = d.replace(qvel=qvel0)
+    d = physics.sense(m, d)
+    dyn = dyn_terms(m, d, ids)
+    acc = init_accum(dyn.p_base[2])
+    prev = (d.qpos, d.qvel, d.time) if sim.sensing == "delayed" else None
+    return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=object_in_tray(d, ids),
+                    acc=pack(acc), prev=prev)
+
+
+def _like(old, value):
+    """``value`` broadcast to the shape and dtype of the leaf ``old`` and placed like it (a leaf committed
+    elsewhere would change the chunk function's input shardings)."""
+    return placed_like(old, np.array(np.broadcast_to(np.asarray(value, old.dtype), old.shape)))
+
+
+def with_metric_window(state: RunState, t_end) -> RunState:
+    """``state`` (batched or not) with its metric window set to [0, ``t_end``) [s] (scalar or (B,) per run)."""
+    return state._replace(acc=state.acc._replace(t_end=t_end))
+
+
+def with_variant(state: RunState, variant: Variant) -> RunState:
+    """``state`` (batched or not) with the controller's ablation switches set (:mod:`wbc_jax.control.variants`;
+    each field 0/1, scalar or (B,) per run)."""
+    control_state = state.cs
+    switches = Variant(*(_like(old, v) for old, v in zip(control_state.variant, variant)))
+    return state._replace(cs=control_state._replace(variant=switches))
