@@ -26,7 +26,8 @@ def _grid(fit: AnovaFit) -> tuple[pd.DataFrame, np.ndarray, np.ndarray]:
         from statsmodels.formula._manager import FormulaManager
 
         g = pd.DataFrame(list(itertools.product(*(fit.levels[f] for f in fit.factors))), columns=fit.factors)
-        coded = pd.DataFrame({coded_name(i): pd.Categorical(g[f], categories=fit.levels[f]) for i, f in enumerate(fit.factors)})
+        coded = pd.DataFrame({coded_name(i): pd.Categorical(g[f], categories=fit.levels[f])
+                              for i, f in enumerate(fit.factors)})
         spec = fit.result.model.data.model_spec
         X = np.asarray(FormulaManager().get_matrices(spec, coded, pandas=False, prediction=True), float)
         ex = np.asarray(fit.result.model.exog, float)

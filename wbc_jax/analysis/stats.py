@@ -94,8 +94,9 @@ def analyze(df: pd.DataFrame, factors: Sequence[str], metrics: Sequence[str], al
         notes.append(f"{n_failed} of {len(df)} runs failed (success = False) and are excluded from the analysis")
     if (design["runs"] == 0).any():
         notes.append(f"{int((design['runs'] == 0).sum())} of {len(design)} cells have no runs at all")
-    if (design["runs"] > 0).any() and ((design["successes"] == 0) & (design["runs"] > 0)).any():
-        notes.append(f"{int(((design['successes'] == 0) & (design['runs'] > 0)).sum())} cells have runs but no successful run")
+    no_success = (design["successes"] == 0) & (design["runs"] > 0)
+    if no_success.any():
+        notes.append(f"{int(no_success.sum())} cells have runs but no successful run")
     if successful(df).empty:
         raise InputError("no successful runs (success is False in every row)")
     out = {"design": design, "cell_means": cell_means(df, factors, metrics),

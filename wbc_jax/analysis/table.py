@@ -171,7 +171,8 @@ def design_table(df: pd.DataFrame, factors: Sequence[str]) -> pd.DataFrame:
     return out.reset_index()
 
 
-def cell_means(df: pd.DataFrame, factors: Sequence[str], metrics: Sequence[str], successful_only: bool = True) -> pd.DataFrame:
+def cell_means(df: pd.DataFrame, factors: Sequence[str], metrics: Sequence[str],
+               successful_only: bool = True) -> pd.DataFrame:
     """Mean, SD (ddof 1) and n of each metric per cell, long format.
 
     Args:

@@ -1,0 +1,134 @@
+"""The report's document, section by section: overview, warnings, significant terms, design, one section per
+metric, cell means, success rates, figures, the campaign's own sections and the method."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+
+from wbc_jax.analysis import stats
+from wbc_jax.analysis.report.campaign_sections import campaign_sections, success_sections
+from wbc_jax.analysis.report.document import Doc, fmt
+from wbc_jax.analysis.report.figure_jobs import FIGURE_CAPTIONS, caption
+from wbc_jax.analysis.report.metric_section import metric_section
+
+
+def title(results_csv: str) -> str:
+    """The report's title."""
+    return f"ANOVA report: {Path(results_csv).name}"
+
+
+def document(res: dict, summary: dict, factors, metrics, alpha: float, images: list[str], df: pd.DataFrame,
+             extra: dict) -> Doc:
+    """The report of an analysis with at least one metric.
+
+    Args:
+        res: :func:`~wbc_jax.analysis.report.model.analyze_table`'s result.
+        summary: ``anova.json`` (:func:`~wbc_jax.analysis.report.output.summary`, cleaned).
+        factors, metrics: the report's factor and (analysed) metric columns.
+        alpha: significance level.
+        images: the figures' file names (drawn or being drawn).
+        df: the results table as read.
+        extra: :func:`~wbc_jax.analysis.report.model.beyond_anova`'s result.
+    """
+    d = Doc()
+    d.h(1, title(summary["manifest"]["input"]))
+    d.p(_overview(res, summary, factors, metrics, alpha))
+    d.h(2, "Warnings")
+    warnings = list(res["warnings"]) + [f"{m}: {w}" for m, r in res["metrics"].items() for w in r["warnings"]]
+    d.ul(warnings) if warnings else d.p("None.")
+    d.h(2, "Significant terms")
+    d.table(_significant_terms(res))
+    d.p(f"* p < {alpha:g}.")
+    d.h(2, "Design")
+    design = res["design"].copy()
+    for f in factors:
+        design[f] = design[f].map(lambda v: fmt(v, "g"))
+    d.table(design)
+    for m, r in res["metrics"].items():
+        metric_section(d, m, r, res["level_means"], alpha)
+    d.h(2, "Cell means (successful runs)")
+    d.table(_cell_means(res["cell_means"], factors, metrics))
+    success_sections(d, extra, factors, alpha)
+    if images:
+        d.h(2, "Figures")
+        for name in images:
+            d.img(name, caption(name, metrics))
+    campaign_sections(d, df, factors)
+    d.h(2, "Method")
+    d.ul(_method(summary, metrics, alpha))
+    return d
+
+
+def design_only_document(res: dict, extra: dict, results_csv: str, factors, alpha: float,
+                         images: list[str]) -> Doc:
+    """The report of a table without an analysable metric: warnings, the design table and the success rates."""
+    d = Doc()
+    d.h(1, title(results_csv))
+    d.p(f"{res['n_runs']} runs ({res['n_failed']} failed); factors {', '.join(factors)}; no metric analysed.")
+    d.h(2, "Warnings")
+    d.ul(res["warnings"])
+    d.h(2, "Design")
+    d.table(res["design"])
+    success_sections(d, extra, factors, alpha)
+    for name in images:
+        d.img(name, FIGURE_CAPTIONS[name])
+    return d
+
+
+def _overview(res: dict, summary: dict, factors, metrics, alpha: float) -> str:
+    """The paragraph under the title: runs, factors and levels, metrics, alpha, the model, residual df."""
+    order = summary["model_order"]
+    levels = "; ".join(f"{f}: {', '.join(fmt(v, 'g') for v in summary['factors'][f])}" for f in factors)
+    model = "main effects + two-way interactions" if order == 2 else f"interactions up to order {order}"
+    pooled = f" (interactions of order > {order} pooled into the error)" if order < len(factors) else ""
+    df_resid = ", ".join(f"{m} {fmt(summary['metrics'][m]['df_resid'], 'g')}" for m in metrics)
+    return (f"{res['n_runs']} runs ({res['n_failed']} failed, excluded), factors {levels}; metrics "
+            f"{', '.join(metrics)}; alpha = {alpha:g}; type {summary['ss_type']} sums of squares, sum-to-zero "
+            f"contrasts; model: {model}{pooled}; residual df {df_resid}.")
+
+
+def _significant_terms(res: dict) -> pd.DataFrame:
+    """Per metric, F and p of every model term (* where significant) and the assumption tests failed or not run."""
+    sources = list(next(iter(res["metrics"].values()))["anova"]["source"][:-1])
+    rows = []
+    for m, r in res["metrics"].items():
+        t = r["anova"].set_index("source")
+        cells = [("unreliable" if not r["fit"].reliable else
+                  f"F={fmt(t.loc[s, 'F'])}, p={fmt(t.loc[s, 'p'], '.3g')}" + (" *" if s in r["significant"] else ""))
+                 for s in sources]
+        failed = [a["test"] for a in r["assumptions"] if a["ok"] is False]
+        not_run = [a["test"] for a in r["assumptions"] if a["ok"] is None]
+        rows.append([m, *cells, ", ".join(failed + [f"{t} not run" for t in not_run]) or "none"])
+    return pd.DataFrame(rows, columns=["metric", *sources, "assumption tests failed / not run"])
+
+
+def _cell_means(cm: pd.DataFrame, factors, metrics) -> pd.DataFrame:
+    """One row per cell, one column per metric: mean ± SD (n) of the successful runs."""
+    wide = cm[cm["metric"] == metrics[0]][factors].reset_index(drop=True).map(lambda v: fmt(v, "g"))
+    for m in metrics:
+        t = cm[cm["metric"] == m].reset_index(drop=True)
+        wide[m] = [f"{fmt(a)} ± {fmt(s)} ({n})" for a, s, n in zip(t["mean"], t["sd"], t["n"])]
+    return wide
+
+
+def _method(summary: dict, metrics, alpha: float) -> list[str]:
+    """The method section's items."""
+    rhs = summary["metrics"][metrics[0]]["formula"].split("~", 1)[1].strip()
+    return [
+        "Runs with success = False are counted in the design table and excluded from every model and mean; "
+        "a missing metric value drops that run from that metric only.",
+        f"Per metric, an OLS model ({rhs}) with sum-to-zero contrasts (statsmodels ols, C(x, Sum)); ANOVA by "
+        f"anova_lm with type {summary['ss_type']} sums of squares (equal to types I and II for balanced data). "
+        "Partial eta squared = SS_effect / (SS_effect + SS_residual).",
+        "Assumptions on the model residuals: Lilliefors-corrected Kolmogorov-Smirnov and Shapiro-Wilk for "
+        "normality; Levene (mean-centred) and Brown-Forsythe (median-centred) across cells for equal variances. "
+        f"A test with p < {alpha:g} is flagged, never hidden.",
+        f"F tests are marked unreliable when the residual SS is below {stats.PERFECT_FIT_RTOL:g} x the model SS "
+        "(R's rule), a cell has zero within-cell variance, or no residual degrees of freedom remain.",
+        "Simple main effects for each significant two-way interaction, in both directions: estimated marginal "
+        "means with equal weights over the other factors; simple-effect F per level of the conditioning factor; "
+        "pairwise EMM differences with SE, t, df, Bonferroni-adjusted p and Bonferroni 95 % CI, one family per "
+        "conditioning level, all with the pooled model MSE and residual df (as SPSS EMMEANS COMPARE, R emmeans).",
+    ]
