@@ -111,7 +111,7 @@ def test_damaged_entry_is_recomputed(store):
     entry.write_bytes(b"not a program")
     aot._LOADED.clear()
     np.testing.assert_array_equal(aot.cached_jit("d", lambda x: 2 * x, "v1")(jnp.ones(2)), 2 * np.ones(2))
-    value = aot.cached_value("v", "s1", lambda: {"a": np.arange(3)})
+    aot.cached_value("v", "s1", lambda: {"a": np.arange(3)})
     np.testing.assert_array_equal(aot.cached_value("v", "s1", lambda: None)["a"], np.arange(3))  # read back
 
 

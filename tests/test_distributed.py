@@ -124,7 +124,7 @@ ALL_IN_ONE = textwrap.dedent("""
     sys.exit(cli.main(["campaign", "--spec", spec, "--out", "cut", "--no-report", "--resume", *mp]) or cli.main(tune)
              or (cli.main(["campaign", "--spec", spec, "--backend", "warp", "--out", "warp", "--no-report", *mp])
                  if mp else 0))  # Warp: the reference is computed in the test (_warp_blocks)
-""")  # one launch for all three: every fresh process compiles the rollout again (~1 min each on 2 cores)
+""")  # one launch for all three: every fresh process compiles the rollout again
 # SHARE_COMPILED: the two processes' programs over both processes (the campaign's and the tune's chunk programs,
 # the gathers) are the same program; with jax_share_binary_between_hosts process 0 compiles each and hands the
 # executable to process 1 through the coordinator instead of both compiling it on the same 2 cores. JAX names an

@@ -107,7 +107,8 @@ def test_batched_model_matches_single_run_models(robot):
             np.testing.assert_allclose(bm.__getattribute__(field)[i, ob], getattr(c, field)[ob], rtol=FIELD_RTOL)
         np.testing.assert_allclose(bm.dof_invweight0[i, 24:], c.dof_invweight0[24:], rtol=FIELD_RTOL)
         np.testing.assert_allclose(bm.geom_size[i, ids.obj_box_geom], c.geom_size[ids.obj_box_geom], rtol=FIELD_RTOL)
-        np.testing.assert_allclose(bm.geom_pos[i, ids.obj_contact_geom], c.geom_pos[ids.obj_contact_geom], rtol=FIELD_RTOL)
+        np.testing.assert_allclose(bm.geom_pos[i, ids.obj_contact_geom], c.geom_pos[ids.obj_contact_geom],
+                                   rtol=FIELD_RTOL)
         np.testing.assert_allclose(bm.pair_friction[i, ids.obj_pair], c.pair_friction[ids.obj_pair], rtol=FIELD_RTOL)
         # and nothing else changed
         np.testing.assert_allclose(bm.body_mass[i, :ob], robot.mj_model.body_mass[:ob], rtol=FIELD_RTOL)

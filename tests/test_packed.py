@@ -66,7 +66,7 @@ def test_round_trip_under_vmap_and_jit():
     for name in NT._fields:
         np.testing.assert_array_equal(getattr(u, name), getattr(p, name))
     with pytest.raises(AttributeError, match="no field 'c'"):
-        p.c
+        _ = p.c
 
 
 def test_update_inside_jit_keeps_layout_and_values():

@@ -334,14 +334,18 @@ def test_clamp_to_support():
     np.testing.assert_allclose(clamp_j(jnp.array([0.5, 0.9]), SQUARE, ALL, 0.3), [0.0, 0.0], atol=1e-6)
     # diagonal pair: closest point of the segment shortened by the margin at both ends
     diag = np.array([1, 0, 0, 1], bool)
-    np.testing.assert_allclose(clamp_j(jnp.array([0.1, 0.0]), SQUARE, diag, 0.0), [0.1 * 0.16 / 0.52, 0.1 * 0.24 / 0.52], atol=1e-6)
+    np.testing.assert_allclose(clamp_j(jnp.array([0.1, 0.0]), SQUARE, diag, 0.0),
+                               [0.1 * 0.16 / 0.52, 0.1 * 0.24 / 0.52], atol=1e-6)
     end = SQUARE[0] + 0.05 * (SQUARE[3] - SQUARE[0]) / np.linalg.norm(SQUARE[3] - SQUARE[0])
     np.testing.assert_allclose(clamp_j(jnp.array([0.5, 0.5]), SQUARE, diag, 0.05), end, atol=1e-6)
-    np.testing.assert_allclose(clamp_j(jnp.array([0.5, 0.5]), SQUARE, np.array([0, 0, 1, 0], bool), 0.05), SQUARE[2], atol=1e-6)
+    np.testing.assert_allclose(clamp_j(jnp.array([0.5, 0.5]), SQUARE, np.array([0, 0, 1, 0], bool), 0.05),
+                               SQUARE[2], atol=1e-6)
     # far from the world origin (float32): same answers as near it
     shift = np.array([0.3, -4.1])
-    np.testing.assert_allclose(clamp_j(jnp.array([0.5, 0.9]) + shift, SQUARE + shift, ALL, 0.05), np.array([0.15, 0.25]) + shift, atol=1e-6)
-    np.testing.assert_allclose(clamp_j(jnp.array([0.5, 0.1]) + shift, SQUARE + shift, ALL, 0.0), np.array([0.2, 0.1]) + shift, atol=1e-6)
+    np.testing.assert_allclose(clamp_j(jnp.array([0.5, 0.9]) + shift, SQUARE + shift, ALL, 0.05),
+                               np.array([0.15, 0.25]) + shift, atol=1e-6)
+    np.testing.assert_allclose(clamp_j(jnp.array([0.5, 0.1]) + shift, SQUARE + shift, ALL, 0.0),
+                               np.array([0.2, 0.1]) + shift, atol=1e-6)
     assert float(margin_j(jnp.array([0.15, 0.0]) + shift, SQUARE + shift, ALL)) == pytest.approx(0.05, abs=1e-6)
     # random polygons: result inside the shrunk region and no farther than any grid point in it
     rng = np.random.default_rng(2)

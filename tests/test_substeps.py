@@ -1,9 +1,7 @@
 """Control period longer than the physics step (``n_substeps`` > 1, zero-order hold): the physics-rate monitors
 (1/H, ||object acceleration||, contact flags, boundary count) are sampled after every physics step, not once per
-control period; ``campaign.control_substeps`` is validated like the other spec keys.
-
-One compile of a 2-run control step with n_substeps = 2 (and one of the hand reference): about a minute on a
-2-core CPU.
+control period; ``campaign.control_substeps`` is validated like the other spec keys (one compile of a 2-run
+control step with n_substeps = 2, and one of the hand reference).
 """
 
 import functools

@@ -1,5 +1,4 @@
-"""Rigid-body and friction-cone arithmetic shared by the controllers, the metrics and the robot model (pure JAX).
-"""
+"""Rigid-body and friction-cone arithmetic shared by the controllers, the metrics and the robot model (pure JAX)."""
 
 from __future__ import annotations
 
@@ -16,8 +15,7 @@ def full_precision(fn):
 
     On Ampere and later GPUs JAX's default float32 matmul rounds its inputs to TF32 (about 1e-3 relative): the
     controller's QP data would then carry errors of that size, and ``H' Q H`` would not even be symmetric, so a
-    QP residual could not go below ~1e-3 of its scale (issue 22: on an H100 27 % of the control steps ran into the
-    iteration cap at tolerance 1e-4, 0 % on the CPU). Same results on the CPU.
+    QP residual could not go below ~1e-3 of its scale. Same results on the CPU.
     """
     @functools.wraps(fn)
     def wrapped(*args, **kwargs):
@@ -55,8 +53,8 @@ def skew(w):
 def edge_wrenches(points, about, edges):
     """(6, k e): the wrench about ``about`` of a unit force along each friction-pyramid edge of each point, column
     ``i e + j`` for point i's edge j: ``[E_ij; (p_i - about) x E_ij]``. The same as the wrench map of the stacked
-    point forces times ``block_diag(E_1, ..., E_k)``, without building either matrix (their concatenations of
-    blocks were separate kernels, ~15 us per control step at batch 270 on an H100: issue 22).
+    point forces times ``block_diag(E_1, ..., E_k)``, without building either matrix (whose concatenations of
+    blocks would be separate kernels).
 
     Args:
         points: (k, 3) [m]; about: (3,) [m]; edges: (k, 3, e) each point's edge directions (world frame).

@@ -165,7 +165,7 @@ class Reference(NamedTuple):
 
 
 class Observation(NamedTuple):
-    """What a controller reads of the simulated state at one control step (from :func:`wbc_jax.physics.observe.observe`).
+    """What a controller reads of the simulated state at one control step (:func:`wbc_jax.physics.observe.observe`).
 
     Attributes:
         robot: the robot's dynamics and kinematics (:class:`DynTerms`).

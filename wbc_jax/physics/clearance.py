@@ -1,10 +1,8 @@
-"""Exact clearance between the robot's non-foot geoms and the scene's static geoms (issue 24), from the geoms' world
+"""Exact clearance between the robot's non-foot geoms and the scene's static geoms, from the geoms' world
 poses (``d.geom_xpos``, ``d.geom_xmat``, which both MJX backends fill) and the model's sizes.
 
-Why not MJX's contact slots: the JAX backend's capsule-box collider reports the distance of its candidate contact
-points, which is not the pair's distance when the box's closest feature is an edge and the pair does not touch
-(a crouched shank 2.8 mm above block2's far edge reads 5.0 mm; 24.1 mm reads 27.8 mm), and a pair beyond the
-collision margin reads 1 m; on Warp a pair's distance is reported only while it penetrates. The distances here
+MJX's contact slots do not give a separated pair's distance (the JAX backend's capsule-box collider reports its
+candidate points', a pair beyond the margin reads 1 m, and Warp lists penetrations only); the distances here
 are the same on both backends and exact when positive:
 
 * **capsule / plane** (and box / plane, sphere / plane): the lowest segment end (box vertex, sphere centre) along
@@ -18,9 +16,8 @@ are the same on both backends and exact when positive:
   its breakpoints where a coordinate crosses 0 (3) or two face terms are equal (3 axis pairs x 4 signs). Exact
   when positive; when the segment enters the box it is the depth of the segment's deepest point below the
   nearest face, minus the radius. MuJoCo C's capsule-box depth is another measure of a penetration (its contact
-  points' depth: -19.0 mm for a shank into block2 where this reads -21.6 mm and MJX's slots -25.0 mm), so only
-  the sign and the order of magnitude of a penetration compare; and for a segment that goes through a box MuJoCo
-  C may report a positive distance (seen for shanks driven through a block from below, unphysical poses).
+  points' depth), so only the sign and the order of magnitude of a penetration compare; and for a segment that
+  goes through a box MuJoCo C may report a positive distance.
 * **sphere / box**: the box SDF at the centre, minus the radius (exact, signed).
 * **box / box** (trunk or tray vs a wall; trunk vs a block): separated, the smallest of each box's vertices against
   the other box (8 + 8 box SDFs) and each edge of the robot's box at its point nearest each edge line of the other
@@ -127,9 +124,7 @@ def _build_pairs(m: mujoco.MjModel, ids) -> ClearancePairs:
 # primitives (one pair; vmapped over the pairs of a kind). A point or vector is a 3-tuple of arrays (its components)
 # and a box's half-sizes a 3-tuple too, every candidate point is its own expression and minima are taken pairwise,
 # so a kind's whole distance is elementwise arithmetic that XLA fuses into one GPU kernel (no stacked candidates,
-# no concatenation, no reduction over a short axis). Measured (H100, the course's 54 pairs, distances alone, against
-# the candidates stacked on an axis, the form before): 16384 runs 681 -> 196 us, at 270 runs 14 kernels (47 us) ->
-# 4 (13 us); compile 2.1 -> 6.1 s alone, +2 to +4 s for the whole control-step program; equal to 1e-6 m (float32).
+# no concatenation, no reduction over a short axis).
 
 def _v(p):
     """The components of a (3,) array (or of the leading axis of a (3, ...) array)."""

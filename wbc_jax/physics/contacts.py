@@ -61,7 +61,7 @@ def contact_slots(robot):
 
 
 def compiled_contact_geoms(robot) -> np.ndarray:
-    """(ncon, 2) geom ids of MJX's contact slots read from one compiled sensing pass (25-40 s of compile on a CPU)."""
+    """(ncon, 2) geom ids of MJX's contact slots read from one compiled sensing pass (slow: a compile)."""
     d = jax.jit(physics.sense)(robot.mjx_model, physics.mjx.make_data(robot.mjx_model,
                                                                        device=jax.local_devices()[0]))
     return np.asarray(physics.slot_geoms(d)).astype(np.int64)

@@ -1,8 +1,9 @@
-"""What the controllers observe of the simulated state: :func:`observe` (mjx.Data -> :class:`wbc_jax.types.Observation`).
+"""What the controllers observe of the simulated state: :func:`observe` (mjx.Data ->
+:class:`wbc_jax.types.Observation`).
 
 All quantities come from one sensing pass (:func:`wbc_jax.physics.backend.sense`: MJX ``fwd_position`` +
-``fwd_velocity`` on the JAX backend, ``forward`` on Warp) and are restricted to the robot's ``nv_r = 24`` dofs (the object
-is a separate kinematic tree, so its dofs never couple into the robot's mass matrix or Jacobians).
+``fwd_velocity`` on the JAX backend, ``forward`` on Warp) and are restricted to the robot's ``nv_r = 24`` dofs (the
+object is a separate kinematic tree, so its dofs never couple into the robot's mass matrix or Jacobians).
 Frames: forces, positions and Jacobians are in the world frame; ``qvel[3:6]`` is MuJoCo's
 body-frame angular velocity of the trunk, which the Jacobians already account for.
 """
@@ -35,7 +36,8 @@ def point_jacobians(m, d, ids: RobotIds, points, bodies):
 
     MJX's ``jac`` and ``jac_dot`` (its support module), the same arithmetic, with the bodies static: each
     body's dof mask (:func:`chain_dofs`), root and velocity are constants of the program, so no scan over the body
-    tree and no gather by a traced id runs in the control step (issue 22: at batch 270 every XLA op costs ~1 us).
+    tree and no gather by a traced id runs in the control step (few, large XLA ops: at small batches each op's launch
+    dominates).
 
     Args:
         points: (k, 3) world points [m]; bodies: (k,) body ids (static ints).
@@ -73,7 +75,7 @@ def mass_matrix(m, d) -> jax.Array:
     MJX's JAX implementation keeps M dense for small models (``mjx.full_m`` returns it); MuJoCo Warp keeps its
     lower triangle in MuJoCo's CSR layout (``M_rownnz`` / ``M_rowadr`` / ``M_colind``, ``nC`` values), which
     ``mjx.full_m`` returns unchanged for small models: each dense entry is then read from its CSR value (or its
-    mirror's) through a static index, one gather (a scatter and a transpose before, issue 22).
+    mirror's) through a static index, one gather.
     """
     M = mjx.full_m(m, d)
     if M.ndim == 2:

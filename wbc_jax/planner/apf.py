@@ -12,9 +12,8 @@ Khatib), and the potential
 
 is minimised by Newton's method (:func:`band` gives the energy, its gradient and its Hessian): the energy is strictly
 convex (every term is convex in z, the attraction strictly), the Hessian pentadiagonal, each step a banded solve with
-backtracking, until the Newton decrement reaches float64's rounding: about 10 steps, 0.04-0.13 s per plan on a
-loaded 2-core CPU, where L-BFGS-B took ~5,000 iterations and 21 s for the same minimiser (its result within
-0.8 um of Newton's; it stops on its energy tolerance). ``rho_k,o`` is the vertical clearance between the top of
+backtracking, until the Newton decrement reaches float64's rounding: about 10 steps, where a quasi-Newton method
+takes thousands of iterations for the same minimiser. ``rho_k,o`` is the vertical clearance between the top of
 what is carried (object centre + ``top``) and the underside of an obstacle whose footprint overlaps
 the carried footprint at node k, minus ``margin``;
 ``U_rep = eta / 2 (1/rho - 1/rho0)^2`` for ``0 < rho < rho0`` (Khatib's FIRAS potential), continued

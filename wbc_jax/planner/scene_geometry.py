@@ -81,13 +81,9 @@ def terrain_height(terrain, xy):
     return jnp.max(jnp.where(inside, terrain[:, 1, 2], 0.0), axis=-1)
 
 
-SHIN_MARGIN = 0.010  # [m] clearance kept between a shank capsule and a box's far edge at touchdown (issue 24's bound)
-HIP_DROP = 0.07  # [m] the stepping leg's hip is checked this much below its planned height: just after the front-right
-#                  foot steps down from block2 in the crouch, its hip sits 21 mm (before touchdown) to 52 mm (after:
-#                  trunk pitched 5.7 deg nose-down and rolled towards the leg) below the plan's CoM + hip offset
-#                  (CPU run 268 of sweeps/paper_campaign.toml); with 50 mm the 270-run campaign on an H100 measured
-#                  (exact clearance) 8.86 mm for the FL shank over block2's far edge (run 113, d = 0.10; planned
-#                  20.5 mm, 11.7 mm at 50 mm), i.e. a sag of about 66 mm at the clearance's 0.18 mm per mm of drop
+SHIN_MARGIN = 0.010  # [m] clearance kept between a shank capsule and a box's far edge at touchdown
+HIP_DROP = 0.07  # [m] the stepping leg's hip is checked this much below its planned height (the trunk sags and
+#                  pitches towards the stepping leg after a step down in the crouch)
 CANDIDATE_STEP = 0.005  # [m] spacing of the landing candidates searched beyond a far edge
 CANDIDATE_SPAN = 0.40  # [m] how far beyond a far edge they go (at least a shank's length: :func:`leg_geometry`)
 
@@ -176,9 +172,10 @@ def clear_of_edges(terrain, xy, direction, clearance, hip=None, foot_z=None, leg
     knee and passes over that edge, at an angle set by where the hip is: low and flat in a crouch, and flatter
     the further the foot lands ahead of the hip. With ``hip`` and ``leg`` given, a landing beyond a far edge is
     kept only where the shank capsule of the planar leg (:func:`shin_clearance`, the hip at its planned height,
-    ``hip_drop / 2`` and ``hip_drop`` below it) clears the edge by ``margin``; otherwise the nearest such landing beyond the edge (candidates
-    every ``CANDIDATE_STEP`` out to one shank length) or, if nearer or none exists, the foot stays on the box
-    (``clearance`` before its edge) and steps down at a later step, when the hip is further past the edge.
+    ``hip_drop / 2`` and ``hip_drop`` below it) clears the edge by ``margin``; otherwise the nearest such landing
+    beyond the edge (candidates every ``CANDIDATE_STEP`` out to one shank length) or, if nearer or none exists,
+    the foot stays on the box (``clearance`` before its edge) and steps down at a later step, when the hip is
+    further past the edge.
     Without ``hip``: every edge, far ones included, only keeps ``clearance``.
 
     Args:
@@ -216,7 +213,7 @@ def clear_of_edges(terrain, xy, direction, clearance, hip=None, foot_z=None, leg
         edge = jnp.stack([e_out, terrain[b, 1, 2]])
         box_side = e_out - clearance
 
-        def ok(sc):
+        def ok(sc, edge=edge, e_out=e_out):
             """Landing at sc (beyond the edge) clears it with the shin."""
             ground = terrain_height(terrain, sc[..., None] * u + c * across)
             foot = jnp.stack([sc, ground + foot_z], axis=-1)

@@ -116,9 +116,9 @@ def cubic_path(waypoints, times, v0=None, vf=None) -> CubicPath:
         raise ValueError("times must be strictly increasing")
     v0 = np.zeros(3) if v0 is None else np.asarray(v0, dtype=np.float64)
     vf = np.zeros(3) if vf is None else np.asarray(vf, dtype=np.float64)
-    cs = CubicSpline(t, w, bc_type=((1, v0), (1, vf)))
+    spline = CubicSpline(t, w, bc_type=((1, v0), (1, vf)))
     # scipy: c[m, k] multiplies (t - x_k)**(3 - m)
-    coef = np.transpose(cs.c[::-1], (1, 0, 2))  # (K-1, 4, 3)
+    coef = np.transpose(spline.c[::-1], (1, 0, 2))  # (K-1, 4, 3)
     return CubicPath(jnp.asarray(t), jnp.asarray(coef))
 
 

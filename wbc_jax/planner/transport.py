@@ -9,8 +9,8 @@ at their nominal offset from the CoM reference at mid-stance, on the terrain hei
 block edges (and, beyond a block's far edge, only where the shin clears that edge from the planned hip at
 touchdown: :func:`.scene_geometry.clear_of_edges`).
 
-With ``com_plan="zmp"`` (the default) the CoM's horizontal reference is instead replanned at the start of every footstep so
-that the cart-table ZMP stays on the support of each two-foot phase (the transport paper's Sec. IV-B):
+With ``com_plan="zmp"`` (the default) the CoM's horizontal reference is instead replanned at the start of every
+footstep so that the cart-table ZMP stays on the support of each two-foot phase (the transport paper's Sec. IV-B):
 :func:`zmp_com_path`, precomputed at plan time (footholds and the trunk's height still follow the object).
 
 Plans: :func:`straight_plan` (flat ground) and :func:`course_plan` (the obstacle course: the object's
@@ -28,7 +28,7 @@ import mujoco
 import numpy as np
 
 from wbc_jax.planner.apf import APFParams, overhead, plan_dip
-from wbc_jax.planner.gait import FOOT_NAMES, PAIRS, GaitParams, foot_stance_time, gait_phase, half_cycle
+from wbc_jax.planner.gait import FOOT_NAMES, PAIRS, GaitParams, foot_stance_time, gait_phase
 from wbc_jax.planner.scene_geometry import clear_of_edges, leg_geometry, scene_geometry, terrain_height
 from wbc_jax.planner.spline import CubicPath, cubic_path, eval_path, max_abs_accel_z, path_end_time, straight_path
 from wbc_jax.planner.swing import swing_reference
@@ -112,8 +112,7 @@ COM_PLANS = ("spline", "zmp")  # the CoM's horizontal reference: the object's + 
 
 
 # Host-side planning runs these jitted at module level, so that a process compiles each once per shape (the plan is
-# an argument, not a constant of a new closure, and nothing runs op by op): with an empty compilation cache the
-# course's three plans took 15 s of a campaign's setup eagerly (2-core CPU), most of it compiling single operations.
+# an argument, not a constant of a new closure, and nothing runs op by op, which compiles each single operation).
 _path_samples = jax.jit(jax.vmap(eval_path, in_axes=(None, 0)))  # (path, (N,) t) -> (p, v, a), each (N, 3)
 _terrain_height = jax.jit(terrain_height)
 _straight_path = jax.jit(straight_path)
@@ -211,9 +210,7 @@ def course_plan(robot, qpos0: np.ndarray, side: float, distance: float = 3.4, sp
             The object's path over the wall is planned in both.
         com_plan: ``"zmp"`` (default): the CoM reference's horizontal part replanned per footstep
             (:func:`zmp_com_path`); ``"spline"``: the object's plus the start offset (its dip scaled by
-            ``com_dip_share``). Evidence for the default (H100, paper campaign on Warp, 270 runs, spline -> zmp): all
-            succeed either way; T 1.47 -> 1.09 mm, max slip mean 1.57 -> 0.43 mm (largest 3.09 -> 0.72 mm),
-            minimum clearance 10.89 -> 11.52 mm, R 0.3452 -> 0.3460, S 0.5934 -> 0.5992.
+            ``com_dip_share``). "zmp" is the default: lower tracking error and slip in the paper campaign.
     """
     _check_options(terrain, com_plan)
     geo = scene_geometry(robot)

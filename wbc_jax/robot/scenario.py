@@ -97,7 +97,8 @@ def object_fields(ids: RobotIds, f: Factors, geom_pos0: np.ndarray) -> dict[str,
         "pair_friction": np.repeat(fr[:, None, :], 4, axis=1),
         # free body with its CoM at the body origin: M = diag(m I3, I I3)
         "body_invweight0": np.stack([1.0 / f.m, 1.0 / inertia], -1),
-        "dof_invweight0": np.concatenate([np.repeat(1.0 / f.m[:, None], 3, 1), np.repeat(1.0 / inertia[:, None], 3, 1)], -1),
+        "dof_invweight0": np.concatenate([np.repeat(1.0 / f.m[:, None], 3, 1),
+                                          np.repeat(1.0 / inertia[:, None], 3, 1)], -1),
     }
 
 

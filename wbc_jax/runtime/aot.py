@@ -89,7 +89,8 @@ def _canon(x) -> str:
     if isinstance(x, (tuple, list)):
         return type(x).__name__ + "(" + ",".join(_canon(v) for v in x) + ")"
     if isinstance(x, dict):
-        return "dict(" + ",".join(f"{_canon(k)}:{_canon(v)}" for k, v in sorted(x.items(), key=lambda kv: repr(kv[0]))) + ")"
+        items = sorted(x.items(), key=lambda kv: repr(kv[0]))
+        return "dict(" + ",".join(f"{_canon(k)}:{_canon(v)}" for k, v in items) + ")"
     if isinstance(x, type):
         return f"{x.__module__}.{x.__qualname__}"
     if isinstance(getattr(x, "array", None), np.ndarray):  # a hashable wrapper of a static array (MJX's)
@@ -239,7 +240,8 @@ def _export(store: Path, name: str, key: str, fn: Callable, in_tree, leaves) -> 
         exp = jax.export.export(jax.jit(flat), disabled_checks=[
             jax.export.DisabledSafetyCheck.custom_call(t) for t in _UNGUARANTEED_CALLS])(*specs)
     except Exception as e:  # a program export cannot hold: plain jit (only warm starts are lost)
-        warnings.warn(f"wbc_jax.runtime.aot: {name} not exported ({type(e).__name__}: {str(e)[:200]}); using plain jit")
+        warnings.warn(f"wbc_jax.runtime.aot: {name} not exported ({type(e).__name__}: {str(e)[:200]}); using plain "
+                      "jit", stacklevel=2)
         return None
     try:
         store.mkdir(parents=True, exist_ok=True)

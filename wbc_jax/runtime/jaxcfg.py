@@ -32,6 +32,7 @@ def configure() -> None:
     if d is not None:
         d.mkdir(parents=True, exist_ok=True)
         jax.config.update("jax_compilation_cache_dir", str(d))
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # also the small eager-op programs of setup
+        # every program, the small eager-op programs of setup included
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     _configured = True
