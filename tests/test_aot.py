@@ -1,5 +1,7 @@
-"""wbc_jax.runtime.aot: exported programs are reloaded without tracing, give the same results, and are keyed safely."""
+"""wbc_jax.runtime.aot: exported programs are reloaded without tracing, give the same results, and are keyed safely;
+wbc_jax.runtime.static: static configuration keys by value."""
 
+import dataclasses
 from typing import NamedTuple
 
 import jax
@@ -8,6 +10,7 @@ import numpy as np
 import pytest
 
 from wbc_jax.runtime import aot
+from wbc_jax.runtime.static import ByValue, axes_key, value_key
 
 
 class Pair(NamedTuple):
@@ -132,3 +135,30 @@ def test_failed_export_falls_back_to_plain_jit(store, monkeypatch):
     assert f._cache_size() == 1
     assert seen["checks"] == ["custom_call:__gpu$xla.gpu.triton"]
     assert not store.exists() or not list(store.glob("r-*.bin"))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Config(ByValue):
+    """A frozen static configuration with numpy fields, hashed by value."""
+
+    name: str
+    slots: np.ndarray
+    nested: tuple = ()
+
+
+def test_static_configuration_keys_by_value():
+    a = Config("x", np.array([1, 2, 3]), (np.zeros(2), 1.5))
+    b = Config("x", np.array([1, 2, 3]), (np.zeros(2), 1.5))
+    assert a is not b and a == b and hash(a) == hash(b) and {a: 1}[b] == 1
+    assert a != Config("x", np.array([1, 2, 4]), (np.zeros(2), 1.5))
+    assert a != Config("x", np.array([[1, 2, 3]]), (np.zeros(2), 1.5))  # shape counts
+    assert a != Config("x", np.array([1, 2, 3], np.int8), (np.zeros(2), 1.5))  # dtype counts
+    assert a != Config("x", np.array([1, 2, 3]), (np.zeros(3), 1.5))  # nested arrays count
+    assert value_key([1, (2,)]) != value_key((1, (2,)))
+
+
+def test_axes_key_by_value():
+    axes = {"a": 0, "b": None, "c": (0, None)}
+    assert axes_key(axes) == axes_key({"a": 0, "b": None, "c": (0, None)})
+    assert axes_key(axes) != axes_key({"a": 0, "b": 0, "c": (0, None)})
+    hash(axes_key(axes))

@@ -14,6 +14,7 @@ from wbc_jax.errors import FactorError, SceneError
 from wbc_jax.physics.observe import point_jacobians
 from wbc_jax.robot import scenario
 from wbc_jax.robot.model import Robot, mjx, resolve_ids
+from wbc_jax.rollout import make_sim
 
 MASS_TARGET = 24.26  # [kg] public code's total robot mass
 MASS_TOL = 0.02  # relative
@@ -185,3 +186,13 @@ def test_static_contact_layout_equals_the_compiled_one(scene):
     static = slot_geoms_static(robot.mjx_model)
     assert static is not None and len(static) > 0
     np.testing.assert_array_equal(static, compiled_contact_geoms(robot))
+
+
+def test_robot_and_sim_compare_by_value(robot):
+    """Static configuration is hashed by value: equal scenes and settings share the compiled programs' caches."""
+    same = Robot("transport")
+    assert same is not robot and same == robot and hash(same) == hash(robot)
+    assert Robot("flat") != robot and Robot("transport", solver_iterations=3) != robot
+    sim = make_sim(robot, log_every=10)
+    assert make_sim(same, log_every=10) == sim and {sim: 1}[make_sim(same, log_every=10)] == 1
+    assert make_sim(robot, log_every=20) != sim and make_sim(robot, log_every=10, sensor_noise=True) != sim
