@@ -30,7 +30,8 @@ def test_shipped_specs_load():
     ("[campaign]\nrepz = 3\n[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n", "campaign.repz", "unknown key"),
     ("[campaign]\nreps = 'ten'\n[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n", "campaign.reps", "integer"),
     ("[campaign]\nreps = 2.5\n[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n", "campaign.reps", "integer"),
-    ("[campaign]\nreps = 0\n[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n", "campaign.reps", "1 <= value <= 1000"),
+    ("[campaign]\nreps = 0\n[factors]\nm=[0.2,0.3]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n", "campaign.reps",
+     "1 <= value <= 1000"),
     ("[factors]\nm=[0.2,0.3]\nmu=[0.4,7.0]\nd=[0.06,0.1]\n", "factors.mu", "0.0 < value <= 5.0"),
     ("[factors]\nm=[0.2]\nmu=[0.4,1.0]\nd=[0.06,0.1]\n", "factors.m", "at least 2 levels"),
     ("[factors]\n", "factors", "0 factors: expected 1 to 5"),  # a factor left out takes its campaign value
@@ -102,13 +103,21 @@ def test_campaign_writes_results_report_manifest(full_run):
     assert not list(out.parent.glob(".full.campaign-ckpt"))  # checkpoint removed after success
 
 
-def test_interrupt_and_resume_equal_uninterrupted(full_run, tiny_spec, tmp_path):
+def _cut(done, n_chunks):
+    """``runner.after_chunk`` that interrupts the campaign after its first chunk."""
+    raise KeyboardInterrupt
+
+
+def test_interrupt_and_resume_equal_uninterrupted(full_run, tiny_spec, tmp_path, monkeypatch):
+    from wbc_jax.campaign import runner
     from wbc_jax.campaign.runner import run_campaign
 
     ref = pd.read_csv(full_run[0] / "results.csv")
     out = tmp_path / "resumed"
+    monkeypatch.setattr(runner, "after_chunk", _cut)
     with pytest.raises(KeyboardInterrupt):
-        run_campaign(str(tiny_spec), str(out), report=False, progress=False, _interrupt_after=1)
+        run_campaign(str(tiny_spec), str(out), report=False, progress=False)
+    monkeypatch.undo()
     assert not out.exists()  # nothing partial in DIR
     ck = tmp_path / ".resumed.campaign-ckpt"
     meta = json.loads((ck / "meta.json").read_text())

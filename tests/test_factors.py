@@ -12,10 +12,8 @@ from wbc_jax.campaign import factors
 from wbc_jax.campaign.spec import SWEEPS, design, load_spec, parse_spec
 from wbc_jax.errors import SpecError
 
-# the spec hashes checkpoints and regress baselines are keyed on: new keys at their defaults must not change them;
-# changed on purpose: issue 22 (qp_iters 20 -> 10, with the solver's convergence-checked extension), and com_plan
-# "zmp" as the default (2026-11-25, fifth session), which changed every spec that does not name it; issue 22 again
-# (2026-11-26: qp_iters 10 -> 4, the convergence test every 4 iterations: 9.7 % more env-steps/s at batch 16384)
+# the spec hashes checkpoints and regress baselines are keyed on: new keys at their defaults must not change them
+# (a changed default that changes the behaviour, e.g. qp_iters or com_plan, changes them on purpose)
 PAPER_HASHES = {
     "sweeps/paper_campaign.toml": "d93db999ce9a0279cf49656d95039b2db5171e307f243a616c830f8ee4faa4e6",
     "sweeps/paper_exact.toml": "5d461b6e9beeed1a757197d656952316ad1b7272628b1bbeeab74079d7f40379",
@@ -95,7 +93,7 @@ def test_levels_are_normalised_and_switches_combine():
 
 
 def test_gain_leaves_match_the_controller_and_multiply():
-    from wbc_jax.campaign.runner import run_gains
+    from wbc_jax.campaign.build import run_gains
     from wbc_jax.control.transport import TransportGains, default_gains
 
     assert factors.GAIN_LEAVES == TransportGains._fields

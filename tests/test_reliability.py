@@ -28,7 +28,7 @@ HUGE_SPEC = ("[campaign]\nreps = 1000\n[factors]\nm = [{}]\nmu = [{}]\nd = [0.06
 
 
 def campaign_table(reps: int = 1, seed: int = 0) -> pd.DataFrame:
-    """A table with the columns of a campaign's results.csv (wbc_jax.campaign.runner.results_table), all runs
+    """A table with the columns of a campaign's results.csv (wbc_jax.campaign.results.results_table), all runs
     successful, 2 x 2 x 2 cells."""
     rng = np.random.default_rng(seed)
     df = pd.DataFrame([dict(m=m, mu=mu, d=d, rep=r) for m, mu, d in itertools.product([0.2, 0.4], [0.4, 1.0],
@@ -217,7 +217,7 @@ def test_report_failure_keeps_results_and_report_can_be_rerun(tmp_path, monkeypa
     """The statistics failing after the simulation: results.csv and manifest.json stay, report_error.txt says why,
     the error is one line, and ``wbc-jax report`` on the kept results.csv works."""
     from wbc_jax.analysis import report
-    from wbc_jax.campaign import runner as campaign
+    from wbc_jax.campaign import results as campaign
     from wbc_jax.errors import ReportError
 
     out = tmp_path / "camp"
@@ -231,7 +231,7 @@ def test_report_failure_keeps_results_and_report_can_be_rerun(tmp_path, monkeypa
 
     monkeypatch.setattr(report, "run_report", boom)
     with pytest.raises(ReportError) as e:
-        campaign._campaign_report(out, manifest, [])
+        campaign.campaign_report(out, manifest, [])
     msg = str(e.value)
     assert "\n" not in msg and "results.csv and manifest.json are written" in msg and "wbc-jax report" in msg
     assert "ValueError: r_matrix" in (out / "report_error.txt").read_text()
@@ -299,7 +299,7 @@ def _fake_ckpt(tmp_path, gains=None, **meta_over):
     import hashlib
 
     from wbc_jax.campaign.checkpoint import ckpt_dir as _ckpt_dir
-    from wbc_jax.campaign.runner import run_identity
+    from wbc_jax.campaign.manifest import run_identity
     from wbc_jax.campaign.spec import load_spec
 
     ck = _ckpt_dir(tmp_path / "out")
@@ -360,7 +360,7 @@ def test_resume_refuses_a_foreign_or_damaged_checkpoint(tmp_path, monkeypatch, c
 
 
 def test_run_identity_names_what_determines_the_result():
-    from wbc_jax.campaign.runner import run_identity
+    from wbc_jax.campaign.manifest import run_identity
     from wbc_jax.campaign.spec import load_spec
     from wbc_jax.control.transport import default_gains
 
@@ -410,7 +410,7 @@ def test_bench_defaults_are_cpu_sized(monkeypatch):
 
 
 def test_git_commit_is_this_projects_or_none(tmp_path):
-    from wbc_jax.campaign.runner import _git_commit
+    from wbc_jax.campaign.manifest import git_commit as _git_commit
 
     head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
     if not head:

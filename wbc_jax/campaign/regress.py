@@ -23,10 +23,9 @@ from wbc_jax.io_utils import read_capped, write_json_atomic
 REGRESS_METRICS = ("R", "T", "S", "max_slip_mm")
 DEFAULT_TOL = {"R": (0.02, 1e-3), "T": (0.05, 2e-5), "S": (0.05, 1e-3), "max_slip_mm": (0.10, 0.05)}  # (rel, abs)
 # Rounding probes of `regress --update` on the CPU: the baseline spec rerun with XLA's CPU code generation capped at
-# these instruction sets. Another machine's CPU (vector width, FMA contraction) rounds float32 differently; in short
-# runs with sliding contacts that moves some cell means by more than the tolerance (measured 2026-11-23: S -12 %,
-# R +8 % in the mu = 0.4 cells on an AVX-512 machine against a baseline stored on another machine), while T and the
-# high-friction cells stay within it. The probes' spread is stored per cell and metric and widens that cell's band.
+# these instruction sets. Another machine's CPU (vector width, FMA contraction) rounds float32 differently, which in
+# short runs with sliding contacts moves some cell means by more than the tolerance; the probes' spread is stored per
+# cell and metric and widens that cell's band.
 ROUNDING_PROBE_ISAS = ("SSE4_2", "AVX", "AVX2")
 NOISE_FACTOR = 2.0  # band = rel |baseline| + abs + NOISE_FACTOR x the probes' largest deviation from their mean
 
@@ -40,8 +39,9 @@ def _rounding_probes(spec_p: Path) -> list[list[dict]]:
     for isa in ROUNDING_PROBE_ISAS:
         with tempfile.TemporaryDirectory() as td:
             print(f"rounding probe: {spec_p} with --xla_cpu_max_isa={isa}", flush=True)
+            flags = (os.environ.get("XLA_FLAGS", "") + f" --xla_cpu_max_isa={isa}").strip()
             run = run_in_fresh_process(spec_p, Path(td) / "run", JAX_PLATFORMS="cpu", WBC_JAX_CACHE="off",
-                                       XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + f" --xla_cpu_max_isa={isa}").strip())
+                                       XLA_FLAGS=flags)
             out.append(cell_means(pd.read_csv(run / "results.csv")))
     return out
 
@@ -93,7 +93,8 @@ def compare(baseline: dict, cells: list[dict]) -> list[dict]:
             moved.append(dict(cell=key, metric="(cell)", baseline="present", now="missing", band=""))
             continue
         if c["n_success"] != old["n_success"]:
-            moved.append(dict(cell=key, metric="n_success", baseline=old["n_success"], now=c["n_success"], band="exact"))
+            moved.append(dict(cell=key, metric="n_success", baseline=old["n_success"], now=c["n_success"],
+                              band="exact"))
         for k in REGRESS_METRICS:
             a, b = old.get(k), c.get(k)
             rel, ab = tol[k]["rel"], tol[k]["abs"]

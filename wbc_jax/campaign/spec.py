@@ -1,4 +1,4 @@
-"""Campaign specs (``sweeps/*.toml``): loading with stdlib ``tomllib``, validation, the design table.
+"""Campaign specs (``sweeps/*.toml``): loading with stdlib ``tomllib`` and validation.
 
 A spec has up to four tables (every key optional except ``factors``; an example with the paper specs' values below;
 every key's default, unit and range: ``docs/specs.md``, generated from the key tables ``CAMPAIGN``, ``FACTORS``,
@@ -53,24 +53,20 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     order = 2                  # highest ANOVA interaction order
     alpha = 0.05
 
-Run i (cells in the design order of the factors' product, :func:`wbc_jax.campaign.factors.design_order`, then reps)
-has seed ``SeedSequence([seed, i]).generate_state(1)[0]``; its perturbations are drawn from
-``numpy.random.default_rng(run_seed)`` in the order dx, dy, yaw, vx, vy, push magnitude, push angle, push start.
+The design table of a spec (one row per run, its seed and perturbations): :mod:`wbc_jax.campaign.design`.
 """
 
 from __future__ import annotations
 
 import hashlib
-import itertools
 import json
 import math
 import tomllib
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from wbc_jax.campaign import factors as factors_mod
+from wbc_jax.campaign.design import Design, design  # noqa: F401  (a spec's design table, re-exported)
 from wbc_jax.control.variants import VARIANTS
 from wbc_jax.errors import InputError, SpecError
 from wbc_jax.io_utils import read_capped
@@ -92,9 +88,11 @@ CAMPAIGN = {
     "control_substeps": (int, 1, 1, 10, False,
                          "physics steps per control step (zero-order hold); 1 = control at the physics rate"),
     "chunk_seconds": (float, 2.0, 0.02, 60.0, False, "[s]"),
-    "solver_iterations": (int, 0, 0, 1000, False, "MuJoCo constraint-solver iterations per physics step; 0 = the scene's"),
+    "solver_iterations": (int, 0, 0, 1000, False,
+                          "MuJoCo constraint-solver iterations per physics step; 0 = the scene's"),
     "backend": (str, "auto", None, None, False,
-                '"auto" (Warp on a CUDA GPU with warp-lang, else JAX), "jax" or "warp": the MJX physics implementation'),
+                '"auto" (Warp on a CUDA GPU with warp-lang, else JAX), "jax" or "warp": the MJX physics '
+                'implementation'),
     # a run's value of a factor the spec does not vary (wbc_jax.campaign.factors.REGISTRY: FactorDef.fixed)
     "m": (float, 0.3, 0.0, 20.0, True, "[kg]"),
     "mu": (float, 0.7, 0.0, 5.0, True, "[-]"),
@@ -133,10 +131,9 @@ SENSING = ("auto", "exact", "delayed")  # wbc_jax.rollout.config.SENSING (not im
 TERRAINS = ("known", "blind")  # wbc_jax.planner.transport.TERRAINS (not imported: spec loading stays JAX-free)
 COM_PLANS = ("spline", "zmp")  # wbc_jax.planner.transport.COM_PLANS (not imported, as above)
 BACKENDS = ("auto", "jax", "warp")  # wbc_jax.physics.backend.BACKENDS (not imported here: spec loading stays JAX-free)
-# keys added after specs were first hashed: left out of Spec.hash at these values (which reproduce the behaviour
-# from before the key existed), so the hashes of existing baselines and checkpoints stay valid (a default that
-# differs from its neutral value, com_plan "zmp" since 2026-11-25, changes the hash of every spec that omits the key:
-# the behaviour changed)
+# keys added after specs were first hashed: left out of Spec.hash at these values (the behaviour from before the key
+# existed), so existing baselines and checkpoints stay valid; a default unlike its neutral value (com_plan "zmp")
+# changes the hash of every spec that omits the key, as the behaviour changed
 _HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_iterations": 0, "m": 0.3, "mu": 0.7,
                                "d": 0.08, "ground_mu": 0.0, "variant": "full", "terrain": "known",
                                "com_plan": "spline", "sensing": "auto"},
@@ -318,92 +315,3 @@ def load_spec(path: str | Path) -> Spec:
 def default_spec_path(accelerator: bool) -> Path:
     """The paper spec when an accelerator is present, else the CPU-sized quick spec."""
     return SWEEPS / ("paper_campaign.toml" if accelerator else "quick.toml")
-
-
-@dataclass(frozen=True)
-class Design:
-    """One row per run (cells in the product order of the spec's factors, in design order, then reps), with the
-    run's perturbations and controller settings.
-
-    Attributes (each (B,) unless shown): m, mu, d (object mass [kg], tray friction, side [m]: the level of the
-    factor or the campaign's value), rep, seed; obj_dx, obj_dy [m] and obj_yaw [rad] (placement on the
-    tray, tray-aligned world x/y), v0 (B, 2) [m/s] initial horizontal velocity, push_force (B, 3) [N],
-    push_frac (push start as a fraction of the planned duration, known once the plan is: see
-    :func:`wbc_jax.campaign.runner.build`), push_duration [s]; qvel_noise_std [m/s, rad/s] (controller-view
-    velocity noise, drawn during the rollout from the run's seed); ground_mu (foot/ground friction, 0: the
-    scene's), speed [m/s] (cruise speed of the run's plan); variant (B, 3) the controller's ablation switches
-    (tray_cone, observer, posture; :mod:`wbc_jax.control.variants`); gain_scale: leaf -> (B,) multiplier of that
-    ``TransportGains`` leaf (the ``gain.*`` factors); levels: factor name -> (B,) the run's level of each
-    varied factor (the results table's factor columns).
-    """
-
-    m: np.ndarray
-    mu: np.ndarray
-    d: np.ndarray
-    rep: np.ndarray
-    seed: np.ndarray
-    obj_dx: np.ndarray
-    obj_dy: np.ndarray
-    obj_yaw: np.ndarray
-    v0: np.ndarray
-    push_force: np.ndarray
-    push_frac: np.ndarray
-    push_duration: np.ndarray
-    qvel_noise_std: np.ndarray
-    ground_mu: np.ndarray
-    speed: np.ndarray
-    variant: np.ndarray
-    gain_scale: dict
-    levels: dict
-
-    @property
-    def n(self) -> int:
-        return int(self.m.shape[0])
-
-    def asdict(self):
-        return asdict(self)
-
-
-def run_seed(base: int, i: int) -> int:
-    return int(np.random.SeedSequence([int(base), int(i)]).generate_state(1)[0])
-
-
-def design(spec: Spec) -> Design:
-    """The design table of a spec with every run's seed and perturbations (host-side, deterministic)."""
-    f, p, c = spec.factors, spec.perturbations, spec.campaign
-    cells = list(itertools.product(*f.values()))  # spec.factors is in design order
-    rows = [(cell, r) for cell in cells for r in range(spec.reps)]
-    B = len(rows)
-    levels = {k: np.array([cell[j] for cell, _ in rows]) for j, k in enumerate(f)}
-
-    def value(key, fixed):
-        """(B,) the run's level of factor ``key``, or ``fixed`` for every run when it is not varied."""
-        return levels[key] if key in levels else np.full(B, fixed)
-
-    seeds = np.array([run_seed(c["seed"], i) for i in range(B)], dtype=np.uint64)
-    draws = np.zeros((B, 8))
-    for i, s in enumerate(seeds):
-        rng = np.random.default_rng(int(s))
-        draws[i] = [rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-1, 1), rng.normal(), rng.normal(),
-                    rng.uniform(0, 1), rng.uniform(0, 2 * np.pi), rng.uniform(0, 1)]
-    a, b = p["push_window"]
-    on = p["push_duration_s"] > 0
-    if "push_N" in levels:  # a fixed magnitude and direction; the start still drawn in the window
-        mag, angle = levels["push_N"] * on, np.full(B, np.deg2rad(p["push_dir_deg"]))
-    else:  # random magnitude in [0, push_max_N] and direction
-        mag, angle = (draws[:, 5] * p["push_max_N"] if on else np.zeros(B)), draws[:, 6]
-    push = np.stack([mag * np.cos(angle), mag * np.sin(angle), np.zeros(B)], axis=1)
-    pushed = levels["push_N"] > 0 if "push_N" in levels else np.full(B, p["push_max_N"] > 0)
-    switches = np.array([VARIANTS[v] for v in value("variant", c["variant"])], dtype=float)  # (B, 3)
-    switches[:, 1] *= value("observer", 1)
-    return Design(
-        m=value("m", c["m"]), mu=value("mu", c["mu"]), d=value("d", c["d"]), rep=np.array([r for _, r in rows]),
-        seed=seeds, obj_dx=draws[:, 0] * p["object_xy_mm"] * 1e-3, obj_dy=draws[:, 1] * p["object_xy_mm"] * 1e-3,
-        obj_yaw=np.deg2rad(draws[:, 2] * p["object_yaw_deg"]), v0=draws[:, 3:5] * p["base_speed_std"],
-        push_force=push, push_frac=a + (b - a) * draws[:, 7],
-        push_duration=np.where(pushed, p["push_duration_s"], 0.0),
-        qvel_noise_std=value("qvel_noise_std", p["qvel_noise_std"]), ground_mu=value("ground_mu", c["ground_mu"]),
-        speed=value("speed", c["speed"]), variant=switches,
-        gain_scale={k[len(factors_mod.GAIN_PREFIX):]: v for k, v in levels.items()
-                    if k.startswith(factors_mod.GAIN_PREFIX)},
-        levels=levels)

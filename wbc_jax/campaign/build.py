@@ -1,0 +1,241 @@
+"""A campaign spec as one batched rollout: the Sim, the per-run design, the Batch and the chunk plan.
+
+:func:`build` turns a validated spec (``wbc_jax.campaign.spec``) into a :class:`Built`: the cached Sim of the scene,
+the design table (one row per run), a :class:`wbc_jax.rollout.batch.Batch` with each run's perturbed initial state,
+push, metric window and controller variant, and how the simulated horizon is cut into chunks of whole log
+intervals. :func:`check_size` refuses a batch that cannot fit in memory before anything is built.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import numpy as np
+
+from wbc_jax.campaign.design import Design, design
+from wbc_jax.campaign.spec import BACKENDS, Spec
+from wbc_jax.errors import LimitError, SpecError
+from wbc_jax.runtime import aot
+
+LOG_EVERY = 20  # control steps per logged sample (the rollout's outer scan)
+# memory estimate of a batched rollout, per run [bytes]: state, model, plan and QP workspace, plus the logged samples
+# of one chunk; deliberately generous round numbers (not measured), only meant to stop batches that cannot fit
+RUN_BYTES = 4 << 20
+LOG_SAMPLE_BYTES = 64 << 10
+_SIMS: dict = {}
+_FNS: dict = {}
+
+
+class Built(NamedTuple):
+    """A spec built for the rollout.
+
+    Attributes:
+        sim: the scene's Sim (static rollout structure).
+        design: the design table, one row per run.
+        batch: the Batch (model, state, plan, gains, pushes) of every run.
+        planned_s: the longest planned duration over the runs [s].
+        logs_per_chunk: logged samples (of LOG_EVERY control steps) per chunk.
+        n_chunks: chunks that cover the simulated horizon.
+    """
+
+    sim: object
+    design: Design
+    batch: object
+    planned_s: float
+    logs_per_chunk: int
+    n_chunks: int
+
+
+def has_accelerator() -> bool:
+    return jax.default_backend() != "cpu"
+
+
+def backend_of(spec: Spec) -> str:
+    """The spec's physics backend, "auto" resolved for this machine
+    (:func:`wbc_jax.physics.backend.resolve_backend`)."""
+    from wbc_jax.physics.backend import resolve_backend
+
+    try:
+        return resolve_backend(spec.campaign["backend"])
+    except ValueError as e:
+        raise SpecError(f"{spec.path}: campaign.backend: {e}") from None
+
+
+def with_backend(spec: Spec, backend: str | None) -> Spec:
+    """``spec`` with ``campaign.backend`` replaced (a ``--backend`` flag); unchanged for None."""
+    if backend is None:
+        return spec
+    if backend not in BACKENDS:
+        raise SpecError(f"--backend {backend!r}: expected one of {', '.join(BACKENDS)}")
+    return dataclasses.replace(spec, campaign={**spec.campaign, "backend": backend})
+
+
+def sensing_of(spec: Spec) -> str:
+    """The spec's ``campaign.sensing`` resolved for its backend (:func:`wbc_jax.rollout.config.resolve_sensing`)."""
+    from wbc_jax.rollout import resolve_sensing
+
+    c = spec.campaign
+    backend = backend_of(spec)
+    try:
+        return resolve_sensing(c["sensing"], backend, c["control_substeps"])
+    except ValueError:
+        raise SpecError(f"{spec.path}: campaign.sensing = {c['sensing']!r}: needs campaign.backend 'warp' (here "
+                        f"{backend!r}) and control_substeps 1 (here {c['control_substeps']})") from None
+
+
+def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, backend: str = "jax",
+         solver_iterations: int = 0, sensing: str = "exact"):
+    """The (cached) Sim of a scene: ``iters`` ADMM iterations, control period ``substeps`` x the scene's timestep."""
+    from wbc_jax.control.transport import TransportConfig, control_qp_settings
+    from wbc_jax.robot.model import Robot
+    from wbc_jax.rollout import make_sim
+
+    key = (scene, iters, sensor_noise, substeps, backend, solver_iterations, sensing)
+    if key not in _SIMS:
+        robot = Robot(scene, backend=backend, solver_iterations=solver_iterations)
+        cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=control_qp_settings(iters))
+        _SIMS[key] = make_sim(robot, cfg, n_substeps=substeps, log_every=LOG_EVERY, sensor_noise=sensor_noise,
+                              sensing=sensing)
+    return _SIMS[key]
+
+
+def _chunk_fn(sim, in_axes, n_logs: int, mesh=None, state_axes=0):
+    """The jitted chunk function (:func:`wbc_jax.rollout.loop.make_chunk_fn`); with a ``mesh`` (several devices),
+    each device steps its own runs. ``in_axes``, ``state_axes``: the batch's model and state run axes
+    (``Batch.in_axes``, ``Batch.state_axes``)."""
+    from wbc_jax.rollout import make_chunk_fn
+    from wbc_jax.rollout.sharding import over_runs
+
+    leaves, tree = jax.tree_util.tree_flatten(state_axes, is_leaf=lambda v: v is None)
+    key = (sim, n_logs, mesh, tuple(leaves), tree)
+    if key not in _FNS:  # jit, with the lowered program kept on disk for the next process (wbc_jax.runtime.aot)
+        # (vmap takes the Warp data whole: MJX batches its shared contact list itself)
+        fn = make_chunk_fn(sim, n_logs, in_axes)
+        _FNS[key] = (aot.cached_jit("chunk", fn, aot.describe(sim, in_axes, n_logs),
+                                     exportable=sim.robot.backend != "warp") if mesh is None
+                     else over_runs(fn, mesh, (in_axes, state_axes, 0, 0, 0, 0, 0), (state_axes, 0)))
+    return _FNS[key]
+
+
+def _quat_mul(a, b):
+    w1, x1, y1, z1 = a.T
+    w2, x2, y2, z2 = b.T
+    return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=1)
+
+
+def initial_configuration(robot, dz: Design):
+    """Perturbed initial (qpos (B, nq), qvel (B, nv)): the object shifted by (obj_dx, obj_dy) in the world's
+    horizontal plane (the tray is level at home) and yawed by obj_yaw about world z; robot base and object
+    moving horizontally at v0."""
+    ids = robot.ids
+    qpos = np.stack([robot.home_qpos(float(di)) for di in dz.d])
+    a = ids.obj_qpos_adr
+    qpos[:, a] += dz.obj_dx
+    qpos[:, a + 1] += dz.obj_dy
+    qyaw = np.stack([np.cos(dz.obj_yaw / 2), np.zeros(dz.n), np.zeros(dz.n), np.sin(dz.obj_yaw / 2)], axis=1)
+    qpos[:, a + 3:a + 7] = _quat_mul(qyaw, qpos[:, a + 3:a + 7])
+    qvel = np.zeros((dz.n, robot.mj_model.nv))
+    qvel[:, 0:2] = dz.v0
+    qvel[:, ids.obj_dof_adr:ids.obj_dof_adr + 2] = dz.v0
+    return qpos, qvel
+
+
+def run_gains(gains, dz: Design):
+    """Per-run gains of a design: ``gains`` (unbatched TransportGains; None: the defaults) with each ``gain.*``
+    factor's multiplier applied (leaves with a leading run axis); unbatched as given without such factors."""
+    from wbc_jax.control.transport import default_gains
+
+    if not dz.gain_scale:
+        return gains
+    base = default_gains() if gains is None else gains
+    out = {}
+    for name, leaf in zip(base._fields, base):
+        x = np.broadcast_to(np.asarray(leaf), (dz.n,) + np.shape(leaf))
+        scale = dz.gain_scale.get(name)
+        if scale is not None:
+            x = x * scale.reshape((dz.n,) + (1,) * np.ndim(leaf)).astype(x.dtype)
+        out[name] = jax.numpy.asarray(x)
+    return type(base)(**out)
+
+
+def build(spec: Spec, gains=None) -> Built:
+    """Spec -> :class:`Built` (the Sim, the design, the Batch with perturbed initial states and pushes, the chunk
+    plan). ``gains``: controller gains (TransportGains, unbatched) instead of the defaults."""
+    from wbc_jax.control.variants import Variant
+    from wbc_jax.planner.transport import plan_duration
+    from wbc_jax.rollout import make_push, with_metric_window, with_variant
+    from wbc_jax.rollout.batch import prepare_batch
+
+    c = spec.campaign
+    dz = design(spec)
+    sim = _sim(c["scene"], c["qp_iters"], bool(np.any(dz.qvel_noise_std > 0)), c["control_substeps"],
+               backend_of(spec), c["solver_iterations"], sensing_of(spec))
+    qpos0, qvel0 = initial_configuration(sim.robot, dz)
+    b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=run_gains(gains, dz),
+                      plan_kwargs=dict(distance=c["distance"], speed=c["speed"], terrain=c["terrain"],
+                                       com_plan=c["com_plan"]),
+                      qpos0=qpos0, qvel0=qvel0,
+                      speed=dz.speed if "speed" in spec.factors else None,
+                      ground_mu=dz.ground_mu if np.all(dz.ground_mu > 0) else None)
+    planned_s = plan_duration(b.plan)
+    t_plan = np.asarray(b.plan.obj_path.t_knots)[:, -1]  # (B,) each run's plan end [s]
+    # push start: a fraction of the planned duration (each run's own when the speed is varied)
+    push = make_push(dz.push_force, dz.push_frac * (t_plan if "speed" in spec.factors else planned_s),
+                     dz.push_duration, dz.qvel_noise_std, dz.seed)
+    # metric window (wbc_jax.metrics.paper): each run's own plan end + the settling time, capped like the horizon
+    t_end = t_plan + c["extra_seconds"]
+    if c["max_seconds"] > 0:
+        t_end = np.minimum(t_end, c["max_seconds"])
+    state = with_variant(with_metric_window(b.state, t_end), Variant(*dz.variant.T))
+    b = b._replace(push=push, state=state)
+    log_dt = sim.dt_control * LOG_EVERY
+    logs_per_chunk = max(1, int(round(c["chunk_seconds"] / log_dt)))
+    horizon = planned_s + c["extra_seconds"]
+    if c["max_seconds"] > 0:
+        horizon = min(horizon, c["max_seconds"])
+    n_chunks = max(1, int(np.ceil(horizon / (logs_per_chunk * log_dt) - 1e-9)))
+    return Built(sim, dz, b, planned_s, logs_per_chunk, n_chunks)
+
+
+def n_runs_of(spec: Spec) -> int:
+    """Number of runs of a spec (cells x reps), without building the design."""
+    return int(np.prod([len(v) for v in spec.factors.values()])) * spec.reps
+
+
+def check_size(spec: Spec, allow_large: bool = False) -> None:
+    """Refuse a campaign whose batch would not fit in memory (an estimate, before the design is built).
+
+    Raises:
+        LimitError: runs x (RUN_BYTES + a chunk's log samples x LOG_SAMPLE_BYTES) exceeds the available memory,
+            unless ``allow_large``.
+    """
+    c = spec.campaign
+    n = n_runs_of(spec)
+    samples = max(1.0, c["chunk_seconds"] / (0.002 * c["control_substeps"] * LOG_EVERY))  # 2 ms physics step
+    need = n * (RUN_BYTES + samples * LOG_SAMPLE_BYTES)
+    avail = _available_memory()
+    if avail and need > avail and not allow_large:
+        raise LimitError(f"{spec.path}: {n:,} runs need about {need / 2**30:,.1f} GiB, "
+                         f"{avail / 2**30:,.1f} GiB available; fewer levels or reps, a smaller "
+                         "campaign.chunk_seconds, or --allow-large to try anyway")
+
+
+def _available_memory() -> int | None:
+    """Available memory [bytes]: the accelerator's free memory, else the host's MemAvailable; None if unknown."""
+    try:
+        st = jax.local_devices()[0].memory_stats() or {}
+        if "bytes_limit" in st:
+            return int(st["bytes_limit"] - st.get("bytes_in_use", 0))
+    except Exception:  # noqa: BLE001  (CPU devices have no memory stats)
+        pass
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
