@@ -1,42 +1,11 @@
-"""Solution polishing: primal-dual active-set passes on the equilibrated problem.
+"""Solution polishing (``QPSettings.polish``): primal-dual active-set passes on the equilibrated problem.
 
-Polishing (``polish=True``, off by default). After the iterations, primal-dual
-active-set passes: guess the active rows from ``A x + y`` (OSQP's rule, scaled
-problem), solve the equality-constrained KKT system on them (fixed shapes: inactive rows
-masked; one n x n Cholesky of the regularized reduced system plus 3 refinement steps),
-guess again from that solution and its raw multipliers, and keep the point with the
-smallest KKT error (only finite, non-increasing ones replace the iterate, so polishing
-cannot make a result worse, NaN or Inf; float32 stays finite, infeasible problems keep
-their flags). Same 200 problems, float64, same settings for cold and warm (the warm
-point is the polished default-count solve of the perturbed problems), seed 20240603,
-fraction meeting the criterion (generic / WBC)::
-
-    iterations                 5         6         8         9         10        15
-    cold, 3 passes *           .14       -         .72       -         .885      .985
-    cold, 6 passes (default)   .655      .795      .95       .98       .995      1.0
-                               (.99/.32) (1.0/.59) (1.0/.90) (1.0/.96) (1.0/.99)
-    warm, 6 passes             .995      .995      -         -         -         -
-                               (1.0/.99)
-    warm, 6 passes at 1* / 3 / 4 / 7: .945 / .985 / .99 / 1.0
-
-(No polishing: cold .00 at 20, .295 at 37, .84 at 50, 1.0 at 75. Rows and cells marked
-* were measured with the LU variant below, which gives the same fractions.)
-With 3 passes cold needs 20 (.995), warm 15 (.995); with 4, cold 15 (.99), warm 7
-(.99): no halving. With 6 passes (``polish_passes`` default) cold needs 10 and warm
-meets the criterion at 5 (199 of 200; WBC 99 of 100), so the issue's line holds on this
-benchmark, with a margin of one problem. On seeds 1 / 2 cold also needs 10, warm at 5
-passes .98 / .985 and needs 7 / 6: the warm gain is real but the factor 2 is at the
-edge. More passes do not help (10 passes: the same fractions at 1, 5 and 10
-iterations): the remaining failures are WBC problems on which the active-set passes
-diverge from the few-iteration iterate (6-30 wrong rows, singular guesses), and
-a backtracking variant (flip only the half of the proposed rows with the largest
-violation after a rejected pass) was worse. Cost on the CPU (200 problems, shared
-2 cores): one pass ~55 ms, about 9 iterations; 75 plain iterations 547 ms, 10 iterations
-+ 6 passes 494 ms, 5 + 6 passes 443 ms (a dense LU of the full (n + m) KKT matrix gives
-the same fractions at twice the cost). So polishing meets the criterion at about the
-time of the plain default count, warm start saves ~10 % of that, and it is kept off by
-default (the default count already meets the criterion; the transport controller uses 20
-iterations per step, the centroidal one 40).
+After the ADMM iterations, each pass guesses the active rows from ``A x + y`` (OSQP's rule), solves the
+equality-constrained KKT system on them (fixed shapes: inactive rows masked; one regularized n x n Cholesky plus
+iterative refinement) and guesses again from that solution and its raw multipliers. The point with the smallest
+KKT error is kept; only a finite, non-increasing one replaces the iterate, so polishing never makes a result worse
+or non-finite, and infeasible problems keep their flags. After OSQP's polishing (Stellato et al. 2020, Sec. 4),
+repeated as active-set passes.
 """
 
 from __future__ import annotations

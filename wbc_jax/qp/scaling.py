@@ -1,16 +1,9 @@
 """Ruiz equilibration of a dense QP and the dense linear-algebra helpers the solver shares.
 
-The equilibrated problem is ``Pb = c D P D``, ``qb = c D q``, ``Ab = E A D``, ``lb = E l``,
-``ub = E u`` (OSQP's scheme: Ruiz passes on the KKT matrix ``[[P, A'], [A, 0]]``, the cost
-scaled in each pass by the mean column norm of ``P``). Evidence (200 problems of
-``wbc_jax.bench.qp_problems``, cold start, fraction meeting the criterion of
-:mod:`wbc_jax.qp.admm` at 50 / 75 / 100 / 150 iterations, generic / WBC family): scaling
-the cost by ``max(mean column norm of P, ||q||_inf)`` as OSQP does gives .46/.00
-1.0/.00 1.0/.09 1.0/.64 (the scaled problem's good rho becomes ~1e-4 on WBC data),
-no cost scaling matches the default on these data (.83/.86 1.0/.99 1.0/1.0 1.0/1.0)
-but loses when the whole cost is multiplied by a constant as WBC gains do (x1e-3 at
-150 iterations: .50 vs 1.0); both were removed. No Ruiz passes: .99/.39 1.0/.81 1.0/.92;
-10 passes: .82/.78 1.0/.97 1.0/1.0 (default 5: .83/.86 1.0/.98 1.0/1.0).
+The equilibrated problem is ``Pb = c D P D``, ``qb = c D q``, ``Ab = E A D``, ``lb = E l``, ``ub = E u``: OSQP's
+Ruiz passes on the KKT matrix ``[[P, A'], [A, 0]]``, except that the cost is scaled in each pass by the mean column
+norm of ``P`` alone (OSQP also takes ``||q||_inf``), which keeps the scaled problem's good rho independent of a
+constant factor on the whole cost, as whole-body-control gains apply.
 """
 
 from __future__ import annotations
@@ -44,11 +37,6 @@ class Scaled(NamedTuple):
 def mv(M, v):
     """Matrix-vector (or matrix-matrix) product at full precision."""
     return jnp.matmul(M, v, precision=HI)
-
-
-def inf_norm(v):
-    """``||v||_inf`` (0 for an empty vector)."""
-    return jnp.max(jnp.abs(v), initial=0.0)
 
 
 def all_finite(*vs):

@@ -30,69 +30,54 @@ KERNELS = ("xla", "fused", "auto")
 
 
 class QPSettings(NamedTuple):
-    """Static solver settings (hashable: pass as a static argument under ``jit``).
+    """Static solver settings (hashable: pass as a static argument under ``jit``). Rho values are those of the
+    equilibrated problem.
 
     Attributes:
-        iters: default iteration count, used when ``solve_qp(iters=None)``.
-        rho: initial ADMM step size for inequality rows (scaled problem); a warm start
-            keeps the warm result's rho (OSQP's choice, the best of those measured).
-        sigma: proximal weight on x (keeps the matrix positive definite).
-        alpha: over-relaxation in (0, 2).
-        rho_eq_scale: equality rows use ``rho * rho_eq_scale``.
-        rho_min: rho of free rows and lower clip of adapted rho.
-        rho_max: upper clip of adapted rho.
-        adapt_every: iterations per segment between rho re-estimates and refactors;
-            0 disables adaptation (one Cholesky per solve, rho stays the initial or warm
-            one). ``>= iters``: one Cholesky per solve and rho re-estimated after the
-            iterations, for the next warm-started solve (cross-step adaptation: the
-            control loop's choice, see :func:`wbc_jax.control.transport.control_qp_settings`).
-        adapt_tol: rho changes only when the estimate differs by more than this factor.
-        adapt_bias: factor on OSQP's estimate ``rho sqrt(prim_rel / dual_rel)`` (> 1
-            favours primal feasibility).
-        warm_active_scale: when warm-started, inequality rows with a nonzero dual at the
-            warm point use this factor on rho (1 disables).
-        ruiz_iters: Ruiz equilibration passes (0 disables scaling); the cost is scaled
-            by the mean column norm of ``P`` in each pass.
-        eps_abs: absolute tolerance, only used to set the flag.
-        eps_rel: relative tolerance, only used to set the flag.
-        eps_pinf: tolerance of the primal-infeasibility certificate.
-        eps_dinf: tolerance of the dual-infeasibility certificate.
-        linsolve: ``"chol"`` (two triangular solves per iteration) or ``"inv"`` (the
-            explicit inverse from the Cholesky factor: matrix-vector products only,
-            as accurate thanks to the residual form of the x-update), or ``"auto"``:
-            ``"chol"`` on the CPU, ``"inv"`` on an accelerator (H100, WBC-sized
-            problems, 50 iterations: 2.8x faster at batch 256 and 1.3x at 16384 than
-            ``"chol"``; on the CPU the inverse is several times slower).
-        unroll: unroll factor of the iteration and equilibration loops (``lax.scan``'s
-            ``unroll``; True: fully). Same arithmetic; on GPU fewer loop trips and more
-            fusion, at a longer compile.
-        polish: after the iterations, polish the solution
-            (:func:`wbc_jax.qp.polish.polish`): guess the active set from the iterate,
-            solve the KKT system on it, repeat from that solution (primal-dual
-            active-set passes), keep the point with the smallest KKT error.
-        polish_passes: active-set passes (one n x n Cholesky each).
-        polish_delta: regularization of the KKT system (scaled problem).
-        polish_refine: iterative-refinement steps per pass.
-        eq_rows: the first ``eq_rows`` rows are held exactly in every x-update instead of through ADMM's
-            rho: those of them with ``l == u`` (equalities) enter the x-update's KKT system, solved through the
-            Schur complement of the equality block (:func:`wbc_jax.qp.admm._kkt_factor`); those with no bound
-            (free, e.g. a swing foot's stance row) are ignored; any other of them stays an ADMM row. Their
-            ``y`` is the KKT multiplier. 0: OSQP's scheme for every row (equalities through
-            ``rho * rho_eq_scale``).
+        iters: iterations when ``solve_qp(iters=None)`` (default 100).
+        rho: initial ADMM step size of inequality rows (default 1.0); a warm start keeps the warm result's rho.
+        sigma: proximal weight on x, keeps the x-update's matrix positive definite (default 1e-6).
+        alpha: over-relaxation, in (0, 2) (default 1.6).
+        rho_eq_scale: factor on rho of equality rows not held exactly (default 1e3).
+        rho_min: rho of rows without bounds and lower clip of an adapted rho (default 1e-6).
+        rho_max: upper clip of an adapted rho (default 1e6).
+        adapt_every: iterations per segment between rho re-estimates and refactorizations (default 10); 0: rho
+            fixed, one factorization per solve; ``>= iters``: one factorization per solve and rho re-estimated
+            after the iterations, for the next warm-started solve.
+        adapt_tol: rho changes only when the estimate differs by more than this factor (default 1.5).
+        adapt_bias: factor on OSQP's estimate ``rho sqrt(prim_rel / dual_rel)``; > 1 favours primal feasibility
+            (default 2.0).
+        warm_active_scale: factor on rho of inequality rows with a nonzero dual at the warm point; 1 disables
+            (default 3.0).
+        ruiz_iters: Ruiz equilibration passes; 0 disables scaling (default 5).
+        eps_abs: absolute tolerance of the termination test (flag and extension only) (default 1e-5).
+        eps_rel: relative tolerance of the termination test (default 1e-5).
+        eps_pinf: tolerance of the primal-infeasibility certificate (default 1e-5).
+        eps_dinf: tolerance of the dual-infeasibility certificate (default 1e-5).
+        linsolve: the x-update's solve: ``"chol"`` (triangular solves), ``"inv"`` (the explicit inverse from the
+            Cholesky factor: matrix-vector products only, as accurate with the residual-form step) or ``"auto"``
+            (``"chol"`` on a CPU, ``"inv"`` on an accelerator) (default ``"chol"``).
+        unroll: ``lax.scan``'s unroll of the iteration and equilibration loops; True: fully (default 1).
+        polish: polish the solution by active-set passes (:mod:`wbc_jax.qp.polish`) (default False).
+        polish_passes: active-set passes, one n x n Cholesky each (default 6).
+        polish_delta: regularization of the polishing KKT system (default 1e-6).
+        polish_refine: iterative-refinement steps per pass (default 3).
+        eq_rows: the first ``eq_rows`` rows are held exactly in every x-update instead of through rho: those with
+            ``l == u`` enter the x-update's KKT system (Schur complement of the equality block) and their ``y`` is
+            the KKT multiplier; those without bounds are ignored; any other stays an ADMM row. 0: OSQP's scheme
+            for every row (default 0).
         box_rows: the last ``box_rows`` rows of ``A`` bound the last ``box_rows`` variables one each (row
-            ``m - box_rows + i`` is zero except at column ``n - box_rows + i``; e.g. a force multiplier's
-            ``lambda >= 0``). The solver trusts this structure: the fused kernel stores those rows as a diagonal
-            (:mod:`wbc_jax.qp.fused`, a smaller kernel: more problems at once on a GPU); the XLA path treats them
-            as dense rows. 0: no such rows.
+            ``m - box_rows + i`` is zero except at column ``n - box_rows + i``). The solver trusts this structure:
+            the fused kernels store those rows as a diagonal; the XLA path treats them as dense rows (default 0).
         max_iters: 0: exactly ``iters`` iterations. Larger: after ``iters``, blocks of ``check_every`` more
-            iterations (same factorization) while the residuals are outside tolerance, up to ``max_iters``.
-            Under ``vmap`` the block loop runs until the batch's slowest problem converges (converged problems
-            keep their result), so its cost is paid only at steps where some problem needs it (contact events).
-        check_every: iterations per block of the extension (one convergence test each).
-        kernel: ``"xla"`` (the solve as XLA ops), ``"fused"`` (the whole solve in Pallas kernels of one program
-            per problem, :mod:`wbc_jax.qp.fused`; needs one factorization per solve, ``adapt_every`` 0 or
-            ``>= iters``, and no polishing; rho is then re-estimated from the final iterate) or ``"auto"`` (fused
-            on a GPU where that holds, else XLA).
+            iterations (same factorization) while the residuals are outside tolerance, up to ``max_iters``; under
+            ``vmap`` the XLA path runs the blocks until the batch's slowest problem has converged, converged
+            problems keeping their result (default 0).
+        check_every: iterations per block of the extension, one convergence test each (default 10).
+        kernel: ``"xla"`` (XLA ops, :mod:`wbc_jax.qp.admm`), ``"fused"`` (three Pallas kernels of one program per
+            problem, :mod:`wbc_jax.qp.fused`; needs one factorization per solve and no polishing; rho is then
+            re-estimated from the final iterate) or ``"auto"`` (fused on a GPU for float32 where that holds, else
+            XLA) (default ``"xla"``).
     """
 
     iters: int = 100
