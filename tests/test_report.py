@@ -3,16 +3,20 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
+import re
+import struct
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 from test_stats import FACTORS, PLANTED, planted
 
-from wbc_jax.analysis import report
+from wbc_jax.analysis import report, stats
 from wbc_jax.analysis.render import ReportWorker, Workers
 from wbc_jax.errors import InputError
 
@@ -175,7 +179,9 @@ def _bad_cases(tmp: Path) -> dict:
         "missing_column": (good, ["--factors", "m,mu,x"], "factor column 'x' is not in the table"),
         "missing_metric": (good, ["--metrics", "R,Q"], "metric column 'Q' is not in the table"),
         "non_numeric_metric": (nonnum, [], "metric 'R' is not numeric (e.g. 'abc')"),
-        "one_level_factor": (good.assign(d=0.06), [], "factor 'd' has only one level"),
+        "one_level_factor": (good.assign(d=0.06), [], "factor 'd' has only one level (0.06);"),  # no np.float64
+        "duplicate_run_ids": (good.assign(run=[*range(100), 3, 3, 7, *range(200, 205)]), [],
+                              "duplicate_run_ids.csv: run ids appear more than once in column 'run': 3, 7 "),
         "no_factors": (good.drop(columns=FACTORS), [], "no factor columns"),
         "bad_alpha": (good, ["--alpha", "1.5"], "alpha must be between 0 and 1"),
     }
@@ -190,11 +196,16 @@ def _bad_cases(tmp: Path) -> dict:
     out["directory"] = (tmp, [], "results path is a directory")
     out["binary"] = (tmp / "bin.csv", [], "not a readable CSV")
     (tmp / "bin.csv").write_bytes(b"m,mu\n\xff\xfe\x00\x81,\x00\n")
+    good.to_csv(tmp / "semicolon.csv", sep=";", index=False)
+    out["semicolon"] = (tmp / "semicolon.csv", [], "separates its columns with semicolons, not commas")
+    out["manifest_json"] = (_write(tmp / "manifest.json", '{"command": "wbc-jax campaign"}'), [],
+                            "manifest.json is a JSON file, not a results CSV (a campaign's manifest.json? its table is")
     return out
 
 
-CLI_CASES = ["missing_column", "non_numeric_metric", "one_level_factor", "empty_file", "not_found"]
-INPROC_CASES = ["missing_metric", "no_factors", "bad_alpha", "header_only", "directory", "binary"]
+CLI_CASES = ["missing_column", "non_numeric_metric", "one_level_factor", "empty_file", "not_found", "duplicate_run_ids"]
+INPROC_CASES = ["missing_metric", "no_factors", "bad_alpha", "header_only", "directory", "binary", "semicolon",
+                "manifest_json"]
 
 
 @pytest.fixture(scope="module")
@@ -243,3 +254,113 @@ def test_bad_input_in_process(cases, name):
         report.run_report(str(csv), str(out), alpha=float(kw.get("--alpha", 0.05)), figures=False, **args)
     assert msg in str(e.value) and "\n" not in str(e.value)
     assert not out.exists() and not _leftovers(out.parent, out.name)
+
+
+# ---------------------------------------------------------------- a report that explains itself
+
+
+def _campaign_dir(tmp_path: Path, reps: int = 3, factors=("m", "mu"), drop=()) -> Path:
+    """A campaign's folder: results.csv (2 x 2 cells of m, mu; T in metres) and the manifest.json beside it."""
+    rng = np.random.default_rng(0)
+    grid = pd.MultiIndex.from_product([[0.2, 0.4], [0.4, 1.0], range(reps)], names=["m", "mu", "rep"])
+    df = grid.to_frame(index=False)
+    df.insert(0, "run", np.arange(len(df)))
+    df = df.assign(d=0.06, seed=df["run"], success=True, fail_reason="")
+    df["R"] = 0.3 + 0.1 * (df["m"] == 0.4) + 0.01 * rng.standard_normal(len(df))
+    df["T"] = 0.01 + 0.004 * (df["mu"] == 0.4) + 0.001 * rng.standard_normal(len(df))
+    df["S"] = 10.0 * df["m"] + df["mu"]  # the same in both runs of a cell
+    df.drop(columns=list(drop)).to_csv(tmp_path / "results.csv", index=False)
+    spec = {"campaign": {"name": "tiny"}, "factors": {f: [] for f in factors}, "analysis": {"order": 2}}
+    (tmp_path / "manifest.json").write_text(json.dumps({"command": "wbc-jax campaign", "spec_path": "sweeps/t.toml",
+                                                        "spec_hash": "ab" * 32, "spec": spec}))
+    return tmp_path / "results.csv"
+
+
+def test_campaign_report_defines_its_metrics_and_shows_T_in_mm(tmp_path):
+    csv = _campaign_dir(tmp_path)
+    summary = report.run_report(str(csv), str(tmp_path / "rep"), figures=False)
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert md.startswith("# ANOVA report: tiny campaign (sweeps/t.toml)\n\nResults `")
+    assert "written by `wbc-jax campaign` from the spec `sweeps/t.toml` (spec hash `abababababab`)." in md
+    html = (tmp_path / "rep" / "report.html").read_text()
+    assert "<title>ANOVA report: tiny campaign (sweeps/t.toml)</title>" in html
+    metrics = md.split("## Metrics\n")[1].split("\n## ")[0]
+    assert "R, robustness [rad²]: R = (1/T_win) ∫ 1/H dt" in metrics and "T = (1/T_win) ∫ ‖p_ref − p‖ dt" in metrics
+    assert "S = T_win / ∫ ‖v̇_b‖ dt" in metrics and "T, tracking error [mm]" in metrics
+    directions = [re.search(r"; (\w+) is better: ", line) for line in metrics.splitlines() if line.startswith("- ")]
+    assert [d.group(1) for d in directions] == ["higher", "lower", "higher"]
+    assert summary["units"] == {"R": "rad²", "T": "mm", "S": "s²/m"} and "## Metric T [mm]" in md
+    # T in mm: cell means 1000 x those of the CSV (metres); F and p the same as in metres
+    df = pd.read_csv(csv)
+    cells = pd.read_csv(tmp_path / "rep" / "cell_means.csv").query("metric == 'T'").set_index(["m", "mu"])["mean"]
+    np.testing.assert_allclose(cells, 1e3 * df.groupby(["m", "mu"])["T"].mean(), rtol=1e-12)
+    metres = stats.analyze(df, ["m", "mu"], ["T"])["metrics"]["T"]["anova"]
+    shown = pd.DataFrame(summary["metrics"]["T"]["anova"])
+    np.testing.assert_allclose(shown["F"][:-1], metres["F"][:-1], rtol=1e-9)
+    np.testing.assert_allclose(shown["sum_sq"], 1e6 * metres["sum_sq"], rtol=1e-9)
+
+
+def test_variance_tests_not_run_on_two_runs_per_cell(tmp_path):
+    """2 runs per cell: both lie equally far from their cell's centre, so Levene's statistic is a ratio of rounding
+    errors: not run, with the reason (and the zero-variance cells of S named), instead of 'rejected, p = 0'."""
+    csv = _campaign_dir(tmp_path, reps=2)
+    summary = report.run_report(str(csv), str(tmp_path / "rep"), figures=False)
+    for metric, reason in (("R", "4 of 4 cells have 2 runs"), ("S", "4 of 4 cells have zero variance")):
+        tests = {a["test"]: a for a in summary["metrics"][metric]["assumptions"]}
+        for name in ("Levene (mean)", "Brown-Forsythe (median)"):
+            assert tests[name]["ok"] is None and tests[name]["statistic"] is None and tests[name]["p"] is None
+            assert tests[name]["note"].startswith("cannot be run: ") and reason in tests[name]["note"]
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "homogeneity of variance rejected" not in md and "| not run | cannot be run: " in md
+
+
+def test_missing_declared_factor_warns_once(tmp_path, caplog):
+    csv = _campaign_dir(tmp_path, factors=("m", "mu", "d"), drop=["d"])
+    with caplog.at_level(logging.WARNING, logger="wbc_jax"):
+        summary = report.run_report(str(csv), str(tmp_path / "rep"), figures=False)
+    [record] = caplog.records
+    msg = record.getMessage()
+    assert "\n" not in msg and msg.startswith("warning: ") and "results.csv lacks the factor column(s) d" in msg
+    assert msg.endswith("that its manifest.json declares (spec sweeps/t.toml): analysing m, mu only")
+    assert list(summary["factors"]) == ["m", "mu"] and msg[len("warning: "):] in summary["warnings"]
+
+
+# ---------------------------------------------------------------- figures
+
+
+def _factorial(n_factors: int, n_metrics: int, reps: int = 2) -> tuple[pd.DataFrame, list[str], list[str]]:
+    """2 levels per factor, ``reps`` runs per cell, metrics with a main effect of the first factor."""
+    factors = [f"f{i}" for i in range(n_factors)]
+    df = pd.MultiIndex.from_product([[0.1, 0.2]] * n_factors + [range(reps)], names=[*factors, "rep"]).to_frame(
+        index=False).assign(success=True)
+    rng = np.random.default_rng(n_factors)
+    metrics = [f"y{k}" for k in range(n_metrics)]
+    for k in metrics:
+        df[k] = 10 * df["f0"] + rng.standard_normal(len(df))
+    return df, factors, metrics
+
+
+@pytest.mark.parametrize("shape", ["planted", (1, 1), (2, 1), (5, 2)])
+def test_figures_are_readable_grids(shape):
+    """Every figure 600-2400 px wide with sides at most 3 apart (no 2112 x 275 strip); means.png plots the
+    per-level EMMs with their 95 % CIs from the pooled MSE (balanced design: the level means)."""
+    from scipy import stats as sps
+
+    from wbc_jax.analysis import figures
+    from wbc_jax.analysis.report.figure_jobs import figure_jobs
+    from wbc_jax.analysis.report.model import analyze_table, beyond_anova
+
+    df, factors, metrics = (planted(seed=1), FACTORS, ["R", "T"]) if shape == "planted" else _factorial(*shape)
+    data = stats.prepare(df, factors, metrics)
+    res = analyze_table(data, factors, metrics, alpha=0.05, ss_type=3, order=2)
+    jobs = figure_jobs(res, beyond_anova(data, factors, 0.05), factors, metrics, {m: m for m in metrics})
+    for name, (fn, args) in jobs.items():
+        png = getattr(figures, fn)(*args)
+        width, height = struct.unpack(">II", png[16:24])
+        assert 600 <= width <= 2400 and max(width / height, height / width) <= 3, (name, width, height)
+    fit = res["metrics"][metrics[0]]["fit"]
+    emm = jobs["means.png"][1][0][metrics[0]][factors[0]]
+    means = data.groupby(factors[0])[metrics[0]].agg(["mean", "size"])
+    half = sps.t.ppf(0.975, fit.df_resid) * np.sqrt(fit.mse / means["size"].to_numpy())
+    np.testing.assert_allclose(emm["emm"], means["mean"], rtol=1e-9)
+    np.testing.assert_allclose(emm["ci_high"] - emm["emm"], half, rtol=1e-9)

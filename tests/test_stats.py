@@ -1,10 +1,9 @@
 """wbc_jax.analysis.stats against planted effects, hand-built sums of squares and hand-built EMMs.
 
-Synthetic campaign (``planted``): the transport paper's 3x3x3 design (m, mu, d), REPS runs
-per cell, y = EFFECT * (m main + mu main + mu:d interaction pattern) + N(0, SIGMA^2).
-With these sizes the noncentrality of every planted term is >= 108, so a planted term is
-missed at alpha = 0.05 with probability < 2e-13 per data set: finding them is deterministic.
-The null terms (d, m:mu, m:d) are rejected at rate alpha, which the seed loop measures.
+Synthetic campaign (``planted``): the transport paper's 3x3x3 design (m, mu, d), REPS runs per cell,
+y = EFFECT * (m main + mu main + mu:d interaction pattern) + N(0, SIGMA^2). With these sizes the noncentrality
+of every planted term is >= 108, so a planted term is missed at alpha = 0.05 with probability < 2e-13 per data
+set: finding them is deterministic. The null terms (d, m:mu, m:d) are rejected at rate alpha (the seed loops).
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from wbc_jax.analysis.table import levels, successful
+from wbc_jax.analysis.table import levels, plain, successful
 from wbc_jax.errors import InputError
 
 SS_NAMES = {1: "I", 2: "II", 3: "III"}
@@ -112,7 +112,7 @@ def fit_anova(df: pd.DataFrame, factors: Sequence[str], metric: str, ss_type: in
     from statsmodels.stats.anova import anova_lm
 
     if ss_type not in SS_NAMES:
-        raise InputError(f"SS type must be 1, 2 or 3, not {ss_type!r}")
+        raise InputError(f"SS type must be 1, 2 or 3, not {plain(ss_type)}")
     factors = list(factors)
     d = successful(df)
     n_nan = int(d[metric].isna().sum())

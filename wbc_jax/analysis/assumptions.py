@@ -10,7 +10,7 @@ import warnings
 import numpy as np
 import pandas as pd
 
-from wbc_jax.analysis.anova import AnovaFit, coded_name
+from wbc_jax.analysis.anova import ZERO_SD_RTOL, AnovaFit, coded_name
 
 
 def assumption_tests(fit: AnovaFit, alpha: float = 0.05) -> list[dict]:
@@ -55,10 +55,9 @@ def assumption_tests(fit: AnovaFit, alpha: float = 0.05) -> list[dict]:
             len(r) >= 5 and not degenerate, zero_why if degenerate else "fewer than 5 residuals"),
         run("Shapiro-Wilk", normal, lambda: sps.shapiro(r), len(r) >= 3 and not degenerate,
             zero_why if degenerate else "fewer than 3 residuals"),
-        run("Levene (mean)", equal, lambda: sps.levene(*groups, center="mean"), len(groups) >= 2,
-            "fewer than 2 cells with 2+ runs"),
-        run("Brown-Forsythe (median)", equal, lambda: sps.levene(*groups, center="median"), len(groups) >= 2,
-            "fewer than 2 cells with 2+ runs"),
+        run("Levene (mean)", equal, lambda: sps.levene(*groups, center="mean"), *_spread_check(groups, np.mean)),
+        run("Brown-Forsythe (median)", equal, lambda: sps.levene(*groups, center="median"),
+            *_spread_check(groups, np.median)),
     ]
     rows[0]["note"] = rows[0]["note"] or "p from the Lilliefors table, limited to [0.001, 0.2]"
     if len(r) > 5000 and rows[1]["ok"] is not None:
@@ -67,6 +66,29 @@ def assumption_tests(fit: AnovaFit, alpha: float = 0.05) -> list[dict]:
         if row["ok"] is False:
             fit.warnings.append(f"{row['test']}: p = {row['p']:.3g} < {alpha:g}, {row['assumption']} rejected")
     return rows
+
+
+def _spread_check(groups: list[np.ndarray], centre) -> tuple[bool, str]:
+    """(can run, why not) for Levene's test of ``groups`` (the cells' values, 2+ runs each) about ``centre``.
+
+    The test compares the cells' mean absolute deviation from their centre against how much those deviations vary
+    within the cells. It cannot run when they do not vary within any cell (their RMS about the cell's mean
+    deviation at most ``ZERO_SD_RTOL`` x max|y|), as in cells of 2 runs (both equally far from the centre) or of
+    zero variance (identical values): the statistic is then a ratio of rounding errors.
+    """
+    if len(groups) < 2:
+        return False, "fewer than 2 cells with 2+ runs"
+    dev = [np.abs(g - centre(g)) for g in groups]
+    spread = np.sqrt(sum(float(np.sum((z - z.mean()) ** 2)) for z in dev) / sum(len(g) for g in groups))
+    scale = max(float(np.max(np.abs(g))) for g in groups)
+    if spread > ZERO_SD_RTOL * scale:
+        return True, ""
+    zero = sum(float(np.std(g)) <= ZERO_SD_RTOL * scale for g in groups)
+    two = sum(len(g) == 2 for g in groups)
+    why = [f"{two} of {len(groups)} cells have 2 runs, which lie equally far from their centre" if two else "",
+           f"{zero} of {len(groups)} cells have zero variance, their runs identical" if zero else ""]
+    why = [w for w in why if w] or ["in every cell the runs lie equally far from the centre"]
+    return False, "cannot be run: no cell's deviations from its centre vary: " + "; ".join(why)
 
 
 def _cell_keys(fit: AnovaFit) -> list[np.ndarray]:

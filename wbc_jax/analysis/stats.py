@@ -47,6 +47,7 @@ from wbc_jax.analysis.table import (
     infer_metrics,
     level_means,
     levels,
+    plain,
     prepare,
     success_column,
     successful,
@@ -56,7 +57,7 @@ from wbc_jax.errors import InputError
 __all__ = [
     "AnovaFit", "BOOKKEEPING", "CONF", "DEFAULT_FACTORS", "ESTIMABLE_TOL", "PERFECT_FIT_RTOL", "PREFERRED_METRICS",
     "SS_NAMES", "ZERO_SD_RTOL", "analyze", "assumption_tests", "cell_means", "design_table", "emmeans", "fit_anova",
-    "infer_factors", "infer_metrics", "level_means", "levels", "model_terms", "prepare", "simple_effects",
+    "infer_factors", "infer_metrics", "level_means", "levels", "model_terms", "plain", "prepare", "simple_effects",
     "success_column", "successful",
 ]
 
@@ -83,9 +84,9 @@ def analyze(df: pd.DataFrame, factors: Sequence[str], metrics: Sequence[str], al
     if not 0 < alpha < 1:
         raise InputError(f"alpha must be between 0 and 1, not {alpha}")
     if ss_type not in SS_NAMES:
-        raise InputError(f"SS type must be 1, 2 or 3, not {ss_type!r}")
+        raise InputError(f"SS type must be 1, 2 or 3, not {plain(ss_type)}")
     if not (isinstance(order, int) and order >= 1):
-        raise InputError(f"model order must be an integer >= 1, not {order!r}")
+        raise InputError(f"model order must be an integer >= 1, not {plain(order)}")
     factors, metrics = list(factors), list(metrics)
     design = design_table(df, factors)
     n_failed = int(design["failures"].sum())

@@ -83,6 +83,14 @@ def _is_default_metric(df: pd.DataFrame, col, factors: Sequence[str]) -> bool:
     return True
 
 
+def plain(value) -> str:
+    """A value as a one-line message shows it: numbers as written (``0.2``, not ``np.float64(0.2)``), strings
+    quoted (``'abc'``)."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    return repr(value) if isinstance(value, str) else str(value)
+
+
 def levels(s: pd.Series) -> list:
     """Sorted distinct non-missing values of a factor column (numeric order if possible)."""
     vals = list(pd.unique(s.dropna()))
@@ -113,7 +121,7 @@ def prepare(df: pd.DataFrame, factors: Sequence[str], metrics: Sequence[str]) ->
             raise InputError(f"factor '{f}' has {n_na} empty value(s)")
         lv = levels(out[f])
         if len(lv) < 2:
-            raise InputError(f"factor '{f}' has only one level ({lv[0]!r}); a factor needs at least two")
+            raise InputError(f"factor '{f}' has only one level ({plain(lv[0])}); a factor needs at least two")
     out["success"] = success_column(out)
     for m in metrics:
         s = out[m]
@@ -121,7 +129,7 @@ def prepare(df: pd.DataFrame, factors: Sequence[str], metrics: Sequence[str]) ->
             raise InputError(f"metric '{m}' is boolean, not numeric")
         if not pd.api.types.is_numeric_dtype(s):
             bad = s[pd.to_numeric(s, errors="coerce").isna() & s.notna()]
-            example = f" (e.g. {bad.iloc[0]!r})" if len(bad) else ""
+            example = f" (e.g. {plain(bad.iloc[0])})" if len(bad) else ""
             raise InputError(f"metric '{m}' is not numeric{example}")
         n_inf = int(np.isinf(s.astype(float)).sum())
         if n_inf:
@@ -146,7 +154,7 @@ def success_column(df: pd.DataFrame) -> pd.Series:
     low = s.astype(str).str.strip().str.lower()
     bad = low[~low.isin(_TRUE | _FALSE)]
     if len(bad):
-        raise InputError(f"column 'success' is not boolean (e.g. {s[bad.index[0]]!r})")
+        raise InputError(f"column 'success' is not boolean (e.g. {plain(s[bad.index[0]])})")
     return low.isin(_TRUE)
 
 

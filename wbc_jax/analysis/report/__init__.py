@@ -2,8 +2,10 @@
 
 Reads the CSV, checks it, runs :func:`wbc_jax.analysis.stats.analyze`, and writes into DIR:
 
-- ``report.md``: warnings first, design, summary of significant terms, per metric the ANOVA
-  table, assumption tests, simple main effects and descriptives, cell means, figures, method.
+- ``report.md``: a title naming the campaign's spec (from the ``manifest.json`` beside the table), warnings
+  first, for a campaign's table the definitions of R, T, S (formula, unit, direction), summary of significant
+  terms, design, per metric the ANOVA table, assumption tests, simple main effects and descriptives, cell means,
+  figures, method. A campaign's T is shown in mm throughout (results.csv keeps metres; ``anova.json`` ``units``).
 - ``report.html``: the same, self-contained (figures embedded as base64 PNG).
 - ``anova.json``: ``metrics`` maps each metric to ``anova`` (a list of rows with keys
   source, sum_sq, df, mean_sq, F, p, partial_eta_sq; the last row is Residual),
@@ -14,8 +16,9 @@ Reads the CSV, checks it, runs :func:`wbc_jax.analysis.stats.analyze`, and write
   and from the QP's planned object forces per cell and the boundary rule's share of each (:func:`r_sources`).
 - ``design.csv``, ``cell_means.csv`` (mean, sd, n per cell and metric; CI baselines).
 - ``manifest.json``: input path and SHA-256, arguments, package versions, wall time.
-- ``figures/means.png`` (metric means +- SD per factor level), ``figures/interactions_<metric>.png`` (one per
-  metric: EMM +- 95 % CI per two-way interaction), ``figures/qq.png`` (residual Q-Q plots),
+- ``figures/means.png`` (EMM +- 95 % CI per factor level), ``figures/interactions_<metric>.png`` (one per
+  metric: EMM +- 95 % CI per two-way interaction, both orientations side by side), ``figures/qq.png`` (residual
+  Q-Q plots),
   ``figures/success_levels.png`` and ``figures/success_pairs.png`` (success rate per factor level and per
   pair of factors, :mod:`wbc_jax.analysis.success`).
 
@@ -25,7 +28,10 @@ Besides the ANOVA: success rates per factor level and per pair of factors (all r
 success; ``anova.json`` ``ablation``).
 
 Factors and model order: as given; else, for a campaign's ``results.csv`` with its ``manifest.json`` beside it,
-the spec's factors and ``[analysis] order``; else m, mu, d and order 2.
+the spec's factors and ``[analysis] order`` (a declared factor missing from the table: a warning, logged on one
+line, and the others analysed); else m, mu, d and order 2. Refused with a one-line InputError: a run id (column
+``run`` or ``run_id``) appearing twice, a JSON file (e.g. the manifest itself), a CSV separated by semicolons or
+tabs.
 
 Nothing partial is left in DIR: everything is built in memory, written to a temporary
 sibling directory, and renamed into place. DIR must be new or empty, or (``force``) hold an
@@ -44,9 +50,9 @@ figures and their captions), :mod:`~.output` (``anova.json``, ``manifest.json``,
 """
 
 from wbc_jax.analysis.report.campaign_sections import r_sources
-from wbc_jax.analysis.report.inputs import CAMPAIGN_METRICS, campaign_defaults, read_results
+from wbc_jax.analysis.report.inputs import CAMPAIGN_METRICS, read_campaign, read_results
 from wbc_jax.analysis.report.output import COMMAND, SCHEMA, write_dir_atomic
 from wbc_jax.analysis.report.run import run_report
 
-__all__ = ["CAMPAIGN_METRICS", "COMMAND", "SCHEMA", "campaign_defaults", "r_sources", "read_results", "run_report",
+__all__ = ["CAMPAIGN_METRICS", "COMMAND", "SCHEMA", "r_sources", "read_campaign", "read_results", "run_report",
            "write_dir_atomic"]

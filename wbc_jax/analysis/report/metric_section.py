@@ -12,7 +12,8 @@ RESULT = {True: "ok", False: "REJECTED (p < {alpha:g})", None: "not run"}  # an 
 
 
 def metric_section(d: Doc, m: str, r: dict, level_means: pd.DataFrame, alpha: float) -> None:
-    """The section of metric ``m`` (``r``: its entry of :func:`wbc_jax.analysis.stats.analyze`'s ``metrics``)."""
+    """The section of metric ``m`` (its label; ``r``: its entry of :func:`wbc_jax.analysis.stats.analyze`'s
+    ``metrics``; ``level_means``: its rows of the level means)."""
     fit = r["fit"]
     d.h(2, f"Metric {m}")
     d.p(f"Model {fit.formula}; n = {fit.n}; residual df = {fmt(fit.df_resid, 'g')}; MSE = {fmt(fit.mse)}.")
@@ -38,7 +39,7 @@ def metric_section(d: Doc, m: str, r: dict, level_means: pd.DataFrame, alpha: fl
             "factor's levels reverses across the x-axis levels; EMMs); ordinal otherwise.")
         d.table(pd.DataFrame(interaction.shapes(r["emms"])))
     d.h(3, "Descriptives per factor level (successful runs)")
-    lm = level_means[level_means["metric"] == m]
+    lm = level_means
     d.table(pd.DataFrame({"factor": lm["factor"], "level": lm["level"].map(lambda v: fmt(v, "g")),
                           "mean": lm["mean"].map(fmt), "SD": lm["sd"].map(fmt), "n": lm["n"]}))
 

@@ -8,7 +8,8 @@ from wbc_jax.analysis import stats
 from wbc_jax.analysis.report import output
 from wbc_jax.analysis.report.campaign_sections import R_PLAN, r_sources
 from wbc_jax.analysis.report.figure_jobs import figure_jobs, success_jobs
-from wbc_jax.analysis.report.inputs import load_table
+from wbc_jax.analysis.report.inputs import Table, load_table
+from wbc_jax.analysis.report.metric_defs import in_display_units, labels, units
 from wbc_jax.analysis.report.model import analyze_table, beyond_anova
 from wbc_jax.analysis.report.sections import design_only_document, document, title
 from wbc_jax.analysis.workers import Workers, start_figures
@@ -25,7 +26,8 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
         results_csv: results table, one row per run (factors, rep, seed, success, metrics).
         out_dir: output directory, new or empty (or an earlier report with ``force``); untouched on error.
         alpha: significance level (0 < alpha < 1).
-        factors: factor columns (default: the campaign's, :func:`campaign_defaults`, else those of m, mu, d).
+        factors: factor columns (default: those the campaign's manifest declares, else those of m, mu, d;
+            :func:`~wbc_jax.analysis.report.inputs.load_table`).
         metrics: metric columns (default: see :mod:`wbc_jax.analysis.stats`).
         figures: render the PNG figures (tests switch them off for speed).
         ss_type: sums-of-squares type, 1, 2 or 3.
@@ -40,7 +42,8 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
         The content of ``anova.json``.
 
     Raises:
-        InputError: unreadable or malformed input (one-line message naming the problem).
+        InputError: unreadable or malformed input, e.g. repeated run ids, a JSON or a semicolon-separated file
+            (one-line message naming the problem).
         OutputError: ``out_dir`` is not a new or empty folder (or an earlier report with ``force``).
         WbcJaxError: the output directory cannot be written.
     """
@@ -51,24 +54,25 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
     table = load_table(results_csv, factors, metrics, order)
     factors, df = table.factors, table.frame
     request = output.Request(results_csv, table.raw, alpha, factors, ss_type, table.order, started)
-    data = stats.prepare(df, factors, table.metrics)
+    data = in_display_units(stats.prepare(df, factors, table.metrics), table.metrics, table.is_campaign)
     res = analyze_table(data, factors, table.metrics, alpha=alpha, ss_type=ss_type, order=table.order)
+    res["warnings"] = table.warnings + res["warnings"]
     extra = beyond_anova(data, factors, alpha)
     if not res["metrics"]:
-        return _write_design_only(request, res, extra, out_dir, figures, workers)
+        return _write_design_only(request, table, res, extra, out_dir, figures, workers)
     metrics = list(res["metrics"])
-    jobs = figure_jobs(res, extra, factors, metrics) if figures else {}
+    jobs = figure_jobs(res, extra, factors, metrics, labels(metrics, table.is_campaign)) if figures else {}
     pending = start_figures(jobs, workers)  # drawn by the workers while this process writes the document
     manifest = output.manifest(request, len(df), metrics)
     r_json = {"r_sources": r_sources(df, factors).to_dict("records")} if R_PLAN in df.columns else {}
     summary = output.clean(dict(output.summary(res, data, factors, alpha, manifest), **output.extra_json(extra),
-                                **r_json))
-    doc = document(res, summary, factors, metrics, alpha, list(jobs), df, extra)
+                                **r_json, units=units(metrics, table.is_campaign)))
+    doc = document(res, summary, table, metrics, alpha, list(jobs), extra)
     images = pending.result()
     manifest["wall_s"] = summary["manifest"]["wall_s"] = output.wall_s(request)
     files = {
         "report.md": doc.markdown().encode(),
-        "report.html": doc.html(images, title=title(results_csv)).encode(),
+        "report.html": doc.html(images, title=title(results_csv, table.campaign)).encode(),
         "anova.json": output.dumps(summary).encode(),
         "design.csv": res["design"].to_csv(index=False).encode(),
         "cell_means.csv": res["cell_means"].to_csv(index=False).encode(),
@@ -79,19 +83,20 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
     return summary
 
 
-def _write_design_only(request: output.Request, res: dict, extra: dict, out_dir: str, figures: bool,
+def _write_design_only(request: output.Request, table: Table, res: dict, extra: dict, out_dir: str, figures: bool,
                        figure_workers: Workers | None) -> dict:
     """The report of a table without an analysable metric: warnings, the design table and the success rates."""
     jobs = success_jobs(extra, request.factors) if figures else {}
     images = start_figures(jobs, figure_workers).result()
-    d = design_only_document(res, extra, request.results_csv, request.factors, request.alpha, list(images))
+    d = design_only_document(res, extra, request.results_csv, table, request.alpha, list(images))
     manifest = dict(output.manifest(request, res["n_runs"], []), wall_s=output.wall_s(request))
     summary = output.clean({"schema": output.SCHEMA, "alpha": request.alpha, "ss_type": manifest["ss_type"],
                             "n_runs": res["n_runs"], "n_failed": res["n_failed"], "warnings": res["warnings"],
                             "design": res["design"], "metrics": {}, **output.extra_json(extra),
                             "manifest": manifest})
     output.write_dir_atomic(out_dir, {"report.md": d.markdown().encode(),
-                                      "report.html": d.html(images, title=title(request.results_csv)).encode(),
+                                      "report.html": d.html(images, title=title(request.results_csv,
+                                                                                table.campaign)).encode(),
                                       "anova.json": output.dumps(summary).encode(),
                                       "design.csv": res["design"].to_csv(index=False).encode(),
                                       "manifest.json": output.dumps(manifest).encode(),
