@@ -19,13 +19,14 @@ from wbc_jax.control.centroidal import (
 )
 from wbc_jax.control.centroidal_dynamics import centroidal_terms
 from wbc_jax.physics import backend as physics
+from wbc_jax.physics.contacts import contact_slots
 from wbc_jax.physics.observe import dyn_terms
 from wbc_jax.planner import capture_point as cpm
 from wbc_jax.planner.gait import GaitParams
 from wbc_jax.qp import QPSettings, solve_qp
 from wbc_jax.robot.model import Robot, mjx
-from wbc_jax.physics.contacts import contact_slots
-from wbc_jax.studies.trot import SNAPSHOT_SIZE, TrotSim, init_run, make_plan, simulate, write_snapshots
+from wbc_jax.studies.trot import TrotSim, init_run, make_plan, simulate
+from wbc_jax.studies.trot_analysis import SNAPSHOT_SIZE, write_snapshots
 
 MOM_RTOL = 2e-5  # float32 A_G v vs float64 references, relative to ||h||
 FD_TOL = 2e-3  # [N, N m] Adot v vs central differences of the body-velocity momentum
@@ -202,7 +203,8 @@ def test_qp_matches_osqp_and_obeys_the_model(robot, trot_sim):
     s.setup(sp.csc_matrix(np.triu(Pn)), qn, sp.csc_matrix(An), np.maximum(ln, -1e20), np.minimum(un, 1e20),
             eps_abs=1e-9, eps_rel=1e-9, max_iter=200000, verbose=False, polishing=True)
     x_ref = s.solve().x
-    x = np.asarray(jax.jit(solve_qp, static_argnames="settings")(P, q, A, l, u, settings=QPSettings(iters=400)).x, float)
+    solve = jax.jit(solve_qp, static_argnames="settings")
+    x = np.asarray(solve(P, q, A, l, u, settings=QPSettings(iters=400)).x, float)
     obj = lambda z: 0.5 * z @ Pn @ z + qn @ z  # noqa: E731
     assert abs(obj(x) - obj(x_ref)) <= QP_OBJ_RTOL * abs(obj(x_ref))
     assert (np.maximum(An @ x - un, 0) + np.maximum(ln - An @ x, 0)).max() < QP_VIOL_TOL
@@ -227,8 +229,9 @@ def test_short_trot_keeps_the_robot_up(robot, trot_sim, tmp_path):
     B = errors.shape[0]
     gains = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (B,) + x.shape), default_gains())
     gains = gains._replace(mass_scale=1.0 + errors)
-    rs = jax.jit(jax.vmap(lambda q: init_run(trot_sim, robot.mjx_model, q)))(jnp.broadcast_to(jnp.asarray(q0), (B,) + q0.shape))
-    st, logs = simulate(trot_sim, rs, plan, jnp.asarray(R0), gains, TROT_SECONDS, chunk_seconds=TROT_SECONDS)
+    init = jax.jit(jax.vmap(lambda q: init_run(trot_sim, robot.mjx_model, q)))
+    runs0 = init(jnp.broadcast_to(jnp.asarray(q0), (B,) + q0.shape))
+    st, logs = simulate(trot_sim, runs0, plan, jnp.asarray(R0), gains, TROT_SECONDS, chunk_seconds=TROT_SECONDS)
     acc = jax.device_get(st.acc)
     assert not acc.nonfinite.any() and not acc.nonfoot_floor.any()
     assert np.all(acc.min_trunk_z > TROT_Z_MIN), acc.min_trunk_z
@@ -238,7 +241,7 @@ def test_short_trot_keeps_the_robot_up(robot, trot_sim, tmp_path):
     progress = (logs.com[:, -1, :2] - logs.com[:, 0, :2]) @ h  # planned: 3 strides = 0.3 m
     assert np.all(progress > 0.2), progress
     # it stepped: every foot moved forward by about two strides or more
-    feet = np.asarray(st.d.site_xpos[:, ids.foot_site, :2] - rs.d.site_xpos[:, ids.foot_site, :2]) @ h
+    feet = np.asarray(st.d.site_xpos[:, ids.foot_site, :2] - runs0.d.site_xpos[:, ids.foot_site, :2]) @ h
     assert np.all(feet > 0.15), feet
     snap = write_snapshots(tmp_path / "fig9.png", robot, logs, 0, plan, 0.2, 1.2, 0.25, 4)
     assert len(snap["times_s"]) == 4

@@ -1,13 +1,14 @@
-"""Fig. 9-style snapshot strip of the trot (wbc_jax.analysis.video.render_strip, wbc_jax.studies.trot): one PNG of N
-frames side by side at fixed times. Offscreen rendering needs an OpenGL backend (MUJOCO_GL=egl or osmesa); where
-there is none the tests skip with the renderer's reason, as ``wbc-jax trot`` then leaves the picture out."""
+"""Fig. 9-style snapshot strip of the trot (wbc_jax.analysis.video.render_strip,
+wbc_jax.studies.trot_analysis): one PNG of N frames side by side at fixed times. Offscreen rendering needs an OpenGL
+backend (MUJOCO_GL=egl or osmesa); where there is none the tests skip with the renderer's reason, as ``wbc-jax trot``
+then leaves the picture out."""
 
 import numpy as np
 import pytest
 
 from wbc_jax.analysis.video import render_strip
 from wbc_jax.robot.model import load_mj_model
-from wbc_jax.studies.trot import snapshot_times
+from wbc_jax.studies.trot_analysis import snapshot_times
 
 FRAME = (60, 80)  # [px] (height, width) of one frame
 

@@ -10,8 +10,9 @@ Writes into DIR (atomically): ``summary.json`` (per run: mean forward speed, rol
 amplitudes, max |torque| per joint against its limit, CP tracking error; plus the acceptance checks of
 the nominal run and a manifest) and the figures ``fig6_capture_point.png``, ``fig7_speed.png``,
 ``fig8_attitude.png``, ``fig9_snapshots.png`` (the nominal run trotting: N frames side by side over one gait cycle
-in the middle of the walk, :func:`snapshot_times`; rendered offscreen, so without an OpenGL backend it is left out
-and ``summary.json`` ``snapshots`` says why), ``fig10_torques.png``, ``fig11_phase.png``, ``fig12_mass_error.png``.
+in the middle of the walk, :func:`wbc_jax.studies.trot_analysis.snapshot_times`; rendered offscreen, so without an
+OpenGL backend it is left out and ``summary.json`` ``snapshots`` says why), ``fig10_torques.png``,
+``fig11_phase.png``, ``fig12_mass_error.png`` (:mod:`wbc_jax.studies.trot_analysis`).
 """
 
 from __future__ import annotations
@@ -21,7 +22,6 @@ import json
 import platform
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import NamedTuple
 
 import jax
@@ -43,20 +43,15 @@ from wbc_jax.errors import WbcJaxError
 from wbc_jax.io_utils import atomic_dir
 from wbc_jax.physics import backend as physics
 from wbc_jax.physics import contacts
+from wbc_jax.physics.contacts import contact_slots
 from wbc_jax.physics.observe import dyn_terms, observe
 from wbc_jax.planner.capture_point import CPWalkPlan, cp_walk_plan, cp_walk_reference
 from wbc_jax.planner.gait import GaitParams
 from wbc_jax.robot.model import Robot, mjx
 from wbc_jax.runtime.static import ByValue
-from wbc_jax.physics.contacts import contact_slots
+from wbc_jax.studies.trot_analysis import acceptance, analyse_run, plot_figures, write_snapshots
 
 MASS_ERRORS = (-0.2, -0.1, 0.0, 0.1, 0.2)  # controller model mass error levels (Fig. 12)
-FALL_Z = 0.3  # [m] trunk height below which a run counts as fallen
-SPEED_TARGET, SPEED_TOL = 0.4, 0.05  # [m/s] acceptance of the nominal run
-ATTITUDE_TARGET = 0.02  # [rad] oscillation amplitude target (paper: < 0.01 on its lighter robot)
-STEADY_MARGIN = 1.0  # [s] start-up and stop excluded from the steady-state window
-PROGRESS_MIN = 0.8  # a run "walks" when it stays up and covers this fraction of the planned distance
-SNAPSHOT_SIZE = (240, 320)  # [px] (height, width) of one frame of fig9_snapshots.png
 
 
 @dataclass(frozen=True, eq=False)
@@ -213,14 +208,6 @@ def simulate(sim: TrotSim, rs: TrotRun, plan: CPWalkPlan, R0, gains: CentroidalG
     return rs, jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=1), *out)
 
 
-def snapshot_times(t_start: float, t_end: float, step_time: float, n: int) -> np.ndarray:
-    """(n,) times [s] of the Fig. 9 strip: one gait cycle (two steps, both diagonal pairs swinging) in n equal
-    parts, starting at the first step boundary at or after the middle of the walk [t_start, t_end]."""
-    k = np.ceil(((t_start + t_end) / 2 - t_start) / step_time - 1e-9)
-    t0 = min(t_start + k * step_time, max(t_start, t_end - 2 * step_time))
-    return t0 + 2 * step_time * np.arange(n) / max(n, 1)
-
-
 def validate(seconds, stride, step_time, t_four, mass_errors, iters, snapshots: int = 6):
     """Raise WbcJaxError on values the study cannot run with."""
     if not 0 < seconds <= 600:  # finite and bounded: a day of simulated walking would not fit in memory
@@ -237,6 +224,80 @@ def validate(seconds, stride, step_time, t_four, mass_errors, iters, snapshots: 
         raise WbcJaxError(f"--iters = {iters}: expected 1 <= value <= 1000")
     if not 0 <= snapshots <= 24:
         raise WbcJaxError(f"--snapshots = {snapshots}: expected 0 <= value <= 24")
+
+
+class _Study(NamedTuple):
+    """The batch of one study: simulation structure, walking pattern and per-run controller gains."""
+
+    robot: Robot
+    sim: TrotSim
+    plan: CPWalkPlan
+    R0: np.ndarray  # (3, 3) trunk orientation at the start
+    gains: CentroidalGains  # the nominal gains (mass_scale 1)
+    batch_gains: CentroidalGains  # leading run axis, mass_scale = 1 + mass error
+    runs0: TrotRun  # initial state, leading run axis
+    n_steps: int
+    t_end: float  # [s] end of the walk
+    total: float  # [s] simulated time
+
+
+def _build(stride, step_time, t_four, mass_errors, carry_object, iters, log_every, gains, t_start, seconds,
+           t_settle) -> _Study:
+    """Robot, controller config, plan and the batch's initial state (one run per mass error)."""
+    robot = Robot("flat")
+    ids = robot.ids
+    cfg = CentroidalConfig(qp=centroidal_qp_settings(iters), dt=float(robot.mj_model.opt.timestep))
+    sim = TrotSim(robot=robot, cfg=cfg, log_every=log_every, nonfoot_slots=contact_slots(robot)[0])
+    qpos0 = robot.home_qpos()
+    obj_mass = float(robot.mj_model.body_mass[ids.obj_body])
+    if not carry_object:
+        qpos0[ids.obj_qpos_adr : ids.obj_qpos_adr + 3] = (2.0, 2.0, 1.0)
+    n_steps = max(2, int(round(seconds / step_time)))
+    plan, R0 = make_plan(robot, qpos0, stride, step_time, t_four, n_steps, t_start=t_start)
+    B = len(mass_errors)
+    g0 = gains or default_gains(load_mass=obj_mass if carry_object else 0.0)
+    gb = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (B,) + jnp.shape(x)), g0)
+    gb = gb._replace(mass_scale=1.0 + jnp.asarray(mass_errors))
+    runs0 = jax.jit(jax.vmap(lambda q: init_run(sim, robot.mjx_model, q)))(
+        jnp.broadcast_to(jnp.asarray(qpos0), (B,) + qpos0.shape))
+    t_end = t_start + n_steps * step_time
+    return _Study(robot=robot, sim=sim, plan=plan, R0=R0, gains=g0, batch_gains=gb, runs0=runs0, n_steps=n_steps,
+                  t_end=t_end, total=t_end + t_settle)
+
+
+def _simulate_with_progress(study: _Study):
+    """:func:`simulate` printing the simulated and wall time after each chunk. Returns (final TrotRun, TrotLog,
+    marks: (simulated s, wall s) after each chunk, the first one including compilation)."""
+    tw = time.perf_counter()
+    marks = []
+
+    def progress(s):
+        marks.append((s, time.perf_counter() - tw))
+        print(f"  simulated {s:6.2f} / {study.total:.2f} s   wall {marks[-1][1]:7.1f} s", flush=True)
+
+    final, logs = simulate(study.sim, study.runs0, study.plan, jnp.asarray(study.R0), study.batch_gains, study.total,
+                           progress=progress)
+    return final, logs, marks
+
+
+def _manifest(t_wall: float, marks: list, n_runs: int, dt: float) -> dict:
+    """``summary.json``'s ``manifest``: wall times, the rate after the first (compiling) chunk, versions."""
+    steps_s = (n_runs * (marks[-1][0] - marks[0][0]) / dt / max(marks[-1][1] - marks[0][1], 1e-9)
+               if len(marks) > 1 else float("nan"))
+    return dict(wall_time_s=time.perf_counter() - t_wall, compile_and_first_chunk_s=marks[0][1],
+                env_steps_per_s_after_compile=steps_s, device=jax.devices()[0].device_kind,
+                jax=jax.__version__, mujoco=mujoco.__version__, python=platform.python_version())
+
+
+def _print_runs(runs: list[dict], summary: dict, checks: dict, out: str) -> None:
+    for r in runs:
+        print(f"  mass error {r['mass_error']:+.2f}: walked {r['walked']}, speed {r['mean_forward_speed_mps']:.3f} "
+              f"m/s, CP x-error rms {1e3 * r['cp_x_error_rms_m']:.1f} mm, attitude amp "
+              + ", ".join(f"{k} {v:.4f}" for k, v in r["attitude_amplitude_rad"].items())
+              + f" rad, max |tau|/limit {r['max_tau_ratio']:.2f}")
+    if summary["snapshots"]["written"] is None:
+        print(f"  {summary['snapshots']['reason']}")
+    print(f"acceptance: {checks}; written to {out}")
 
 
 def run_trot(out: str, seconds: float = 10.0, stride: float = 0.10, step_time: float = 0.25, t_four: float = 0.08,
@@ -258,206 +319,28 @@ def run_trot(out: str, seconds: float = 10.0, stride: float = 0.10, step_time: f
     mass_errors = tuple(float(e) for e in mass_errors)
     validate(seconds, stride, step_time, t_four, mass_errors, iters, snapshots)
     t_wall = time.perf_counter()
-    robot = Robot("flat")
-    ids = robot.ids
-    sim = TrotSim(robot=robot, cfg=CentroidalConfig(qp=centroidal_qp_settings(iters), dt=float(robot.mj_model.opt.timestep)),
-                  log_every=log_every, nonfoot_slots=contact_slots(robot)[0])
-    qpos0 = robot.home_qpos()
-    obj_mass = float(robot.mj_model.body_mass[ids.obj_body])
-    if not carry_object:
-        qpos0[ids.obj_qpos_adr : ids.obj_qpos_adr + 3] = (2.0, 2.0, 1.0)
-    n_steps = max(2, int(round(seconds / step_time)))
-    plan, R0 = make_plan(robot, qpos0, stride, step_time, t_four, n_steps, t_start=t_start)
-    B = len(mass_errors)
-    g0 = gains or default_gains(load_mass=obj_mass if carry_object else 0.0)
-    gb = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (B,) + jnp.shape(x)), g0)
-    gb = gb._replace(mass_scale=1.0 + jnp.asarray(mass_errors))
-    rs = jax.jit(jax.vmap(lambda q: init_run(sim, robot.mjx_model, q)))(jnp.broadcast_to(jnp.asarray(qpos0), (B,) + qpos0.shape))
-    t_end = t_start + n_steps * step_time
-    total = t_end + t_settle
-    print(f"trot: {B} run(s) (mass errors {list(mass_errors)}), {n_steps} steps of {step_time} s, stride {stride} m, "
-          f"{total:.2f} s simulated, object {'on the tray' if carry_object else 'removed'}", flush=True)
-    tw = time.perf_counter()
-    marks = []
-
-    def progress(s):
-        marks.append((s, time.perf_counter() - tw))
-        print(f"  simulated {s:6.2f} / {total:.2f} s   wall {marks[-1][1]:7.1f} s", flush=True)
-
-    st, logs = simulate(sim, rs, plan, jnp.asarray(R0), gb, total, progress=progress)
-    acc = jax.device_get(st.acc)
-    runs = [analyse_run(logs, acc, i, e, plan, t_start, t_end, stride, ids) for i, e in enumerate(mass_errors)]
+    study = _build(stride, step_time, t_four, mass_errors, carry_object, iters, log_every, gains, t_start, seconds,
+                   t_settle)
+    ids, t_end = study.robot.ids, study.t_end
+    print(f"trot: {len(mass_errors)} run(s) (mass errors {list(mass_errors)}), {study.n_steps} steps of {step_time} s, "
+          f"stride {stride} m, {study.total:.2f} s simulated, object {'on the tray' if carry_object else 'removed'}",
+          flush=True)
+    final, logs, marks = _simulate_with_progress(study)
+    acc = jax.device_get(final.acc)
+    runs = [analyse_run(logs, acc, i, e, study.plan, t_start, t_end, stride, ids) for i, e in enumerate(mass_errors)]
     i0 = int(np.argmin(np.abs(np.asarray(mass_errors))))
-    nom = runs[i0]
-    acceptance = dict(
-        nominal_mass_error=mass_errors[i0],
-        speed_ok=bool(abs(nom["mean_forward_speed_mps"] - SPEED_TARGET) <= SPEED_TOL and nom["walked"]),
-        torques_within_limits=bool(all(r["max_tau_ratio"] <= 1.0 for r in runs) and nom["max_qp_tau_excess_Nm"] <= 0),
-        attitude_amplitude_ok=bool(max(nom["attitude_amplitude_rad"].values()) <= ATTITUDE_TARGET),
-        all_mass_errors_walk=bool(all(r["walked"] for r in runs)),
-    )
-    steps_s = (B * (marks[-1][0] - marks[0][0]) / sim.cfg.dt / max(marks[-1][1] - marks[0][1], 1e-9)
-               if len(marks) > 1 else float("nan"))
+    checks = acceptance(runs, mass_errors, i0)
     summary = dict(
-        study="centroidal WBC trot (centroidal paper Sec. 3.1)", scene=str(robot.path), controller="centroidal",
-        stride_m=stride, step_time_s=step_time, four_foot_s=t_four, n_steps=n_steps, walk_s=t_end - t_start,
-        simulated_s=total, carry_object=carry_object, qp_iters=iters, control_dt_s=sim.cfg.dt,
-        gains={k: np.asarray(v).tolist() for k, v in g0._asdict().items() if k != "mass_scale"},
-        acceptance=acceptance, runs=runs,
-        manifest=dict(wall_time_s=time.perf_counter() - t_wall, compile_and_first_chunk_s=marks[0][1],
-                      env_steps_per_s_after_compile=steps_s, device=jax.devices()[0].device_kind,
-                      jax=jax.__version__, mujoco=mujoco.__version__, python=platform.python_version()),
+        study="centroidal WBC trot (centroidal paper Sec. 3.1)", scene=str(study.robot.path), controller="centroidal",
+        stride_m=stride, step_time_s=step_time, four_foot_s=t_four, n_steps=study.n_steps, walk_s=t_end - t_start,
+        simulated_s=study.total, carry_object=carry_object, qp_iters=iters, control_dt_s=study.sim.cfg.dt,
+        gains={k: np.asarray(v).tolist() for k, v in study.gains._asdict().items() if k != "mass_scale"},
+        acceptance=checks, runs=runs, manifest=_manifest(t_wall, marks, len(mass_errors), study.sim.cfg.dt),
     )
     with atomic_dir(out, command="wbc-jax trot") as tmp:
-        summary["snapshots"] = write_snapshots(tmp / "fig9_snapshots.png", robot, logs, i0, plan, t_start, t_end,
-                                               step_time, snapshots)
+        summary["snapshots"] = write_snapshots(tmp / "fig9_snapshots.png", study.robot, logs, i0, study.plan, t_start,
+                                               t_end, step_time, snapshots)
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2))
-        plot_figures(tmp, logs, plan, mass_errors, i0, ids, t_start, t_end)
-    for r in runs:
-        print(f"  mass error {r['mass_error']:+.2f}: walked {r['walked']}, speed {r['mean_forward_speed_mps']:.3f} m/s, "
-              f"CP x-error rms {1e3 * r['cp_x_error_rms_m']:.1f} mm, attitude amp "
-              + ", ".join(f"{k} {v:.4f}" for k, v in r["attitude_amplitude_rad"].items())
-              + f" rad, max |tau|/limit {r['max_tau_ratio']:.2f}")
-    if summary["snapshots"]["written"] is None:
-        print(f"  {summary['snapshots']['reason']}")
-    print(f"acceptance: {acceptance}; written to {out}")
+        plot_figures(tmp, logs, study.plan, mass_errors, i0, ids, t_start, t_end)
+    _print_runs(runs, summary, checks, out)
     return summary
-
-
-def write_snapshots(path, robot: Robot, logs: TrotLog, i: int, plan: CPWalkPlan, t_start, t_end, step_time,
-                    n: int) -> dict:
-    """Fig. 9: ``n`` frames of run ``i`` side by side at :func:`snapshot_times`, a side view from the robot's right
-    (camera tracking the trunk). Returns ``summary.json``'s ``snapshots``: file written (or None), the frame times
-    [s] and the reason when nothing was written (no frames asked for, or no offscreen OpenGL backend)."""
-    from wbc_jax.analysis.video import render_strip
-
-    at = snapshot_times(t_start, t_end, step_time, n)
-    if n == 0:
-        return dict(written=None, times_s=[], reason="no snapshots: --snapshots 0")
-    h = np.asarray(plan.heading)
-    azimuth = float(np.degrees(np.arctan2(h[1], h[0]))) + 120.0  # looks across the walking direction, from ahead-right
-    why = render_strip(path, robot.mj_model, np.asarray(logs.qpos[i]), np.asarray(logs.t[i]), at, size=SNAPSHOT_SIZE,
-                       track_body=robot.ids.trunk_body, azimuth=azimuth)
-    return dict(written=None if why else Path(path).name, times_s=[round(float(t), 4) for t in at], reason=why or "")
-
-
-def _forward(xy, heading):
-    return xy @ np.asarray(heading)
-
-
-def analyse_run(logs: TrotLog, acc: Accum, i: int, err: float, plan: CPWalkPlan, t_start, t_end, stride, ids) -> dict:
-    """Per-run metrics from the logs and the online reductions (numpy)."""
-    t = logs.t[i]
-    h = np.asarray(plan.heading)
-    lat = np.array([-h[1], h[0]])
-    w = float(plan.w)
-    i0, i1 = np.searchsorted(t, t_start), min(np.searchsorted(t, t_end), t.size - 1)
-    fwd = _forward(logs.com[i, :, :2], h)
-    speed = float((fwd[i1] - fwd[i0]) / (t[i1] - t[i0]))
-    steady = (t >= t_start + STEADY_MARGIN) & (t <= t_end - STEADY_MARGIN)
-    fwd_v = _forward(logs.com_vel[i, :, :2], h)
-    xi = logs.com[i, :, :2] + logs.com_vel[i, :, :2] / w
-    e_cp = xi - logs.xi_d[i]
-    walk = (t >= t_start) & (t <= t_end)
-    ex, ey = _forward(e_cp, h)[walk], (e_cp @ lat)[walk]
-    rpy = logs.rpy[i]
-    amp = {k: float((rpy[steady, j].max() - rpy[steady, j].min()) / 2) if steady.any() else float("nan")
-           for j, k in enumerate(("roll", "pitch", "yaw"))}
-    planned = (plan.P.shape[0] - 1) * stride
-    fell = bool(acc.min_trunk_z[i] < FALL_Z or acc.nonfoot_floor[i] or acc.nonfinite[i])
-    tmax = np.asarray(ids.tau_max)
-    joints = [f"{leg}_{j}" for leg in ("FL", "FR", "BL", "BR") for j in ("roll", "pitch", "knee")] + [
-        f"arm_j{k}" for k in range(1, 7)]
-    return dict(
-        mass_error=err, walked=bool(not fell and fwd[-1] - fwd[0] >= PROGRESS_MIN * planned), fell=fell,
-        distance_m=float(fwd[-1] - fwd[0]), planned_distance_m=float(planned),
-        mean_forward_speed_mps=speed,
-        steady_forward_speed_mps=float(fwd_v[steady].mean()) if steady.any() else float("nan"),
-        attitude_amplitude_rad=amp,
-        attitude_max_abs_rad={k: float(np.abs(rpy[:, j]).max()) for j, k in enumerate(("roll", "pitch", "yaw"))},
-        cp_x_error_rms_m=float(np.sqrt(np.mean(ex**2))), cp_x_error_max_m=float(np.abs(ex).max()),
-        cp_y_error_rms_m=float(np.sqrt(np.mean(ey**2))),
-        max_abs_tau_Nm={j: float(v) for j, v in zip(joints, acc.max_abs_tau[i])},
-        tau_limit_Nm=float(tmax.max()), max_tau_ratio=float(np.max(acc.max_abs_tau[i] / tmax)),
-        max_qp_tau_excess_Nm=float(acc.max_tau_excess[i]), min_trunk_z_m=float(acc.min_trunk_z[i]),
-        qp_flag_fraction=float(acc.n_flag[i] / max(int(acc.n_steps[i]), 1)),
-        qp_prim_res_median=float(np.median(logs.prim_res[i])),
-    )
-
-
-def plot_figures(folder, logs: TrotLog, plan: CPWalkPlan, mass_errors, i0: int, ids, t_start, t_end):
-    """The paper's Figs. 6, 7, 8, 10, 11 (nominal run) and 12 (all mass errors) as PNG files."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    h = np.asarray(plan.heading)
-    lat = np.array([-h[1], h[0]])
-    t = logs.t[i0]
-    o = np.asarray(logs.com[i0, 0, :2])
-    w = float(plan.w)
-    xi = logs.com[i0, :, :2] + logs.com_vel[i0, :, :2] / w
-
-    def save(fig, name):
-        fig.tight_layout()
-        fig.savefig(folder / name, dpi=90)
-        plt.close(fig)
-
-    # Fig. 6: footprints, desired and actual CP (forward vs time, and top view in the heading frame)
-    fig, ax = plt.subplots(1, 2, figsize=(13, 4.5))
-    ax[0].step(t, _forward(logs.P[i0] - o, h), "k", where="post", lw=1, label="virtual leg P (footprint)")
-    ax[0].plot(t, _forward(logs.xi_d[i0] - o, h), "C0", label="desired CP")
-    ax[0].plot(t, _forward(xi - o, h), "C1--", label="actual CP")
-    ax[0].set_xlabel("t [s]"), ax[0].set_ylabel("forward [m]"), ax[0].legend()
-    feet = np.asarray(plan.feet) - o
-    for k, name in enumerate(("FL", "FR", "BL", "BR")):
-        ax[1].plot(feet[:, k] @ h, feet[:, k] @ lat, "s", ms=3, label=f"{name} footholds")
-    ax[1].plot((logs.xi_d[i0] - o) @ h, (logs.xi_d[i0] - o) @ lat, "C0", lw=1, label="desired CP")
-    ax[1].plot((xi - o) @ h, (xi - o) @ lat, "C1--", lw=1, label="actual CP")
-    ax[1].set_xlabel("forward [m]"), ax[1].set_ylabel("lateral [m]"), ax[1].legend(fontsize=7)
-    save(fig, "fig6_capture_point.png")
-
-    # Fig. 7: CoM forward speed
-    fig, ax = plt.subplots(figsize=(9, 3.5))
-    ax.plot(t, _forward(logs.v_des[i0], h), "k", lw=0.8, label="desired (eq. 19)")
-    ax.plot(t, _forward(logs.com_vel[i0, :, :2], h), "C1", lw=0.8, label="actual")
-    ax.axhline(SPEED_TARGET, color="gray", ls=":")
-    ax.set_xlabel("t [s]"), ax.set_ylabel("CoM forward speed [m/s]"), ax.legend()
-    save(fig, "fig7_speed.png")
-
-    # Fig. 8: attitude
-    fig, ax = plt.subplots(figsize=(9, 3.5))
-    for j, k in enumerate(("roll", "pitch", "yaw")):
-        ax.plot(t, logs.rpy[i0, :, j], lw=0.8, label=k)
-    ax.set_xlabel("t [s]"), ax.set_ylabel("[rad]"), ax.legend()
-    save(fig, "fig8_attitude.png")
-
-    # Fig. 10: FL joint torques against the limit: tau_m = tau_star + tau_grf
-    fig, ax = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
-    lim = float(np.asarray(ids.tau_max)[0])
-    for j, k in enumerate(("roll", "pitch", "knee")):
-        ax[j].plot(t, logs.tau[i0, :, j], "k", lw=0.8, label="tau_m (applied)")
-        ax[j].plot(t, logs.tau_grf[i0, :, j], "C0", lw=0.6, label="-J^T f")
-        ax[j].plot(t, logs.tau[i0, :, j] - logs.tau_grf[i0, :, j], "C1", lw=0.6, label="tau_* = tau_m + J^T f")
-        for s in (-lim, lim):
-            ax[j].axhline(s, color="r", ls=":")
-        ax[j].set_ylabel(f"FL {k} [N m]")
-    ax[0].legend(fontsize=7, ncol=3), ax[-1].set_xlabel("t [s]")
-    save(fig, "fig10_torques.png")
-
-    # Fig. 11: phase portraits of the FL hip (pitch) and knee joints while walking
-    walk = (t >= t_start) & (t <= t_end)
-    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-    for a, j, k in ((ax[0], 1, "hip (pitch)"), (ax[1], 2, "knee")):
-        a.plot(logs.q_leg[i0, walk, j], logs.qd_leg[i0, walk, j], lw=0.5)
-        a.set_xlabel(f"FL {k} [rad]"), a.set_ylabel("[rad/s]")
-    save(fig, "fig11_phase.png")
-
-    # Fig. 12: CP forward error per controller mass error
-    fig, ax = plt.subplots(figsize=(9, 3.5))
-    for i, e in enumerate(mass_errors):
-        x_i = logs.com[i, :, :2] + logs.com_vel[i, :, :2] / w
-        ax.plot(logs.t[i], _forward(x_i - logs.xi_d[i], h), lw=0.7, label=f"mass error {100 * e:+.0f} %")
-    ax.set_xlabel("t [s]"), ax.set_ylabel("CP x-error [m]"), ax.legend(fontsize=7)
-    save(fig, "fig12_mass_error.png")
