@@ -30,12 +30,15 @@ a pair beyond the margin reads 1 m; Warp: penetrations only), so it is measured 
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 
 from wbc_jax.physics import backend as physics
+from wbc_jax.runtime import aot
 
 CONTACT_DIST = 1e-3  # [m] a foot closer than this to the floor or terrain counts as touching; an object sphere
 #                      farther than this from the tray counts as off it
@@ -51,12 +54,19 @@ def contact_forces(m, d, slots) -> jax.Array:
     return physics.slot_forces(m, d, slots)
 
 
-def contact_slots(robot):
-    """JAX backend: indices of MJX contact slots: non-foot parts vs floor or terrain, anything vs a wall, (4, K) each
-    foot vs floor and terrain, the object's contact spheres vs the tray; then the (k, 2) geom ids of the non-foot
-    slots (MJX's layout, computed once per model and kept on disk: :func:`wbc_jax.runtime.aot.cached_value`)."""
-    from wbc_jax.runtime import aot
+class ContactIndices(NamedTuple):
+    """Where the rollout reads each role's contacts: MJX contact slots (JAX) or contact-sensor addresses (Warp)."""
 
+    nonfoot: np.ndarray  # (k,) non-foot robot parts vs the floor or terrain
+    wall: np.ndarray  # anything vs a wall part
+    foot: np.ndarray  # (4, K) each foot vs the floor and terrain (Warp: (4, 1) pair ids)
+    obj: np.ndarray  # the object's contact spheres vs the tray
+    nonfoot_geoms: np.ndarray  # (k, 2) the geom ids of each non-foot entry's pair
+
+
+def contact_slots(robot) -> ContactIndices:
+    """JAX backend: the :class:`ContactIndices` of MJX's contact slots (MJX's layout, computed once per model and
+    kept on disk: :func:`wbc_jax.runtime.aot.cached_value`)."""
     return aot.cached_value("slots", aot.describe(robot), lambda: _contact_slots(robot))
 
 
@@ -76,17 +86,18 @@ def _contact_slots(robot):
     slot_pair = np.array([pairs.get((int(a), int(b)), pairs.get((int(b), int(a)), -1)) for a, b in geom])
     foot = np.array([np.where(np.isin(slot_pair, fp))[0] for fp in robot.ids.foot_pair])
     nonfoot = np.where(np.isin(slot_pair, robot.ids.nonfoot_floor_pair))[0]
-    return (nonfoot, np.where(np.isin(slot_pair, robot.ids.wall_pair))[0], foot,
-            np.where(np.isin(slot_pair, robot.ids.obj_pair))[0], geom[nonfoot].reshape(-1, 2).astype(np.int64))
+    return ContactIndices(nonfoot=nonfoot, wall=np.where(np.isin(slot_pair, robot.ids.wall_pair))[0], foot=foot,
+                          obj=np.where(np.isin(slot_pair, robot.ids.obj_pair))[0],
+                          nonfoot_geoms=geom[nonfoot].reshape(-1, 2).astype(np.int64))
 
 
-def sim_indices(robot):
-    """(nonfoot, wall, foot, obj, nonfoot_geoms) indices of ``robot``'s backend: contact slots (JAX; foot (4, K))
-    or sensordata addresses (Warp; foot (4, 1))."""
+def sim_indices(robot) -> ContactIndices:
+    """The :class:`ContactIndices` of ``robot``'s backend: contact slots (JAX) or sensordata addresses (Warp)."""
     s = robot.sensors
     if s is None:
         return contact_slots(robot)
-    return s.nonfoot, s.wall, np.asarray(robot.ids.foot_pair), s.obj, s.nonfoot_geoms
+    return ContactIndices(nonfoot=s.nonfoot, wall=s.wall, foot=np.asarray(robot.ids.foot_pair), obj=s.obj,
+                          nonfoot_geoms=s.nonfoot_geoms)
 
 
 def _sensor_dist(d, adr):

@@ -10,6 +10,8 @@ body-frame angular velocity of the trunk, which the Jacobians already account fo
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -31,7 +33,16 @@ def chain_dofs(m, body: int) -> np.ndarray:
     return np.isin(np.asarray(m.dof_bodyid), sorted(chain))
 
 
-def point_jacobians(m, d, ids: RobotIds, points, bodies):
+class PointJacobians(NamedTuple):
+    """Jacobians of k points on the robot's ``nv_r`` dofs and their Jdot v."""
+
+    Jp: jax.Array  # (k, 3, nv_r) translational
+    Jr: jax.Array  # (k, 3, nv_r) rotational
+    Jdv_p: jax.Array  # (k, 3) translational Jdot v
+    Jdv_r: jax.Array  # (k, 3) rotational Jdot v
+
+
+def point_jacobians(m, d, ids: RobotIds, points, bodies) -> PointJacobians:
     """Translational and rotational Jacobians of points fixed to bodies, and their Jdot v.
 
     MJX's ``jac`` and ``jac_dot`` (its support module), the same arithmetic, with the bodies static: each
@@ -43,7 +54,7 @@ def point_jacobians(m, d, ids: RobotIds, points, bodies):
         points: (k, 3) world points [m]; bodies: (k,) body ids (static ints).
 
     Returns:
-        (Jp (k, 3, nv_r), Jr (k, 3, nv_r), Jdv_p (k, 3), Jdv_r (k, 3)).
+        :class:`PointJacobians`.
     """
     nvr = ids.nv_robot
     bodies = [int(b) for b in np.asarray(bodies).reshape(-1)]
@@ -66,7 +77,7 @@ def point_jacobians(m, d, ids: RobotIds, points, bodies):
            + cross(cdof[None, :, :3], pvel_lin[:, None])) * mask
     jdr = cdof_dot[None, :, :3] * mask
     T = lambda j: jnp.swapaxes(j, 1, 2)  # noqa: E731  (k, nv, 3) -> (k, 3, nv)
-    return T(jacp)[:, :, :nvr], T(jacr)[:, :, :nvr], T(jdp) @ d.qvel, T(jdr) @ d.qvel
+    return PointJacobians(T(jacp)[:, :, :nvr], T(jacr)[:, :, :nvr], T(jdp) @ d.qvel, T(jdr) @ d.qvel)
 
 
 def mass_matrix(m, d) -> jax.Array:
@@ -131,7 +142,7 @@ def observe(m, d, ids: RobotIds) -> Observation:
     robot = dyn_terms(m, d, ids)
     obj = object_state(d, ids)
     Jp, Jr, Jdp, Jdr = point_jacobians(m, d, ids, obj.p[None], [ids.tray_body])
-    J_top = point_jacobians(m, d, ids, robot.p_tray[None], [ids.tray_body])[0][0]
+    J_top = point_jacobians(m, d, ids, robot.p_tray[None], [ids.tray_body]).Jp[0]
     return Observation(robot=robot, obj=obj, J_tray_obj=jnp.concatenate([Jp[0], Jr[0]]),
                        Jdv_tray_obj=jnp.concatenate([Jdp[0], Jdr[0]]), J_tray_top=J_top, qpos=d.qpos,
                        armature=m.dof_armature[: ids.nv_robot])

@@ -18,6 +18,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from wbc_jax.planner.gait import FOOT_NAMES
+
 
 class SceneGeometry(NamedTuple):
     """Static scene boxes (numpy, host side).
@@ -99,6 +101,30 @@ class LegGeometry(NamedTuple):
     shank_len: float
     shank_r: float
     thigh_r: float
+
+
+class StartPose(NamedTuple):
+    """The robot and the object at a configuration (MuJoCo C kinematics), world frame."""
+
+    p_obj: np.ndarray  # (3,) object position [m]
+    com: np.ndarray  # (3,) the robot's centre of mass [m]
+    feet: np.ndarray  # (4, 3) foot centres [m]
+    R_obj: np.ndarray  # (3, 3) object orientation
+    R_base: np.ndarray  # (3, 3) trunk orientation
+    hips: np.ndarray  # (4, 3) hip pitch axes (the thigh bodies' origins) [m]
+
+
+def start_pose(robot, qpos0) -> StartPose:
+    """The :class:`StartPose` of a :class:`wbc_jax.robot.model.Robot` at configuration ``qpos0`` (nq,)."""
+    m, ids = robot.mj_model, robot.ids
+    d = mujoco.MjData(m)
+    d.qpos[:] = qpos0
+    mujoco.mj_kinematics(m, d)
+    mujoco.mj_comPos(m, d)
+    hips = np.stack([d.xpos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, f"{leg}_thigh")] for leg in FOOT_NAMES])
+    return StartPose(p_obj=d.xpos[ids.obj_body].copy(), com=d.subtree_com[ids.trunk_body].copy(),
+                     feet=d.site_xpos[ids.foot_site].copy(), R_obj=d.xmat[ids.obj_body].reshape(3, 3).copy(),
+                     R_base=d.xmat[ids.trunk_body].reshape(3, 3).copy(), hips=hips.copy())
 
 
 def leg_geometry(robot, leg: str = "FR") -> LegGeometry:

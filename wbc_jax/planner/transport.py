@@ -24,12 +24,11 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
 from wbc_jax.planner.apf import APFParams, overhead, plan_dip
-from wbc_jax.planner.gait import FOOT_NAMES, PAIRS, GaitParams, foot_stance_time, gait_phase
-from wbc_jax.planner.scene_geometry import clear_of_edges, leg_geometry, scene_geometry, terrain_height
+from wbc_jax.planner.gait import PAIRS, GaitParams, foot_stance_time, gait_phase
+from wbc_jax.planner.scene_geometry import clear_of_edges, leg_geometry, scene_geometry, start_pose, terrain_height
 from wbc_jax.planner.spline import CubicPath, cubic_path, eval_path, max_abs_accel_z, path_end_time, straight_path
 from wbc_jax.planner.swing import swing_reference
 from wbc_jax.planner.zmp import preview_com_xy
@@ -94,19 +93,6 @@ class PlanError(ValueError):
     """A plan that violates one of its checks (clearance, vertical acceleration)."""
 
 
-def _start_state(robot, qpos0):
-    """(object position, CoM, foot centres (4, 3), object R, trunk R, hip pitch axes (4, 3)) at qpos0
-    (MuJoCo C)."""
-    m, ids = robot.mj_model, robot.ids
-    d = mujoco.MjData(m)
-    d.qpos[:] = qpos0
-    mujoco.mj_kinematics(m, d)
-    mujoco.mj_comPos(m, d)
-    hips = np.stack([d.xpos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, f"{leg}_thigh")] for leg in FOOT_NAMES])
-    return (d.xpos[ids.obj_body].copy(), d.subtree_com[ids.trunk_body].copy(), d.site_xpos[ids.foot_site].copy(),
-            d.xmat[ids.obj_body].reshape(3, 3).copy(), d.xmat[ids.trunk_body].reshape(3, 3).copy(), hips.copy())
-
-
 TERRAINS = ("known", "blind")  # what the planner knows of the ground (course_plan)
 COM_PLANS = ("spline", "zmp")  # the CoM's horizontal reference: the object's + offset, or replanned per footstep
 
@@ -144,7 +130,7 @@ def _check_options(terrain, com_plan):
 
 def _make_plan(robot, qpos0, path: CubicPath, gait: GaitParams, swing_height, t_ramp, com_dip_share,
                terrain, heading, com_plan="zmp") -> TransportPlan:
-    p_obj, com, feet, R_obj, R_base, hips = _start_state(robot, qpos0)
+    p_obj, com, feet, R_obj, R_base, hips = start_pose(robot, qpos0)
     gait = gait._replace(t_stop=float(path_end_time(path)))
     foot_off = feet.copy()
     foot_off[:, :2] -= com[:2]
@@ -172,7 +158,7 @@ def straight_plan(robot, qpos0: np.ndarray, distance: float = 3.4, speed: float 
         com_plan: as :func:`course_plan`.
     """
     _check_options(terrain, com_plan)
-    p_obj = _start_state(robot, qpos0)[0]
+    p_obj = start_pose(robot, qpos0).p_obj
     u = np.asarray(direction, float) / np.linalg.norm(direction)
     path = _straight_path(p_obj, p_obj + distance * u, speed, gait.t_start, ramp)
     return _make_plan(robot, qpos0, path, gait, swing_height, t_ramp, 1.0, np.zeros((0, 2, 3)), u, com_plan)
@@ -214,7 +200,7 @@ def course_plan(robot, qpos0: np.ndarray, side: float, distance: float = 3.4, sp
     """
     _check_options(terrain, com_plan)
     geo = scene_geometry(robot)
-    p_obj = _start_state(robot, qpos0)[0]
+    p_obj = start_pose(robot, qpos0).p_obj
     u = np.asarray(direction, float) / np.linalg.norm(direction)
     p_f = p_obj + distance * u
     dip = plan_dip(p_obj, p_f, geo.obstacles, side / 2.0, apf)

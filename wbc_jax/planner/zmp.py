@@ -16,6 +16,8 @@ minus the distance to the segment (or point): at most 0.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -38,7 +40,16 @@ _TOL_FEAS = 1e-5  # [m] feasibility tolerance of projection candidates
 _TINY = 1e-12
 
 
-def _local(point_xy, feet_xy, stance):
+class _Local(NamedTuple):
+    """A point and the feet relative to the stance centroid ``origin`` (world frame, [m])."""
+
+    q: jax.Array  # (2,)
+    feet: jax.Array  # (4, 2)
+    stance: jax.Array  # (4,) bool
+    origin: jax.Array  # (2,)
+
+
+def _local(point_xy, feet_xy, stance) -> _Local:
     """float32 care: express point and feet relative to the stance centroid (metres from
     the robot rather than from the world origin, which may be several metres away)."""
     dtype = jnp.result_type(float)
@@ -47,7 +58,7 @@ def _local(point_xy, feet_xy, stance):
     stance = jnp.asarray(stance, dtype=bool)
     n_st = jnp.maximum(jnp.sum(stance), 1)
     origin = jnp.sum(jnp.where(stance[:, None], feet, 0.0), axis=0) / n_st  # (2,)
-    return q - origin, feet - origin, stance, origin
+    return _Local(q - origin, feet - origin, stance, origin)
 
 
 def zmp_xy(p_com, a_com, g=9.81, z_ground=0.0):
@@ -255,12 +266,21 @@ def replan_com(p0, v0, p_goal, v_goal, T, feet_xy, stance, margin=0.0, g=9.81, z
 # ----------------------------------------------------------------------------- per-footstep replanning (setup time)
 
 
-def _phase_rows(T, tau):
+class _PhaseRows(NamedTuple):
     """Rows mapping (state at the phase start (3,), the phase's jerk) to p, a at local times tau (n,)."""
+
+    p_x: np.ndarray  # (n, 3) position on (p, v, a) at the phase start
+    p_j: np.ndarray  # (n,) position on the jerk
+    a_x: np.ndarray  # (n, 3) acceleration on the state
+    a_j: np.ndarray  # (n,) acceleration on the jerk
+
+
+def _phase_rows(tau) -> _PhaseRows:
+    """The :class:`_PhaseRows` at local times ``tau`` (n,) [s]."""
     one, zero = np.ones_like(tau), np.zeros_like(tau)
-    p_x = np.stack([one, tau, 0.5 * tau**2], 1)  # (n, 3) on (p, v, a) at the phase start
+    p_x = np.stack([one, tau, 0.5 * tau**2], 1)
     a_x = np.stack([zero, zero, one], 1)
-    return p_x, tau**3 / 6.0, a_x, tau
+    return _PhaseRows(p_x, tau**3 / 6.0, a_x, tau)
 
 
 def _propagate(T):
@@ -282,7 +302,7 @@ def _solve_window(x0, T, c_des, kz, line_n, line_c, two_foot, tau, w_track, w_zm
         Gam.append(g)
     rows, rhs = [], []
     for i in range(n):
-        p_x, p_j, a_x, a_j = _phase_rows(T[i], tau[i])
+        p_x, p_j, a_x, a_j = _phase_rows(tau[i])
         w = T[i] / len(tau[i])  # quadrature weight of one sample [s]
         P = p_x @ Gam[i]  # (ns, n) position rows on the jerks
         P[:, i] += p_j

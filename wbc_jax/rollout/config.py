@@ -96,7 +96,7 @@ def make_sim(robot: Robot, cfg: TransportConfig | None = None, n_substeps: int =
     if abs(cfg.dt - h * n_substeps) > 1e-9 * h:
         raise ValueError(f"control period cfg.dt = {cfg.dt} s != n_substeps ({n_substeps}) x the model's timestep "
                          f"({h} s)")
-    nonfoot, wall, foot, obj, nonfoot_geoms = contacts.sim_indices(robot)
-    return Sim(robot=robot, cfg=cfg, n_substeps=n_substeps, log_every=log_every, nonfoot_slots=nonfoot,
-               nonfoot_geoms=nonfoot_geoms, wall_slots=wall, foot_slots=foot, obj_slots=obj,
+    idx = contacts.sim_indices(robot)
+    return Sim(robot=robot, cfg=cfg, n_substeps=n_substeps, log_every=log_every, nonfoot_slots=idx.nonfoot,
+               nonfoot_geoms=idx.nonfoot_geoms, wall_slots=idx.wall, foot_slots=idx.foot, obj_slots=idx.obj,
                sensor_noise=sensor_noise, sensing=sensing)

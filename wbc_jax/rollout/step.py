@@ -15,6 +15,8 @@ run's :class:`wbc_jax.metrics.accumulate.Accum`.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 
@@ -38,7 +40,7 @@ from wbc_jax.robot.model import mjx
 from wbc_jax.rollout.config import Sim
 from wbc_jax.rollout.packed import pack
 from wbc_jax.rollout.state import Log, Push, RunState, object_in_tray
-from wbc_jax.types import ObjectModel
+from wbc_jax.types import ObjectModel, Observation, Reference
 
 
 def seen_qvel(sim: Sim, d, push: Push, step):
@@ -50,18 +52,23 @@ def seen_qvel(sim: Sim, d, push: Push, step):
     return d.qvel + push.qvel_noise_std * jax.random.normal(key, d.qvel.shape, d.qvel.dtype)
 
 
-def controller_inputs(sim: Sim, m, run_state: RunState, plan: TransportPlan, push: Push, mu_ground):
-    """What one control step computes before the controller: the sensed state, the controller's observation of it
-    (with the run's velocity noise) and the reference (with foot contacts from the simulator).
+class ControllerInputs(NamedTuple):
+    """What one control step computes before the controller."""
 
-    Returns:
-        (d sensed mjx.Data, the controller's Observation, Reference, (4,) the friction
-        coefficient of each foot's pyramid: that of the ground surface the foot is nearest to (floor or a block),
-        capped by the run's ``mu_ground`` (the scene's floor friction, or the campaign's ``ground_mu``, which the
-        physics then also uses for every foot pair)).
-    """
-    step = run_state.acc.n_steps
+    d: mjx.Data  # the sensed state
+    obs: Observation  # the controller's observation of it (with the run's velocity noise)
+    ref: Reference  # the planner's reference (with foot contacts from the simulator)
+    mu_feet: jax.Array  # (4,) each foot pyramid's friction: that of the ground surface the foot is nearest to (floor
+    #                     or a block), capped by the run's mu_ground (the scene's floor friction, or the campaign's
+    #                     ground_mu, which the physics then also uses for every foot pair)
+
+
+def controller_inputs(sim: Sim, m, run_state: RunState, plan: TransportPlan, push: Push,
+                      mu_ground) -> ControllerInputs:
+    """The sensed state, the controller's observation and the reference of one control step
+    (:class:`ControllerInputs`)."""
     with jax.named_scope("sense"):
+        step = run_state.acc.n_steps
         if sim.sensing == "delayed":  # the state the derived fields belong to: no physics call
             qpos, qvel, time = run_state.prev
             d = run_state.d.replace(qpos=qpos, qvel=qvel, time=time)
@@ -73,7 +80,7 @@ def controller_inputs(sim: Sim, m, run_state: RunState, plan: TransportPlan, pus
         obs = observe(m, d_ctl, sim.robot.ids)
         dist, mu_feet = contacts.foot_ground(sim, m, d)  # (4,), (4,)
         ref = reference(plan, d.time, run_state.p_lift, dist < CONTACT_DIST, obs.robot.p_foot)
-    return d, obs, ref, jnp.minimum(mu_ground, mu_feet)
+    return ControllerInputs(d, obs, ref, jnp.minimum(mu_ground, mu_feet))
 
 
 def clearance(sim: Sim, d):
@@ -91,17 +98,26 @@ def clearance(sim: Sim, d):
     return geom_clearance.min_clearance(geom_clearance.clearance_pairs(sim.robot), d)
 
 
-def _object_monitors(sim: Sim, m, obj_model: ObjectModel, d, d_after, finite):
-    """(1/H, ||object acceleration||, cone, off the tray) of one physics step (module docstring)."""
+class ObjectMonitors(NamedTuple):
+    """The object's monitors of one physics step (:class:`wbc_jax.metrics.accumulate.SubstepMonitors` fields)."""
+
+    inv_h: jax.Array
+    acc: jax.Array
+    cone: jax.Array
+    off: jax.Array
+
+
+def _object_monitors(sim: Sim, m, obj_model: ObjectModel, d, d_after, finite) -> ObjectMonitors:
+    """1/H, ||object acceleration||, cone and off-the-tray of one physics step (module docstring)."""
     if not sim.obj_slots.size:
-        return jnp.zeros(()), jnp.zeros(()), jnp.bool_(False), jnp.bool_(False)
+        return ObjectMonitors(jnp.zeros(()), jnp.zeros(()), jnp.bool_(False), jnp.bool_(False))
     adr = sim.robot.ids.obj_dof_adr
     f_obj, obj_dist = contacts.object_contacts(sim, m, d_after)
     inv_h, acc_norm = paper.step_integrands(f_obj, obj_model.mu, d.qvel[adr:adr + 3], d_after.qvel[adr:adr + 3],
                                             sim.dt_physics)
     inv_h, acc_norm = jnp.where(finite, inv_h, 0.0), jnp.where(finite, acc_norm, 0.0)
     cone = finite & paper.at_cone(*paper.cone_angle(f_obj), obj_model.mu)
-    return inv_h, acc_norm, cone, jnp.all(obj_dist > CONTACT_DIST)
+    return ObjectMonitors(inv_h, acc_norm, cone, jnp.all(obj_dist > CONTACT_DIST))
 
 
 def substep_monitors(sim: Sim, m, obj_model: ObjectModel, tau, d, d_after) -> SubstepMonitors:
@@ -171,9 +187,9 @@ def control_step(sim: Sim, m, run_state: RunState, plan: TransportPlan, obj_mode
     dyn = obs.robot
     tau, control_state, qp_diag = transport_control(obs, ref, obj_model, gains, run_state.cs, ids, sim.cfg, mu)
     d_phys = run_state.d if sim.sensing == "delayed" else d  # delayed: d is one physics step old, torques act now
+    d_phys = d_phys.replace(xfrc_applied=_push_force(d_phys, push, ids.trunk_body))
     with jax.named_scope("physics"):
-        d_next, acc, finite = physics_period(sim, m, obj_model, d_phys.replace(xfrc_applied=_push_force(
-            d_phys, push, ids.trunk_body)), tau, run_state.acc.unpack())
+        d_next, acc, finite = physics_period(sim, m, obj_model, d_phys, tau, run_state.acc.unpack())
     p_lift = jnp.where(ref.swing[:, None], run_state.p_lift, dyn.p_foot)
 
     # control-rate metrics (from the sensed state d at time t)

@@ -30,8 +30,8 @@ import numpy as np
 
 from wbc_jax.runtime import jaxcfg
 
-# custom-call targets without jax.export's compatibility guarantee that the exported programs may hold: Pallas'
-# Triton kernels on a GPU (none in the product since the fused QP kernel left it; kept for Pallas code)
+# custom-call targets without jax.export's compatibility guarantee that an exported program may hold (Pallas' Triton
+# kernels on a GPU)
 _UNGUARANTEED_CALLS = ("__gpu$xla.gpu.triton",)
 
 _SRC_DIGEST: str | None = None
