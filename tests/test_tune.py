@@ -1,5 +1,5 @@
 """`wbc-jax tune`: spec and gains-file validation, search bookkeeping (CEM, grid, successive halving), the paired
-comparison, the CPU batch that keeps jaxlib's LAPACK kernels off the thread pool (the hang of issue 25), one tiny
+comparison, the CPU batch that keeps jaxlib's LAPACK kernels off the thread pool (where they can hang), one tiny
 end-to-end CEM run from deliberately poor gains (every Kp x 0.2) with the best gains replayed by
 `wbc-jax campaign --gains`, and one tiny successive-halving run through the command line in a subprocess with a
 time limit (a hang fails the test instead of stalling CI).
@@ -132,7 +132,8 @@ def test_cells_of_a_campaign_without_a_factor(tmp_path):
     assert load_tune_spec(_write(tmp_path, text)).cells == [[0.2, 0.4, 0.08]]
     with pytest.raises(SpecError) as e:
         load_tune_spec(_write(tmp_path, text.replace("0.4, 0.08]", "0.4, 0.06]"), "bad.toml"))
-    assert "tune.cells[0]" in str(e.value) and "d = 0.06 is not the fixed value of the campaign ([0.08])" in str(e.value)
+    msg = str(e.value)
+    assert "tune.cells[0]" in msg and "d = 0.06 is not the fixed value of the campaign ([0.08])" in msg
 
 
 def test_bad_tune_spec_cli_exit_2_nothing_written(tmp_path, capsys):
@@ -301,7 +302,7 @@ def test_cpu_batch_keeps_lapack_kernels_inline(monkeypatch):
     compile) and checks every factorisation in it, so a larger QP or model breaks this test, not a user's run."""
     import jax
 
-    from wbc_jax.campaign import runner as campaign
+    from wbc_jax.campaign.build import build
     from wbc_jax.campaign.spec import load_spec, parse_spec
     from wbc_jax.rollout import batch as batch_module
     from wbc_jax.rollout import make_chunk_fn
@@ -312,10 +313,11 @@ def test_cpu_batch_keeps_lapack_kernels_inline(monkeypatch):
     spec = parse_spec(dict(campaign=dict(paper.campaign, reps=1), perturbations=paper.perturbations,
                            factors={k: v[:2] for k, v in paper.factors.items()}))
     # the batch's initial states as shapes and types only (jax.eval_shape of the real init function): the trace
-    # below reads nothing else of them, and compiling the course scene's init program took ~1 min on 2 cores
+    # below reads nothing else of them, and compiling the course scene's init program is slow on a CPU
     real_init = batch_module._init_fn
     monkeypatch.setattr(batch_module, "_init_fn", lambda *a: lambda *x: jax.eval_shape(real_init(*a), *x))
-    sim, dz, b, *_ = campaign.build(spec)
+    built = build(spec)
+    sim, b = built.sim, built.batch
     assert all(isinstance(x, jax.ShapeDtypeStruct) for x in jax.tree_util.tree_leaves(b.state.d))  # not computed
     rows = np.arange(CPU_BATCH)
     sub = b._replace(model=take(b.model, rows, b.in_axes), state=jax.eval_shape(lambda s: take(s, rows), b.state),
@@ -438,8 +440,9 @@ def test_tiny_successive_halving_end_to_end(tmp_path):
     assert (df[df["round"] == 2].iloc[0].kind == "elite") and df.iloc[0].kind == "start"
     assert man["new_compilations_after_round_1"] in (0, None)
     # one compiled chunk function for every rung, bracket and the confirmation (continued states keep their types)
-    assert man["compiled_variants_per_round"][-1] in (1, None) and man["compiled_variants_after_confirmation"] in (1, None)
-    from wbc_jax.campaign.runner import has_accelerator
+    assert man["compiled_variants_per_round"][-1] in (1, None)
+    assert man["compiled_variants_after_confirmation"] in (1, None)
+    from wbc_jax.campaign.build import has_accelerator
 
     if not has_accelerator():
         assert man["runs_per_call"] == 1

@@ -35,7 +35,7 @@ start and the search's best on the tuning runs), ``confirm_runs.csv`` (per run: 
 ``report.md``, ``objective_per_round.png``, ``pareto.png`` and ``manifest.json``.
 
 Spec format: :mod:`wbc_jax.studies.tune_spec`. With no ``--spec``: ``sweeps/gain_tuning_course.toml`` (the obstacle
-course) when an accelerator is present, else ``sweeps/gain_tuning_cpu.toml`` (minutes on a 2-core CPU).
+course) when an accelerator is present, else ``sweeps/gain_tuning_cpu.toml`` (sized for a CPU).
 
 Physics backend: the campaign specs' ``campaign.backend`` (``--backend`` replaces it in both the tuning and the
 confirmation campaign); the manifest records the resolved one. Several processes (``jax.distributed`` joined by the
@@ -46,50 +46,29 @@ checks and writes DIR and prints the progress, the others write nothing.
 
 from __future__ import annotations
 
-import os
-import platform
+import dataclasses
 import sys
 import time
-from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+from wbc_jax.campaign.build import backend_of, has_accelerator, sensing_of, with_backend
+from wbc_jax.errors import WbcJaxError
+from wbc_jax.io_utils import check_out_dir
+from wbc_jax.rollout import distributed
 from wbc_jax.rollout.runs import take
-from wbc_jax.studies.tune_eval import Evaluator, score
-from wbc_jax.studies.tune_report import (
-    SUMMARY,
-    leaderboard,
-    make_rows,
-    paired_comparison,
-    report_md,
-    row_key,
-    runs_table,
-)
-from wbc_jax.studies.tune_search import (
-    CEMSearch,
-    HalvingSearch,
-    Space,
-    halving_cost,
-    halving_schedule,
-    make_search,
-    rank_key,
-)
+from wbc_jax.studies.tune_eval import Evaluator, candidate, rank_keys, score
+from wbc_jax.studies.tune_report import leaderboard, make_rows, row_key
+from wbc_jax.studies.tune_results import SearchLog, Tuning, confirm, manifest, print_summary, write_outputs
+from wbc_jax.studies.tune_search import HalvingSearch, Space, halving_cost, halving_schedule, make_search
 from wbc_jax.studies.tune_spec import CPU_BATCH, TuneSpec, default_tune_spec_path, load_tune_spec
-
-
-def _keys(sc: dict) -> list:
-    return [rank_key(sc["feasible"][i], sc["violation"][i], sc["objective"][i]) for i in range(len(sc["feasible"]))]
-
-
-def _pick(res: dict, i) -> dict:
-    return {k: v[i] for k, v in res.items()}
 
 
 def _bracket(ev: Evaluator, search: HalvingSearch, x: np.ndarray, obj: dict, bar):
     """One successive-halving bracket over the candidates x (C, k). Returns (per candidate: (sc row dict,
     sim_s, per-run dict) of its last rung, the full-horizon candidates' indices and keys)."""
-    import jax.numpy as jnp
-
     alive, horizons = halving_schedule(len(x), search.eta, search.rungs, ev.n_chunks)
     idx, states, h0, last, keys = np.arange(len(x)), None, 0, {}, None
     for a, h in zip(alive, horizons):
@@ -100,9 +79,9 @@ def _bracket(ev: Evaluator, search: HalvingSearch, x: np.ndarray, obj: dict, bar
             idx = idx[keep]
         res, states = ev.rollout(search.space.gains(x[idx]), (h0, h), states, bar)
         sc = score(res, ev.mu, obj)
-        keys = _keys(sc)
+        keys = rank_keys(sc)
         for j, c in enumerate(idx):
-            last[int(c)] = (_pick(sc, j), h * ev.chunk_s, _pick(res, j))
+            last[int(c)] = (candidate(sc, j), h * ev.chunk_s, candidate(res, j))
         h0 = h
     return last, idx, keys
 
@@ -122,8 +101,6 @@ def _plan(spec: TuneSpec, search, ev: Evaluator, evc: Evaluator | None) -> float
 def _batch_size(spec: TuneSpec, runs: int) -> int:
     """Runs per rollout call: ``tune.batch``, or all of a round's runs on an accelerator, or CPU_BATCH on a CPU
     (see :mod:`wbc_jax.studies.tune_spec`: jaxlib's batched LAPACK kernels can deadlock the CPU thread pool)."""
-    from wbc_jax.campaign.runner import has_accelerator
-
     if spec.tune["batch"] > 0:
         return spec.tune["batch"]
     return max(1, runs) if has_accelerator() else CPU_BATCH
@@ -132,10 +109,6 @@ def _batch_size(spec: TuneSpec, runs: int) -> int:
 def _with_backend(spec: TuneSpec, backend: str | None) -> TuneSpec:
     """``spec`` with ``campaign.backend`` of its tuning and confirmation campaigns replaced (``--backend``),
     each checked against its sensing setting; unchanged for None."""
-    import dataclasses
-
-    from wbc_jax.campaign.runner import sensing_of, with_backend
-
     if backend is not None:
         cc = spec.confirm_campaign
         spec = dataclasses.replace(spec, campaign=with_backend(spec.campaign, backend),
@@ -144,6 +117,108 @@ def _with_backend(spec: TuneSpec, backend: str | None) -> TuneSpec:
         if camp is not None:
             sensing_of(camp)  # a bad backend / sensing combination fails before anything is written
     return spec
+
+
+def _say(writer: bool):
+    """``print`` in the writing process, a no-op in the others."""
+    return print if writer else (lambda *a, **k: None)
+
+
+def _prepare(spec_path, out, candidates, rounds, batch, force, backend) -> Tuning:
+    """Load and check the spec, check DIR (process 0), build the search and both evaluators with one batch shape."""
+    path = spec_path if spec_path is not None else default_tune_spec_path(has_accelerator())
+    spec = _with_backend(load_tune_spec(path).with_overrides(candidates, rounds, batch), backend)
+    writer = distributed.is_writer()
+    problem = None
+    try:  # process 0's output folder (the others write nothing)
+        if writer:
+            check_out_dir(out, "wbc-jax tune", force=force, inputs=[spec.path])  # force: replace an earlier tune's
+    except WbcJaxError as e:
+        problem = e
+    distributed.agree(problem)
+    space = Space(spec.leaves, spec.start)
+    search = make_search(spec, space)
+    ev = Evaluator(spec.campaign, spec.cells, 1)
+    evc = Evaluator(spec.confirm_campaign, None, 1) if spec.confirm_campaign is not None else None
+    # one shape for the search and the confirmation (one compilation when both use the same campaign settings)
+    ev.size = _batch_size(spec, max(search.C * ev.n, (1 + spec.confirm["top"]) * evc.n if evc else 2 * ev.n))
+    if evc is not None:
+        evc.size = ev.size
+    return Tuning(spec, space, search, ev, evc, _plan(spec, search, ev, evc), writer)
+
+
+def _announce(tuning: Tuning) -> None:
+    """One line on what runs where (process 0), and the layout's note."""
+    say, spec, ev, evc, t = _say(tuning.writer), tuning.spec, tuning.ev, tuning.evc, tuning.spec.tune
+    search = tuning.search
+    say(f"tune {t['name']!r} ({spec.path}): {t['method']}, {search.rounds} rounds x {search.C} candidates, "
+        f"{tuning.space.k} tuned leaves; each candidate on {ev.n} runs ({ev.n // t['reps']} cells x {t['reps']} reps "
+        f"of {spec.campaign.path}, {ev.seconds:.2f} s simulated), {ev.size} runs per rollout call, "
+        f"{spec.campaign.campaign['qp_iters']} ADMM iterations, {backend_of(spec.campaign)} physics, device "
+        f"{jax.devices()[0].device_kind}"
+        + ev.spread.describe()
+        + f"; {tuning.total:,.0f} run-seconds to simulate in all"
+        + (f" (confirmation: {1 + spec.confirm['top']} gain sets x {evc.n} runs of {evc.camp.path})" if evc else ""),
+        flush=True)
+    if ev.spread.note:
+        say(ev.spread.note, flush=True)
+
+
+def _progress_bar(tuning: Tuning, progress: bool):
+    """One tqdm bar over the whole tuning in run-seconds (stderr), or None."""
+    if not (progress and tuning.writer):
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=round(tuning.total, 3), unit="run-s", file=sys.stderr,
+                bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} run-s [{elapsed}<{remaining}{postfix}]")
+
+
+def _evaluate_round(tuning: Tuning, r: int, x: np.ndarray, kinds: list, bar):
+    """Round ``r``'s candidates ``x`` (C, k) evaluated and told to the search. Returns (leaderboard rows, per-run
+    results by slot)."""
+    search, ev, obj = tuning.search, tuning.ev, tuning.spec.objective
+    if isinstance(search, HalvingSearch):
+        last, full, fkeys = _bracket(ev, search, x, obj, bar)
+        search.tell(x[full], fkeys)
+        new = []
+        for c in sorted(last):
+            sc1, sim_s, res1 = last[c]
+            new += make_rows(r, x[c:c + 1], [kinds[c]], tuning.space, {k: np.atleast_1d(v) for k, v in sc1.items()},
+                             sim_s, slots=[c])
+        return new, {row["slot"]: last[row["slot"]][2] for row in new}
+    res, _ = ev.rollout(tuning.space.gains(x), bar=bar)
+    sc = score(res, ev.mu, obj)
+    search.tell(x, rank_keys(sc))
+    new = make_rows(r, x, kinds, tuning.space, sc, ev.seconds)
+    return new, {row["slot"]: candidate(res, row["slot"]) for row in new}
+
+
+def _search(tuning: Tuning, bar) -> SearchLog:
+    """Every round of the search, one progress line per round."""
+    ev, R = tuning.ev, tuning.search.rounds
+    rows, walls, variants, per_run, best = [], [], [ev.compiled_variants()], {}, None
+    for r in range(R):
+        x, kinds = tuning.search.ask(r)
+        t0 = time.perf_counter()
+        new, results = _evaluate_round(tuning, r, x, kinds, bar)
+        walls.append(time.perf_counter() - t0)
+        variants.append(ev.compiled_variants())
+        for row in new:
+            if r == 0 and row["slot"] == 0:
+                per_run["start"] = results[0]
+            if best is None or row_key(row) > row_key(best[0]):
+                best = (row, x[row["slot"]].copy())
+                per_run["best"] = results[row["slot"]]
+        rows += new
+        full_rows = [w for w in new if w["sim_s"] >= ev.seconds - 1e-9]
+        rb = max(full_rows, key=row_key)
+        line = (f"round {r + 1}/{R}: {walls[-1]:.1f} s, feasible {sum(w['feasible'] for w in full_rows)}/"
+                f"{len(full_rows)} at the full horizon; round best J {rb['objective']:.4f} (success "
+                f"{rb['success_rate']:.0%}, T {rb['T_mm']:.2f} mm); best so far J {best[0]['objective']:.4f} "
+                f"({'feasible' if best[0]['feasible'] else 'infeasible'})")
+        (bar.write if bar is not None else _say(tuning.writer))(line)
+    return SearchLog(rows, walls, variants, per_run, best)
 
 
 def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rounds: int | None = None,
@@ -160,194 +235,25 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
         force: replace DIR when it holds an earlier tune.
         backend: physics backend ("auto", "jax", "warp") instead of the campaign specs' ``campaign.backend``.
     """
-    import jax
-
-    from wbc_jax.campaign import runner as campaign
-    from wbc_jax.campaign.gains import gains_toml
-    from wbc_jax.campaign.runner import backend_of, has_accelerator, sensing_of
-    from wbc_jax.errors import WbcJaxError
-    from wbc_jax.io_utils import atomic_dir, check_out_dir, write_json_atomic
-    from wbc_jax.rollout import distributed
-
     t_start = time.perf_counter()
-    path = spec_path if spec_path is not None else default_tune_spec_path(has_accelerator())
-    spec = _with_backend(load_tune_spec(path).with_overrides(candidates, rounds, batch), backend)
-    writer = distributed.is_writer()
-    problem = None
-    try:  # process 0's output folder (the others write nothing)
-        if writer:
-            check_out_dir(out, "wbc-jax tune", force=force, inputs=[spec.path])  # force: replace an earlier tune's
-    except WbcJaxError as e:
-        problem = e
-    distributed.agree(problem)
-    say = print if writer else (lambda *a, **k: None)
-    space = Space(spec.leaves, spec.start)
-    search = make_search(spec, space)
-    C, R, t, obj = search.C, search.rounds, spec.tune, spec.objective
-    ev = Evaluator(spec.campaign, spec.cells, 1)
-    evc = Evaluator(spec.confirm_campaign, None, 1) if spec.confirm_campaign is not None else None
-    # one shape for the search and the confirmation (one compilation when both use the same campaign settings)
-    ev.size = _batch_size(spec, max(C * ev.n, (1 + spec.confirm["top"]) * evc.n if evc else 2 * ev.n))
-    if evc is not None:
-        evc.size = ev.size
-    total = _plan(spec, search, ev, evc)
-    steps_per_s = 1.0 / ev.sim.dt_physics
-    say(f"tune {t['name']!r} ({spec.path}): {t['method']}, {R} rounds x {C} candidates, {space.k} tuned leaves; "
-        f"each candidate on {ev.n} runs ({ev.n // t['reps']} cells x {t['reps']} reps of {spec.campaign.path}, "
-        f"{ev.seconds:.2f} s simulated), {ev.size} runs per rollout call, "
-        f"{spec.campaign.campaign['qp_iters']} ADMM iterations, {backend_of(spec.campaign)} physics, device "
-        f"{jax.devices()[0].device_kind}"
-        + ev.spread.describe()
-        + f"; {total:,.0f} run-seconds to simulate in all"
-        + (f" (confirmation: {1 + spec.confirm['top']} gain sets x {evc.n} runs of {evc.camp.path})" if evc else ""),
-        flush=True)
-    if ev.spread.note:
-        say(ev.spread.note, flush=True)
-    bar = None
-    if progress and writer:
-        from tqdm import tqdm
-
-        bar = tqdm(total=round(total, 3), unit="run-s", file=sys.stderr,
-                   bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} run-s [{elapsed}<{remaining}{postfix}]")
-
-    rows, walls, variants, per_run, best = [], [], [ev.compiled_variants()], {}, None
-    for r in range(R):
-        x, kinds = search.ask(r)
-        t0 = time.perf_counter()
-        if isinstance(search, HalvingSearch):
-            last, full, fkeys = _bracket(ev, search, x, obj, bar)
-            search.tell(x[full], fkeys)
-            new = []
-            for c in sorted(last):
-                sc1, sim_s, res1 = last[c]
-                new += make_rows(r, x[c:c + 1], [kinds[c]], space, {k: np.atleast_1d(v) for k, v in sc1.items()},
-                                 sim_s, slots=[c])
-            results = {row["slot"]: last[row["slot"]][2] for row in new}
-        else:
-            res, _ = ev.rollout(space.gains(x), bar=bar)
-            sc = score(res, ev.mu, obj)
-            search.tell(x, _keys(sc))
-            new = make_rows(r, x, kinds, space, sc, ev.seconds)
-            results = {row["slot"]: _pick(res, row["slot"]) for row in new}
-        walls.append(time.perf_counter() - t0)
-        variants.append(ev.compiled_variants())
-        for row in new:
-            if r == 0 and row["slot"] == 0:
-                per_run["start"] = results[0]
-            if best is None or row_key(row) > row_key(best[0]):
-                best = (row, x[row["slot"]].copy())
-                per_run["best"] = results[row["slot"]]
-        rows += new
-        full_rows = [w for w in new if w["sim_s"] >= ev.seconds - 1e-9]
-        rb = max(full_rows, key=row_key)
-        line = (f"round {r + 1}/{R}: {walls[-1]:.1f} s, feasible {sum(w['feasible'] for w in full_rows)}/"
-                f"{len(full_rows)} at the full horizon; round best J {rb['objective']:.4f} (success "
-                f"{rb['success_rate']:.0%}, T {rb['T_mm']:.2f} mm); best so far J {best[0]['objective']:.4f} "
-                f"({'feasible' if best[0]['feasible'] else 'infeasible'})")
-        (bar.write if bar is not None else say)(line)
-
-    df = leaderboard(rows)
-    start, top = rows[0], best[0]
-    # ---- confirmation / comparison: default gains and the top candidates on the same runs (paired)
-    full = df[df.sim_s >= df.sim_s.max() - 1e-9].sort_values("rank")
-    n_top = spec.confirm["top"] if evc is not None else 1
-    picks, seen = [], set()
-    for rw in full.itertuples():
-        key = tuple(round(getattr(rw, f"{n}_x"), 12) for n in space.names)
-        if key not in seen:
-            seen.add(key)
-            picks.append(int(rw.Index))
-        if len(picks) == n_top:
-            break
-    xs = np.stack([np.log([df.loc[i, f"{n}_x"] for n in space.names]) for i in picks])
-    mult = {k: np.concatenate([[1.0], v]) for k, v in space.multipliers(xs).items()}
-    ce = evc if evc is not None else ev
-    t0 = time.perf_counter()
-    cres, _ = ce.rollout(space.gains(None, mult), bar=bar)
-    confirm_wall = time.perf_counter() - t0
-    csc = score(cres, ce.mu, obj)
-    ckeys = _keys(csc)
-    win = 1 + max(range(len(picks)), key=lambda j: ckeys[1 + j])  # best confirmed candidate (0 = defaults)
-    chosen = df.loc[picks[win - 1]]
-    comparison = paired_comparison(_pick(cres, 0), _pick(cres, win), ce.mu, obj, spec.confirm["alpha"])
+    tuning = _prepare(spec_path, out, candidates, rounds, batch, force, backend)
+    _announce(tuning)
+    bar = _progress_bar(tuning, progress)
+    log = _search(tuning, bar)
+    df = leaderboard(log.rows)
+    conf = confirm(tuning, df, bar)
     if bar is not None:
         bar.close()
-    best_gains = jax.tree_util.tree_map(lambda v: v[0], space.gains(xs[win - 1:win]))
-    round_s = float(np.median(walls[1:] if len(walls) > 1 else walls))
+    variants = log.variants
     new_compiles = (variants[-1] - variants[1]) if None not in (variants[1], variants[-1]) else None
     if new_compiles:
-        say(f"warning: the chunk function compiled {new_compiles} more time(s) after round 1", flush=True)
-    sim_steps = ev.calls * ev.size * ev.chunk_s * steps_per_s
-    confirmed = [dict(label="default", **{k: float(v[0]) for k, v in csc.items()})] + [
-        dict(label=f"rank {int(df.loc[i, 'rank'])}", **{k: float(v[1 + j]) for k, v in csc.items()})
-        for j, i in enumerate(picks)]
-    manifest = dict(
-        command="wbc-jax tune", spec_path=spec.path, spec_hash=spec.hash, spec_file_sha256=spec.text_sha256,
-        spec=spec.canonical(), campaign_spec_path=spec.campaign.path, method=t["method"], candidates_per_round=C,
-        rounds=R, candidates_evaluated=len(rows), tuned_leaves=list(space.names), runs_per_candidate=ev.n,
-        runs_per_call=ev.size, rollout_calls=ev.calls, batch_runs=C * ev.n,
-        cells=[[float(a), float(b), float(c)] for a, b, c in zip(ev.m, ev.mu, ev.d)][::t["reps"]],
-        seeds=[int(s) for s in ev.seeds], search_seed=t["seed"], simulated_s=ev.seconds, chunk_s=ev.chunk_s,
-        control_dt_s=ev.sim.dt_control, versions=campaign._versions(), git_commit=campaign._git_commit(),
-        device=dict(backend=jax.default_backend(), kind=jax.devices()[0].device_kind, count=jax.device_count(),
-                    host=platform.node(), cpu_count=os.cpu_count()),
-        round_wall_s=walls, first_round_s=walls[0], steady_round_s=round_s, candidates_per_s=C / round_s,
-        env_steps_per_s=sim_steps / max(sum(walls), 1e-9), compiled_variants_per_round=variants,
-        new_compilations_after_round_1=new_compiles, planned_run_seconds=total,
-        compiled_variants_after_confirmation=ce.compiled_variants(),
-        start={k: start[k] for k in SUMMARY}, best={k: top[k] for k in SUMMARY},
-        best_multipliers={n: top[f"{n}_x"] for n in space.names},
-        improvement={k: top[k] - start[k] for k in ("objective", "R", "R_norm", "S", "T_mm", "success_rate")},
-        n_feasible=int(df.feasible.sum()), n_pareto=int(df.pareto.sum()), objective=obj,
-        confirmation=dict(campaign=ce.camp.path, runs=ce.n, seeds=[int(s) for s in ce.seeds], wall_s=confirm_wall,
-                          gain_sets=confirmed, chosen_rank=int(chosen["rank"]),
-                          chosen_multipliers={n: float(chosen[f"{n}_x"]) for n in space.names}),
-        comparison=comparison, physics_backend=backend_of(spec.campaign), sensing=sensing_of(spec.campaign),
-        layout=dict(distributed.layout_record(), spread=ev.spread.mode))
-    if isinstance(search, CEMSearch):
-        manifest["cem_history"] = search.history
-    info = dict(source="wbc-jax tune", spec=spec.path, spec_hash=spec.hash,
-                qp_iters=spec.campaign.campaign["qp_iters"], search_rank=int(chosen["rank"]),
-                confirmed_on=ce.camp.path, **{k: chosen[k] for k in ("round", "objective", "feasible", "R", "S",
-                                                                      "T_mm", "success_rate")},
-                **{f"{n}_x": float(chosen[f"{n}_x"]) for n in space.names})
+        _say(tuning.writer)(f"warning: the chunk function compiled {new_compiles} more time(s) after round 1",
+                            flush=True)
+    record = manifest(tuning, log, df, conf, new_compiles)
     wall_tune = time.perf_counter() - t_start
-    if not writer:
+    if not tuning.writer:
         print(f"process {jax.process_index()}: done; process 0 writes {out}", flush=True)
         return None
-    where = f"{ce.camp.path}: {ce.n} runs, seeds of its design"
-    lines = [f"Spec `{spec.path}` ({t['method']}, {R} rounds x {C} candidates on {ev.n} runs of "
-             f"`{spec.campaign.path}`, {ev.seconds:.2f} s simulated each); {len(rows)} candidates; wall "
-             f"{wall_tune:.0f} s on {jax.devices()[0].device_kind} ({ev.size} runs per rollout call).", "",
-             "Confirmed gain sets (on the comparison runs): " + "; ".join(
-                 f"{g['label']}: J {g['objective']:.4f}, success {g['success_rate']:.0%}, T {g['T_mm']:.2f} mm"
-                 for g in confirmed) + f". best_gains.toml = search rank {int(chosen['rank'])}.",
-             "", f"Replay: `wbc-jax campaign --spec {ce.camp.path} --gains {Path(out) / 'best_gains.toml'}`."]
-    with atomic_dir(Path(out).absolute()) as tmp:
-        df.to_csv(tmp / "leaderboard.csv", index=False)
-        runs_table(ev, per_run, obj).to_csv(tmp / "best_runs.csv", index=False)
-        runs_table(ce, {"default": _pick(cres, 0), **{g["label"]: _pick(cres, 1 + j)
-                                                      for j, g in enumerate(confirmed[1:])}}, obj) \
-            .to_csv(tmp / "confirm_runs.csv", index=False)
-        (tmp / "best_gains.toml").write_text(gains_toml(
-            best_gains, f"wbc-jax tune: best gains of {spec.path} (search rank {int(chosen['rank'])} of {len(rows)}, "
-                        f"best of {len(picks)} confirmed on {ce.camp.path})\n"
-                        "use: wbc-jax campaign --gains best_gains.toml", info))
-        (tmp / "report.md").write_text(report_md(f"wbc-jax tune: {t['name']}", lines, comparison, where,
-                                                 spec.confirm["alpha"]))
-        from wbc_jax.studies.tune_report import figures
-
-        for name, png in figures(df, int(df["rank"].to_numpy().argmin())).items():
-            (tmp / name).write_bytes(png)
-        manifest["wall_s_total"] = time.perf_counter() - t_start
-        write_json_atomic(tmp / "manifest.json", manifest)
-    print(f"{len(rows)} candidates in {manifest['wall_s_total']:.1f} s ({ev.calls} rollout calls of {ev.size} runs); "
-          f"feasible {manifest['n_feasible']}, Pareto front {manifest['n_pareto']}", flush=True)
-    print(f"start: J {start['objective']:.4f}, success {start['success_rate']:.0%}; search best (round "
-          f"{top['round']}): J {top['objective']:.4f}, success {top['success_rate']:.0%}, T {top['T_mm']:.2f} mm",
-          flush=True)
-    for c in comparison:
-        print(f"  {c['metric']}: default {c['default']:.4g}, tuned {c['tuned']:.4g} ({c['test']}, p = {c['p']:.3g})",
-              flush=True)
-    print(f"written to {out}", flush=True)
-    return manifest
+    write_outputs(out, tuning, log, df, conf, record, t_start, wall_tune)
+    print_summary(out, tuning, log, record, conf.comparison)
+    return record

@@ -20,11 +20,17 @@ everywhere, and continued states are placed again from the host copy.
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+from wbc_jax.campaign.build import LOG_EVERY, _chunk_fn, build
 from wbc_jax.control.transport import TransportGains
+from wbc_jax.rollout import final_results
+from wbc_jax.rollout.batch import take_runs
 from wbc_jax.rollout.runs import concat, take
 from wbc_jax.rollout.spread import choose
+from wbc_jax.studies.tune_search import rank_key
 
 
 class Evaluator:
@@ -39,9 +45,9 @@ class Evaluator:
     def __init__(self, camp, cells: list | None, size: int):
         """Args: camp: campaign Spec (reps, max_seconds, qp_iters applied); cells: [m, mu, d] cells to keep
         (None: all); size: runs per rollout call (>= 1)."""
-        from wbc_jax.campaign import runner as campaign
-
-        sim, dz, b, _, logs_per_chunk, n_chunks = campaign.build(camp)
+        built = build(camp)
+        sim, dz, b = built.sim, built.design, built.batch
+        logs_per_chunk, n_chunks = built.logs_per_chunk, built.n_chunks
         if cells is None:
             sel = np.arange(dz.n)
         else:
@@ -49,12 +55,12 @@ class Evaluator:
             sel = np.where(np.isclose(have[:, None, :], np.asarray(cells)[None]).all(-1).any(-1))[0]
         self.camp, self.sim, self.n, self.n_chunks = camp, sim, len(sel), n_chunks
         self.m, self.mu, self.d, self.rep, self.seeds = dz.m[sel], dz.mu[sel], dz.d[sel], dz.rep[sel], dz.seed[sel]
-        self.chunk_s = logs_per_chunk * campaign.LOG_EVERY * sim.dt_control
+        self.chunk_s = logs_per_chunk * LOG_EVERY * sim.dt_control
         self.seconds = n_chunks * self.chunk_s
         self.size = int(size)
         self.batch, self.sel = b, np.asarray(sel)
         self.spread = choose(sim.robot.backend)  # every sub-batch over every device (wbc_jax.rollout.spread)
-        self.fn = campaign._chunk_fn(sim, b.in_axes, logs_per_chunk, self.spread.mesh, b.state_axes)
+        self.fn = _chunk_fn(sim, b.in_axes, logs_per_chunk, self.spread.mesh, b.state_axes)
         self.calls = 0
 
     def compiled_variants(self) -> int | None:
@@ -81,12 +87,6 @@ class Evaluator:
             same in every process; the runs' states at chunk c1 (C n runs, candidate-major; a device pytree, or
             the host copy with several processes).
         """
-        import jax
-        import jax.numpy as jnp
-
-        from wbc_jax.rollout.batch import take_runs
-        from wbc_jax.rollout import final_results
-
         c0, c1 = chunks[0], self.n_chunks if chunks[1] < 0 else chunks[1]
         C = int(np.shape(gains.kp_com)[0])
         total = C * self.n
@@ -147,6 +147,17 @@ def score(res: dict, mu: np.ndarray, obj: dict) -> dict[str, np.ndarray]:
     viol = np.where(n_ok > 0, viol, np.maximum(viol, 1.0))  # no successful run is never feasible
     return dict(success_rate=rate, R=R, R_norm=R_norm, S=S, S_norm=S_norm, T_mm=T_mm, objective=objective,
                 violation=viol, feasible=viol <= 0.0)
+
+
+def candidate(res: dict, i) -> dict:
+    """Entry ``i`` (a candidate, or an index array of them) of every field of :meth:`Evaluator.rollout`'s or
+    :func:`score`'s dict."""
+    return {k: v[i] for k, v in res.items()}
+
+
+def rank_keys(sc: dict) -> list[tuple]:
+    """Every candidate's ranking key (:func:`wbc_jax.studies.tune_search.rank_key`) of :func:`score`'s dict."""
+    return [rank_key(sc["feasible"][i], sc["violation"][i], sc["objective"][i]) for i in range(len(sc["feasible"]))]
 
 
 def per_run_objective(res: dict, mu: np.ndarray, obj: dict) -> np.ndarray:
