@@ -54,8 +54,8 @@ def test_device_ops_prefers_gpu_process():
 
 
 def test_gpu_module_name_is_not_a_scope_path():
-    """GPU traces carry tf_op "XlaModule:" (no scope path): the HLO's op_name must attribute the op (on 2026-11-25
-    every H100 op fell into 'other' before this)."""
+    """GPU traces carry tf_op "XlaModule:" (no scope path): the HLO's op_name must attribute the op (otherwise
+    every GPU op falls into 'other')."""
     events = [dict(ph="M", name="process_name", pid=2, args=dict(name="/device:GPU:0")),
               _x("fusion.2", 0.0, 3.0, pid=2, tf_op="XlaModule:"),
               _x("fusion.3", 5.0, 1.0, pid=2, tf_op="jit(f)/vmap()/sense/add")]
@@ -105,7 +105,7 @@ def test_op_sources_from_hlo_text():
            'stack_frame_id=2}\n'
            '  ROOT %copy.1 = f32[4]{0} copy(f32[4]{0} %fusion.3)\n}\n')
     src = kt.op_sources(hlo)
-    assert src["fusion_3"] == src["wrapped_fusion_3"] == "sim/rollout.py:412"
+    assert src["fusion_3"] == src["wrapped_fusion_3"] == "rollout/core.py:412"
     assert src["fusion_4"] == "qp/admm.py:7"
     assert "copy_1" not in src
 

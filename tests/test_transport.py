@@ -1,7 +1,6 @@
-"""Transport WBC: one QP against a high-accuracy reference and rigid-body dynamics; a short loaded stand.
+"""Transport WBC: one QP against a high-accuracy reference and rigid-body dynamics; a short loaded stand and trot."""
 
-The trot itself is work in progress (see the issue notes): these tests pin what already holds.
-"""
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -17,8 +16,8 @@ from wbc_jax.planner.gait import GaitParams
 from wbc_jax.planner.transport import reference
 from wbc_jax.qp import QPSettings, solve_qp
 from wbc_jax.robot.model import Robot
-from wbc_jax.rollout.batch import prepare_batch
 from wbc_jax.rollout import make_sim, simulate
+from wbc_jax.rollout.batch import prepare_batch
 
 OBJ_RTOL = 1e-3  # relative objective error, ADMM (float32, ACCURATE_ITERS cold iterations) vs OSQP eps 1e-9
 VIOL_TOL = 1e-2  # max constraint violation of the ADMM solution [rows mix N, N m, m/s^2]
@@ -30,7 +29,7 @@ STAND_SECONDS = 0.3
 SLIP_MAX = 1e-3  # [m]
 HEIGHT_TOL = 0.01  # [m]
 TROT_SECONDS = 0.7  # two diagonal swings (gait starts at 0.1 s)
-TROT_SLIP_MAX = 3e-3  # [m] over the segment (the full-walk figures are in the issue notes)
+TROT_SLIP_MAX = 3e-3  # [m] over the segment
 TROT_Z_BAND = (0.40, 0.50)  # [m] trunk height band during the segment
 TROT_PLAN = dict(distance=0.3, ramp=0.5)  # the trot segment's path (the stand's plan has its shapes: setup)
 CHUNK_SECONDS = 0.1  # simulated time per jit call: a common divisor of both horizons, so the stand and the trot
@@ -55,51 +54,43 @@ def _take0(tree, axes=None):
     return jax.tree_util.tree_map(lambda x, a: x[0] if a == 0 else x, tree, axes)
 
 
-def _qp_at(m, rs, plan, om, gains, ids, cfg):
-    """(DynTerms, ObjectState, build_qp's outputs) of one run's state ``rs`` (no observer estimate)."""
-    d = physics.sense(m, rs.d)
+def _qp_at(m, run_state, plan, om, gains, ids, cfg):
+    """(DynTerms, ObjectState, TransportQP) of one run's state ``run_state`` (no observer estimate)."""
+    d = physics.sense(m, run_state.d)
     dyn = dyn_terms(m, d, ids)
-    ref = reference(plan, d.time, rs.p_lift)
+    ref = reference(plan, d.time, run_state.p_lift)
     obj = object_state(d, ids)
     Jp, Jr, Jdp, Jdr = point_jacobians(m, d, ids, obj.p[None], [ids.tray_body])
     J_o, Jdv_o = jnp.concatenate([Jp[0], Jr[0]]), jnp.concatenate([Jdp[0], Jdr[0]])
-    return dyn, obj, build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, jnp.zeros(6), ids, cfg, 1.0, rs.cs.q_post)
+    return dyn, obj, build_qp(dyn, obj, J_o, Jdv_o, ref, om, gains, jnp.zeros(6), ids, cfg.k, 1.0, run_state.cs.q_post)
 
 
 @pytest.fixture(scope="module")
 def qp_at(setup):
-    """cfg -> (DynTerms, ObjectState, build_qp's outputs) of run 0's initial state, one jitted program per
-    controller config (the module's config compiled once for both QP tests; jitted rather than run op by op,
-    which took about 2 minutes per call on 2 cores)."""
+    """(DynTerms, ObjectState, TransportQP) of run 0's initial state, one jitted program for both QP tests."""
     robot, sim, b = setup
     args = (_take0(b.model, b.in_axes), _take0(b.state), _take0(b.plan), _take0(b.om), _take0(b.gains))
-    fns = {}
-
-    def at(cfg):
-        if cfg not in fns:
-            fns[cfg] = jax.jit(lambda m, rs, plan, om, gains: _qp_at(m, rs, plan, om, gains, robot.ids, cfg))(*args)
-        return fns[cfg]
-
-    return at
+    return jax.jit(functools.partial(_qp_at, ids=robot.ids, cfg=sim.cfg))(*args)
 
 
 def test_qp_matches_reference_and_dynamics(setup, qp_at):
     robot, sim, b = setup
     ids = robot.ids
     om = _take0(b.om)
-    dyn, _, (P, q, A, l, u, A_tau, h_a, H_com) = qp_at(sim.cfg)
-    Pn, qn, An, ln, un, Atn, han = (np.asarray(x, float) for x in (P, q, A, l, u, A_tau, h_a))
+    dyn, _, qp = qp_at
+    Pn, qn, An, ln, un, Atn, han = (np.asarray(x, float) for x in (qp.P, qp.q, qp.A, qp.l, qp.u, qp.A_tau, qp.h_a))
     s = osqp.OSQP()
     s.setup(sp.csc_matrix(np.triu(Pn)), qn, sp.csc_matrix(An), np.maximum(ln, -1e20), np.minimum(un, 1e20),
             eps_abs=1e-9, eps_rel=1e-9, max_iter=200000, verbose=False, polishing=True)
     x_ref = s.solve().x
-    res = jax.jit(solve_qp, static_argnames="settings")(P, q, A, l, u, settings=QPSettings(iters=ACCURATE_ITERS))
+    res = jax.jit(solve_qp, static_argnames="settings")(qp.P, qp.q, qp.A, qp.l, qp.u,
+                                                         settings=QPSettings(iters=ACCURATE_ITERS))
     x = np.asarray(res.x, float)
     obj = lambda z: 0.5 * z @ Pn @ z + qn @ z  # noqa: E731
     assert abs(obj(x) - obj(x_ref)) <= OBJ_RTOL * abs(obj(x_ref))
     viol = np.maximum(An @ x - un, 0) + np.maximum(ln - An @ x, 0)
     assert viol.max() < VIOL_TOL
-    Hn = np.asarray(H_com, float)
+    Hn = np.asarray(qp.H_com, float)
     np.testing.assert_allclose(Hn @ x, Hn @ x_ref, atol=WRENCH_TOL)
     assert np.all(np.abs(Atn @ x + han) <= np.asarray(ids.tau_max) + VIOL_TOL)
 
@@ -122,22 +113,17 @@ def test_qp_matches_reference_and_dynamics(setup, qp_at):
 
 
 def test_object_wrench_is_no_lever_for_the_com_row(setup, qp_at):
-    """Issue 23: the CoM-wrench cost row carries the object's *target* wrench as a constant, so the cost does not
-    couple the object's multipliers Lambda_b to the ground's, and their linear cost term is the object row's
-    alone: q_b = -W_b^T Q_obj F_b,ref with F_b,ref = [m g e_z; 0] for the cube at rest on its reference (hand
-    computation). With ``object_lever`` (the old row) the coupling is there: the QP could trade object wrench for
-    CoM wrench, which made T grow with m, mu and d (docs/method.md)."""
+    """The CoM-wrench cost row (7) carries the object's *target* wrench as a constant, so the cost does not couple
+    the object's multipliers Lambda_b to the ground's (the QP cannot trade object wrench for CoM wrench), and their
+    linear cost term is the object row's alone: q_b = -W_b^T Q_obj F_b,ref with F_b,ref = [m g e_z; 0] for the cube
+    at rest on its reference (hand computation)."""
     robot, sim, b = setup
     ids = robot.ids
     om, gains = _take0(b.om), _take0(b.gains)
-
-    def build(cfg):
-        dyn, obj, qp = qp_at(cfg)
-        return np.asarray(qp[0], float), np.asarray(qp[1], float), obj, dyn
-
+    dyn, obj, qp = qp_at
+    P, q = np.asarray(qp.P, float), np.asarray(qp.q, float)
     k, nv = sim.cfg.k, ids.nv_robot
     ig, ib = slice(nv, nv + 4 * k), slice(nv + 4 * k, nv + 8 * k)
-    P, q, obj, dyn = build(sim.cfg)
     assert np.abs(P[ig, ib]).max() == 0.0
     # hand computation of the object row's term: contact points at the cube's bottom corners, inset by the
     # sphere radius; pyramid edges about the tray normal; target force m g up (at rest on the reference)
@@ -153,9 +139,6 @@ def test_object_wrench_is_no_lever_for_the_com_row(setup, qp_at):
     Qobj = np.array([float(gains.w_obj_f)] * 3 + [float(gains.w_obj_t)] * 3)
     q_hand = -Wb.T @ (Qobj * target)
     np.testing.assert_allclose(q[ib], q_hand, rtol=2e-3, atol=2e-3 * np.abs(q_hand).max())
-    # the old row couples them
-    P_old = build(TransportConfig(dt=sim.cfg.dt, qp=sim.cfg.qp, object_lever=True))[0]
-    assert np.abs(P_old[ig, ib]).max() > 1.0
 
 
 def test_loaded_stand_under_qp_torques(setup):

@@ -34,6 +34,7 @@ import jax.numpy as jnp
 
 from wbc_jax.control.centroidal_dynamics import centroidal_terms
 from wbc_jax.control.transport import control_qp_settings
+from wbc_jax.control.transport_qp import ConstraintRows
 from wbc_jax.qp import QPResult, QPSettings, solve_qp
 from wbc_jax.spatial import GRAVITY, full_precision, rot_error
 from wbc_jax.types import DynTerms, Observation, RobotIds
@@ -151,7 +152,7 @@ class CentroidalDiag(NamedTuple):
 
 
 def centroidal_qp_settings(iters: int = 40) -> QPSettings:
-    """ADMM settings of the centroidal controller's measured trot study: ``iters`` warm-started iterations, rho
+    """ADMM settings of the centroidal controller: ``iters`` warm-started iterations, rho
     adapted every 10 from an initial 1, 5 Ruiz passes, the 18 equality rows (28)-(30) held exactly (the transport
     loop's :func:`control_qp_settings` otherwise: tolerance 1e-4, continued while unconverged up to 200)."""
     return control_qp_settings(iters, adapt_every=10, ruiz_iters=5, rho=1.0, eq_rows=6 + 3 * N_FEET)
@@ -208,26 +209,25 @@ def momentum_rate_reference(dyn: DynTerms, Ibar, ref: CentroidalRef, gains: Cent
     return jnp.concatenate([l_xy, l_z[None], k])
 
 
-def build_qp(dyn: DynTerms, J_t, ref: CentroidalRef, gains: CentroidalGains, sw_int, q_post, q_arm, ids: RobotIds):
-    """Assemble the QP (26)-(32) in OSQP form from the controller's model ``dyn``.
+class CentroidalQP(NamedTuple):
+    """One control step's QP (26)-(32) in OSQP form, its torque map (eq. 34: ``tau = A_tau chi + b_tau``) and the
+    momentum-rate reference."""
 
-    Args:
-        J_t: (3, nv_r) translational Jacobian of the tray's top centre (where the payload weighs).
-        sw_int: (4, 3) swing-error integrals [m s]; q_post: (6,) arm posture [rad]; q_arm: (6,) arm joints now [rad].
+    P: jax.Array  # (n, n)
+    q: jax.Array  # (n,)
+    A: jax.Array  # (m, n)
+    l: jax.Array  # (m,)
+    u: jax.Array  # (m,)
+    A_tau: jax.Array  # (18, n)
+    b_tau: jax.Array  # (18,) [N m]
+    hdot_d: jax.Array  # (6,) [N, N m]
 
-    Returns:
-        (P (n, n), q (n,), A (m, n), l (m,), u (m,), A_tau (18, n), b_tau (18,), hdot_d (6,)) with
-        tau = A_tau chi + b_tau (eq. 34).
-    """
+
+def _cost(dyn: DynTerms, ct, ref: CentroidalRef, gains: CentroidalGains, q_post, q_arm, ids: RobotIds, n: int):
+    """(27): ``(P, q, hdot_d)``, momentum-rate tracking with the linear rows in the heading frame, force weight W,
+    arm posture, vdot regularisation; ``ct``: :func:`~wbc_jax.control.centroidal_dynamics.centroidal_terms`."""
     nv = ids.nv_robot
-    n = nv + 3 * N_FEET
-    inf = jnp.inf
-    ct = centroidal_terms(dyn)
-    swing = ref.swing
-    stance = ~swing
-    four = ~jnp.any(swing)
-
-    # ---- cost (27): momentum-rate tracking (heading-frame linear rows), forces, arm posture, regularisation
+    four = ~jnp.any(ref.swing)
     hdot_d = momentum_rate_reference(dyn, ct.Ibar, ref, gains)
     Rh = heading_frame(ref.heading)
     T6 = jax.scipy.linalg.block_diag(Rh.T, jnp.eye(3))
@@ -240,39 +240,63 @@ def build_qp(dyn: DynTerms, J_t, ref: CentroidalRef, gains: CentroidalGains, sw_
     reg = jnp.concatenate([jnp.full(nv, gains.r_vdot), jnp.full(3 * N_FEET, gains.w_f)])
     P = E.T @ (Qw[:, None] * E) + gains.w_post * S_arm.T @ S_arm + jnp.diag(reg)
     q = -E.T @ (Qw * b) - gains.w_post * S_arm.T @ a_post
+    return P, q, hdot_d
 
-    # ---- constraints
+
+def _floating_base(dyn: DynTerms, Jf, g_load) -> ConstraintRows:
+    """(28) the floating base's rows of the equations of motion, the payload's generalized force ``g_load``."""
+    b28 = -dyn.h[0:6] + g_load[0:6]
+    return ConstraintRows(jnp.concatenate([dyn.M[0:6], -Jf[:, 0:6].T], axis=1), b28, b28)
+
+
+def _feet(dyn: DynTerms, Jf, ref: CentroidalRef, gains: CentroidalGains, sw_int, nv: int, n: int) -> ConstraintRows:
+    """(29) stance feet: no slip with damping; (30) swing feet: operational-space tracking with the PID of (33)."""
+    e_sw = ref.p_sw - dyn.p_foot
+    a_sw = ref.a_sw + gains.kp_sw * e_sw + gains.ki_sw * sw_int + gains.kd_sw * (ref.v_sw - dyn.v_foot)
+    b_feet = jnp.where(ref.swing[:, None], a_sw - dyn.Jdv_foot, -dyn.Jdv_foot - gains.alpha * dyn.v_foot).reshape(12)
+    return ConstraintRows(jnp.zeros((12, n)).at[:, :nv].set(Jf), b_feet, b_feet)
+
+
+def _friction_pyramids(gains: CentroidalGains, nv: int, n: int) -> ConstraintRows:
+    """(31) per foot: f_x - mu f_z <= 0, f_x + mu f_z >= 0, the same for y."""
+    inf = jnp.inf
+    fr = jnp.array([[1.0, 0.0, -1.0], [1.0, 0.0, 1.0], [0.0, 1.0, -1.0], [0.0, 1.0, 1.0]]) * jnp.array(
+        [1.0, 1.0, gains.mu])
+    return ConstraintRows(jnp.zeros((16, n)).at[:, nv:].set(jax.scipy.linalg.block_diag(*([fr] * N_FEET))),
+                          jnp.tile(jnp.array([-inf, 0.0, -inf, 0.0]), N_FEET),
+                          jnp.tile(jnp.array([0.0, inf, 0.0, inf]), N_FEET))
+
+
+def _normal_force(ref: CentroidalRef, gains: CentroidalGains, nv: int, n: int) -> ConstraintRows:
+    """Normal force in [f_min, f_max] in stance, 0 in swing (the pyramid then zeroes f_x, f_y)."""
+    stance = ~ref.swing
+    fz = jnp.zeros((N_FEET, n)).at[jnp.arange(N_FEET), nv + 3 * jnp.arange(N_FEET) + 2].set(1.0)
+    return ConstraintRows(fz, jnp.where(stance, gains.f_min, 0.0), jnp.where(stance, gains.f_max, 0.0))
+
+
+def build_qp(dyn: DynTerms, J_t, ref: CentroidalRef, gains: CentroidalGains, sw_int, q_post, q_arm,
+             ids: RobotIds) -> CentroidalQP:
+    """Assemble the QP (26)-(32) in OSQP form from the controller's model ``dyn``.
+
+    Args:
+        J_t: (3, nv_r) translational Jacobian of the tray's top centre (where the payload weighs).
+        sw_int: (4, 3) swing-error integrals [m s]; q_post: (6,) arm posture [rad]; q_arm: (6,) arm joints now [rad].
+    """
+    nv = ids.nv_robot
+    n = nv + 3 * N_FEET
+    P, q, hdot_d = _cost(dyn, centroidal_terms(dyn), ref, gains, q_post, q_arm, ids, n)
     Jf = dyn.J_foot.reshape(3 * N_FEET, nv)  # (12, nv)
     F_load = jnp.array([0.0, 0.0, -gains.load_mass * GRAVITY])
     g_load = J_t.T @ F_load  # (nv,) generalized force of the payload
     act = jnp.asarray(ids.act_dof)
-    rows, lo, hi = [], [], []
-
-    def add(Arow, lrow, urow):
-        rows.append(Arow), lo.append(lrow), hi.append(urow)
-
-    # (28) floating base
-    b28 = -dyn.h[0:6] + g_load[0:6]
-    add(jnp.concatenate([dyn.M[0:6], -Jf[:, 0:6].T], axis=1), b28, b28)
-    # (29) stance no-slip with damping, (30) swing operational-space tracking with the PID of (33)
-    e_sw = ref.p_sw - dyn.p_foot
-    a_sw = ref.a_sw + gains.kp_sw * e_sw + gains.ki_sw * sw_int + gains.kd_sw * (ref.v_sw - dyn.v_foot)
-    b_feet = jnp.where(swing[:, None], a_sw - dyn.Jdv_foot, -dyn.Jdv_foot - gains.alpha * dyn.v_foot).reshape(12)
-    add(jnp.zeros((12, n)).at[:, :nv].set(Jf), b_feet, b_feet)
-    # (31) friction pyramids: f_x - mu f_z <= 0, f_x + mu f_z >= 0 (same for y), per foot
-    fr = jnp.array([[1.0, 0.0, -1.0], [1.0, 0.0, 1.0], [0.0, 1.0, -1.0], [0.0, 1.0, 1.0]]) * jnp.array(
-        [1.0, 1.0, gains.mu])
-    add(jnp.zeros((16, n)).at[:, nv:].set(jax.scipy.linalg.block_diag(*([fr] * N_FEET))),
-        jnp.tile(jnp.array([-inf, 0.0, -inf, 0.0]), N_FEET), jnp.tile(jnp.array([0.0, inf, 0.0, inf]), N_FEET))
-    # normal force: f_min..f_max in stance, 0 in swing (the pyramid then zeroes f_x, f_y)
-    fz = jnp.zeros((N_FEET, n)).at[jnp.arange(N_FEET), nv + 3 * jnp.arange(N_FEET) + 2].set(1.0)
-    add(fz, jnp.where(stance, gains.f_min, 0.0), jnp.where(stance, gains.f_max, 0.0))
-    # (32) torque limits
-    A_tau = jnp.concatenate([dyn.M[act], -Jf[:, act].T], axis=1)  # (18, n)
+    A_tau = jnp.concatenate([dyn.M[act], -Jf[:, act].T], axis=1)  # (32) tau = A_tau chi + b_tau
     b_tau = dyn.h[act] - g_load[act]
     tmax = gains.tau_margin * jnp.asarray(ids.tau_max)
-    add(A_tau, -tmax - b_tau, tmax - b_tau)
-    return P, q, jnp.concatenate(rows), jnp.concatenate(lo), jnp.concatenate(hi), A_tau, b_tau, hdot_d
+    rows = [_floating_base(dyn, Jf, g_load), _feet(dyn, Jf, ref, gains, sw_int, nv, n),
+            _friction_pyramids(gains, nv, n), _normal_force(ref, gains, nv, n),
+            ConstraintRows(A_tau, -tmax - b_tau, tmax - b_tau)]
+    return CentroidalQP(P, q, jnp.concatenate([r.A for r in rows]), jnp.concatenate([r.l for r in rows]),
+                        jnp.concatenate([r.u for r in rows]), A_tau, b_tau, hdot_d)
 
 
 def swing_leg_feedback(dyn: DynTerms, ref: CentroidalRef, gains: CentroidalGains, ids: RobotIds):
@@ -306,10 +330,9 @@ def centroidal_control(obs: Observation, ref: CentroidalRef, gains: CentroidalGa
     dyn_c = scaled_model(dyn, gains.mass_scale, obs.armature)
     J_t = obs.J_tray_top  # (3, nv)
     sw_int = jnp.where(ref.swing[:, None], cs.sw_int + (ref.p_sw - dyn.p_foot) * cfg.dt, 0.0)
-    P, q, A, l, u, A_tau, b_tau, hdot_d = build_qp(dyn_c, J_t, ref, gains, sw_int, cs.q_post,
-                                                         obs.qpos[ids.act_qpos[12:]], ids)
-    res = solve_qp(P, q, A, l, u, warm=cs.warm, settings=cfg.qp)
-    tau_qp = A_tau @ res.x + b_tau  # (34)
+    qp = build_qp(dyn_c, J_t, ref, gains, sw_int, cs.q_post, obs.qpos[ids.act_qpos[12:]], ids)
+    res = solve_qp(qp.P, qp.q, qp.A, qp.l, qp.u, warm=cs.warm, settings=cfg.qp)
+    tau_qp = qp.A_tau @ res.x + qp.b_tau  # (34)
     sw_leg = jnp.concatenate([jnp.repeat(ref.swing, 3), jnp.zeros(6, bool)])
     fb = jnp.concatenate([swing_leg_feedback(dyn, ref, gains, ids), jnp.zeros(6)])
     tau_raw = jnp.where(sw_leg, gains.k_ff * tau_qp, tau_qp) + fb  # (35)
@@ -317,6 +340,6 @@ def centroidal_control(obs: Observation, ref: CentroidalRef, gains: CentroidalGa
     tau = jnp.clip(tau_raw, -tmax, tmax)
     f = res.x[nv:]
     tau_grf = -dyn_c.J_foot.reshape(12, nv)[:, jnp.asarray(ids.act_dof)].T @ f
-    diag = CentroidalDiag(tau=tau, tau_grf=tau_grf, f=f.reshape(N_FEET, 3), hdot_d=hdot_d, prim_res=res.prim_res,
+    diag = CentroidalDiag(tau=tau, tau_grf=tau_grf, f=f.reshape(N_FEET, 3), hdot_d=qp.hdot_d, prim_res=res.prim_res,
                           flag=res.flag, tau_excess=jnp.max(jnp.abs(tau_raw) - tmax))
     return tau, cs._replace(warm=res, sw_int=sw_int), diag
