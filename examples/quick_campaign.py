@@ -2,7 +2,8 @@
 
     python examples/quick_campaign.py [OUT_DIR]
 
-About 4 minutes on a 2-core CPU with an empty compilation cache (most of it compiling the rollout).
+On a CPU most of the time goes to compiling the rollout; the persistent compilation cache keeps it for the
+next run.
 """
 
 import sys

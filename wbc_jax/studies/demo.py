@@ -1,7 +1,7 @@
 """``wbc-jax demo``: the transport WBC carrying the object through the course (or on flat ground), one
 run or all 27 cells in one batch.
 
-Writes ``summary.json`` (one entry per run, plus the batch's wall time and env-steps/s), ``runs.csv``,
+Writes ``summary.json`` (one entry per run, plus the batch's wall time and simulation rate), ``runs.csv``,
 ``plots.png`` (object and CoM reference vs actual, object slip on the tray), ``trajectory.npz`` (logged
 configurations of every run: t (T,), qpos (B, T, nq), factors) and ``video.gif`` (the first run, when
 offscreen rendering is available) into DIR, atomically.
@@ -26,8 +26,8 @@ from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.planner.transport import plan_duration
 from wbc_jax.robot.model import Robot
 from wbc_jax.robot.scenario import single_run_mj_model
-from wbc_jax.rollout.batch import broadcast, prepare_batch
 from wbc_jax.rollout import make_push, make_sim, resolve_sensing, simulate
+from wbc_jax.rollout.batch import broadcast, prepare_batch
 
 LEVELS = dict(m=(0.2, 0.3, 0.4), mu=(0.4, 0.7, 1.0), d=(0.06, 0.08, 0.10))
 DEFAULT = dict(m=0.3, mu=0.7, d=0.08)
@@ -83,16 +83,7 @@ def run_demo(out: str, scene: str = "transport", seconds: float | None = None, a
     err = np.linalg.norm(p_obj - p_goal, axis=1)
     res = metrics.finalize(acc, sim.dt_control, mu, course=scene_geometry(robot).is_course, final_err=err,
                            substeps=sim.n_substeps)
-    runs = []
-    for i, (mi, mui, di) in enumerate(cells):
-        runs.append(dict(
-            m=float(mi), mu=float(mui), d=float(di), completed=bool(res["success"][i]), fell=bool(res["fell"][i]),
-            dropped=bool(res["dropped"][i]), hit_wall=bool(res["hit_wall"][i]), max_slip_mm=float(res["max_slip_mm"][i]),
-            max_off_tray_ms=float(acc.max_off_s[i] * 1e3), final_object_error_m=float(err[i]),
-            T_mean_tracking_m=float(res["T"][i]),
-            min_trunk_z_m=float(acc.min_trunk_z[i]), max_tau_ratio=float(acc.max_tau_ratio[i]),
-            max_qp_tau_excess_Nm=float(acc.max_tau_excess[i]),
-            qp_prim_res_median=float(np.median(logs.prim_res[i])), qp_flag_fraction=float(acc.n_flag[i] / n_steps)))
+    runs = _run_rows(cells, res, acc, err, logs, n_steps)
     summary = dict(scene=str(robot.path), controller="transport WBC", physics_backend=backend,
                    sensing=sim.sensing, push=push, observer=observer,
                    qp_iters=iters, simulated_s=seconds, runs=runs, wall_time_s=wall,
@@ -114,8 +105,25 @@ def run_demo(out: str, scene: str = "transport", seconds: float | None = None, a
             if why:
                 print(why)
     _print_table(runs)
-    print(f"wall {wall:.1f} s, {summary['env_steps_per_s']:.0f} env-steps/s; written to {out}")
+    print(f"wall {wall:.1f} s, {summary['env_steps_per_s']:.0f} env steps/s; written to {out}")
     return summary
+
+
+def _run_rows(cells, res: dict, acc, err, logs, n_steps: int) -> list[dict]:
+    """``summary.json``'s ``runs``: one dict per (m, mu, d) cell from the finalized metrics ``res``, the
+    accumulators ``acc``, the final object error ``err`` (B,) [m] and the logs."""
+    runs = []
+    for i, (mi, mui, di) in enumerate(cells):
+        runs.append(dict(
+            m=float(mi), mu=float(mui), d=float(di), completed=bool(res["success"][i]), fell=bool(res["fell"][i]),
+            dropped=bool(res["dropped"][i]), hit_wall=bool(res["hit_wall"][i]),
+            max_slip_mm=float(res["max_slip_mm"][i]),
+            max_off_tray_ms=float(acc.max_off_s[i] * 1e3), final_object_error_m=float(err[i]),
+            T_mean_tracking_m=float(res["T"][i]),
+            min_trunk_z_m=float(acc.min_trunk_z[i]), max_tau_ratio=float(acc.max_tau_ratio[i]),
+            max_qp_tau_excess_Nm=float(acc.max_tau_excess[i]),
+            qp_prim_res_median=float(np.median(logs.prim_res[i])), qp_flag_fraction=float(acc.n_flag[i] / n_steps)))
+    return runs
 
 
 def _print_table(runs):
