@@ -1,14 +1,17 @@
 """`wbc-jax campaign`: spec validation, design table, one tiny batched campaign, interrupt + resume."""
 
 import json
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
+from test_reliability import campaign_table
 
 from wbc_jax import cli
 from wbc_jax.campaign.spec import SWEEPS, design, load_spec, parse_spec
-from wbc_jax.errors import SpecError
+from wbc_jax.errors import OutputError, SpecError, WbcJaxError
 
 BASELINE = SWEEPS.parent / "reports" / "baseline"  # its spec.toml is the tiny campaign of these tests (conftest.py)
 NUMERIC = ["m", "mu", "d", "rep", "seed", "R", "T", "S", "max_slip_mm", "boundary_fraction", "final_err_mm"]
@@ -101,6 +104,8 @@ def test_campaign_writes_results_report_manifest(full_run):
     assert m["seeds"] == df.seed.tolist() and m["versions"]["jax"] and m["n_runs"] == 8
     assert m["n_chunks"] == 3 and abs(m["simulated_s"] - 0.12) < 1e-9 and m["env_steps_per_s"] > 0
     assert not list(out.parent.glob(".full.campaign-ckpt"))  # checkpoint removed after success
+    assert m["files"] == ["manifest.json", "report", "results.csv"] and m["qp_flagged_runs"] == 0
+    assert len(m["sessions"]) == 1 and not m["resumed"] and not (out.parent / ".full.lock").exists()
 
 
 def _cut(done, n_chunks):
@@ -115,18 +120,54 @@ def test_interrupt_and_resume_equal_uninterrupted(full_run, tiny_spec, tmp_path,
     ref = pd.read_csv(full_run[0] / "results.csv")
     out = tmp_path / "resumed"
     monkeypatch.setattr(runner, "after_chunk", _cut)
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(KeyboardInterrupt) as stop:
         run_campaign(str(tiny_spec), str(out), report=False, progress=False)
     monkeypatch.undo()
-    assert not out.exists()  # nothing partial in DIR
     ck = tmp_path / ".resumed.campaign-ckpt"
+    assert str(stop.value) == (f"interrupted (SIGINT) after 1 of 3 chunks; finished chunks kept in {ck}; continue "
+                               "with --resume") and stop.value.exit_code == 130
+    assert not out.exists() and not (tmp_path / ".resumed.lock").exists()  # nothing partial in DIR, lock released
     meta = json.loads((ck / "meta.json").read_text())
     assert meta["chunks_done"] == 1 and [f.name for f in ck.glob("state_*.npz")] == [meta["state_file"]]
+    with pytest.raises(OutputError, match="1 of 3 chunks finished in .*; continue with --resume, or --force"):
+        run_campaign(str(tiny_spec), str(out), report=False, progress=False)  # never discarded implicitly
+    meta["sessions"][0]["git_commit"] = "0" * 40  # the first session ran under another commit
+    (ck / "meta.json").write_text(json.dumps(meta))
     man = run_campaign(str(tiny_spec), str(out), resume=True, report=False, progress=False)
     got = pd.read_csv(out / "results.csv")
-    assert man["resumed"]
+    assert man["resumed"] and [s["chunks_before"] for s in man["sessions"]] == [0, 1]
+    assert man["git_commits"][0] == "0" * 40 and len(man["git_commits"]) == (2 if man["git_commit"] else 1)
     pd.testing.assert_frame_equal(got, ref, check_exact=True)
     assert not ck.exists()
+
+
+def test_interrupt_during_the_report_keeps_the_results(full_run, tiny_spec, tmp_path, monkeypatch, capsys):
+    """SIGINT while the report is written (the compiled chunks of full_run reused): exit 130 with one line saying
+    that results.csv and manifest.json are written and how to write the report."""
+    import os
+    import signal
+    import time
+
+    from wbc_jax.campaign import runner
+
+    def signalled(out, manifest, warnings, reporter=None):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)  # the handler interrupts this
+            pytest.fail("the signal did not stop the report")
+        finally:
+            if reporter is not None:
+                reporter.close()
+
+    out = tmp_path / "cut"
+    monkeypatch.setattr(runner, "campaign_report", signalled)
+    assert cli.main(["campaign", "--spec", str(tiny_spec), "--out", str(out)]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == (f"wbc-jax campaign: interrupted (SIGINT) during the report; {out}/results.csv and "
+                       f"manifest.json are written; write the report with wbc-jax report {out}/results.csv --out "
+                       f"{out}/report"), err
+    pd.testing.assert_frame_equal(pd.read_csv(out / "results.csv"), pd.read_csv(full_run[0] / "results.csv"))
+    assert json.loads((out / "manifest.json").read_text())["n_runs"] == 8
 
 
 def test_nan_run_does_not_poison_the_batch(full_run, tiny_spec):
@@ -202,8 +243,6 @@ def test_regress_passes_on_baseline_and_fails_on_gain_change(full_run, tmp_path,
 
 
 def test_regress_update_and_cli(tmp_path, full_run, capsys):
-    import shutil
-
     from wbc_jax.campaign.regress import cell_means, compare
 
     b = tmp_path / "base"
@@ -217,6 +256,43 @@ def test_regress_update_and_cli(tmp_path, full_run, capsys):
     assert compare(dict(base, cells=cells), cells) == []
     shifted = [dict(c, R=c["R"] * 1.5) for c in cells]
     assert len(compare(dict(base, cells=cells), shifted)) == len(cells)
+
+
+def test_regress_spec_mismatch_found_before_rerun(tmp_path, monkeypatch, capsys):
+    from wbc_jax.campaign import regress
+
+    b = tmp_path / "base"
+    b.mkdir()
+    shutil.copy(BASELINE / "baseline.json", b / "baseline.json")
+    (b / "spec.toml").write_text((BASELINE / "spec.toml").read_text().replace("seed = 3", "seed = 4"))
+    monkeypatch.setattr(regress, "run_campaign", lambda *a, **k: pytest.fail("reran before checking the baseline"))
+    assert cli.main(["regress", "--baseline", str(b)]) == 2
+    assert "spec changed since the baseline was stored" in capsys.readouterr().err
+    base = json.loads((BASELINE / "baseline.json").read_text())
+    for bad, msg in ((dict(base, cells="x"), "expected keys tolerance, cells"),
+                     (dict(base, tolerance={}), "tolerance.R"),
+                     (dict(base, cells=[{"m": 0.2}]), "cells[0]")):
+        (b / "baseline.json").write_text(json.dumps(bad))
+        assert cli.main(["regress", "--baseline", str(b)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and msg in err[0], err
+
+
+def test_regress_groups_cells_by_every_factor():
+    """A spec varying push_N besides m, mu, d: each (m, mu, d, push_N) combination is its own cell, not merged
+    into (m, mu, d) cells of a pushed and an unpushed run; the baseline must cover exactly the design's cells."""
+    from wbc_jax.campaign.regress import cell_means, check_coverage
+    from wbc_jax.campaign.spec import parse_spec
+
+    df = campaign_table(reps=2)
+    df["push_N"] = np.tile([0.0, 30.0], 8)
+    factors = ["m", "mu", "d", "push_N"]
+    cells = cell_means(df, factors)
+    assert len(cells) == 16 and {c["runs"] for c in cells} == {1} and len(cell_means(df)) == 8
+    spec = parse_spec(dict(factors=dict(m=[0.2, 0.4], mu=[0.4, 1.0], d=[0.06, 0.1], push_N=[0.0, 30.0])), "s.toml")
+    check_coverage(dict(cells=cells), spec, Path("b.json"))
+    with pytest.raises(WbcJaxError, match="15 covered; missing m=0.4 mu=1 d=0.1 push_N=30"):
+        check_coverage(dict(cells=cells[:-1]), spec, Path("b.json"))
 
 
 def test_default_spec_follows_the_device():

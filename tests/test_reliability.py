@@ -1,8 +1,10 @@
-"""Issue 19: a careless or hostile user never loses files or a finished campaign, and every bad input is one line.
+"""A careless or hostile user never loses files or a finished campaign, and every bad input is one line.
 
-``BAD_INPUTS`` is the table of the bad inputs tried (every case of the issue) with the one-line message each must
-give: exit 2, one stderr line ``wbc-jax CMD: error: ...`` containing the message, no traceback, and every file
-that was there before still there, unchanged. None of them reaches a JAX compile (they fail before any work).
+``BAD_INPUTS`` is the table of the bad inputs tried with the one-line message each must give: exit 2, one stderr
+line ``wbc-jax CMD: error: ...`` containing the message, no traceback, no numpy repr, and every file that was there
+before still there, unchanged. None of them reaches a JAX compile (they fail before any work; the two chunk-plan
+rows reach a stand-in for the build, which compiles the batch's initial states). tests/test_safety.py: locks,
+folder policy, interrupts, report failures.
 """
 
 from __future__ import annotations
@@ -10,8 +12,8 @@ from __future__ import annotations
 import itertools
 import json
 import os
-import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -75,7 +77,52 @@ def _setup(t: Path) -> dict:
     (t / "base").mkdir()
     (t / "base" / "spec.toml").write_bytes(TINY.read_bytes())
     (t / "base" / "baseline.json").write_text("{not json")
+    _setup_round_two(t)
     return {"T": str(t), "LONG": str(t / ("x" * 250))}
+
+
+def _baseline(t: Path, name: str, cells=None, mode=None) -> None:
+    """A baseline folder ``t/name`` (the tiny spec; its committed baseline.json with ``cells`` instead, and
+    ``mode``)."""
+    b = t / name
+    b.mkdir()
+    (b / "spec.toml").write_bytes(TINY.read_bytes())
+    base = json.loads((TINY.parent / "baseline.json").read_text())
+    (b / "baseline.json").write_text(json.dumps(base if cells is None else dict(base, cells=cells)))
+    if mode is not None:
+        (b / "baseline.json").chmod(mode)
+
+
+def _setup_round_two(t: Path) -> None:
+    """Files of the second round's rows: own and legacy campaign folders, a checkpoint of finished chunks,
+    baselines, gains and specs that make the QP infeasible, a tuning spec copied out of sweeps/, a link."""
+    ck = t / ".ckdir.campaign-ckpt"  # 2 of 3 chunks finished beside --out ckdir
+    ck.mkdir()
+    (ck / "state_2.npz").write_bytes(b"state")
+    (ck / "meta.json").write_text(json.dumps(dict(chunks_done=2, n_chunks=3, identity={}, state_file="state_2.npz")))
+    legacy = t / "legacy"  # an earlier campaign whose manifest lists no files
+    legacy.mkdir()
+    (legacy / "manifest.json").write_text(json.dumps({"command": "wbc-jax campaign"}))
+    own = t / "own"  # an earlier campaign (results only) and the user's own report folder inside it
+    (own / "report").mkdir(parents=True)
+    (own / "manifest.json").write_text(json.dumps({"command": "wbc-jax campaign",
+                                                   "files": ["manifest.json", "results.csv"]}))
+    (own / "results.csv").write_text("run\n0\n")
+    (own / "report" / "mine.md").write_text("my report")
+    _fake_ckpt(t, out="resumed")  # made with the jax backend
+    cells = json.loads((TINY.parent / "baseline.json").read_text())["cells"]
+    _baseline(t, "base_empty", cells=[])
+    _baseline(t, "base_part", cells=cells[:-1])
+    _baseline(t, "base_ro", mode=0o444)
+    (t / "fmin.toml").write_text("[gains]\nf_min = 500.0\nf_max = 1.0\n")
+    (t / "rlam.toml").write_text("[gains]\nr_lam = 0.0\n")
+    factor = lambda line: TINY.read_text().replace("[factors]", f"[factors]\n{line}", 1)  # noqa: E731
+    (t / "gain_zero.toml").write_text(factor('"gain.r_vdot" = [0.0, 1.0]'))
+    (t / "gain_fmax.toml").write_text(factor('"gain.f_max" = [0.001, 1.0]'))
+    (t / "chunks.toml").write_text(TINY.read_text().replace("chunk_seconds = 0.04", "chunk_seconds = 0.07"))
+    (t / "short.toml").write_text(TINY.read_text().replace("max_seconds = 0.12", "max_seconds = 0.0001"))
+    (t / "tune.toml").write_bytes((SWEEPS / "gain_tuning_cpu.toml").read_bytes())
+    (t / "link_file").symlink_to(t / "plain.txt")
 
 
 # (name, argv, expected part of the one-line message). {T}: the test folder (also the current folder).
@@ -143,6 +190,53 @@ BAD_INPUTS = [
     ("trot_step_time_tiny", ["trot", "--step-time", "1e-9", "--out", "o"], "--step-time = 1e-09"),
     # 9. regress checks its baseline before rerunning anything
     ("regress_malformed_baseline", ["regress", "--baseline", "base"], "not a valid baseline file (not JSON"),
+    # second round: an output folder is one command's at a time (held by another process: see bad_runs)
+    ("campaign_out_locked", ["campaign", "--spec", "spec.toml", "--out", "locked"],
+     "--out locked: in use by wbc-jax campaign (pid"),
+    ("demo_out_locked", ["demo", "--out", "locked"], "in use by wbc-jax campaign (pid"),
+    ("report_out_locked", ["report", "results.csv", "--out", "locked"], "in use by wbc-jax campaign (pid"),
+    # finished chunks are never discarded implicitly; --force replaces only what the tool wrote; links
+    ("campaign_finished_chunks", ["campaign", "--spec", "spec.toml", "--out", "ckdir"],
+     "2 of 3 chunks finished in"),
+    ("campaign_finished_chunks_says_how", ["campaign", "--spec", "spec.toml", "--out", "ckdir"],
+     "continue with --resume, or --force to start over"),
+    ("campaign_force_legacy_folder", ["campaign", "--spec", "spec.toml", "--out", "legacy", "--force"],
+     "does not list the files it wrote"),
+    ("campaign_force_keeps_users_report", ["campaign", "--spec", "spec.toml", "--out", "own", "--force"],
+     "holds report, which the earlier wbc-jax campaign run did not write"),
+    ("campaign_out_link_to_file", ["campaign", "--spec", "spec.toml", "--out", "link_file"], "is a link to"),
+    ("bench_json_exists", ["bench", "qp", "--json", "plain.txt"], "--json plain.txt: exists; pass --force"),
+    ("bench_json_no_folder", ["bench", "qp", "--json", "nowhere/b.json"], "does not exist"),
+    ("bench_json_is_folder", ["bench", "qp", "--json", "full"], "--json full: is a folder"),
+    # regress cannot pass having compared nothing
+    ("regress_no_cells", ["regress", "--baseline", "base_empty"], "no cells: it would compare nothing"),
+    ("regress_cells_miss_design", ["regress", "--baseline", "base_part"],
+     "its cells do not cover the 8 cells of"),
+    ("regress_update_read_only", ["regress", "--baseline", "base_ro", "--update"],
+     "baseline.json: read-only (mode 0444)"),
+    # gains that make the QP infeasible or singular
+    ("campaign_gains_fmin_above_fmax", ["campaign", "--spec", "spec.toml", "--gains", "fmin.toml", "--out", "o"],
+     "gains.f_min: f_min 500 N > f_max 1 N: no contact force would satisfy the QP's bounds"),
+    ("campaign_gains_zero_regularization", ["campaign", "--spec", "spec.toml", "--gains", "rlam.toml", "--out", "o"],
+     "gains.r_lam: = 0: a regularization weight must be > 0"),
+    ("campaign_factor_zero_regularization", ["campaign", "--spec", "gain_zero.toml", "--out", "o"],
+     "factors.gain.r_vdot: level 0: a regularization weight's multiplier must be > 0"),
+    ("campaign_factor_fmax_below_fmin", ["campaign", "--spec", "gain_fmax.toml", "--out", "o"],
+     "factors.gain.f_max: f_min 2 N > f_max 0.4 N"),
+    # chunks that do not fit max_seconds; a max_seconds too short for metrics
+    ("campaign_chunks_overrun_cap", ["campaign", "--spec", "chunks.toml", "--out", "o"],
+     "max_seconds = 0.12 is not a whole number of chunks: chunk_seconds = 0.07 makes chunks of 0.08 s"),
+    ("campaign_cap_too_short", ["campaign", "--spec", "short.toml", "--out", "o"],
+     "max_seconds = 0.0001: shorter than one logged interval (0.02 s"),
+    # unclear messages made clear
+    ("campaign_resume_other_backend", ["campaign", "--spec", "spec.toml", "--out", "resumed", "--resume",
+                                       "--backend", "warp"],
+     "made with the 'jax' physics backend, this run would use 'warp' (--backend warp); resume with --backend jax"),
+    ("tune_relative_campaign_spec", ["tune", "--spec", "tune.toml", "--out", "tn"],
+     "campaign spec 'quick.toml': no file"),
+    ("campaign_unknown_flag", ["campaign", "--reps", "3"], "unrecognized arguments: --reps 3"),
+    ("report_alpha_not_a_number", ["report", "results.csv", "--out", "o", "--alpha", "x"],
+     "argument --alpha: invalid float value: 'x'"),
 ]
 
 
@@ -152,12 +246,16 @@ def bad_runs(tmp_path_factory):
     import contextlib
     import io
 
+    from wbc_jax.campaign import runner
+
     t = tmp_path_factory.mktemp("bad inputs ü")  # a space and non-ASCII in the path
     subst = _setup(t)
+    holder = hold_lock(t / "locked")  # another process runs a campaign into t/locked
     before = _snapshot(t)
     cwd = os.getcwd()
     os.chdir(t)
     runs = {}
+    keep_build, runner.build = runner.build, planned_only
     try:
         for name, argv, _ in BAD_INPUTS:
             err, out = io.StringIO(), io.StringIO()
@@ -165,9 +263,31 @@ def bad_runs(tmp_path_factory):
                 rc = cli.main([a.format(**subst) for a in argv])
             runs[name] = (rc, err.getvalue(), out.getvalue())
     finally:
+        runner.build = keep_build
         os.chdir(cwd)
+        holder.kill()
+        holder.wait()
         (t / "readonly").chmod(0o755)
     return runs, before, _snapshot(t)
+
+
+def planned_only(spec, gains=None):
+    """A stand-in for ``campaign.build``: the chunk plan of ``spec`` on the flat scene (1 ms control steps) with a
+    planned duration of 5 s, without building the batch; the rows that reach it stop at its checks."""
+    from types import SimpleNamespace
+
+    from wbc_jax.campaign.build import Built, chunk_plan
+
+    return Built(SimpleNamespace(dt_control=0.001), None, None, 5.0, *chunk_plan(spec.campaign, 0.001, 5.0))
+
+
+def hold_lock(out: Path, command: str = "wbc-jax campaign") -> subprocess.Popen:
+    """Another process that claims ``out`` (wbc_jax.io_utils.claim_out_dir) and holds it until killed."""
+    code = (f"from wbc_jax.io_utils import claim_out_dir; claim_out_dir({str(out)!r}, {command!r}); "
+            "print('held', flush=True); import time; time.sleep(600)")
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, cwd=REPO)
+    assert p.stdout.readline().strip() == "held"
+    return p
 
 
 def _snapshot(folder: Path) -> dict:
@@ -181,120 +301,20 @@ def test_bad_input_is_one_line_exit_2(bad_runs, name, argv, msg):
     lines = err.strip().splitlines()
     assert rc == 2 and len(lines) == 1, err
     assert lines[0].startswith(f"wbc-jax {argv[0]}: error: ") and msg in lines[0], err
+    assert "np." not in lines[0] and "Traceback" not in err
 
 
 def test_bad_inputs_leave_every_file(bad_runs):
-    """No bad input deleted, changed or added a file (the spec, notes.txt, the read-only folder, ...)."""
+    """No bad input deleted, changed or added a file (the spec, notes.txt, the read-only folder, the other
+    process's lock, the checkpoint of finished chunks, the user's report inside a campaign folder, ...)."""
     _, before, after = bad_runs
     assert after == before
-
-
-# ---------------------------------------------------------------- outputs: --force, own folders
-
-
-def test_own_folder_recognised_by_manifest_and_replaced_only_with_force(tmp_path):
-    from wbc_jax.errors import OutputError
-    from wbc_jax.io_utils import atomic_dir, check_out_dir
-
-    out = tmp_path / "demo"
-    check_out_dir(out, "wbc-jax demo")
-    with atomic_dir(out, command="wbc-jax demo") as tmp:  # demo and trot write no manifest of their own
-        (tmp / "summary.json").write_text("{}")
-    assert json.loads((out / "manifest.json").read_text()) == {"command": "wbc-jax demo"}
-    with pytest.raises(OutputError, match="pass --force"):
-        check_out_dir(out, "wbc-jax demo")
-    with pytest.raises(OutputError, match="holds no earlier wbc-jax trot run"):
-        check_out_dir(out, "wbc-jax trot", force=True)
-    assert check_out_dir(out, "wbc-jax demo", force=True) == out
-    (tmp_path / "empty").mkdir()
-    assert check_out_dir(tmp_path / "empty", "wbc-jax demo") == tmp_path / "empty"
-
-
-# ---------------------------------------------------------------- a finished campaign is never lost
-
-
-def test_report_failure_keeps_results_and_report_can_be_rerun(tmp_path, monkeypatch, capsys):
-    """The statistics failing after the simulation: results.csv and manifest.json stay, report_error.txt says why,
-    the error is one line, and ``wbc-jax report`` on the kept results.csv works."""
-    from wbc_jax.analysis import report
-    from wbc_jax.campaign import results as campaign
-    from wbc_jax.errors import ReportError
-
-    out = tmp_path / "camp"
-    out.mkdir()
-    campaign_table().to_csv(out / "results.csv", index=False)
-    manifest = {"command": "wbc-jax campaign", "warnings": []}
-    (out / "manifest.json").write_text(json.dumps(manifest))
-
-    def boom(*a, **k):
-        raise ValueError("r_matrix performs f_test\nfor using dimensions")
-
-    monkeypatch.setattr(report, "run_report", boom)
-    with pytest.raises(ReportError) as e:
-        campaign.campaign_report(out, manifest, [])
-    msg = str(e.value)
-    assert "\n" not in msg and "results.csv and manifest.json are written" in msg and "wbc-jax report" in msg
-    assert "ValueError: r_matrix" in (out / "report_error.txt").read_text()
-    assert json.loads((out / "manifest.json").read_text())["warnings"][0].startswith("no report: ValueError")
-    monkeypatch.undo()
-    assert cli.main(["report", str(out / "results.csv"), "--out", str(out / "report")]) == 0
-    assert (out / "report" / "report.md").exists() and (out / "results.csv").exists()
-
-
-@pytest.mark.parametrize("case, warning", [
-    ("all_success", None),
-    ("nan_metric_1rep", "main effects only"),
-    ("empty_cell_1rep", "1 cells have runs but no successful run"),
-    ("huge_values", "values up to 1e+250 overflow"),
-    ("all_fail", "no successful runs"),
-    ("empty_metric_cell", "1 successful run(s) have no R value"),
-])
-def test_report_works_on_any_campaign_table(tmp_path, case, warning):
-    """A campaign's results.csv (1 rep, all success, all fail, NaN and empty cells, huge values) gets a report,
-    with default metrics R, T, S and the problem among its warnings."""
-    from wbc_jax.analysis.report import run_report
-
-    df = campaign_table()
-    if case == "nan_metric_1rep":
-        df.loc[2, "R"] = np.nan
-    elif case == "empty_cell_1rep":  # 1 rep, one run failed: a cell with no successful run
-        df.loc[2, ["success", "fail_reason"]] = [False, "fell"]
-    elif case == "huge_values":
-        df.loc[3, "R"] = 1e250
-    elif case == "all_fail":
-        df["success"], df["fail_reason"] = False, "fell"
-    csv = tmp_path / "results.csv"
-    df.to_csv(csv, index=False)
-    if case == "empty_metric_cell":  # an empty cell in the CSV text itself
-        lines = csv.read_text().splitlines()
-        head = lines[0].split(",")
-        row = lines[3].split(",")
-        row[head.index("R")] = ""
-        lines[3] = ",".join(row)
-        csv.write_text("\n".join(lines) + "\n")
-    summary = run_report(str(csv), str(tmp_path / "rep"), figures=False)
-    md = (tmp_path / "rep" / "report.md").read_text()
-    if case == "all_fail":
-        assert summary["metrics"] == {} and "## Design" in md
-    else:
-        assert set(summary["metrics"]) <= {"R", "T", "S"} and "T" in summary["metrics"]
-    if warning is None:
-        assert list(summary["metrics"]) == ["R", "T", "S"]
-    else:
-        assert warning in md
-
-
-def test_report_cli_on_all_success_campaign_table_with_figures(tmp_path, capsys):
-    csv = tmp_path / "results.csv"
-    campaign_table(reps=2).to_csv(csv, index=False)
-    assert cli.main(["report", str(csv), "--out", str(tmp_path / "rep")]) == 0, capsys.readouterr().err
-    assert json.loads((tmp_path / "rep" / "anova.json").read_text())["manifest"]["metrics"] == ["R", "T", "S"]
 
 
 # ---------------------------------------------------------------- checkpoint identity and damage
 
 
-def _fake_ckpt(tmp_path, gains=None, **meta_over):
+def _fake_ckpt(tmp_path, gains=None, out="out", **meta_over):
     """A checkpoint next to ``tmp_path/out`` with the identity of the tiny spec (and ``gains``)."""
     import hashlib
 
@@ -302,7 +322,7 @@ def _fake_ckpt(tmp_path, gains=None, **meta_over):
     from wbc_jax.campaign.manifest import run_identity
     from wbc_jax.campaign.spec import load_spec
 
-    ck = _ckpt_dir(tmp_path / "out")
+    ck = _ckpt_dir(tmp_path / out)
     ck.mkdir()
     (ck / "state_1.npz").write_bytes(b"state bytes")
     meta = dict(identity=run_identity(load_spec(TINY), gains), chunks_done=1, n_chunks=3, wall_s=1.0, marks=[],
@@ -371,58 +391,3 @@ def test_run_identity_names_what_determines_the_result():
     assert run_identity(spec, default_gains()) == a  # the defaults, given or not
     assert run_identity(spec, default_gains()._replace(kp_obj=default_gains().kp_obj * 2))["gains_hash"] != \
         a["gains_hash"]
-
-
-# ---------------------------------------------------------------- regress, bench, git
-
-
-def test_regress_spec_mismatch_found_before_rerun(tmp_path, monkeypatch, capsys):
-    from wbc_jax.campaign import regress
-
-    b = tmp_path / "base"
-    b.mkdir()
-    shutil.copy(TINY.parent / "baseline.json", b / "baseline.json")
-    (b / "spec.toml").write_text(TINY.read_text().replace("seed = 3", "seed = 4"))
-    monkeypatch.setattr(regress, "run_campaign", lambda *a, **k: pytest.fail("reran before checking the baseline"))
-    assert cli.main(["regress", "--baseline", str(b)]) == 2
-    assert "spec changed since the baseline was stored" in capsys.readouterr().err
-    base = json.loads((TINY.parent / "baseline.json").read_text())
-    for bad, msg in ((dict(base, cells="x"), "expected keys tolerance, cells"),
-                     (dict(base, tolerance={}), "tolerance.R"),
-                     (dict(base, cells=[{"m": 0.2}]), "cells[0]")):
-        (b / "baseline.json").write_text(json.dumps(bad))
-        assert cli.main(["regress", "--baseline", str(b)]) == 2
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and msg in err[0], err
-
-
-def test_bench_defaults_are_cpu_sized(monkeypatch):
-    import jax
-
-    from wbc_jax.bench import rollout
-
-    assert jax.default_backend() == "cpu"
-    got = {}
-    monkeypatch.setattr(rollout, "run_bench", lambda **k: got.update(k))
-    monkeypatch.setattr(rollout, "run_profile", lambda **k: got.update(profile=k["batch"]))
-    assert cli.main(["bench", "rollout"]) == 0 and cli.main(["bench", "profile"]) == 0
-    assert max(got["batches"]) <= 16 and got["profile"] <= 16
-
-
-def test_git_commit_is_this_projects_or_none(tmp_path):
-    from wbc_jax.campaign.manifest import git_commit as _git_commit
-
-    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
-    if not head:
-        pytest.skip("the tests do not run from a git checkout")
-    assert _git_commit().split("-")[0] == head
-    other = tmp_path / "other"  # a copy of the package inside another repository
-    (other / "vendor" / "wbc_jax").mkdir(parents=True)
-    shutil.copy(REPO / "wbc_jax" / "__init__.py", other / "vendor" / "wbc_jax" / "__init__.py")
-    subprocess.run(["git", "init", "-q", str(other)], check=True)
-    subprocess.run(["git", "-C", str(other), "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q",
-                    "--allow-empty", "-m", "x"], check=True)
-    assert _git_commit(other / "vendor" / "wbc_jax") is None
-    (other / "wbc_jax").mkdir()  # at the root, but not tracked there
-    assert _git_commit(other / "wbc_jax") is None
-    assert _git_commit(tmp_path / "nowhere") is None

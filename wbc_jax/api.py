@@ -47,6 +47,10 @@ def run_campaign(spec_path: str | Path | None, out: str | Path, *, gains: str | 
 
     Raises:
         wbc_jax.errors.SpecError: a bad spec or gains file, before anything runs.
+        wbc_jax.errors.OutputError: ``out`` is in use by another command, not this command's, or beside a
+            checkpoint of finished chunks (pass ``resume=True`` or ``force=True``), before anything runs.
+        wbc_jax.campaign.interrupts.Interrupted: SIGINT or SIGTERM (a KeyboardInterrupt); its message says what was
+            kept (the checkpoint of finished chunks: continue with ``resume=True``).
     """
     from wbc_jax.campaign.runner import run_campaign as _run
 

@@ -40,3 +40,11 @@ class LimitError(WbcJaxError):
 
 class ReportError(WbcJaxError):
     """The statistics of a finished campaign failed; its results.csv and manifest.json were kept."""
+
+
+class UsageError(WbcJaxError):
+    """A command line argparse cannot read (unknown flag, wrong type); ``prog``: the command, e.g. ``wbc-jax demo``."""
+
+    def __init__(self, message: str, prog: str = "wbc-jax"):
+        super().__init__(message)
+        self.prog = prog

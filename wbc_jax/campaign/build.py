@@ -192,13 +192,50 @@ def build(spec: Spec, gains=None) -> Built:
         t_end = np.minimum(t_end, c["max_seconds"])
     state = with_variant(with_metric_window(b.state, t_end), Variant(*dz.variant.T))
     b = b._replace(push=push, state=state)
-    log_dt = sim.dt_control * LOG_EVERY
-    logs_per_chunk = max(1, int(round(c["chunk_seconds"] / log_dt)))
-    horizon = planned_s + c["extra_seconds"]
-    if c["max_seconds"] > 0:
-        horizon = min(horizon, c["max_seconds"])
+    return Built(sim, dz, b, planned_s, *chunk_plan(c, sim.dt_control, planned_s))
+
+
+def chunk_plan(campaign: dict, dt_control: float, planned_s: float) -> tuple[int, int]:
+    """(logged samples per chunk, chunks) of a spec's ``campaign`` table: chunks of ``chunk_seconds`` rounded to
+    whole log intervals (LOG_EVERY control steps of ``dt_control`` [s]), as many as cover the horizon
+    (``planned_s`` + ``extra_seconds`` [s], capped by ``max_seconds``)."""
+    log_dt = dt_control * LOG_EVERY
+    logs_per_chunk = max(1, int(round(campaign["chunk_seconds"] / log_dt)))
+    horizon = planned_s + campaign["extra_seconds"]
+    if campaign["max_seconds"] > 0:
+        horizon = min(horizon, campaign["max_seconds"])
     n_chunks = max(1, int(np.ceil(horizon / (logs_per_chunk * log_dt) - 1e-9)))
-    return Built(sim, dz, b, planned_s, logs_per_chunk, n_chunks)
+    return logs_per_chunk, n_chunks
+
+
+def check_horizon(spec: Spec, built: Built) -> None:
+    """Refuse a ``campaign.max_seconds`` that the chunks cannot honour exactly (before anything is compiled).
+
+    Raises:
+        SpecError: the cap is shorter than one logged interval (no metric could be computed), or the whole chunks
+            of ``campaign.chunk_seconds`` would simulate past it; the line names a chunk length that fits.
+    """
+    c = spec.campaign
+    cap = c["max_seconds"]
+    if cap <= 0:
+        return
+    log_dt = built.sim.dt_control * LOG_EVERY
+    if cap < log_dt - 1e-9:
+        raise SpecError(f"{spec.path}: campaign.max_seconds = {cap:g}: shorter than one logged interval ({log_dt:g} s "
+                        f"= {LOG_EVERY} control steps), too short for any metric; use at least {log_dt:g}")
+    chunk_s = built.logs_per_chunk * log_dt
+    simulated = built.n_chunks * chunk_s
+    if simulated <= cap + 1e-9:
+        return
+    logs = cap / log_dt
+    if abs(logs - round(logs)) > 1e-6:
+        fix = f"use a max_seconds that is a multiple of {log_dt:g} s, e.g. {int(logs) * log_dt:g}"
+    else:
+        fit = max(k for k in range(1, built.logs_per_chunk + 1) if round(logs) % k == 0)
+        fix = f"use chunk_seconds = {fit * log_dt:g} (chunks must divide max_seconds in steps of {log_dt:g} s)"
+    raise SpecError(f"{spec.path}: campaign.max_seconds = {cap:g} is not a whole number of chunks: chunk_seconds = "
+                    f"{c['chunk_seconds']:g} makes chunks of {chunk_s:g} s, so {simulated:g} s would be simulated; "
+                    f"{fix}")
 
 
 def n_runs_of(spec: Spec) -> int:

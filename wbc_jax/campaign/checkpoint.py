@@ -1,7 +1,7 @@
 """A campaign's checkpoint: the batched rollout state after the last finished chunk, next to the output folder.
 
 ``.<DIR name>.campaign-ckpt/`` holds ``state_K.npz`` (every leaf of the batched RunState after chunk K) and
-``meta.json`` (chunks done, wall time so far, the run's identity (``wbc_jax.campaign.runner.run_identity``: spec,
+``meta.json`` (chunks done, wall time so far, the run's identity (``wbc_jax.campaign.manifest.run_identity``: spec,
 gains, backend, numerics versions, run count) and the state file's SHA-256). :func:`save_state` writes the state
 first and then the meta that names it, so an interruption at any point leaves a consistent pair;
 :func:`read_meta` checks the meta against this run's identity before anything is built or compiled, and
@@ -22,7 +22,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.errors import CheckpointError
-from wbc_jax.io_utils import write_json_atomic
+from wbc_jax.io_utils import file_mode, write_json_atomic
+
+RESTART = "delete {ck}, or run with --force instead of --resume to start over"
 
 
 def ckpt_dir(out: Path) -> Path:
@@ -47,6 +49,7 @@ def save_state(ck: Path, state, meta: dict) -> None:
     fd, tmp = tempfile.mkstemp(prefix=".state.", suffix=".npz", dir=ck)
     with os.fdopen(fd, "wb") as f:
         np.savez(f, *leaves)
+    os.chmod(tmp, file_mode())
     digest = sha256_file(Path(tmp))
     os.replace(tmp, ck / name)
     write_json_atomic(ck / "meta.json", dict(meta, state_file=name, state_sha256=digest))
@@ -63,7 +66,7 @@ def read_meta(ck: Path, identity: dict, n_chunks: int) -> dict | None:
             range; an identity entry that differs from ``identity``; the state file missing or not matching its
             SHA-256. The message says how to restart.
     """
-    restart = f"delete {ck} or run without --resume to start over"
+    restart = RESTART.format(ck=ck)
     if not ck.exists():
         return None
     meta_p = ck / "meta.json"
@@ -99,13 +102,13 @@ def load_state(ck: Path, state_like, identity: dict, n_chunks: int):
         with np.load(ck / meta["state_file"]) as z:
             leaves = [z[f"arr_{i}"] for i in range(len(z.files))]
     except (OSError, ValueError, KeyError) as e:
-        raise CheckpointError(f"{ck}: damaged checkpoint ({meta['state_file']}: {e}); delete {ck} or run "
-                              "without --resume to start over") from None
+        raise CheckpointError(f"{ck}: damaged checkpoint ({meta['state_file']}: {e}); "
+                              f"{RESTART.format(ck=ck)}") from None
     treedef = jax.tree_util.tree_structure(state_like)
     like = jax.tree_util.tree_leaves(state_like)
     if treedef.num_leaves != len(leaves) or any(x.shape != a.shape for x, a in zip(leaves, like)):
-        raise CheckpointError(f"{ck}: checkpoint does not match this version's rollout state; delete {ck} or "
-                              "run without --resume to start over")
+        raise CheckpointError(f"{ck}: checkpoint does not match this version's rollout state; "
+                              f"{RESTART.format(ck=ck)}")
     # placed like the fresh state (committed to its device where that is): an uncommitted leaf changes the lowered
     # program's input shardings, so the chunk function would compile a second time and miss the compilation cache
     out = [jax.device_put(x, a.sharding) if getattr(a, "committed", False) else jnp.asarray(x)
@@ -113,9 +116,21 @@ def load_state(ck: Path, state_like, identity: dict, n_chunks: int):
     return jax.tree_util.tree_unflatten(treedef, out), meta
 
 
+def peek(ck: Path) -> dict | None:
+    """A checkpoint's ``meta.json`` unchecked (chunks done, chunk count, identity, sessions): None when ``ck`` holds
+    no file at all, {} when meta.json is missing or unreadable beside other files."""
+    if not ck.is_dir() or not any(ck.iterdir()):
+        return None
+    try:
+        meta = json.loads((ck / "meta.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return meta if isinstance(meta, dict) else {}
+
+
 def n_chunks_hint(ck: Path) -> int:
     """The chunk count a checkpoint's meta.json claims (checked again against the build); 0 when unreadable."""
     try:
-        return int(json.loads((ck / "meta.json").read_text())["n_chunks"])
-    except (OSError, ValueError, KeyError, TypeError):
+        return int((peek(ck) or {})["n_chunks"])
+    except (KeyError, TypeError, ValueError):
         return 0

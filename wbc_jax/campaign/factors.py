@@ -33,6 +33,7 @@ GAIN_LEAVES = ("kp_com", "kd_com", "kp_rot", "kd_rot", "kp_obj", "kd_obj", "kp_o
                "kd_sw", "kd_stance", "kp_post", "kd_post", "w_com", "w_obj_f", "w_obj_t", "w_post", "r_vdot",
                "r_lam", "r_slack", "k_obs", "f_min", "f_max", "tau_margin")
 OBJECT = ("m", "mu", "d")  # the paper's factors: always columns of results.csv
+REGULARIZATION = ("r_vdot", "r_lam")  # gains that must stay > 0 (the QP's regularization: zero makes it singular)
 
 
 @dataclass(frozen=True)

@@ -8,9 +8,11 @@ File format (stdlib ``tomllib``)::
     ...
     [info]                      # optional, free-form, not read (the tuner writes where the gains came from)
 
-Every value must be finite and >= 0 (``tau_margin``: 0 < value <= 1). An unknown table or leaf, a wrong type,
-a wrong length or an out-of-range value raises :class:`wbc_jax.errors.SpecError` with one line naming the file
-and the key; the CLI turns it into exit code 2 before anything is written.
+Every value must be finite and >= 0 (``tau_margin``: 0 < value <= 1); the QP's regularization weights
+(:data:`REGULARIZATION`) must be > 0 and ``f_min`` <= ``f_max`` (otherwise every control step's QP is singular or
+infeasible). An unknown table or leaf, a wrong type, a wrong length or an out-of-range value raises
+:class:`wbc_jax.errors.SpecError` with one line naming the file and the key; the CLI turns it into exit code 2
+before anything is written. :func:`check_design` applies the same rules to a spec's ``gain.*`` factors.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from wbc_jax.campaign.factors import GAIN_PREFIX, REGULARIZATION
 from wbc_jax.campaign.spec import _err, _number
 from wbc_jax.errors import InputError, SpecError
 from wbc_jax.io_utils import read_capped
@@ -106,13 +109,58 @@ def parse_gains(data: dict, path: str = "<gains>"):
         else:
             vals = _number(path, key, v, float, 0.0, hi, lo_open, "(gain)")
         out[name] = jnp.broadcast_to(jnp.asarray(vals, dtype=default.dtype), shape)
-    return type(base)(**out)
+    gains = type(base)(**out)
+    problem = feasibility(gains)
+    if problem:
+        key, msg = problem
+        raise _err(path, f"gains.{key}", msg)
+    return gains
+
+
+def feasibility(gains, scale: dict | None = None) -> tuple[str, str] | None:
+    """(leaf, message) of the first rule the gains break, or None: the regularization weights > 0 and
+    ``f_min`` <= ``f_max``. ``scale``: leaf -> the multipliers a spec's ``gain.<leaf>`` factor applies (every
+    combination of levels is a run of the design)."""
+    scale = scale or {}
+
+    def extreme(name, pick):
+        leaf = np.asarray(getattr(gains, name), dtype=float)
+        return pick(leaf) * pick(np.asarray(scale.get(name, [1.0]), dtype=float))
+
+    for name in REGULARIZATION:
+        if extreme(name, np.min) <= 0:
+            return name, (f"= {extreme(name, np.min):g}: a regularization weight must be > 0 (the QP would be "
+                          "singular)")
+    f_min, f_max = extreme("f_min", np.max), extreme("f_max", np.min)
+    if f_min > f_max:
+        return "f_min", (f"f_min {f_min:g} N > f_max {f_max:g} N: no contact force would satisfy the QP's bounds, "
+                         "so every control step would be infeasible")
+    return None
+
+
+def check_design(spec, gains=None) -> None:
+    """Refuse a spec whose ``gain.*`` factors, applied to ``gains`` (None: the defaults), break
+    :func:`feasibility` in some run (before anything is built).
+
+    Raises:
+        SpecError: naming the spec, the factor (or the gains leaf) and the rule.
+    """
+    scale = {k[len(GAIN_PREFIX):]: v for k, v in spec.factors.items() if k.startswith(GAIN_PREFIX)}
+    if not scale:
+        return
+    problem = feasibility(_defaults() if gains is None else gains, scale)
+    if problem:
+        key, msg = problem
+        leaves = ("f_min", "f_max") if key == "f_min" else (key,)
+        varied = [f"{GAIN_PREFIX}{k}" for k in leaves if f"{GAIN_PREFIX}{k}" in spec.factors]
+        raise _err(spec.path, f"factors.{varied[0]}" if varied else f"gains.{key}",
+                   f"{msg} (with the factors' levels)")
 
 
 def load_gains(path: str | Path):
     """Read and validate a gains TOML file (module docstring). Raises SpecError (one line: file, key)."""
     try:
-        text = read_capped(path, what="gains").decode("utf-8")
+        text = read_capped(path, what="gains").decode("utf-8-sig")  # a byte-order mark is dropped
     except (OSError, UnicodeDecodeError, InputError) as e:
         raise SpecError(f"{path}: cannot read gains file ({getattr(e, 'strerror', None) or e})") from None
     try:

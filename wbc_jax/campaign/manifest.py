@@ -11,6 +11,7 @@ import hashlib
 import os
 import platform
 import subprocess
+import time
 from importlib import metadata
 from pathlib import Path
 from typing import NamedTuple
@@ -128,8 +129,15 @@ def device_record() -> dict:
                 host=platform.node(), cpu_count=os.cpu_count())
 
 
+def session_record(chunks_before: int) -> dict:
+    """This process's session of a campaign (a resumed one has several): git commit, versions, host, start time
+    and the chunks done before it."""
+    return dict(git_commit=git_commit(), versions=versions(), host=platform.node(),
+                started=time.strftime("%Y-%m-%d %H:%M:%S %z"), chunks_before=int(chunks_before))
+
+
 def campaign_manifest(spec: Spec, built, df, summary: Summary, timing: Timing, *, identity: dict, gains,
-                      sensing: str, spread_mode: str, chunk_s: float, resumed: bool) -> dict:
+                      sensing: str, spread_mode: str, chunk_s: float, sessions: list, files: list) -> dict:
     """The content of ``manifest.json``.
 
     Args:
@@ -143,23 +151,28 @@ def campaign_manifest(spec: Spec, built, df, summary: Summary, timing: Timing, *
         sensing: the resolved ``campaign.sensing``.
         spread_mode: how the runs were spread over devices (``wbc_jax.rollout.spread``: one, mesh, blocks).
         chunk_s: simulated seconds per chunk.
-        resumed: the run continued from a checkpoint.
+        sessions: :func:`session_record` of every session (more than one: resumed; each commit and version).
+        files: what the campaign writes into its folder (``--force`` replaces only these).
     """
     sim = built.sim
     ok = df.success
     return dict(
         command=COMMAND, spec_path=str(spec.path), spec_hash=spec.hash, spec_file_sha256=spec.text_sha256,
         spec=spec.canonical(), default_gains=gains is None, gains_hash=identity["gains_hash"], versions=versions(),
-        git_commit=git_commit(), physics_backend=identity["backend"], sensing=sensing, device=device_record(),
+        git_commit=git_commit(), git_commits=sorted({s["git_commit"] for s in sessions if s.get("git_commit")}),
+        sessions=sessions,
+        physics_backend=identity["backend"], sensing=sensing, device=device_record(),
         layout=dict(distributed.layout_record(), spread=spread_mode),
         n_runs=built.design.n, n_cells=summary.n_cells, reps=spec.reps, seeds=[int(s) for s in built.design.seed],
         simulated_s=built.n_chunks * chunk_s, planned_s=built.planned_s, chunk_s=chunk_s, n_chunks=built.n_chunks,
         control_dt_s=sim.dt_control, wall_s_total=timing.total, wall_s_rollout=timing.rollout,
         import_s=timing.imports, setup_s=timing.setup, compile_s_estimate=timing.compile_estimate,
         first_chunk_s=timing.first_chunk, env_steps_per_s=timing.env_steps_per_s,
-        resumed=resumed, n_success=int(ok.sum()), failures_per_cell=summary.failures_per_cell,
-        failed_runs=summary.failed_runs, warnings=summary.warnings,
+        resumed=len(sessions) > 1, n_success=int(ok.sum()), failures_per_cell=summary.failures_per_cell,
+        failed_runs=summary.failed_runs, qp_flagged_runs=summary.qp_flagged_runs,
+        qp_flag_fraction_max=nan_none(df.qp_flag_fraction.max()), warnings=summary.warnings,
         metric_means={k: float(df.loc[ok, k].mean()) if ok.any() else None for k in METRIC_MEANS},
         constraint_solver=dict(iterations=int(sim.robot.mj_model.opt.iterations),
                                cap_fraction_mean=nan_none(df.solver_cap_fraction.mean()),
-                               cap_fraction_max=nan_none(df.solver_cap_fraction.max())))
+                               cap_fraction_max=nan_none(df.solver_cap_fraction.max())),
+        files=files)

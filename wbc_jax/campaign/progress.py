@@ -36,20 +36,22 @@ def throughput(marks: list[dict], n_runs: int, chunk_s: float, seconds: float, d
 
 
 class ProgressBar:
-    """A tqdm bar in simulated seconds on stderr, with the runs and their physics-step rate as a postfix."""
+    """A tqdm bar on stderr counting whole chunks, shown in simulated seconds, with the runs and their physics-step
+    rate as a postfix; the time left comes from whole chunks, so it is never negative."""
 
-    def __init__(self, seconds: float, done_s: float, n_runs: int, dt_physics: float):
+    def __init__(self, n_chunks: int, done: int, chunk_s: float, n_runs: int, dt_physics: float):
         from tqdm import tqdm
 
-        self.n_runs, self.dt_physics = n_runs, dt_physics
-        self._bar = tqdm(total=round(seconds, 3), initial=round(done_s, 3), unit="sim-s", file=sys.stderr,
+        self.n_runs, self.dt_physics, self.chunk_s = n_runs, dt_physics, chunk_s
+        self._bar = tqdm(total=n_chunks, initial=done, unit_scale=chunk_s, unit="sim-s", file=sys.stderr,
                          bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim-s [{elapsed}<{remaining}{postfix}]")
 
-    def chunk_done(self, chunk_s: float, wall_s: float) -> None:
-        """One chunk of ``chunk_s`` simulated seconds finished in ``wall_s`` seconds."""
-        self._bar.update(chunk_s)
+    def chunk_done(self, wall_s: float) -> None:
+        """One chunk finished in ``wall_s`` seconds."""
+        if self._bar.n < self._bar.total:
+            self._bar.update(1)
         self._bar.set_postfix_str(f"{self.n_runs} runs, "
-                                  f"{self.n_runs * chunk_s / self.dt_physics / wall_s:,.0f} env-steps per second")
+                                  f"{self.n_runs * self.chunk_s / self.dt_physics / wall_s:,.0f} env-steps per second")
 
     def close(self) -> None:
         self._bar.close()

@@ -7,6 +7,7 @@ code generation capped at older instruction sets).
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import tempfile
@@ -15,6 +16,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from wbc_jax.campaign.factors import OBJECT
 from wbc_jax.campaign.runner import run_campaign, run_in_fresh_process
 from wbc_jax.campaign.spec import load_spec
 from wbc_jax.errors import InputError, SpecError, WbcJaxError
@@ -30,7 +32,7 @@ ROUNDING_PROBE_ISAS = ("SSE4_2", "AVX", "AVX2")
 NOISE_FACTOR = 2.0  # band = rel |baseline| + abs + NOISE_FACTOR x the probes' largest deviation from their mean
 
 
-def _rounding_probes(spec_p: Path) -> list[list[dict]]:
+def _rounding_probes(spec_p: Path, factors) -> list[list[dict]]:
     """Cell means of the spec rerun in fresh processes with XLA's CPU codegen capped at each ROUNDING_PROBE_ISAS
     entry (one compile each, no persistent cache). A probe that fails is an error: the noise floor would be unknown."""
     import pandas as pd
@@ -42,7 +44,7 @@ def _rounding_probes(spec_p: Path) -> list[list[dict]]:
             flags = (os.environ.get("XLA_FLAGS", "") + f" --xla_cpu_max_isa={isa}").strip()
             run = run_in_fresh_process(spec_p, Path(td) / "run", JAX_PLATFORMS="cpu", WBC_JAX_CACHE="off",
                                        XLA_FLAGS=flags)
-            out.append(cell_means(pd.read_csv(run / "results.csv")))
+            out.append(cell_means(pd.read_csv(run / "results.csv"), factors))
     return out
 
 
@@ -67,27 +69,44 @@ def _with_noise(cells: list[dict], probes: list[list[dict]]) -> list[dict]:
     return out
 
 
-
-def cell_means(df) -> list[dict]:
-    """Per-cell means of the regression metrics over successful runs, and success counts."""
+def cell_means(df, factors=OBJECT) -> list[dict]:
+    """Per-cell means of the regression metrics over successful runs, and success counts; a cell is one
+    combination of ``factors``' levels (the spec's factors: every one of them, so distinct cells never merge)."""
     rows = []
-    for (m, mu, d), g in df.groupby(["m", "mu", "d"]):
+    for key, g in df.groupby(list(factors)):
+        key = key if isinstance(key, tuple) else (key,)
         ok = g[g.success.astype(bool)]
-        rows.append(dict(m=float(m), mu=float(mu), d=float(d), runs=int(len(g)), n_success=int(len(ok)),
+        rows.append(dict(**{f: _plain_level(v) for f, v in zip(factors, key)}, runs=int(len(g)),
+                         n_success=int(len(ok)),
                          **{k: (float(ok[k].mean()) if len(ok) else None) for k in REGRESS_METRICS}))
     return rows
 
 
-def compare(baseline: dict, cells: list[dict]) -> list[dict]:
+def _plain_level(v):
+    """A factor level as JSON keeps it: a float for a number, the string for a choice."""
+    v = v.item() if isinstance(v, np.generic) else v
+    return v if isinstance(v, str) else float(v)
+
+
+def _key(cell: dict, factors) -> tuple:
+    return tuple(_plain_level(cell[f]) for f in factors)
+
+
+def _label(key: tuple, factors) -> str:
+    return " ".join(f"{f}={v:g}" if isinstance(v, float) else f"{f}={v}" for f, v in zip(factors, key))
+
+
+def compare(baseline: dict, cells: list[dict], factors=None) -> list[dict]:
     """Rows that moved: a metric mean outside |new - old| <= rel |old| + abs + NOISE_FACTOR x noise (the cell's
     rounding noise, ``old["noise"][metric]``, 0 where the baseline has none), a success count change or a
-    missing cell."""
+    missing cell. Cells are matched on ``factors`` (default: the baseline's, else m, mu, d)."""
+    factors = list(factors or baseline.get("factors") or OBJECT)
     tol = baseline["tolerance"]
-    new = {(c["m"], c["mu"], c["d"]): c for c in cells}
+    new = {_key(c, factors): c for c in cells}
     moved = []
     for old in baseline["cells"]:
         noise = old.get("noise") or {}
-        key = (old["m"], old["mu"], old["d"])
+        key = _key(old, factors)
         c = new.get(key)
         if c is None:
             moved.append(dict(cell=key, metric="(cell)", baseline="present", now="missing", band=""))
@@ -108,9 +127,9 @@ def compare(baseline: dict, cells: list[dict]) -> list[dict]:
     return moved
 
 
-def load_baseline(base_p: Path) -> dict:
-    """Read and check ``baseline.json``: a ``tolerance`` (rel, abs >= 0 per metric of REGRESS_METRICS), a list of
-    ``cells`` (m, mu, d, n_success and each metric a number or null) and the ``spec_hash``.
+def load_baseline(base_p: Path, factors=OBJECT) -> dict:
+    """Read and check ``baseline.json``: a ``tolerance`` (rel, abs >= 0 per metric of REGRESS_METRICS), a non-empty
+    list of ``cells`` (each factor's level, n_success and each metric a number or null) and the ``spec_hash``.
 
     Raises:
         WbcJaxError: one line naming the file and the first problem.
@@ -118,9 +137,6 @@ def load_baseline(base_p: Path) -> dict:
     def bad(what):
         return WbcJaxError(f"{base_p}: not a valid baseline file ({what}); recreate it with wbc-jax regress "
                            f"--baseline {base_p.parent} --update")
-
-    def num(v):
-        return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
 
     try:
         b = json.loads(read_capped(base_p, what="baseline"))
@@ -134,61 +150,127 @@ def load_baseline(base_p: Path) -> dict:
         raise bad("expected key spec_hash")
     for k in REGRESS_METRICS:
         t = b["tolerance"].get(k)
-        if not (isinstance(t, dict) and num(t.get("rel")) and num(t.get("abs")) and t["rel"] >= 0 and t["abs"] >= 0):
+        if not (isinstance(t, dict) and _num(t.get("rel")) and _num(t.get("abs")) and t["rel"] >= 0 and t["abs"] >= 0):
             raise bad(f"tolerance.{k}: expected rel and abs numbers >= 0")
+    if not b["cells"]:
+        raise bad("no cells: it would compare nothing")
     for i, c in enumerate(b["cells"]):
-        if not (isinstance(c, dict) and all(num(c.get(k)) for k in ("m", "mu", "d", "n_success"))
-                and all(c.get(k) is None or num(c.get(k)) for k in REGRESS_METRICS)
+        if not (isinstance(c, dict) and all(_num(c.get(f)) or isinstance(c.get(f), str) for f in factors)
+                and _num(c.get("n_success")) and all(c.get(k) is None or _num(c.get(k)) for k in REGRESS_METRICS)
                 and (c.get("noise") is None or isinstance(c["noise"], dict))):
-            raise bad(f"cells[{i}]: expected m, mu, d, n_success numbers and metric numbers or null")
+            raise bad(f"cells[{i}]: expected {', '.join(factors)} levels, an n_success number and metric numbers "
+                      "or null")
     return b
+
+
+def _num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
+
+
+def check_coverage(baseline: dict, spec, base_p: Path) -> None:
+    """The baseline's cells are exactly the cells of the spec's design (every combination of its factors' levels).
+
+    Raises:
+        WbcJaxError: a design cell without a baseline cell, a baseline cell outside the design, or a cell twice.
+    """
+    factors = list(spec.factors)
+    design = {tuple(_plain_level(v) for v in combo) for combo in itertools.product(*spec.factors.values())}
+    keys = [_key(c, factors) for c in baseline["cells"]]
+    missing = sorted(design - set(keys), key=str)
+    extra = sorted(set(keys) - design, key=str)
+    twice = len(keys) != len(set(keys))
+    if missing or extra or twice:
+        what = (f"missing {_label(missing[0], factors)}" if missing else
+                f"{_label(extra[0], factors)} is not in the design" if extra else "a cell appears twice")
+        raise WbcJaxError(f"{base_p}: its cells do not cover the {len(design)} cells of {spec.path}'s design "
+                          f"({len(design & set(keys))} covered; {what}); recreate it with wbc-jax regress --baseline "
+                          f"{base_p.parent} --update")
+
+
+def _check_writable(base_p: Path) -> None:
+    """``--update`` can write ``base_p`` (a file without write permission counts as read-only, whoever runs):
+    checked before the rerun, which takes minutes."""
+    if base_p.exists() and not base_p.stat().st_mode & 0o222:
+        raise WbcJaxError(f"{base_p}: read-only (mode {base_p.stat().st_mode & 0o777:04o}); make it writable to "
+                          "update the baseline")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".probe-", dir=base_p.parent)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise WbcJaxError(f"{base_p.parent}: read-only ({e.strerror or e}); make it writable to update the "
+                          "baseline") from None
 
 
 def run_regress(baseline_dir: str, update: bool = False, gains=None, out: str | None = None) -> tuple[int, list]:
     """Rerun the baseline's stored spec (``DIR/spec.toml``) and compare per-cell metric means with
-    ``DIR/baseline.json`` (means + tolerance band). Returns (exit code: 0 pass / 1 moved, moved rows).
-    ``update``: rewrite baseline.json (tolerances kept) and return 0; on the CPU the spec also runs once per
-    :data:`ROUNDING_PROBE_ISAS` entry in a subprocess (:func:`_rounding_probes`): the stored means are the mean
-    over all runs and each cell's ``noise`` the largest deviation from it."""
+    ``DIR/baseline.json`` (means + tolerance band; cells: every combination of the spec's factors). Returns (exit
+    code: 0 pass / 1 moved, moved rows). ``update``: rewrite baseline.json (tolerances kept) and return 0; on the
+    CPU the spec also runs once per :data:`ROUNDING_PROBE_ISAS` entry in a subprocess (:func:`_rounding_probes`):
+    the stored means are the mean over all runs and each cell's ``noise`` the largest deviation from it.
+
+    Raises:
+        SpecError, WbcJaxError: before the rerun: no spec, a missing or invalid baseline, a changed spec, cells that
+            do not cover the design, a read-only baseline with ``update``.
+    """
     bdir = Path(baseline_dir)
     spec_p = bdir / "spec.toml"
     if not spec_p.exists():
         raise SpecError(f"{bdir}: no spec.toml in the baseline directory")
+    spec = load_spec(spec_p)
+    factors = list(spec.factors)
     base_p = bdir / "baseline.json"
     baseline = None
     if base_p.exists():  # checked before anything is rerun
-        baseline = load_baseline(base_p)
+        baseline = load_baseline(base_p, factors)
     elif not update:
         raise WbcJaxError(f"{base_p}: missing; create it with wbc-jax regress --baseline {bdir} --update")
-    spec = load_spec(spec_p)
-    if baseline is not None and not update and baseline["spec_hash"] != spec.hash:
+    if update:
+        _check_writable(base_p)
+    elif baseline["spec_hash"] != spec.hash:
         raise WbcJaxError(f"{spec_p}: spec changed since the baseline was stored; rerun with --update")
+    else:
+        check_coverage(baseline, spec, base_p)
     with tempfile.TemporaryDirectory() as td:
         run_dir = Path(out) if out else Path(td) / "run"
         run_campaign(str(spec_p), str(run_dir), report=False, progress=False, gains=gains)
         import pandas as pd
 
-        cells = cell_means(pd.read_csv(run_dir / "results.csv"))
+        cells = cell_means(pd.read_csv(run_dir / "results.csv"), factors)
     if update:
-        tol = baseline["tolerance"] if baseline else {k: dict(rel=r, abs=a) for k, (r, a) in DEFAULT_TOL.items()}
-        probes = _rounding_probes(spec_p) if jax.default_backend() == "cpu" else []
-        cells = _with_noise(cells, probes)
-        write_json_atomic(base_p, dict(spec_hash=spec.hash, tolerance=tol, cells=cells,
+        _write_baseline(spec, base_p, baseline, cells)
+        return 0, []
+    moved = compare(baseline, cells, factors)
+    if moved:
+        _print_moved(moved, factors, base_p)
+        return 1, moved
+    print(f"regress: all {len(baseline['cells'])} cells within the tolerance band of {base_p}")
+    return 0, []
+
+
+def _write_baseline(spec, base_p: Path, baseline: dict | None, cells: list[dict]) -> None:
+    """baseline.json from this run's ``cells`` (tolerances kept), with the rounding probes' noise on the CPU."""
+    tol = baseline["tolerance"] if baseline else {k: dict(rel=r, abs=a) for k, (r, a) in DEFAULT_TOL.items()}
+    probes = _rounding_probes(base_p.parent / "spec.toml", list(spec.factors)) if jax.default_backend() == "cpu" else []
+    cells = _with_noise(cells, probes)
+    try:
+        write_json_atomic(base_p, dict(spec_hash=spec.hash, factors=list(spec.factors), tolerance=tol, cells=cells,
                                        rounding_probes=["native"] + [f"xla_cpu_max_isa={i}" for i in
                                                                      ROUNDING_PROBE_ISAS[:len(probes)]],
                                        note="per-cell means over successful runs (mean over the rounding probes); "
                                             "a metric moved when |now - baseline| > rel |baseline| + abs + "
                                             f"{NOISE_FACTOR} x noise"))
-        print(f"baseline written to {base_p} ({len(cells)} cells)")
-        return 0, []
-    moved = compare(baseline, cells)
-    if moved:
-        print(f"REGRESSION: {len(moved)} metric mean(s) left the tolerance band of {base_p}:")
-        print(f"{'m':>5} {'mu':>5} {'d':>5}  {'metric':<12} {'baseline':>12} {'now':>12}  band")
-        for r in moved:
-            fmt = lambda v: f"{v:12.6g}" if isinstance(v, float) else f"{v!s:>12}"  # noqa: E731
-            print(f"{r['cell'][0]:5.2f} {r['cell'][1]:5.2f} {r['cell'][2]:5.2f}  {r['metric']:<12} "
-                  f"{fmt(r['baseline'])} {fmt(r['now'])}  {r['band']}")
-        return 1, moved
-    print(f"regress: all {len(cells)} cells within the tolerance band of {base_p}")
-    return 0, []
+    except OSError as e:
+        raise WbcJaxError(f"{base_p}: cannot write it ({e.strerror or e})") from None
+    print(f"baseline written to {base_p} ({len(cells)} cells)")
+
+
+def _print_moved(moved: list[dict], factors, base_p: Path) -> None:
+    """The table of what moved: cell, metric, baseline, now, band."""
+    print(f"REGRESSION: {len(moved)} metric mean(s) left the tolerance band of {base_p}:")
+    labels = [_label(r["cell"], factors) for r in moved]
+    width = max(len(x) for x in [*labels, "cell"])
+    print(f"{'cell':<{width}}  {'metric':<12} {'baseline':>12} {'now':>12}  band")
+    for label, r in zip(labels, moved):
+        fmt = lambda v: f"{v:12.6g}" if isinstance(v, float) else f"{v!s:>12}"  # noqa: E731
+        print(f"{label:<{width}}  {r['metric']:<12} {fmt(r['baseline'])} {fmt(r['now'])}  {r['band']}")

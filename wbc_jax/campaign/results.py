@@ -24,6 +24,7 @@ METRIC_COLUMNS = ("R", "T", "S", "R_plan", "max_slip_mm", "fell", "trunk_low", "
                   "first_contact_s", "first_contact", "window_s", "min_clearance_mm", "min_clearance_s",
                   "min_clearance_pair")
 FAILED_RUNS_SHOWN = 10  # failed runs named in the warning line (all of them: manifest failed_runs)
+QP_FLAG_LIMIT = 0.01  # fraction of a run's control steps with a flagged QP above which the controller did not converge
 
 
 class Summary(NamedTuple):
@@ -34,7 +35,8 @@ class Summary(NamedTuple):
         n_cells: number of cells.
         failures_per_cell: per cell with a failed run: its levels, failed runs, runs.
         failed_runs: per failed run: run, push_N, levels, rep, seed, reason, first contact and its time.
-        warnings: one line each (zero perturbations, failed runs).
+        warnings: one line each (zero perturbations, QP-flagged runs, failed runs).
+        qp_flagged_runs: runs whose QP was flagged on more than QP_FLAG_LIMIT of their control steps.
     """
 
     cell_columns: list
@@ -42,6 +44,7 @@ class Summary(NamedTuple):
     failures_per_cell: list
     failed_runs: list
     warnings: list
+    qp_flagged_runs: int
 
 
 def zero_noise_warning(spec: Spec) -> str | None:
@@ -98,13 +101,19 @@ def summarize(spec: Spec, df) -> Summary:
                     "first_contact_s": nan_none(r.first_contact_s)}
                    for _, r in df[~df.success].iterrows()]
     warnings = [w for w in [zero_noise_warning(spec)] if w]
+    flagged = df.qp_flag_fraction.to_numpy(dtype=float) > QP_FLAG_LIMIT
+    if flagged.any():
+        warnings.append(f"{int(flagged.sum())} of {len(df)} runs had their QP flagged (unconverged or infeasible) on "
+                        f"more than {QP_FLAG_LIMIT:.0%} of their control steps (worst "
+                        f"{float(df.qp_flag_fraction.max()):.1%}): their controller did not converge, so their "
+                        "metrics do not describe it; check the gains and campaign.qp_iters")
     if failures:
         warnings.append(f"{int((~df.success).sum())} of {len(df)} runs failed: " + "; ".join(
             f"run {f['run']} ({', '.join(f'{k} {f[k]}' for k in cols)}, rep {f['rep']}): {f['reason']}"
             + (f" (first at {f['first_contact_s']:.3f} s: {f['first_contact']})" if f["first_contact"] else "")
             for f in failed_runs[:FAILED_RUNS_SHOWN])
             + (" ..." if len(failed_runs) > FAILED_RUNS_SHOWN else "") + " (all: manifest failed_runs)")
-    return Summary(cols, int(len(cells)), failures, failed_runs, warnings)
+    return Summary(cols, int(len(cells)), failures, failed_runs, warnings, int(flagged.sum()))
 
 
 def campaign_report(out: Path, manifest: dict, warnings: list[str], reporter=None) -> None:
@@ -130,6 +139,7 @@ def campaign_report(out: Path, manifest: dict, warnings: list[str], reporter=Non
     except Exception as e:  # noqa: BLE001  (any failure of the statistics: the finished simulation is kept)
         why = " ".join(f"{type(e).__name__ + ': ' if not isinstance(e, WbcJaxError) else ''}{e}".split())
         (out / "report_error.txt").write_text(why + "\n")
+        manifest["files"] = sorted(set(manifest.get("files", [])) | {"report_error.txt"})
         manifest["warnings"].append(f"no report: {why}")
         write_json_atomic(out / "manifest.json", manifest)
         raise ReportError(f"the simulation finished and {out}/results.csv and manifest.json are written, but the "

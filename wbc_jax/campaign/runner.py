@@ -33,36 +33,36 @@ import shutil
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
 import jax
 import numpy as np
 
-from wbc_jax.campaign import checkpoint
+from wbc_jax.campaign import checkpoint, interrupts, preflight
+from wbc_jax.campaign import gains as gains_mod
 from wbc_jax.campaign.build import (
-    LOG_EVERY,
-    Built,
     _chunk_fn,
     _sim,  # noqa: F401  (reached as runner._sim by callers of the campaign's Sim cache)
     backend_of,
     build,
-    check_size,
+    check_horizon,
     has_accelerator,
     initial_configuration,  # noqa: F401  (reached as runner.initial_configuration)
     sensing_of,
     with_backend,
 )
+from wbc_jax.campaign.job import Job, Status
 from wbc_jax.campaign.manifest import COMMAND, Timing, campaign_manifest, run_identity
 from wbc_jax.campaign.manifest import git_commit as _git_commit  # noqa: F401  (reached as runner._git_commit)
 from wbc_jax.campaign.manifest import versions as _versions  # noqa: F401  (reached as runner._versions)
 from wbc_jax.campaign.progress import ProgressBar, throughput
 from wbc_jax.campaign.results import campaign_report, results_table, summarize, zero_noise_warning
-from wbc_jax.campaign.spec import Spec, default_spec_path, load_spec
-from wbc_jax.errors import WbcJaxError
-from wbc_jax.io_utils import atomic_dir, check_out_dir, write_json_atomic
-from wbc_jax.rollout import distributed, runs
+from wbc_jax.campaign.resume import Start, kept, start_point
+from wbc_jax.campaign.spec import default_spec_path, load_spec
+from wbc_jax.errors import OutputError, WbcJaxError
+from wbc_jax.io_utils import atomic_dir, release_out_dir, write_json_atomic
+from wbc_jax.rollout import distributed
 from wbc_jax.rollout.spread import choose
 
 
@@ -71,58 +71,10 @@ def after_chunk(done: int, n_chunks: int) -> None:
     written; does nothing. A test replaces it (e.g. to raise KeyboardInterrupt after the first chunk)."""
 
 
-@dataclass
-class Job:
-    """One campaign being run: its spec, the built batch (placed on the devices), where process 0 writes.
-
-    Attributes:
-        spec: the validated spec (``--backend`` applied).
-        built: :func:`wbc_jax.campaign.build.build` of it.
-        batch: the Batch placed by ``spread``.
-        spread: how the runs are spread over devices and processes (:mod:`wbc_jax.rollout.spread`).
-        identity: :func:`wbc_jax.campaign.manifest.run_identity` of the run.
-        gains: the gains given (None: the defaults).
-        writer: this process writes (process 0).
-        out: the output folder (process 0; None elsewhere).
-        ckpt: the checkpoint folder (process 0; None elsewhere).
-    """
-
-    spec: Spec
-    built: Built
-    batch: object
-    spread: object
-    identity: dict
-    gains: object
-    writer: bool
-    out: Path | None
-    ckpt: Path | None
-
-    @property
-    def chunk_s(self) -> float:
-        """Simulated seconds per chunk."""
-        return self.built.logs_per_chunk * LOG_EVERY * self.built.sim.dt_control
-
-    @property
-    def seconds(self) -> float:
-        """Simulated seconds in all."""
-        return self.built.n_chunks * self.chunk_s
-
-
-class Start(NamedTuple):
-    """Where the chunks start: the state, the chunks done, the earlier sessions' wall time [s], their chunk marks
-    and the last finished chunk's object goal (None before any)."""
-
-    state: object
-    done: int
-    wall_before: float
-    marks: list
-    p_goal: object
-
-
 class Rollout(NamedTuple):
     """The finished chunks: the final state (every run, gathered), the object goals of the last chunk, the chunk
     marks of every session, the chunks' wall time of every session and of the earlier ones [s], and when this
-    session's chunks began (``time.perf_counter``)."""
+    session's chunks began (``time.perf_counter``), and every session's record."""
 
     state: object
     p_goal: object
@@ -130,68 +82,7 @@ class Rollout(NamedTuple):
     wall_s: float
     wall_before: float
     t_run: float
-
-
-def _check_outputs(spec: Spec, out, identity: dict, *, resume: bool, force: bool, allow_large: bool,
-                   inputs: tuple) -> tuple[Path | None, Path | None]:
-    """Process 0's output folder and checkpoint folder (None elsewhere), checked with the spec's size before
-    anything is built; a problem is every process's (``distributed.agree``)."""
-    out_p = ck = problem = None
-    try:  # process 0's output folder and checkpoint (the others write nothing and read neither)
-        if distributed.is_writer():
-            out_p = check_out_dir(out, COMMAND, force=force, inputs=[spec.path, *inputs])
-            ck = checkpoint.ckpt_dir(out_p)
-            if resume:  # meta.json and the identity before the build and the compile; the state file after it
-                checkpoint.read_meta(ck, identity, checkpoint.n_chunks_hint(ck))
-        check_size(spec, allow_large)
-    except WbcJaxError as e:
-        problem = e
-    distributed.agree(problem)
-    return out_p, ck
-
-
-def _shared_resume(state, done: int, spread, n: int, axes):
-    """Process 0's resume point (its loaded state of ``n`` runs, run axes ``axes``, and chunk count) in every
-    process, the state placed as ``spread`` (:class:`wbc_jax.rollout.spread.Spread`) places the batch."""
-    from jax.experimental import multihost_utils
-
-    if distributed.is_multiprocess():
-        state, done = multihost_utils.broadcast_one_to_all((runs.first(jax.device_get(state), n, axes),
-                                                            np.int32(done)))
-    return spread.place_state(state, n, axes), int(done)
-
-
-def _start(job: Job, state0, resume: bool) -> Start:
-    """The chunks' starting point: the checkpoint's when resuming (checked against the fresh state ``state0``),
-    else the batch's initial state (an old checkpoint is deleted)."""
-    sp, n_chunks = job.spread, job.built.n_chunks
-    start = Start(job.batch.state, 0, 0.0, [], None)
-    if not resume:
-        if job.writer and job.ckpt.exists():
-            shutil.rmtree(job.ckpt)
-        return start
-    st = meta = problem = None
-    if job.writer:
-        try:
-            st, meta = checkpoint.load_state(job.ckpt, state0, job.identity, n_chunks)
-        except WbcJaxError as e:
-            problem = e
-    distributed.agree(problem)
-    state, done = start.state, 0
-    if sp.mode != "one":  # every process: process 0's resume point, placed as the batch
-        state, done = _shared_resume(state0 if st is None else st, meta["chunks_done"] if meta else 0, sp,
-                                     job.built.design.n, job.batch.state_axes)
-    elif st is not None:
-        state, done = st, meta["chunks_done"]
-    if meta is not None:
-        start = Start(state, done, meta["wall_s"], meta["marks"],
-                      np.asarray(meta["p_goal"]) if meta.get("p_goal") is not None else None)
-    else:
-        start = start._replace(state=state, done=done)
-    if job.writer:
-        print(f"resuming from {job.ckpt}: {done} of {n_chunks} chunks done" if meta is not None else
-              f"no checkpoint at {job.ckpt}: starting from the beginning", flush=True)
-    return start
+    sessions: list
 
 
 def _announce(job: Job) -> None:
@@ -207,12 +98,14 @@ def _announce(job: Job) -> None:
           f"{jax.devices()[0].device_kind}{sp.describe()}", flush=True)
 
 
-def _run_chunks(job: Job, start: Start, progress: bool, report: bool) -> tuple[Rollout, object]:
+def _run_chunks(job: Job, start: Start, progress: bool, report: bool,
+                guard: interrupts.Guard) -> tuple[Rollout, object]:
     """Step every chunk from ``start``, checkpointing after each (process 0); returns the finished rollout and
-    the report worker started during it (None without ``report``). Ctrl-C keeps the finished chunks' checkpoint."""
+    the report worker started during it (None without ``report``). A signal stops the run once the compile or
+    the chunk in progress ends (``guard``); the finished chunks' checkpoint is kept."""
     b, sp, n_chunks, dz = job.batch, job.spread, job.built.n_chunks, job.built.design
     fn = _chunk_fn(job.built.sim, b.in_axes, job.built.logs_per_chunk, sp.mesh, b.state_axes)
-    bar = (ProgressBar(job.seconds, start.done * job.chunk_s, dz.n, job.built.sim.dt_physics)
+    bar = (ProgressBar(n_chunks, start.done, job.chunk_s, dz.n, job.built.sim.dt_physics)
            if progress and job.writer else None)
     state, done, marks, p_goal = start.state, start.done, start.marks, start.p_goal
     t_run = time.perf_counter()
@@ -220,20 +113,23 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool) -> tuple[R
     step = lambda st: fn(b.model, st, b.plan, b.om, b.gains, b.push, b.mu_ground)  # noqa: E731  (dispatch only)
     reporter = None
     try:
-        nxt, t0 = (step(state) if done < n_chunks else None), t_run
+        with guard.deferred():
+            nxt, t0 = (step(state) if done < n_chunks else None), t_run  # the first call compiles
+        guard.check()
         if report and job.writer:  # the report's process gets ready during the rollout (wbc_jax.analysis.render),
             from wbc_jax.analysis.render import ReportWorker  # started once the first chunk is traced and compiled
 
             reporter = ReportWorker.for_machine()
         while done < n_chunks:
             state, logs = nxt
-            state = jax.block_until_ready(state)
-            dt_wall = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            done += 1
-            # the next chunk runs on the device while this one's checkpoint is written (nothing is donated: the
-            # state saved below stays valid)
-            nxt = step(state) if done < n_chunks else None
+            with guard.deferred():
+                state = jax.block_until_ready(state)
+                dt_wall = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                done += 1
+                # the next chunk runs on the device while this one's checkpoint is written (nothing is donated: the
+                # state saved below stays valid)
+                nxt = step(state) if done < n_chunks else None
             marks.append(dict(chunk=done, wall_s=dt_wall, fresh_process=first_in_process))
             first_in_process = False
             if sp.mode == "one":
@@ -241,33 +137,34 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool) -> tuple[R
             else:  # every process takes part in the gathers; process 0 writes
                 p_goal, saved = sp.gather((logs.p_obj_ref[:, -1], state), dz.n, (0, b.state_axes))  # one collective
             if job.writer:
-                checkpoint.save_state(job.ckpt, saved, dict(identity=job.identity, chunks_done=done,
-                                                            n_chunks=n_chunks, marks=marks, p_goal=p_goal.tolist(),
-                                                            wall_s=start.wall_before + time.perf_counter() - t_run))
+                with guard.deferred():
+                    checkpoint.save_state(job.ckpt, saved, dict(
+                        identity=job.identity, chunks_done=done, n_chunks=n_chunks, marks=marks,
+                        p_goal=p_goal.tolist(), wall_s=start.wall_before + time.perf_counter() - t_run,
+                        sessions=start.sessions))
+                job.status.saved = done
             if bar is not None:
-                bar.chunk_done(job.chunk_s, dt_wall)
+                bar.chunk_done(dt_wall)
             if done < n_chunks:
                 after_chunk(done, n_chunks)
+                guard.check()
     except KeyboardInterrupt:
         if bar is not None:
             bar.close()
         if reporter is not None:
             reporter.close()
-        if job.writer:
-            print(f"interrupted after {done} of {n_chunks} chunks; finished chunks kept in {job.ckpt}; "
-                  f"continue with --resume", file=sys.stderr, flush=True)
         raise
     if bar is not None:
         bar.close()
     wall = start.wall_before + time.perf_counter() - t_run
     if sp.mode != "one":
         state = sp.gather(state, dz.n, b.state_axes)
-    return Rollout(state, p_goal, marks, wall, start.wall_before, t_run), reporter
+    return Rollout(state, p_goal, marks, wall, start.wall_before, t_run, start.sessions), reporter
 
 
-def _write(job: Job, rollout: Rollout, clock: dict, resume: bool, report: bool, reporter, out) -> dict:
-    """results.csv and manifest.json into DIR (atomically), the checkpoint deleted, then the report; the
-    summary lines. Returns the manifest."""
+def _write(job: Job, rollout: Rollout, clock: dict, report: bool, reporter, guard: interrupts.Guard) -> dict:
+    """results.csv and manifest.json into DIR (atomically; a signal waits for them), the checkpoint deleted, then
+    the report; the summary lines. Returns the manifest."""
     from wbc_jax.rollout import final_results
 
     sim, dz = job.built.sim, job.built.design
@@ -280,20 +177,29 @@ def _write(job: Job, rollout: Rollout, clock: dict, resume: bool, report: bool, 
                     imports=clock["start"] - clock["import"], setup=rollout.t_run - clock["start"],
                     compile_estimate=rates.compile_estimate, first_chunk=rates.first_chunk,
                     env_steps_per_s=rates.env_steps_per_s)
+    files = ["manifest.json", "results.csv", *(["report"] if report else [])]
     manifest = campaign_manifest(job.spec, job.built, df, summary, timing, identity=job.identity, gains=job.gains,
                                  sensing=sensing_of(job.spec), spread_mode=job.spread.mode, chunk_s=job.chunk_s,
-                                 resumed=bool(resume and wall_before > 0))
-    with atomic_dir(job.out) as tmp:  # the finished simulation first: a failing report cannot lose it
+                                 sessions=rollout.sessions, files=files)
+    with guard.deferred(), atomic_dir(job.out) as tmp:  # the finished simulation first: a failing report keeps it
         df.to_csv(tmp / "results.csv", index=False)
         manifest["wall_s_total"] = time.perf_counter() - clock["import"] + wall_before
         write_json_atomic(tmp / "manifest.json", manifest)
     shutil.rmtree(job.ckpt, ignore_errors=True)
+    job.status.stage = "written"
+    try:
+        guard.check()
+    except KeyboardInterrupt:
+        if reporter is not None:
+            reporter.close()
+        raise
     if report:
         campaign_report(job.out, manifest, summary.warnings, reporter)
     for w in manifest["warnings"]:
         print(f"warning: {w}", flush=True)
-    print(f"{int(df.success.sum())}/{dz.n} runs succeeded; wall {manifest['wall_s_total']:.1f} s, "
-          f"{rates.env_steps_per_s:,.0f} env-steps per second; written to {out}", flush=True)
+    flagged = f" ({summary.qp_flagged_runs} QP-flagged on more than 1 % of steps)" if summary.qp_flagged_runs else ""
+    print(f"{int(df.success.sum())}/{dz.n} runs succeeded{flagged}; wall {manifest['wall_s_total']:.1f} s, "
+          f"{rates.env_steps_per_s:,.0f} env-steps per second; written to {job.status.out}", flush=True)
     return manifest
 
 
@@ -327,23 +233,51 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
     import wbc_jax.rollout.batch  # noqa: F401  (MJX, the controllers, the planner: timed apart from setup)
 
     clock["start"] = time.perf_counter()
-    spec = load_spec(spec_path if spec_path is not None else default_spec_path(has_accelerator()))
-    spec = with_backend(spec, backend)
+    request = dict(spec_path=spec_path, out=out, resume=resume, report=report, progress=progress, gains=gains,
+                   force=force, allow_large=allow_large, inputs=inputs, backend=backend)
+    status = Status(str(out))
+    with interrupts.Guard(COMMAND, status.describe) as guard:
+        try:
+            return _campaign(request, clock, status, guard)
+        except KeyboardInterrupt as e:
+            raise interrupts.as_interrupted(e, status.describe()) from None
+        finally:
+            try:
+                release_out_dir(out)
+            except OutputError:  # a path refused before any claim
+                pass
+
+
+def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guard) -> dict | None:
+    """:func:`run_campaign`'s steps (``request``: its arguments): checks, build, chunks, results."""
+    r = request
+    spec = load_spec(r["spec_path"] if r["spec_path"] is not None else default_spec_path(has_accelerator()))
+    spec = with_backend(spec, r["backend"])
     physics_backend = backend_of(spec)
     sensing_of(spec)  # a bad combination fails here, before anything is written
-    identity = run_identity(spec, gains, backend=physics_backend)
-    out_p, ck = _check_outputs(spec, out, identity, resume=resume, force=force, allow_large=allow_large,
-                               inputs=inputs)
-    built = build(spec, gains)
+    gains_mod.check_design(spec, r["gains"])
+    identity = run_identity(spec, r["gains"], backend=physics_backend)
+    status.writer = distributed.is_writer()
+    out_p, ck = preflight.check_outputs(spec, r["out"], identity, resume=r["resume"], force=r["force"],
+                                        allow_large=r["allow_large"], inputs=r["inputs"], backend_flag=r["backend"])
+    status.ckpt = ck
+    status.saved, status.n_chunks = kept(ck)
+    for line in preflight.notes(spec, physics_backend, r["allow_large"]) if status.writer else []:
+        print(line, flush=True)
+    with guard.deferred():  # the batch's initial states compile
+        built = build(spec, r["gains"])
+    guard.check()
+    check_horizon(spec, built)
     sp = choose(built.sim.robot.backend)  # several devices: each steps its own runs (wbc_jax.rollout.spread)
-    job = Job(spec, built, sp.place(built.batch), sp, identity, gains, distributed.is_writer(), out_p, ck)
-    start = _start(job, built.batch.state, resume)
+    job = Job(spec, built, sp.place(built.batch), sp, identity, r["gains"], status.writer, out_p, ck, status)
+    start = start_point(job, built.batch.state, r["resume"])
+    status.stage, status.n_chunks = "chunks", built.n_chunks
     _announce(job)
-    rollout, reporter = _run_chunks(job, start, progress, report)
+    rollout, reporter = _run_chunks(job, start, r["progress"], r["report"], guard)
     if not job.writer:
-        print(f"process {jax.process_index()}: done; process 0 writes {out}", flush=True)
+        print(f"process {jax.process_index()}: done; process 0 writes {r['out']}", flush=True)
         return None
-    return _write(job, rollout, clock, resume, report, reporter, out)
+    return _write(job, rollout, clock, r["report"], reporter, guard)
 
 
 def run_in_fresh_process(spec_path, out: Path, **env) -> Path:

@@ -258,6 +258,10 @@ def _parse_factors(path, raw_f) -> dict:
         levels = [_level(path, full, x, factors_mod.factor_def(key)) for x in v]
         if len(set(levels)) != len(levels):
             raise _err(path, full, f"= {v}: levels must be distinct")
+        leaf = key[len(factors_mod.GAIN_PREFIX):] if key.startswith(factors_mod.GAIN_PREFIX) else None
+        if leaf in factors_mod.REGULARIZATION and min(levels) <= 0:
+            raise _err(path, full, f"level {min(levels):g}: a regularization weight's multiplier must be > 0 (the "
+                                   "QP would be singular)")
         out[key] = levels
     return out
 
@@ -306,7 +310,7 @@ def load_spec(path: str | Path) -> Spec:
     except InputError as e:
         raise SpecError(str(e)) from None
     try:
-        data = tomllib.loads(raw.decode("utf-8"))
+        data = tomllib.loads(raw.decode("utf-8-sig"))  # a byte-order mark (some Windows editors) is dropped
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise SpecError(f"{path}: not valid TOML ({str(e).splitlines()[0]})") from None
     return parse_spec(data, str(path), hashlib.sha256(raw).hexdigest())

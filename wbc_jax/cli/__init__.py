@@ -9,9 +9,11 @@ from __future__ import annotations
 import argparse
 import sys
 
+from wbc_jax.campaign import interrupts
 from wbc_jax.cli import checks
 from wbc_jax.cli import parser as parser_module
-from wbc_jax.errors import WbcJaxError
+from wbc_jax.errors import UsageError, WbcJaxError
+from wbc_jax.io_utils import check_file_target, check_out_dir, claim_out_dir, release_out_dir
 
 CPU_BATCHES = {"rollout": (1, 4, 16), "profile": 16, "components": 16, "trace": 16}  # bench defaults on a CPU
 
@@ -25,6 +27,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
         factors = args.factors.split(",") if args.factors else None
         metrics = args.metrics.split(",") if args.metrics else None
+        claim_out_dir(args.out, "wbc-jax report")
         run_report(args.results, args.out, alpha=args.alpha, factors=factors, metrics=metrics, force=args.force,
                    workers=workers)
     finally:
@@ -36,6 +39,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     sizes = checks.bench_args(args)
+    if args.json is not None:  # before anything is measured: a result never overwrites a file by surprise
+        check_file_target(args.json, "--json", force=args.force)
     _join_processes(args)  # rollout: one process per device (wbc_jax.bench.rollout)
     import jax
 
@@ -84,9 +89,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _check_out(args: argparse.Namespace, inputs=()) -> None:
-    """The ``--out`` folder of ``args.command`` (new, empty, or an earlier run of it with ``--force``)."""
-    from wbc_jax.io_utils import check_out_dir
-
+    """The ``--out`` folder of ``args.command``, claimed for this command (new, empty, or an earlier run of it with
+    ``--force``)."""
+    claim_out_dir(args.out, f"wbc-jax {args.command}")
     check_out_dir(args.out, f"wbc-jax {args.command}", force=args.force, inputs=inputs)
 
 
@@ -94,7 +99,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     checks.demo_args(args)
     from wbc_jax.studies.demo import demo_backend
 
-    demo_backend(args.backend)  # a bad --backend before anything is written
+    if demo_backend(args.backend) == "warp":  # a bad --backend fails here, before anything is written
+        import jax
+
+        if jax.default_backend() == "cpu":
+            print("warning: --backend warp on a CPU: MuJoCo Warp's kernels run on the CPU here, many times slower "
+                  "than --backend jax", flush=True)
     _check_out(args, [args.scene if args.scene.endswith(".xml") else None])
     from wbc_jax.studies.demo import run_demo
 
@@ -145,8 +155,11 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
 
 def _cmd_tune(args: argparse.Namespace) -> int:
     _join_processes(args)
+    from wbc_jax.rollout import distributed
     from wbc_jax.studies.tune import run_tune
 
+    if distributed.is_writer():  # process 0 writes --out
+        claim_out_dir(args.out, "wbc-jax tune")
     run_tune(args.spec, args.out, candidates=args.candidates, rounds=args.rounds, batch=args.batch,
              progress=not args.no_progress, force=args.force, backend=args.backend)
     return 0
@@ -164,20 +177,33 @@ COMMANDS = {"report": _cmd_report, "bench": _cmd_bench, "demo": _cmd_demo, "camp
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = parser_module.build_parser()
-    args = parser.parse_args(argv)
+    """Run one ``wbc-jax`` command; returns its exit code: 0, 1 (regress: a metric moved), 2 (a user error, one line
+    on stderr), 130 (SIGINT) or 143 (SIGTERM; one line saying what the command left)."""
+    try:
+        args, extra = parser_module.build_parser().parse_known_args(argv)
+        if extra:
+            raise UsageError(f"unrecognized arguments: {' '.join(extra)} (wbc-jax {args.command} --help lists the "
+                             "arguments)", prog=f"wbc-jax {args.command}")
+    except UsageError as e:
+        print(f"{e.prog}: error: {e}", file=sys.stderr)
+        return 2
     from wbc_jax.runtime import jaxcfg
 
     if args.command != "report":
         jaxcfg.configure()
-    try:
-        return int(COMMANDS[args.command](args) or 0)
-    except WbcJaxError as e:
-        print(f"wbc-jax {args.command}: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"wbc-jax {args.command}: interrupted", file=sys.stderr)
-        return 130
+    name = f"wbc-jax {args.command}"
+    with interrupts.Guard(name):
+        try:
+            return int(COMMANDS[args.command](args) or 0)
+        except WbcJaxError as e:
+            print(f"{name}: error: {e}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt as e:
+            stop = interrupts.as_interrupted(e)
+            print(f"{name}: {stop}", file=sys.stderr)
+            return stop.exit_code
+        finally:
+            release_out_dir()
 
 
 def run() -> None:

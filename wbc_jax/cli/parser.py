@@ -4,7 +4,17 @@ from __future__ import annotations
 
 import argparse
 
+from wbc_jax.errors import UsageError
+
 DESCRIPTION = "The ``wbc-jax`` console script."
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line: :class:`wbc_jax.errors.UsageError` (the CLI prints it) instead
+    of a usage block and ``sys.exit``."""
+
+    def error(self, message: str):
+        raise UsageError(f"{message} ({self.prog} --help lists the arguments)", prog=self.prog)
 
 
 def _backend_flag(parser: argparse.ArgumentParser, default: str) -> None:
@@ -80,7 +90,9 @@ def _add_bench(sub) -> argparse.ArgumentParser:
                    help="trace: simulated seconds run untraced first, so that the traced steps come from the walk "
                         "(default 0: the first standing steps)")
     b.add_argument("--quick", action="store_true", help="small sizes (CPU smoke run)")
-    b.add_argument("--json", default=None, help="also write the results as JSON here")
+    b.add_argument("--json", default=None, help="also write the results as JSON here (a new file; an existing one "
+                                                "only with --force)")
+    b.add_argument("--force", action="store_true", help="overwrite an existing --json file")
     _process_flags(b)
     return b
 
@@ -165,7 +177,7 @@ def _add_trot(sub) -> argparse.ArgumentParser:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``wbc-jax`` parser: one subparser per command (each built by its ``_add_*`` function)."""
-    p = argparse.ArgumentParser(prog="wbc-jax", description=DESCRIPTION)
+    p = Parser(prog="wbc-jax", description=DESCRIPTION)
     sub = p.add_subparsers(dest="command", required=True)
     writers = [_add_report(sub)]
     _add_bench(sub)

@@ -164,6 +164,9 @@ def _campaign(path, rel: str, reps: int = 0, max_seconds: float = 0.0, qp_iters:
     cpath = Path(rel)
     if not cpath.is_absolute():
         cpath = Path(path).parent / cpath
+    if not cpath.is_file():
+        raise SpecError(f"{path}: campaign spec {rel!r}: no file {cpath} (a relative path is read from the tuning "
+                        f"spec's folder; the shipped campaign specs are in {SWEEPS})")
     camp = load_spec(cpath)
     c = dict(camp.campaign)
     for key, v in (("reps", reps), ("max_seconds", max_seconds), ("qp_iters", qp_iters)):
@@ -271,7 +274,7 @@ def load_tune_spec(path: str | Path) -> TuneSpec:
     """Read and validate a tuning spec. Raises SpecError (one line: file, key, expected) on any problem."""
     try:
         raw = Path(path).read_bytes()
-        data = tomllib.loads(raw.decode("utf-8"))
+        data = tomllib.loads(raw.decode("utf-8-sig"))
     except OSError as e:
         raise SpecError(f"{path}: cannot read spec file ({e.strerror or e})") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:

@@ -1,0 +1,86 @@
+"""What a campaign checks before anything is built or compiled: its output folder, its checkpoint, its size.
+
+Process 0 claims the output folder (:func:`wbc_jax.io_utils.claim_out_dir`: one command at a time) and checks it
+(:func:`wbc_jax.io_utils.check_out_dir`); a checkpoint of finished chunks beside it is never discarded implicitly:
+without ``--resume`` the command refuses unless ``--force``; with ``--resume`` its identity must match this run's.
+Every process checks the batch's size against the machine's memory; a problem found by process 0 is every
+process's (``distributed.agree``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+
+from wbc_jax.campaign import checkpoint
+from wbc_jax.campaign.build import check_size, n_runs_of
+from wbc_jax.campaign.manifest import COMMAND
+from wbc_jax.campaign.spec import Spec
+from wbc_jax.errors import CheckpointError, OutputError, WbcJaxError
+from wbc_jax.io_utils import check_out_dir, claim_out_dir
+from wbc_jax.rollout import distributed
+
+WRITES = ("results.csv", "manifest.json", "report", "report_error.txt")  # what a campaign writes into DIR
+LARGE_RUNS = 20_000  # from this many runs the setup (design, plans, initial states) takes long enough to announce
+
+
+def check_outputs(spec: Spec, out, identity: dict, *, resume: bool, force: bool, allow_large: bool,
+                  inputs: tuple, backend_flag: str | None) -> tuple[Path | None, Path | None]:
+    """Process 0's output folder and checkpoint folder (None elsewhere), claimed and checked with the spec's size.
+
+    Raises:
+        OutputError: DIR in use, unusable, or a checkpoint of finished chunks without ``resume`` or ``force``.
+        CheckpointError: with ``resume``, a checkpoint of another run (``--backend`` named where it differs).
+        LimitError: the batch would not fit in memory (without ``allow_large``).
+    """
+    out_p = ck = problem = None
+    try:  # process 0's output folder and checkpoint (the others write nothing and read neither)
+        if distributed.is_writer():
+            claim_out_dir(out, COMMAND)
+            out_p = check_out_dir(out, COMMAND, force=force, inputs=[spec.path, *inputs], writes=WRITES)
+            ck = checkpoint.ckpt_dir(out_p)
+            meta = checkpoint.peek(ck)
+            if resume:  # meta.json and the identity before the build and the compile; the state file after it
+                _check_resume_backend(ck, meta, identity, backend_flag)
+                checkpoint.read_meta(ck, identity, checkpoint.n_chunks_hint(ck))
+            elif meta is not None and not force:
+                raise OutputError(_unfinished(out, ck, meta))
+        check_size(spec, allow_large)
+    except WbcJaxError as e:
+        problem = e
+    distributed.agree(problem)
+    return out_p, ck
+
+
+def _unfinished(out, ck: Path, meta: dict) -> str:
+    """The refusal of a rerun beside a checkpoint (``meta``: its meta.json, {} when unreadable)."""
+    try:
+        done, total = int(meta["chunks_done"]), int(meta["n_chunks"])
+    except (KeyError, TypeError, ValueError):
+        return (f"--out {out}: {ck} holds an unreadable checkpoint; pass --force to start over (it is deleted), "
+                "or delete it")
+    return f"--out {out}: {done} of {total} chunks finished in {ck}; continue with --resume, or --force to start over"
+
+
+def _check_resume_backend(ck: Path, meta: dict | None, identity: dict, backend_flag: str | None) -> None:
+    """A checkpoint made on another physics backend: one line naming both and how to resume."""
+    made = ((meta or {}).get("identity") or {}).get("backend")
+    if made is None or made == identity["backend"]:
+        return
+    now = f"--backend {backend_flag}" if backend_flag else "the spec's campaign.backend"
+    raise CheckpointError(f"{ck}: the checkpoint was made with the {made!r} physics backend, this run would use "
+                          f"{identity['backend']!r} ({now}); resume with --backend {made}, or start over with --force")
+
+
+def notes(spec: Spec, physics_backend: str, allow_large: bool) -> list[str]:
+    """Lines to print before the build: Warp physics on a CPU is slow; a large campaign's setup takes a while."""
+    out = []
+    if physics_backend == "warp" and jax.default_backend() == "cpu":
+        out.append("warning: physics backend 'warp' on a CPU: MuJoCo Warp's kernels run on the CPU here, many "
+                   "times slower than --backend jax")
+    n = n_runs_of(spec)
+    if n >= LARGE_RUNS or allow_large:
+        large = " (--allow-large)" if allow_large else ""
+        out.append(f"setting up {n:,} runs{large}: design, plans and initial states first, then the first chunk")
+    return out
