@@ -302,7 +302,17 @@ def make_batch(seed: int, count: int, family: str = "mixed") -> QPProblem:
     return QPProblem(*(np.stack(f) for f in zip(*probs)))
 
 
-def perturb(batch: QPProblem, seed: int, rel: float = 0.01, p_mode: str = "congruence") -> tuple:
+class QPData(NamedTuple):
+    """The data of a QP ``min 1/2 x'Px + q'x  s.t. l <= Ax <= u`` (no known solution), float64."""
+
+    P: np.ndarray
+    q: np.ndarray
+    A: np.ndarray
+    l: np.ndarray
+    u: np.ndarray
+
+
+def perturb(batch: QPProblem, seed: int, rel: float = 0.01, p_mode: str = "congruence") -> QPData:
     """Perturb the data ``(P, q, A, l, u)`` of a batch by a relative ``rel``.
 
     ``q``, ``A`` and finite bounds are perturbed entrywise ``* (1 + rel N(0,1))``;
@@ -319,7 +329,7 @@ def perturb(batch: QPProblem, seed: int, rel: float = 0.01, p_mode: str = "congr
     optimum no longer applies.
 
     Returns:
-        (P, q, A, l, u) float64 arrays of the batch's shapes.
+        QPData (P, q, A, l, u) of the batch's shapes.
     """
     rng = np.random.default_rng(seed)
 
@@ -345,4 +355,4 @@ def perturb(batch: QPProblem, seed: int, rel: float = 0.01, p_mode: str = "congr
     fac2 = np.where(eq, fac, 1.0 + rel * rng.standard_normal(batch.u.shape))
     u = np.where(np.isfinite(batch.u), batch.u * fac2, batch.u)
     l = np.minimum(l, u)
-    return P, q, A, l, u
+    return QPData(P, q, A, l, u)

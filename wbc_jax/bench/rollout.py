@@ -87,16 +87,24 @@ def _timed_together(f, *args):
     return out, float(np.max(multihost_utils.process_allgather(np.array([t]))))
 
 
-def _physics_and_wbc(sim, b, n_env: int, timer, rounds: int):
+class _Timings(NamedTuple):
+    """Seconds of the physics-only and the physics + WBC calls of :func:`_physics_and_wbc`."""
+
+    first_physics_s: float  # the first physics-only call (compiles)
+    first_wbc_s: float  # the first physics + WBC call (compiles)
+    physics_s: np.ndarray  # (rounds,) physics-only calls
+    wbc_s: np.ndarray  # (rounds,) physics + WBC calls
+
+
+def _physics_and_wbc(sim, b, n_env: int, timer, rounds: int) -> _Timings:
     """Physics only and physics + WBC on batch ``b``, timed with ``timer`` (:func:`timed` or
     :func:`_timed_together`): each called once (the call that compiles), then ``rounds`` rounds of one physics call
-    and one physics + WBC call. Returns (first physics call s, first physics + WBC call s, (rounds,) physics s,
-    (rounds,) physics + WBC s)."""
+    and one physics + WBC call."""
     f_phys = physics_only_fn(b, n_env)
     f_wbc, args = wbc_chunk_fn(sim, b)
     c_phys, c_wbc = timer(f_phys, b.model, b.state.d)[1], timer(f_wbc, *args)[1]
     t = np.array([(timer(f_phys, b.model, b.state.d)[1], timer(f_wbc, *args)[1]) for _ in range(rounds)])
-    return c_phys, c_wbc, t[:, 0], t[:, 1]
+    return _Timings(c_phys, c_wbc, t[:, 0], t[:, 1])
 
 
 def round_figures(t_phys, t_wbc, batch: int, n_env: int, steps: int) -> dict:
@@ -165,7 +173,8 @@ def _time_processes(case: _Case, row: dict, t_wbc: float | None, writer: bool) -
     the aggregate figures and the speed-up over ``t_wbc`` into ``row``."""
     B, n_env, n_proc = case.batch, case.n_env, jax.process_count()
     b = random_batch(case.sim, B // n_proc, seed=1 + jax.process_index())
-    tp, tw = (float(np.median(t)) for t in _physics_and_wbc(case.sim, b, n_env, _timed_together, case.rounds)[2:])
+    timings = _physics_and_wbc(case.sim, b, n_env, _timed_together, case.rounds)
+    tp, tw = float(np.median(timings.physics_s)), float(np.median(timings.wbc_s))
     n = B // n_proc * n_proc
     row.update(processes=n_proc, physics_steps_per_s_processes=n * n_env / tp,
                wbc_steps_per_s_processes=n * n_env / tw, process_speedup=n / B * t_wbc / tw if t_wbc else None)
