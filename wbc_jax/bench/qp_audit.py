@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import time
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -82,15 +83,27 @@ def variants(names=None) -> dict:
     return out
 
 
+class _SampledQP(NamedTuple):
+    """The QP of one control step and its torque map ``tau = A_tau x + h_a``."""
+
+    P: jax.Array
+    q: jax.Array
+    A: jax.Array
+    l: jax.Array
+    u: jax.Array
+    A_tau: jax.Array
+    h_a: jax.Array
+
+
 def _sample_fn(sim):
-    """One run's state -> (P, q, A, l, u, A_tau, h_a) of its next control step (``rollout.control_step``'s path)."""
+    """One run's state -> the :class:`_SampledQP` of its next control step (``rollout.control_step``'s path)."""
     ids = sim.robot.ids
     cfg = sim.cfg
 
     def one(m, rs, plan, om, gains, push, mu_ground):
         _, obs, ref, mu = controller_inputs(sim, m, rs, plan, push, mu_ground)
         _, (P, q, A, l, u, A_tau, h_a, _) = assemble(obs, ref, om, gains, rs.cs, ids, cfg, mu)
-        return P, q, A, l, u, A_tau, h_a
+        return _SampledQP(P, q, A, l, u, A_tau, h_a)
 
     return one
 
