@@ -18,7 +18,7 @@ if "MUJOCO_GL" not in _os.environ and not _os.environ.get("DISPLAY"):
 
 from wbc_jax.version import __version__  # noqa: E402
 
-__all__ = ["load_results", "load_spec", "report", "run_campaign"]
+__all__ = ["__version__", "load_results", "load_spec", "report", "run_campaign"]
 
 
 def __getattr__(name: str):
