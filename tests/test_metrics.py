@@ -122,7 +122,7 @@ def _accum(**kw):
                 t_end=np.full(2, np.inf), n_win=np.array([1000, 1000]), min_clear=np.full(2, np.inf),
                 min_clear_t=np.full(2, np.nan), min_clear_k=np.full(2, -1), n_boundary_cone=np.zeros(2, int),
                 sum_invH_plan=z, n_boundary_plan=np.zeros(2, int), n_boundary_plan_cone=np.zeros(2, int),
-                n_solver_cap=np.zeros(2, int))
+                n_solver_cap=np.zeros(2, int), failed=np.zeros(2, bool), fail_t=np.full(2, np.nan))
     base.update(kw)
     return Accum(**base)
 

@@ -20,7 +20,7 @@ from wbc_jax.io_utils import write_json_atomic
 METRIC_COLUMNS = ("R", "T", "S", "R_plan", "max_slip_mm", "fell", "trunk_low", "body_contact", "dropped", "slid",
                   "hit_wall", "qp_flagged", "qp_flag_fraction", "qp_iters_mean", "qp_iters_max", "nonfinite",
                   "overflow", "solver_cap_fraction", "boundary_fraction", "boundary_cone_fraction",
-                  "boundary_fraction_plan", "boundary_cone_fraction_plan", "final_err_mm", "fail_reason",
+                  "boundary_fraction_plan", "boundary_cone_fraction_plan", "final_err_mm", "fail_reason", "failure_s",
                   "first_contact_s", "first_contact", "window_s", "min_clearance_mm", "min_clearance_s",
                   "min_clearance_pair")
 FAILED_RUNS_SHOWN = 10  # failed runs named in the warning line (all of them: manifest failed_runs)

@@ -57,6 +57,9 @@ class Accum(NamedTuple):
     #                                  the cone
     n_solver_cap: jax.Array  # int32, physics steps whose constraint solve stopped at opt.iterations, not at its
     #                          tolerance (physics rate)
+    failed: jax.Array  # bool, the run has failed (:func:`wbc_jax.metrics.paper.run_failed`); from the next control
+    #                    step on, the rollout keeps its state (and this Accum) as they were: a failed run is frozen
+    fail_t: jax.Array  # [s] start of the control step at which the run failed; NaN while it has not
 
 
 class SubstepMonitors(NamedTuple):
@@ -103,7 +106,8 @@ def init_accum(min_trunk_z: jax.Array) -> Accum:
                  overflow=false, t_end=jnp.full((), jnp.inf, z.dtype), n_win=zero_i,
                  min_clear=jnp.full((), jnp.inf, z.dtype), min_clear_t=jnp.full((), jnp.nan, z.dtype),
                  min_clear_k=jnp.full((), -1, jnp.int32), n_boundary_cone=zero_i, sum_invH_plan=z,
-                 n_boundary_plan=zero_i, n_boundary_plan_cone=zero_i, n_solver_cap=zero_i)
+                 n_boundary_plan=zero_i, n_boundary_plan_cone=zero_i, n_solver_cap=zero_i, failed=false,
+                 fail_t=jnp.full((), jnp.nan, z.dtype))
 
 
 def in_window(acc: Accum, dt_control: float) -> jax.Array:
@@ -161,3 +165,10 @@ def fold_control_step(acc: Accum, c: ControlSample, dt_control: float) -> Accum:
         n_boundary_plan=acc.n_boundary_plan + (w & (inv_h_plan <= 0.0)).astype(jnp.int32),
         n_boundary_plan_cone=acc.n_boundary_plan_cone + (w & (inv_h_plan <= 0.0) & cone_plan).astype(jnp.int32),
     )
+
+
+def mark_failure(acc: Accum, failed_now, t) -> Accum:
+    """``acc`` with ``failed`` set when ``failed_now`` (() bool) and ``fail_t`` the time ``t`` [s] of the first such
+    step."""
+    first = failed_now & ~acc.failed
+    return acc._replace(failed=acc.failed | failed_now, fail_t=jnp.where(first, t, acc.fail_t))

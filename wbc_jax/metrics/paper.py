@@ -129,6 +129,16 @@ def step_integrands(f_obj, mu, v_obj_before, v_obj_after, dt):
     return inv_H(alpha, loaded, mu), a
 
 
+def run_failed(acc, course: bool) -> jax.Array:
+    """() bool: the run has failed by a flag :func:`finalize` counts against success: the trunk below the fall
+    height, a non-foot robot part on the floor or terrain, the object dropped (lifted or off the tray), a
+    non-finite state or Warp's capacity overflow. ``acc``: one run's Accum; course: the scene has obstacles (the
+    fall height, static). The rollout freezes a run from the control step after this turns true."""
+    fall_z = FALL_Z_COURSE if course else FALL_Z_FLAT
+    return ((acc.min_trunk_z < fall_z) | acc.nonfoot_floor | (acc.max_lift > DROP_LIFT)
+            | (acc.max_off_s > MAX_OFF_S) | acc.nonfinite | acc.overflow)
+
+
 def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> dict[str, np.ndarray]:
     """Per-run metrics and flags from a (batched, host) rollout ``Accum``.
 
@@ -151,8 +161,10 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
         qp_iters_mean and qp_iters_max (ADMM iterations per control step: mean and most), nonfinite, overflow
         (Warp's contact or constraint capacity reached), solver_cap_fraction (of all physics steps: the constraint
         solver stopped at its iteration cap, opt.iterations; Warp only, ``wbc_jax.physics.backend.solver_capped``),
-        success (no fall, no drop, finite, no overflow, final object error <= DONE_TOL) and fail_reason (text, ""
-        for a success).
+        success (no fall, no drop, finite, no overflow, final object error <= DONE_TOL), fail_reason (text, ""
+        for a success) and failure_s (when :func:`run_failed` first held [s]; NaN if never). A failed run is frozen
+        from the control step after its failure, so its metrics and flags are those up to that instant and its
+        window (window_s) ends there.
     """
     n = np.asarray(acc.n_steps, float)
     n_win = np.asarray(acc.n_win, float)
@@ -192,6 +204,7 @@ def finalize(acc, dt: float, mu, course: bool, final_err, substeps: int = 1) -> 
         overflow=np.asarray(acc.overflow),
         solver_cap_fraction=np.asarray(acc.n_solver_cap) / np.maximum(n * substeps, 1),
         final_err_mm=final_err * 1e3,
+        failure_s=np.asarray(acc.fail_t, float),
     )
     bad = out["fell"] | dropped | nonfinite | out["overflow"] | ~np.isfinite(final_err) | (final_err > DONE_TOL)
     for k in ("R", "T", "S"):

@@ -29,12 +29,14 @@ from wbc_jax.metrics.accumulate import (
     fold_control_step,
     fold_physics_step,
     in_window,
+    mark_failure,
 )
 from wbc_jax.physics import backend as physics
 from wbc_jax.physics import clearance as geom_clearance
 from wbc_jax.physics import contacts
 from wbc_jax.physics.contacts import CONTACT_DIST
 from wbc_jax.physics.observe import observe
+from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.planner.transport import TransportPlan, reference
 from wbc_jax.robot.model import mjx
 from wbc_jax.rollout.config import Sim
@@ -200,11 +202,17 @@ def control_step(sim: Sim, m, run_state: RunState, plan: TransportPlan, obj_mode
                            tau_ratio=jnp.max(jnp.abs(tau) / jnp.asarray(ids.tau_max)),
                            track_err=jnp.linalg.norm(ref.p_obj - p_obj), qp=qp_diag, obj_mu=obj_model.mu)
     acc = fold_control_step(acc, sample, sim.dt_control)
-    # a run that went non-finite is frozen (its state no longer advances) so it cannot poison others
-    d_next = physics.freeze(finite, d_next, run_state.d)
+    acc = mark_failure(acc, paper.run_failed(acc, scene_geometry(sim.robot).is_course), d.time)
+    # a failed run (by an earlier step) is frozen: nothing of this step is kept, so its state, its metrics and its
+    # failure stay as they were at its failure; a step that went non-finite keeps its last finite state
+    frozen = run_state.acc.failed
+    d_next = physics.freeze(finite & ~frozen, d_next, run_state.d)
     # delayed: d_next's derived fields belong to the state the step started from (a frozen run's too)
     prev = (d_phys.qpos, d_phys.qvel, d_phys.time) if sim.sensing == "delayed" else None
     log = Log(t=d.time, p_obj=p_obj, p_obj_ref=ref.p_obj, com=dyn.com, com_ref=ref.p_com, slip=slip,
               trunk_z=dyn.p_base[2], prim_res=qp_diag.prim_res, tau=tau, qpos=d.qpos)
-    return RunState(d=d_next, cs=control_state, p_lift=p_lift, rel0=run_state.rel0,
-                    acc=pack(acc, run_state.acc.layout), prev=prev), log
+    stepped = RunState(d=d_next, cs=control_state, p_lift=p_lift, rel0=run_state.rel0,
+                       acc=pack(acc, run_state.acc.layout), prev=prev)
+    kept = jax.tree_util.tree_map(lambda new, old: jnp.where(frozen, old, new),
+                                  stepped._replace(d=None), run_state._replace(d=None))
+    return kept._replace(d=d_next), log
