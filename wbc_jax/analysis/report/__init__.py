@@ -12,6 +12,8 @@ Reads the CSV, checks it, runs :func:`wbc_jax.analysis.stats.analyze`, and write
   ``f_tests_reliable``, ``significant``, ``assumptions``, ``simple_effects`` and
   ``warnings``; plus ``alpha``, ``ss_type``, ``factors`` (levels), table-wide ``warnings``,
   ``design`` and ``manifest``. NaN is written as null.
+- for a campaign's table with failed runs: a table of them (reason, instant, first non-foot contact) with each
+  run's replay command (``wbc-jax replay DIR --run N``, :mod:`~.failed_runs`).
 - for a campaign's table with ``R_plan``: a section (and ``anova.json`` ``r_sources``) with R from the simulator's
   and from the QP's planned object forces per cell and the boundary rule's share of each (:func:`r_sources`).
 - ``design.csv``, ``cell_means.csv`` (mean, sd, n per cell and metric; CI baselines).
@@ -45,8 +47,9 @@ runs gets the design table only.
 
 Modules: :mod:`~wbc_jax.analysis.report.run` (the command), :mod:`~.inputs` (reading and checking the table),
 :mod:`~.model` (the statistics), :mod:`~.document` (Markdown / HTML), :mod:`~.sections`,
-:mod:`~.metric_section` and :mod:`~.campaign_sections` (the document's sections), :mod:`~.figure_jobs` (the
-figures and their captions), :mod:`~.output` (``anova.json``, ``manifest.json``, the atomic write).
+:mod:`~.metric_section`, :mod:`~.campaign_sections` and :mod:`~.failed_runs` (the document's sections),
+:mod:`~.figure_jobs` (the figures and their captions), :mod:`~.output` (``anova.json``, ``manifest.json``, the
+atomic write).
 """
 
 from wbc_jax.analysis.report.campaign_sections import r_sources

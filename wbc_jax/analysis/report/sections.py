@@ -1,5 +1,5 @@
 """The report's document, section by section: overview, warnings, significant terms, design, one section per
-metric, cell means, success rates, figures, the campaign's own sections and the method."""
+metric, cell means, success rates, failed runs, figures, the campaign's own sections and the method."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import pandas as pd
 from wbc_jax.analysis import stats
 from wbc_jax.analysis.report.campaign_sections import campaign_sections, success_sections
 from wbc_jax.analysis.report.document import Doc, fmt
+from wbc_jax.analysis.report.failed_runs import campaign_folder, failed_runs_section
 from wbc_jax.analysis.report.figure_jobs import FIGURE_CAPTIONS, caption
 from wbc_jax.analysis.report.inputs import Campaign, Table
 from wbc_jax.analysis.report.metric_defs import labels, metrics_section
@@ -68,6 +69,7 @@ def document(res: dict, summary: dict, table: Table, metrics, alpha: float, imag
     d.h(2, "Cell means (successful runs)")
     d.table(_cell_means(res["cell_means"], factors, metrics, shown))
     success_sections(d, extra, factors, alpha)
+    failed_runs_section(d, table.frame, factors, campaign_folder(summary["manifest"]["input"], table.campaign))
     if images:
         d.h(2, "Figures")
         for name in images:
@@ -90,6 +92,7 @@ def design_only_document(res: dict, extra: dict, results_csv: str, table: Table,
     d.h(2, "Design")
     d.table(res["design"])
     success_sections(d, extra, factors, alpha)
+    failed_runs_section(d, table.frame, factors, campaign_folder(results_csv, table.campaign))
     for name in images:
         d.img(name, FIGURE_CAPTIONS[name])
     return d
