@@ -70,11 +70,11 @@ def compare(run: int, row, result: dict) -> Check:
 
 
 def outcome(values: dict) -> str:
-    """"success" or "failed: REASON[ at T s]" of a run's values (:attr:`Check.campaign` or :attr:`Check.replay`)."""
+    """"success" or "failed[ at T s]: REASON" of a run's values (:attr:`Check.campaign` or :attr:`Check.replay`)."""
     if values["success"]:
         return "success"
     at = values.get("failure_s", math.nan)
-    return f"failed: {values['fail_reason'] or 'unknown'}" + ("" if math.isnan(at) else f" at {at:.3f} s")
+    return f"failed{'' if math.isnan(at) else f' at {at:.3f} s'}: {values['fail_reason'] or 'unknown'}"
 
 
 def line(check: Check, levels: str, folder) -> str:

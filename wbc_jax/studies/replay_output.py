@@ -1,12 +1,13 @@
-"""What a replay writes per run: ``trajectory.npz`` and ``plots.png`` (the video: :mod:`~wbc_jax.studies.replay_video`).
+"""What a replay writes per run: ``trajectory.npz`` and ``plots.png`` (the video: :mod:`~.replay_video`).
 
 ``plots.png`` shows, against simulated time, the object's slip on the tray, the object's and the CoM's tracking
 errors, the trunk height with the fall height, every joint's torque as a fraction of its limit, the clearance of
-the robot's non-foot geoms to the floor, blocks and walls, and the QP's primal residual, with the failure instant
-and the rendered window marked. The clearance is recomputed from the logged configurations with MuJoCo C
-(``mj_geomDistance``, the pairs of :func:`wbc_jax.physics.clearance.clearance_pairs`) at the log's rate, so a
-contact between two logged samples can be missed. Contact forces against the friction cone are not plotted: the
-rollout's log does not hold them (nor the velocities they would be recomputed from).
+the robot's non-foot geoms to the floor, blocks and walls, and the QP's primal residual, with the trunk push, the
+failure instant (the run is frozen after it) and the video's window marked. The clearance is recomputed from the
+logged configurations with MuJoCo C (``mj_geomDistance``, the pairs of
+:func:`wbc_jax.physics.clearance.clearance_pairs`) at the log's rate, so a contact between two logged samples can be
+missed. Contact forces against the friction cone are not plotted: the rollout's log does not hold them (nor the
+velocities they would be recomputed from).
 """
 
 from __future__ import annotations
@@ -51,12 +52,19 @@ def write_trajectory(path: Path, logs, time: np.ndarray, extra: dict) -> None:
     np.savez_compressed(path, **arrays)
 
 
-def _mark(ax, failure_s: float, window, label: bool) -> None:
-    """The failure instant (a red line) and the rendered window (shaded) on one axis (in its legend: ``label``)."""
+def _mark(ax, events: dict, end: float, label: bool) -> None:
+    """On one axis (in its legend where ``label``): the push (shaded orange), the failure instant (a red line) and
+    the frozen time after it (shaded red) up to ``end`` [s], the video's window (shaded grey)."""
+    t0, duration, force = events["push"]
+    if duration > 0 and force > 0:
+        ax.axvspan(t0, t0 + duration, color="tab:orange", alpha=0.15, lw=0, label=f"push {force:.0f} N" if label
+                   else None)
+    failure_s = events["failure_s"]
     if np.isfinite(failure_s):
         ax.axvline(failure_s, color="tab:red", lw=1.2, ls="--", label=f"failure {failure_s:.3f} s" if label else None)
-    if window is not None:
-        ax.axvspan(window[0], window[1], color="0.9", zorder=0, label="video window" if label else None)
+        ax.axvspan(failure_s, end, color="tab:red", alpha=0.05, lw=0, label="frozen" if label else None)
+    if events["window"] is not None:
+        ax.axvspan(*events["window"], color="0.9", zorder=0, label="video window" if label else None)
 
 
 def _panels(axes, time, logs, limits: dict, clear_mm) -> None:
@@ -83,15 +91,15 @@ def _panels(axes, time, logs, limits: dict, clear_mm) -> None:
     ax[5].set_ylabel("QP primal residual")
 
 
-def write_plots(path: Path, time: np.ndarray, logs, limits: dict, clear_mm: np.ndarray, failure_s: float,
-                window, title: str) -> None:
-    """``plots.png``: the six panels of the module docstring, each with the failure instant and the video window.
+def write_plots(path: Path, time: np.ndarray, logs, limits: dict, clear_mm: np.ndarray, events: dict,
+                title: str) -> None:
+    """``plots.png``: the six panels of the module docstring, each with the push, the failure and the video window.
 
     Args:
         time: (T,) [s] sample times; logs: the run's Log (host, axis 0 the samples).
         limits: ``tau_max`` (nu,) [N m] and ``fall_z`` [m]; clear_mm: (T,) clearance [mm].
-        failure_s: the failure instant [s] (NaN: none); window: (start, end) [s] of the video, or None (not
-            shaded: e.g. the whole run).
+        events: ``push`` (start [s], duration [s], force [N]), ``failure_s`` (the failure instant [s], NaN: none)
+            and ``window`` ((start, end) [s] of the video, or None: not shaded, e.g. the whole run).
         title: the figure's title.
     """
     import matplotlib
@@ -102,7 +110,7 @@ def write_plots(path: Path, time: np.ndarray, logs, limits: dict, clear_mm: np.n
     fig, axes = plt.subplots(2, 3, figsize=(15, 7.5), sharex=True)
     _panels(axes, time, logs, limits, clear_mm)
     for i, ax in enumerate(axes.ravel()):
-        _mark(ax, failure_s, window, label=i == 0)
+        _mark(ax, events, float(time[-1]), label=i == 0)
         ax.grid(alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7, loc="best")

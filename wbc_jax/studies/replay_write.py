@@ -71,6 +71,16 @@ def _manifest(recorded: Recorded, replayed: Replayed, check: Check, run: int, wi
         written=time.strftime("%Y-%m-%d %H:%M:%S %z")))
 
 
+def _events(replayed: Replayed, run: int, failure_s: float, window, times: np.ndarray) -> dict:
+    """What ``plots.png`` marks: the run's push (start [s], duration [s], force [N]), its failure instant [s] and
+    the video's window (None when it spans the whole run)."""
+    push = replayed.built.batch.push
+    force = float(np.linalg.norm(np.asarray(push.force)[run]))
+    whole = window[0] <= times[0] and window[1] >= times[-1]
+    return dict(push=(float(np.asarray(push.t0)[run]), float(np.asarray(push.duration)[run]), force),
+                failure_s=failure_s, window=None if whole else window)
+
+
 def write_run(folder: Path, recorded: Recorded, replayed: Replayed, check: Check, window=None,
               video: bool = True) -> str:
     """Write ``folder`` (new, or an earlier replay's with the caller's ``--force`` checked): ``trajectory.npz``,
@@ -93,9 +103,8 @@ def write_run(folder: Path, recorded: Recorded, replayed: Replayed, check: Check
         write_trajectory(tmp / "trajectory.npz", logs, times, dict(
             clearance_m=clear_m, clearance_pair=closest, tau_max=limits["tau_max"], failure_s=failure_s,
             run=check.run, m=dz.m[check.run], mu=dz.mu[check.run], d=dz.d[check.run]))
-        whole = window[0] <= times[0] and window[1] >= times[-1]
-        write_plots(tmp / "plots.png", times, logs, limits, clear_m * 1e3, failure_s, None if whole else window,
-                    title)
+        write_plots(tmp / "plots.png", times, logs, limits, clear_m * 1e3, _events(replayed, check.run, failure_s,
+                                                                                   window, times), title)
         made = (write_video(tmp, mj_model, np.asarray(logs.qpos, float), times, window,
                             (failure_s, check.replay["fail_reason"]), sim.robot.ids.trunk_body)
                 if video else (None, "not rendered (--no-video)"))
