@@ -16,7 +16,7 @@ from wbc_jax.cli.parser import Parser
 from wbc_jax.errors import InputError, SpecError
 from wbc_jax.studies import replay
 from wbc_jax.studies.replay_check import REPLAY_RTOL, compare, relative_difference
-from wbc_jax.studies.replay_inputs import read_results
+from wbc_jax.studies.replay_inputs import read_campaign, read_results
 from wbc_jax.studies.replay_sim import fill_slots
 from wbc_jax.studies.replay_write import default_window
 
@@ -125,6 +125,24 @@ def test_results_that_differ_are_one_line_and_nothing_written(full_run, tmp_path
     df.to_csv(copy / "results.csv", index=False)
     with pytest.raises(InputError, match="run 3 has seed"):
         replay.main(_args(copy, "--runs", "1,3"))
+
+
+def test_spec_recorded_in_the_manifest_stands_in_for_a_missing_file(full_run, tmp_path, capsys):
+    camp, _ = full_run
+    man = json.loads((camp / "manifest.json").read_text())
+    copy = tmp_path / "camp"
+    copy.mkdir()
+    (copy / "results.csv").write_text((camp / "results.csv").read_text())
+    (copy / "manifest.json").write_text(json.dumps(dict(man, spec_path=str(tmp_path / "moved.toml"))))
+    recorded = read_campaign(copy)
+    assert recorded.spec.factors == man["spec"]["factors"] and recorded.spec.perturbations == man["spec"][
+        "perturbations"] and recorded.spec.campaign == dict(man["spec"]["campaign"], backend=man["physics_backend"])
+    assert "manifest.json records is used" in capsys.readouterr().out
+    spec = json.loads((copy / "manifest.json").read_text())["spec"]
+    spec["campaign"]["seed"] += 1
+    (copy / "manifest.json").write_text(json.dumps(dict(man, spec_path=str(tmp_path / "moved.toml"), spec=spec)))
+    with pytest.raises(SpecError, match="does not hash to its spec_hash"):
+        read_campaign(copy)
 
 
 def test_cli_error_is_one_line_exit_2(full_run, tmp_path, capsys):

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from wbc_jax.campaign.build import backend_of, sensing_of, with_backend
-from wbc_jax.campaign.spec import Spec, load_spec
+from wbc_jax.campaign.spec import Spec, load_spec, parse_spec
 from wbc_jax.errors import InputError, SpecError
 from wbc_jax.io_utils import read_capped
 
@@ -34,7 +34,8 @@ class Recorded(NamedTuple):
     Attributes:
         folder: the campaign's folder.
         manifest: its ``manifest.json``.
-        spec: its spec, checked against the manifest, with the campaign's physics backend.
+        spec: its spec, checked against the manifest (or the one the manifest records), with the campaign's
+            physics backend.
         results: its ``results.csv``, one row per run (floats read back exactly).
         gains: the controller gains it ran (unbatched TransportGains), None for the defaults.
     """
@@ -51,7 +52,8 @@ def read_campaign(folder, spec_path=None, gains_path=None) -> Recorded:
 
     Args:
         folder: the campaign's folder (``manifest.json`` and ``results.csv``).
-        spec_path: the spec file (default: the manifest's ``spec_path``).
+        spec_path: the spec file (default: the manifest's ``spec_path``; where that is not here, the spec the
+            manifest records).
         gains_path: the gains TOML it ran with (needed when the manifest says it did not run the defaults).
 
     Raises:
@@ -88,27 +90,40 @@ def _manifest(folder: Path) -> dict:
 
 
 def _spec(folder: Path, manifest: dict, spec_path) -> Spec:
-    """The campaign's spec file, its sha256 and validated content equal to the manifest's, with the campaign's
-    physics backend; its sensing as the campaign resolved it."""
-    given = spec_path is not None
-    path = Path(spec_path if given else manifest["spec_path"])
-    if not path.is_file():
-        where = "--spec" if given else f"{folder}/manifest.json spec_path"
+    """The campaign's spec: the file (``spec_path``, else the manifest's ``spec_path``) whose sha256 and validated
+    content equal the manifest's, or, where the manifest's path does not exist here, the spec the manifest records
+    (its hash checked); with the campaign's physics backend, its sensing as the campaign resolved it."""
+    path = Path(spec_path if spec_path is not None else manifest["spec_path"])
+    if path.is_file():
+        spec = _spec_file(folder, manifest, path)
+    elif spec_path is None and isinstance(manifest.get("spec"), dict):
+        spec = parse_spec(manifest["spec"], f"{folder}/manifest.json spec")
+        if spec.hash != manifest["spec_hash"]:
+            raise SpecError(f"{folder}/manifest.json: its spec does not hash to its spec_hash (edited?); pass --spec "
+                            "with the spec the campaign ran")
+        print(f"note: {path} (manifest.json spec_path) is not here: the spec {folder}/manifest.json records is used",
+              flush=True)
+    else:
+        where = "--spec" if spec_path is not None else f"{folder}/manifest.json spec_path"
         raise SpecError(f"{path} ({where}): no such file; pass --spec with the spec the campaign ran")
-    loaded = load_spec(path)
-    recorded_backend = (manifest.get("spec") or {}).get("campaign", {}).get("backend")
-    spec = with_backend(loaded, recorded_backend)  # a campaign's --backend flag is in its spec's hash
-    if spec.text_sha256 != manifest["spec_file_sha256"] or spec.hash != manifest["spec_hash"]:
-        raise SpecError(f"{path}: sha256 {spec.text_sha256[:12]} differs from the spec campaign {folder} ran "
-                        f"(manifest.json spec_file_sha256 {str(manifest['spec_file_sha256'])[:12]}): the spec changed "
-                        "since; pass --spec with the campaign's own copy")
     spec = with_backend(spec, manifest["physics_backend"])
     if backend_of(spec) != manifest["physics_backend"]:
         raise SpecError(f"{folder}/manifest.json physics_backend {manifest['physics_backend']!r}: resolves to "
                         f"{backend_of(spec)!r} on this machine; replay on a machine that has it")
     if sensing_of(spec) != manifest["sensing"]:
-        raise SpecError(f"{path}: campaign.sensing resolves to {sensing_of(spec)!r}, the campaign ran "
+        raise SpecError(f"{spec.path}: campaign.sensing resolves to {sensing_of(spec)!r}, the campaign ran "
                         f"{manifest['sensing']!r} ({folder}/manifest.json sensing)")
+    return spec
+
+
+def _spec_file(folder: Path, manifest: dict, path: Path) -> Spec:
+    """The spec file ``path``, refused unless its bytes and content are those the campaign ran."""
+    recorded_backend = (manifest.get("spec") or {}).get("campaign", {}).get("backend")
+    spec = with_backend(load_spec(path), recorded_backend)  # a campaign's --backend flag is in its spec's hash
+    if spec.text_sha256 != manifest["spec_file_sha256"] or spec.hash != manifest["spec_hash"]:
+        raise SpecError(f"{path}: sha256 {spec.text_sha256[:12]} differs from the spec campaign {folder} ran "
+                        f"(manifest.json spec_file_sha256 {str(manifest['spec_file_sha256'])[:12]}): the spec changed "
+                        "since; pass --spec with the campaign's own copy")
     return spec
 
 
