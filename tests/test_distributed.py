@@ -114,7 +114,8 @@ ALL_IN_ONE = textwrap.dedent("""
     try:  # cut: the same campaign interrupted after its first chunk ...
         runner.run_campaign(spec, "cut", report=False, progress=False)
         sys.exit("not interrupted")
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as stop:
+        print(stop, file=sys.stderr, flush=True)
         runner.after_chunk = keep
     kept = sorted(os.listdir("."))
     want = [] if "--process-id=1" in mp else [".cut.campaign-ckpt", "out"]  # process 1 writes nothing
@@ -208,7 +209,7 @@ def test_two_processes_equal_one(tiny_spec, tmp_path, monkeypatch):
                            dirs)
     assert codes == [0, 0, 0], "\n---\n".join(x[-3000:] for x in logs)
     assert logs[1].count("process 1: done; process 0 writes") == 4  # campaign, resumed campaign, tune, Warp campaign
-    assert "interrupted after 1 of" in logs[0] and "resuming from" in logs[0]
+    assert "interrupted (SIGINT) after 1 of" in logs[0] and "resuming from" in logs[0]
     assert list(dirs[1].iterdir()) == []  # process 1: no --out, no checkpoint, no stray file
 
     # the campaign: process 0's results.csv equals the one-process reference's, bit for bit
