@@ -107,19 +107,22 @@ def simulate_runs(recorded: Recorded, run_ids, whole_batch: bool = False, progre
     chunk_s = built.logs_per_chunk * built.sim.log_every * built.sim.dt_control
     bar = ProgressBar(built.n_chunks, 0, chunk_s, n, built.sim.dt_physics) if progress else None
     state, kept, t_start = batch.state, [], time.perf_counter()
-    with interrupts.Guard("wbc-jax replay") as guard:
-        for _ in range(built.n_chunks):
-            t0 = time.perf_counter()
-            with guard.deferred():  # XLA compiling or running a chunk: a signal stops after it
-                state, logs = fn(batch.model, state, batch.plan, batch.om, batch.gains, batch.push, batch.mu_ground)
-                host = spread.gather(logs, n)
-            guard.check()
-            kept.append(runs.take(host, wanted))
-            if bar is not None:
-                bar.chunk_done(time.perf_counter() - t0)
-        final = spread.gather(state, n, batch.state_axes)
-    if bar is not None:
-        bar.close()
+    try:
+        with interrupts.Guard("wbc-jax replay") as guard:
+            for _ in range(built.n_chunks):
+                t0 = time.perf_counter()
+                with guard.deferred():  # XLA compiling or running a chunk: a signal stops after it
+                    state, logs = fn(batch.model, state, batch.plan, batch.om, batch.gains, batch.push,
+                                     batch.mu_ground)
+                    host = spread.gather(logs, n)
+                guard.check()
+                kept.append(runs.take(host, wanted))
+                if bar is not None:
+                    bar.chunk_done(time.perf_counter() - t0)
+            final = spread.gather(state, n, batch.state_axes)
+    finally:
+        if bar is not None:
+            bar.close()
     wall = time.perf_counter() - t_start
     res = final_results(built.sim, final, np.asarray(host.p_obj_ref)[:, -1], built.design.mu[slots])
     logs = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=1), *kept)
