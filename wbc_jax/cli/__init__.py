@@ -14,6 +14,7 @@ from wbc_jax.cli import checks
 from wbc_jax.cli import parser as parser_module
 from wbc_jax.errors import UsageError, WbcJaxError
 from wbc_jax.io_utils import check_file_target, check_out_dir, claim_out_dir, release_out_dir
+from wbc_jax.studies import replay
 
 CPU_BATCHES = {"rollout": (1, 4, 16), "profile": 16, "components": 16, "trace": 16}  # bench defaults on a CPU
 
@@ -173,7 +174,7 @@ def _cmd_regress(args: argparse.Namespace) -> int:
 
 
 COMMANDS = {"report": _cmd_report, "bench": _cmd_bench, "demo": _cmd_demo, "campaign": _cmd_campaign,
-            "tune": _cmd_tune, "regress": _cmd_regress, "trot": _cmd_trot}
+            "tune": _cmd_tune, "regress": _cmd_regress, "trot": _cmd_trot, "replay": replay.main}
 
 
 def main(argv: list[str] | None = None) -> int:

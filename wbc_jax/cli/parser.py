@@ -5,13 +5,32 @@ from __future__ import annotations
 import argparse
 
 from wbc_jax.errors import UsageError
+from wbc_jax.studies import replay
 
-DESCRIPTION = "The ``wbc-jax`` console script."
+DESCRIPTION = ("Batched whole-body control of a legged manipulator carrying an object, simulated in MuJoCo MJX: "
+               "factorial campaigns as one batched rollout with their ANOVA report, gain tuning, a single-run demo, "
+               "a trot study, regression checks against a baseline and benchmarks.")
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """Appends ``(default: X)`` to an optional argument's help unless the help already states its default, the
+    argument is required, or it has no value default (a flag that is off, or None explained in the help)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if (not action.option_strings or action.required or "default" in text
+                or action.default in (None, False, argparse.SUPPRESS)):
+            return text
+        return f"{text} (default: %(default)s)"
 
 
 class Parser(argparse.ArgumentParser):
     """An ArgumentParser whose errors are one line: :class:`wbc_jax.errors.UsageError` (the CLI prints it) instead
     of a usage block and ``sys.exit``."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str):
         raise UsageError(f"{message} ({self.prog} --help lists the arguments)", prog=self.prog)
@@ -72,8 +91,8 @@ def _add_bench(sub) -> argparse.ArgumentParser:
                                           "[_pol<P>][_e<E>][_m<M>][_c<C>][_tol<T>] (N iterations, rho adapted every K "
                                           "(0: never), adaptation bias B, rho R, R Ruiz passes, P polishing passes, "
                                           "E rows held exactly, up to M iterations while unconverged, tested every "
-                                          "C, tolerance "
-                                          "10^-T; unnamed parts: the control loop's); overrides --iters")
+                                          "C, tolerance 10^-T; unnamed parts: the control loop's); overrides "
+                                          "--iters (default: none, --iters with the control loop's settings)")
     b.add_argument("--substeps", type=int, default=1, help="rollout: physics steps per control step (default 1)")
     b.add_argument("--backend", default="jax",
                    help="rollout: MJX physics implementation(s), comma-separated, each measured in this one run: "
@@ -85,13 +104,13 @@ def _add_bench(sub) -> argparse.ArgumentParser:
                                                     "wbc_n_pallas_norefactor, wbc_n_unroll, wbc_n_unroll_norefactor)")
     b.add_argument("--campaign", default=None, help="rollout: also run this campaign spec end to end twice in fresh "
                                                     "processes with a new compilation cache (wall time, compile "
-                                                    "cold and warm), e.g. sweeps/paper_campaign.toml")
+                                                    "cold and warm), e.g. sweeps/paper_campaign.toml (default: none)")
     b.add_argument("--warmup", type=float, default=0.0,
                    help="trace: simulated seconds run untraced first, so that the traced steps come from the walk "
                         "(default 0: the first standing steps)")
     b.add_argument("--quick", action="store_true", help="small sizes (CPU smoke run)")
     b.add_argument("--json", default=None, help="also write the results as JSON here (a new file; an existing one "
-                                                "only with --force)")
+                                                "only with --force; default: none)")
     b.add_argument("--force", action="store_true", help="overwrite an existing --json file")
     _process_flags(b)
     return b
@@ -139,10 +158,13 @@ def _add_tune(sub) -> argparse.ArgumentParser:
     u.add_argument("--spec", default=None, help="tuning spec (default: sweeps/gain_tuning_course.toml, the obstacle "
                                                 "course, with an accelerator; sweeps/gain_tuning_cpu.toml on a CPU)")
     u.add_argument("--out", default="out/tune", help="output directory (default out/tune)")
-    u.add_argument("--candidates", type=int, default=None, help="candidates per round (overrides tune.candidates)")
-    u.add_argument("--rounds", type=int, default=None, help="rounds (overrides tune.rounds; not used by grid)")
-    u.add_argument("--batch", type=int, default=None, help="runs per rollout call (overrides tune.batch; 0: all "
-                                                           "of a round's runs on an accelerator, 1 on a CPU)")
+    u.add_argument("--candidates", type=int, default=None, help="candidates per round (default: the spec's "
+                                                                "tune.candidates)")
+    u.add_argument("--rounds", type=int, default=None, help="rounds, not used by grid (default: the "
+                                                            "spec's tune.rounds)")
+    u.add_argument("--batch", type=int, default=None, help="runs per rollout call; 0: all of a round's "
+                                                           "runs on an accelerator, 1 on a CPU (default: the spec's "
+                                                           "tune.batch)")
     u.add_argument("--no-progress", action="store_true", help="no progress bar")
     _backend_flag(u, "the campaign specs' campaign.backend (tuning and confirmation)")
     _process_flags(u)
@@ -185,6 +207,7 @@ def build_parser() -> argparse.ArgumentParser:
     writers.append(_add_campaign(sub))
     writers.append(_add_tune(sub))
     _add_regress(sub)
+    replay.add_parser(sub)  # its own --force
     writers.append(_add_trot(sub))
     for cmd in writers:
         cmd.add_argument("--force", action="store_true", help="replace --out when it holds an earlier run of this "
