@@ -4,8 +4,14 @@ snippet match the parser and the API (no JAX: the parser is built, never run).""
 from __future__ import annotations
 
 import argparse
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
+from test_stats import planted
 
 from wbc_jax.cli.parser import build_parser
 
@@ -29,7 +35,8 @@ def test_help_states_every_default():
         parser.format_help()  # every help string formats
 
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+REPO = Path(__file__).resolve().parents[1]
+README = REPO / "README.md"
 
 
 def command_table() -> dict[str, str]:
@@ -63,3 +70,49 @@ def test_command_table_matches_parser():
                 f"README.md: wbc-jax {name} {flag} is {'' if required else 'not '}required; the table says otherwise")
         if "--force" in options:
             assert "--force" in command, f"README.md: wbc-jax {name}: --force missing"
+
+
+def readme_python() -> str:
+    """The ```python block of README.md."""
+    return re.search(r"```python\n(.*?)```", README.read_text(), re.S).group(1)
+
+
+def readme_cli_lines() -> list[list[str]]:
+    """The indented ``.venv/bin/wbc-jax`` command lines of README.md's first section, as argument lists."""
+    return [line.split()[1:] for line in README.read_text().splitlines()
+            if line.startswith("    .venv/bin/wbc-jax ")]
+
+
+def test_readme_snippet_runs_after_the_cli_lines(tmp_path):
+    """The README's CLI lines' outputs exist (the campaign's results table stands in for its run: the snippet
+    only reads it; the report line runs), then the Python snippet runs as written, in a fresh interpreter."""
+    lines = readme_cli_lines()
+    assert [line[0] for line in lines] == ["campaign", "report"]
+    out = Path(tmp_path, lines[0][lines[0].index("--out") + 1])
+    out.mkdir(parents=True)
+    df = planted(seed=5)
+    df["S"] = 0.5 + 0.01 * df["R"]
+    df.to_csv(out / "results.csv", index=False)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    for code in (f"from wbc_jax.cli import main; raise SystemExit(main({lines[1]!r}))", readme_python()):
+        r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
+                           timeout=600)
+        assert r.returncode == 0, r.stderr[-2000:]
+    assert (tmp_path / "out" / "report" / "anova.json").exists()
+
+
+def test_python_api_speaks_python(tmp_path):
+    """An output folder the API refuses names the keyword argument, not the CLI flag."""
+    import wbc_jax
+    from wbc_jax.api import python_wording
+    from wbc_jax.errors import OutputError
+
+    planted(seed=5).to_csv(tmp_path / "results.csv", index=False)
+    wbc_jax.report(tmp_path / "results.csv", tmp_path / "report", figures=False)
+    with pytest.raises(OutputError, match="force=True") as refused:
+        wbc_jax.report(tmp_path / "results.csv", tmp_path / "report", figures=False)
+    assert "--" not in str(refused.value)
+    assert python_wording("--out d: continue with --resume, or --force; --allow-large") == (
+        "out=d: continue with resume=True, or force=True; allow_large=True")
+    assert python_wording("write it with wbc-jax report r.csv --out x; or --force") == (
+        "write it with wbc-jax report r.csv --out x; or force=True")

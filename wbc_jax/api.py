@@ -13,7 +13,44 @@ They are what the ``wbc-jax campaign`` and ``wbc-jax report`` commands call, and
 
 from __future__ import annotations
 
+import contextlib
+import re
 from pathlib import Path
+
+from wbc_jax.campaign.interrupts import Interrupted
+from wbc_jax.errors import WbcJaxError
+
+SWITCHES = ("force", "resume", "allow-large")  # CLI flags without a value: keyword=True in Python
+
+
+def python_wording(message: str) -> str:
+    """A CLI message in the Python API's terms: ``--force`` -> ``force=True``, ``--out DIR`` -> ``out=DIR``,
+    ``--allow-large`` -> ``allow_large=True``; any other ``--flag`` -> ``flag``. A quoted ``wbc-jax`` command line
+    (up to the next ``;``) stays as it is."""
+
+    def keyword(match: re.Match) -> str:
+        name = match.group(1)
+        return f"{name.replace('-', '_')}=True" if name in SWITCHES else name.replace("-", "_")
+
+    def convert(part: str) -> str:
+        return re.sub(r"--([a-z][a-z-]*)", keyword, re.sub(r"--(out|backend) ", r"\1=", part))
+
+    parts = re.split(r"(wbc-jax [^;]*)", message)
+    return "".join(part if i % 2 else convert(part) for i, part in enumerate(parts))
+
+
+@contextlib.contextmanager
+def _python_errors():
+    """Re-raise a user error or an interruption with its message in Python wording (:func:`python_wording`)."""
+    try:
+        yield
+    except Interrupted as error:
+        raise Interrupted(error.signum, python_wording(error.where)) from None
+    except WbcJaxError as error:
+        raised = type(error).__new__(type(error))
+        raised.__dict__.update(error.__dict__)
+        raised.args = (python_wording(str(error)),) + error.args[1:]
+        raise raised from None
 
 
 def load_spec(path: str | Path):
@@ -58,7 +95,8 @@ def run_campaign(spec_path: str | Path | None, out: str | Path, *, gains: str | 
         from wbc_jax.campaign.gains import load_gains
 
         options["gains"] = load_gains(gains)
-    return _run(None if spec_path is None else str(spec_path), str(out), **options)
+    with _python_errors():
+        return _run(None if spec_path is None else str(spec_path), str(out), **options)
 
 
 def load_results(path: str | Path):
@@ -88,7 +126,12 @@ def report(results_csv: str | Path, out: str | Path, **options) -> dict:
 
     Returns:
         The content of ``anova.json``: per metric the ANOVA rows, significant terms, assumption tests.
+
+    Raises:
+        wbc_jax.errors.InputError: the table is missing or malformed.
+        wbc_jax.errors.OutputError: ``out`` is not new, empty or an earlier report (``force=True`` replaces one).
     """
     from wbc_jax.analysis.report import run_report
 
-    return run_report(str(results_csv), str(out), **options)
+    with _python_errors():
+        return run_report(str(results_csv), str(out), **options)
