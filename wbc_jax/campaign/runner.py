@@ -52,11 +52,12 @@ from wbc_jax.campaign.build import (
     sensing_of,
     with_backend,
 )
+from wbc_jax.campaign.design import design
 from wbc_jax.campaign.job import Job, Status
 from wbc_jax.campaign.manifest import COMMAND, Timing, campaign_manifest, run_identity
 from wbc_jax.campaign.manifest import git_commit as _git_commit  # noqa: F401  (reached as runner._git_commit)
 from wbc_jax.campaign.manifest import versions as _versions  # noqa: F401  (reached as runner._versions)
-from wbc_jax.campaign.progress import ProgressBar, throughput
+from wbc_jax.campaign.progress import ProgressBar, stage, throughput
 from wbc_jax.campaign.results import campaign_report, results_table, summarize, zero_noise_warning
 from wbc_jax.campaign.resume import Start, kept, start_point
 from wbc_jax.campaign.spec import default_spec_path, load_spec
@@ -112,6 +113,11 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool,
     first_in_process = True  # that chunk's wall time includes compilation
     step = lambda st: fn(b.model, st, b.plan, b.om, b.gains, b.push, b.mu_ground)  # noqa: E731  (dispatch only)
     reporter = None
+    if done < n_chunks and job.writer:
+        stage("compiling the chunk program (the first run on a machine: minutes; later runs load it from the "
+              "compilation cache)")
+    if bar is not None and done < n_chunks:
+        bar.compiling(f"compiling, then chunk {done + 1}")
     try:
         with guard.deferred():
             nxt, t0 = (step(state) if done < n_chunks else None), t_run  # the first call compiles
@@ -131,7 +137,6 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool,
                 # state saved below stays valid)
                 nxt = step(state) if done < n_chunks else None
             marks.append(dict(chunk=done, wall_s=dt_wall, fresh_process=first_in_process))
-            first_in_process = False
             if sp.mode == "one":
                 p_goal, saved = np.asarray(logs.p_obj_ref[:, -1]), state
             else:  # every process takes part in the gathers; process 0 writes
@@ -144,7 +149,8 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool,
                         sessions=start.sessions))
                 job.status.saved = done
             if bar is not None:
-                bar.chunk_done(dt_wall)
+                bar.chunk_done(dt_wall, fresh=first_in_process)
+            first_in_process = False
             if done < n_chunks:
                 after_chunk(done, n_chunks)
                 guard.check()
@@ -251,7 +257,10 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
 def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guard) -> dict | None:
     """:func:`run_campaign`'s steps (``request``: its arguments): checks, build, chunks, results."""
     r = request
-    spec = load_spec(r["spec_path"] if r["spec_path"] is not None else default_spec_path(has_accelerator()))
+    spec_path = r["spec_path"] if r["spec_path"] is not None else default_spec_path(has_accelerator())
+    if distributed.is_writer():
+        stage(f"reading the spec {spec_path} and checking the output folder")
+    spec = load_spec(spec_path)
     spec = with_backend(spec, r["backend"])
     physics_backend = backend_of(spec)
     sensing_of(spec)  # a bad combination fails here, before anything is written
@@ -264,6 +273,8 @@ def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guar
     status.saved, status.n_chunks = kept(ck)
     for line in preflight.notes(spec, physics_backend, r["allow_large"]) if status.writer else []:
         print(line, flush=True)
+    if status.writer:
+        stage(f"building {design(spec).n} runs on scene {spec.campaign['scene']} (initial states, plans, pushes)")
     with guard.deferred():  # the batch's initial states compile
         built = build(spec, r["gains"])
     guard.check()

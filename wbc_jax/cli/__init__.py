@@ -10,6 +10,7 @@ import argparse
 import sys
 
 from wbc_jax.campaign import interrupts
+from wbc_jax.campaign.progress import stage
 from wbc_jax.cli import checks
 from wbc_jax.cli import parser as parser_module
 from wbc_jax.errors import UsageError, WbcJaxError
@@ -140,6 +141,7 @@ def _join_processes(args: argparse.Namespace) -> None:
 
 
 def _cmd_campaign(args: argparse.Namespace) -> int:
+    stage("loading JAX, MuJoCo MJX and the controllers")
     _join_processes(args)
     from wbc_jax.campaign.runner import run_campaign
 
