@@ -103,11 +103,13 @@ class ProgressBar:
         self._stop_ticking()
         self._walls.append(wall_s)
         self._fresh.append(fresh)
-        if self._bar.n < self._bar.total:
-            self._bar.update(1)
-        left = time_left(self._walls, self._fresh, self._bar.total - self._bar.n)
-        self._bar.set_postfix_str(f"{clock(left)} left, {self.n_runs} runs, "
-                                  f"{self.n_runs * self.chunk_s / self.dt_physics / wall_s:,.0f} env-steps per second")
+        step = 1 if self._bar.n < self._bar.total else 0
+        left = time_left(self._walls, self._fresh, self._bar.total - self._bar.n - step)
+        rate = self.n_runs * self.chunk_s / self.dt_physics / wall_s
+        self._bar.set_postfix_str(f"{clock(left)} left, {self.n_runs} runs, {rate:,.0f} env-steps per second",
+                                  refresh=False)
+        self._bar.update(step)
+        self._bar.refresh()
 
     def close(self) -> None:
         self._stop_ticking()
