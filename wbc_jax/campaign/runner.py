@@ -133,10 +133,13 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool,
                 dt_wall = time.perf_counter() - t0
                 t0 = time.perf_counter()
                 done += 1
+                if bar is not None:  # shown before the next chunk's dispatch, which on a CPU runs it
+                    bar.chunk_done(dt_wall, fresh=first_in_process)
                 # the next chunk runs on the device while this one's checkpoint is written (nothing is donated: the
                 # state saved below stays valid)
                 nxt = step(state) if done < n_chunks else None
             marks.append(dict(chunk=done, wall_s=dt_wall, fresh_process=first_in_process))
+            first_in_process = False
             if sp.mode == "one":
                 p_goal, saved = np.asarray(logs.p_obj_ref[:, -1]), state
             else:  # every process takes part in the gathers; process 0 writes
@@ -148,9 +151,6 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool,
                         p_goal=p_goal.tolist(), wall_s=start.wall_before + time.perf_counter() - t_run,
                         sessions=start.sessions))
                 job.status.saved = done
-            if bar is not None:
-                bar.chunk_done(dt_wall, fresh=first_in_process)
-            first_in_process = False
             if done < n_chunks:
                 after_chunk(done, n_chunks)
                 guard.check()
