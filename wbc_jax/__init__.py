@@ -16,9 +16,9 @@ import os as _os
 if "MUJOCO_GL" not in _os.environ and not _os.environ.get("DISPLAY"):
     _os.environ["MUJOCO_GL"] = "egl"
 
-from wbc_jax.version import __version__  # noqa: E402
+from wbc_jax.version import __version__  # noqa: E402, F401  (re-exported)
 
-__all__ = ["__version__", "load_results", "load_spec", "report", "run_campaign"]
+__all__ = ["load_results", "load_spec", "report", "run_campaign"]
 
 
 def __getattr__(name: str):
