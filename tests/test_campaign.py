@@ -182,7 +182,7 @@ def test_nan_run_does_not_poison_the_batch(full_run, tiny_spec):
     bad = 3
     d = b.state.d
     state = b.state._replace(d=d.replace(qvel=d.qvel.at[bad].set(jnp.nan)))
-    fn = C._chunk_fn(sim, b.in_axes, logs_per_chunk)  # the compiled function of the clean run (same shapes)
+    fn = C.chunk_fn(sim, b.in_axes, logs_per_chunk)  # the compiled function of the clean run (same shapes)
     for _ in range(n_chunks):
         state, logs = fn(b.model, state, b.plan, b.om, b.gains, b.push, b.mu_ground)
     acc = jax.device_get(state.acc)
@@ -310,7 +310,7 @@ def test_chunk_function_state_types_are_stable(tiny_spec):
     from wbc_jax.campaign import runner as C
 
     sim, _, b, _, logs_per_chunk, _ = C.build(load_spec(tiny_spec))
-    fn = C._chunk_fn(sim, b.in_axes, logs_per_chunk)
+    fn = C.chunk_fn(sim, b.in_axes, logs_per_chunk)
     out, _ = jax.eval_shape(fn, b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
     ins = jax.tree_util.tree_leaves_with_path(b.state)
     for (path, a), o in zip(ins, jax.tree_util.tree_leaves(out), strict=True):

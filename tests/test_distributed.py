@@ -264,7 +264,7 @@ def _warp_blocks(spec_path, n_blocks: int) -> pd.DataFrame:
 
     spec = C.with_backend(load_spec(spec_path), "warp")
     sim, design, b, _, logs_per_chunk, n_chunks = C.build(spec)
-    fn = C._chunk_fn(sim, b.in_axes, logs_per_chunk, None, b.state_axes)
+    fn = C.chunk_fn(sim, b.in_axes, logs_per_chunk, None, b.state_axes)
     states, goals = [], []
     for i in range(n_blocks):
         sub = Spread("blocks", process=i, processes=n_blocks).place(b)

@@ -220,7 +220,7 @@ def variants_run(tmp_path_factory):
     spec = load_spec(tiny(tmp_path_factory.mktemp("variants"), campaign=SAME_SHAPE,
                           factors='variant = ["full", "no_tray_cone", "no_observer", "no_posture"]'))
     sim, dz, b, _, logs_per_chunk, n_chunks = C.build(spec)
-    fn = C._chunk_fn(sim, b.in_axes, logs_per_chunk)
+    fn = C.chunk_fn(sim, b.in_axes, logs_per_chunk)
     state = b.state
     for _ in range(n_chunks):
         state, _ = fn(b.model, state, b.plan, b.om, b.gains, b.push, b.mu_ground)

@@ -56,7 +56,7 @@ SCRIPT = textwrap.dedent("""
 def test_sharded_rollout_matches_single_device(tmp_path):
     spec = load_spec(BASELINE_SPEC)
     sim, _, b, _, logs_per_chunk, _ = C.build(spec)
-    fn = C._chunk_fn(sim, b.in_axes, logs_per_chunk)  # the campaign's (one device)
+    fn = C.chunk_fn(sim, b.in_axes, logs_per_chunk)  # the campaign's (one device)
     s1 = b.state
     for _ in range(N_CHUNKS):
         s1, _ = fn(b.model, s1, b.plan, b.om, b.gains, b.push, b.mu_ground)

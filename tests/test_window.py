@@ -46,7 +46,7 @@ def windowed():
     sim, design, b, T_plan, lpc, n_chunks = C.build(spec_a)
     _, _, b6, _, lpc6, n6 = C.build(spec_b)
     assert (lpc, n_chunks) == (2, 2) and (lpc6, n6) == (3, 2)  # 0.08 s and 0.12 s simulated
-    fn = C._chunk_fn(sim, b.in_axes, lpc)
+    fn = C.chunk_fn(sim, b.in_axes, lpc)
     states, state = {}, b.state
     for k in range(1, 5):
         state, _ = fn(b.model, state, b.plan, b.om, b.gains, b.push, b.mu_ground)
@@ -143,7 +143,7 @@ def test_run_clearance_bounds_logged_configurations_and_is_reported(windowed):
     """The run's min clearance is at most MuJoCo C's clearance at every logged configuration (every 20 steps) and
     lies in the run; final_results names its pair."""
     sim, design, b, _, _, states, _ = windowed
-    fn = C._chunk_fn(sim, b.in_axes, 2)
+    fn = C.chunk_fn(sim, b.in_axes, 2)
     _, logs = fn(b.model, states[1], b.plan, b.om, b.gains, b.push, b.mu_ground)  # chunk 2 again: its logs
     acc = jax.device_get(states[2].acc)
     q = np.asarray(logs.qpos, float)  # (B, 2, nq)

@@ -102,7 +102,7 @@ def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, 
     return _SIMS[key]
 
 
-def _chunk_fn(sim, in_axes, n_logs: int, mesh=None, state_axes=0):
+def chunk_fn(sim, in_axes, n_logs: int, mesh=None, state_axes=0):
     """The jitted chunk function (:func:`wbc_jax.rollout.loop.make_chunk_fn`); with a ``mesh`` (several devices),
     each device steps its own runs. ``in_axes``, ``state_axes``: the batch's model and state run axes
     (``Batch.in_axes``, ``Batch.state_axes``)."""

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from wbc_jax.campaign.factors import GAIN_PREFIX, REGULARIZATION
-from wbc_jax.campaign.spec import _err, _number
+from wbc_jax.campaign.spec import checked_number, spec_error
 from wbc_jax.errors import InputError, SpecError
 from wbc_jax.io_utils import read_capped
 
@@ -86,14 +86,14 @@ def parse_gains(data: dict, path: str = "<gains>"):
 
     unknown = sorted(set(data) - {"gains", "info"})
     if unknown:
-        raise _err(path, unknown[0], "unknown table; expected gains (and an optional info)")
+        raise spec_error(path, unknown[0], "unknown table; expected gains (and an optional info)")
     raw = data.get("gains")
     if not isinstance(raw, dict):
-        raise _err(path, "gains", "missing table [gains] (TransportGains leaves)")
+        raise spec_error(path, "gains", "missing table [gains] (TransportGains leaves)")
     base = _defaults()
     bad = sorted(set(raw) - set(base._fields))
     if bad:
-        raise _err(path, f"gains.{bad[0]}", f"unknown leaf; expected one of {', '.join(base._fields)}")
+        raise spec_error(path, f"gains.{bad[0]}", f"unknown leaf; expected one of {', '.join(base._fields)}")
     out = {}
     for name, default in zip(base._fields, base):
         if name not in raw:
@@ -104,16 +104,16 @@ def parse_gains(data: dict, path: str = "<gains>"):
         if isinstance(v, list):
             if len(shape) != 1 or len(v) != shape[0]:
                 want = f"a list of {shape[0]} numbers or one number" if shape else "one number"
-                raise _err(path, key, f"expected {want}, got a list of {len(v)}")
-            vals = [_number(path, key, x, float, 0.0, hi, lo_open, "(gain)") for x in v]
+                raise spec_error(path, key, f"expected {want}, got a list of {len(v)}")
+            vals = [checked_number(path, key, x, float, 0.0, hi, lo_open, "(gain)") for x in v]
         else:
-            vals = _number(path, key, v, float, 0.0, hi, lo_open, "(gain)")
+            vals = checked_number(path, key, v, float, 0.0, hi, lo_open, "(gain)")
         out[name] = jnp.broadcast_to(jnp.asarray(vals, dtype=default.dtype), shape)
     gains = type(base)(**out)
     problem = feasibility(gains)
     if problem:
         key, msg = problem
-        raise _err(path, f"gains.{key}", msg)
+        raise spec_error(path, f"gains.{key}", msg)
     return gains
 
 
@@ -153,8 +153,8 @@ def check_design(spec, gains=None) -> None:
         key, msg = problem
         leaves = ("f_min", "f_max") if key == "f_min" else (key,)
         varied = [f"{GAIN_PREFIX}{k}" for k in leaves if f"{GAIN_PREFIX}{k}" in spec.factors]
-        raise _err(spec.path, f"factors.{varied[0]}" if varied else f"gains.{key}",
-                   f"{msg} (with the factors' levels)")
+        raise spec_error(spec.path, f"factors.{varied[0]}" if varied else f"gains.{key}",
+                         f"{msg} (with the factors' levels)")
 
 
 def load_gains(path: str | Path):

@@ -42,11 +42,11 @@ import numpy as np
 from wbc_jax.campaign import checkpoint, interrupts, preflight
 from wbc_jax.campaign import gains as gains_mod
 from wbc_jax.campaign.build import (
-    _chunk_fn,
     _sim,  # noqa: F401  (reached as runner._sim by callers of the campaign's Sim cache)
     backend_of,
     build,
     check_horizon,
+    chunk_fn,
     has_accelerator,
     initial_configuration,  # noqa: F401  (reached as runner.initial_configuration)
     sensing_of,
@@ -105,7 +105,7 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool,
     the report worker started during it (None without ``report``). A signal stops the run once the compile or
     the chunk in progress ends (``guard``); the finished chunks' checkpoint is kept."""
     b, sp, n_chunks, dz = job.batch, job.spread, job.built.n_chunks, job.built.design
-    fn = _chunk_fn(job.built.sim, b.in_axes, job.built.logs_per_chunk, sp.mesh, b.state_axes)
+    fn = chunk_fn(job.built.sim, b.in_axes, job.built.logs_per_chunk, sp.mesh, b.state_axes)
     bar = (ProgressBar(n_chunks, start.done, job.chunk_s, dz.n, job.built.sim.dt_physics)
            if progress and job.writer else None)
     state, done, marks, p_goal = start.state, start.done, start.marks, start.p_goal

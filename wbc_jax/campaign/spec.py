@@ -183,47 +183,52 @@ class Spec:
                     or max(f.get("qvel_noise_std", [0.0])) > 0)
 
 
-def _err(path, key, msg):
+def spec_error(path, key, msg) -> SpecError:
+    """The one-line error ``PATH: KEY: MSG`` of a spec (or of a file read with the same rules: gains, tune specs)."""
     return SpecError(f"{path}: {key}: {msg}")
 
 
-def _number(path, key, v, typ, lo, hi, lo_open, unit):
+def checked_number(path, key, v, typ, lo, hi, lo_open, unit):
+    """``v`` as ``typ`` (int or float) within [lo, hi] (lo excluded with ``lo_open``); a :func:`spec_error` naming
+    ``key`` and ``unit`` otherwise."""
     if typ is int:
         if isinstance(v, bool) or not isinstance(v, int):
-            raise _err(path, key, f"expected an integer {lo}..{hi} ({unit}), got {v!r}")
+            raise spec_error(path, key, f"expected an integer {lo}..{hi} ({unit}), got {v!r}")
     elif isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise _err(path, key, f"expected a number {lo}..{hi} {unit}, got {v!r}")
+        raise spec_error(path, key, f"expected a number {lo}..{hi} {unit}, got {v!r}")
     v = typ(v)
     if not math.isfinite(v) or v < lo or v > hi or (lo_open and v == lo):
         rng = f"{lo} < value <= {hi}" if lo_open else f"{lo} <= value <= {hi}"
-        raise _err(path, key, f"= {v}: out of range, expected {rng} {unit}")
+        raise spec_error(path, key, f"= {v}: out of range, expected {rng} {unit}")
     return v
 
 
-def _table(path, name, raw, schema):
+def checked_table(path, name, raw, schema) -> dict:
+    """The TOML table ``raw`` named ``name`` checked against ``schema`` (key -> (type, default, lo, hi, lo_open,
+    unit)): every key of the schema, defaults filled in; a :func:`spec_error` for an unknown key or a bad value."""
     if not isinstance(raw, dict):
-        raise _err(path, name, f"expected a table [{name}], got {type(raw).__name__}")
+        raise spec_error(path, name, f"expected a table [{name}], got {type(raw).__name__}")
     unknown = sorted(set(raw) - set(schema))
     if unknown:
-        raise _err(path, f"{name}.{unknown[0]}", f"unknown key; expected one of {', '.join(schema)}")
+        raise spec_error(path, f"{name}.{unknown[0]}", f"unknown key; expected one of {', '.join(schema)}")
     out = {}
     for key, (typ, default, lo, hi, lo_open, unit) in schema.items():
         full = f"{name}.{key}"
         v = raw.get(key, default)
         if typ is str:
             if not isinstance(v, str):
-                raise _err(path, full, f"expected a string ({unit}), got {v!r}")
+                raise spec_error(path, full, f"expected a string ({unit}), got {v!r}")
             out[key] = v
         elif typ is list:
             if (not isinstance(v, list) or len(v) != 2
                     or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in v)):
-                raise _err(path, full, f"expected a list of 2 numbers ({unit}), got {v!r}")
+                raise spec_error(path, full, f"expected a list of 2 numbers ({unit}), got {v!r}")
             a, b = float(v[0]), float(v[1])
             if not (0.0 <= a <= b < 1.0):
-                raise _err(path, full, f"= {v}: out of range, expected {unit}")
+                raise spec_error(path, full, f"= {v}: out of range, expected {unit}")
             out[key] = [a, b]
         else:
-            out[key] = _number(path, full, v, typ, lo, hi, lo_open, unit)
+            out[key] = checked_number(path, full, v, typ, lo, hi, lo_open, unit)
     return out
 
 
@@ -232,36 +237,36 @@ def _level(path, key, x, fd: factors_mod.FactorDef):
     if fd.kind == "bool":
         if x in (True, False) or (isinstance(x, int) and x in (0, 1)):
             return int(x)
-        raise _err(path, key, f"level {x!r}: expected true, false, 1 or 0")
+        raise spec_error(path, key, f"level {x!r}: expected true, false, 1 or 0")
     if fd.kind == "choice":
         if isinstance(x, str) and x in fd.choices:
             return x
-        raise _err(path, key, f"level {x!r}: expected one of {', '.join(fd.choices)}")
-    return _number(path, key, x, float, fd.lo, fd.hi, fd.lo_open, fd.unit)
+        raise spec_error(path, key, f"level {x!r}: expected one of {', '.join(fd.choices)}")
+    return checked_number(path, key, x, float, fd.lo, fd.hi, fd.lo_open, fd.unit)
 
 
 def _parse_factors(path, raw_f) -> dict:
     """The [factors] table: 1..MAX_FACTORS known factors, each a list of >= 2 distinct valid levels; returned
     in design order (:func:`wbc_jax.campaign.factors.design_order`)."""
     if not isinstance(raw_f, dict):
-        raise _err(path, "factors", "expected a table")
+        raise spec_error(path, "factors", "expected a table")
     for key in sorted(raw_f):
         if factors_mod.factor_def(key) is None:
-            raise _err(path, f"factors.{key}", f"unknown factor; expected one of {factors_mod.known_names()}")
+            raise spec_error(path, f"factors.{key}", f"unknown factor; expected one of {factors_mod.known_names()}")
     if not 1 <= len(raw_f) <= factors_mod.MAX_FACTORS:
-        raise _err(path, "factors", f"{len(raw_f)} factors: expected 1 to {factors_mod.MAX_FACTORS}")
+        raise spec_error(path, "factors", f"{len(raw_f)} factors: expected 1 to {factors_mod.MAX_FACTORS}")
     out = {}
     for key in factors_mod.design_order(raw_f):
         full, v = f"factors.{key}", raw_f[key]
         if not isinstance(v, list) or len(v) < 2:
-            raise _err(path, full, f"expected a list of at least 2 levels, got {v!r}")
+            raise spec_error(path, full, f"expected a list of at least 2 levels, got {v!r}")
         levels = [_level(path, full, x, factors_mod.factor_def(key)) for x in v]
         if len(set(levels)) != len(levels):
-            raise _err(path, full, f"= {v}: levels must be distinct")
+            raise spec_error(path, full, f"= {v}: levels must be distinct")
         leaf = key[len(factors_mod.GAIN_PREFIX):] if key.startswith(factors_mod.GAIN_PREFIX) else None
         if leaf in factors_mod.REGULARIZATION and min(levels) <= 0:
-            raise _err(path, full, f"level {min(levels):g}: a regularization weight's multiplier must be > 0 (the "
-                                   "QP would be singular)")
+            raise spec_error(path, full, f"level {min(levels):g}: a regularization weight's multiplier must be > 0 "
+                                         "(the QP would be singular)")
         out[key] = levels
     return out
 
@@ -273,29 +278,29 @@ def _check_fixed(path, camp: dict, pert: dict, factors: dict) -> None:
     for key in factors:
         table, _, name = factors_mod.factor_def(key).fixed.partition(".")
         if table in tables and tables[table][0][name] != tables[table][1][name][1]:
-            raise _err(path, f"{table}.{name}", f"= {tables[table][0][name]!r}: the factor {key} is varied; "
-                                                "leave this key out (or at its default)")
+            raise spec_error(path, f"{table}.{name}", f"= {tables[table][0][name]!r}: the factor {key} is varied; "
+                                                     "leave this key out (or at its default)")
     if pert["push_dir_deg"] != PERTURBATIONS["push_dir_deg"][1] and "push_N" not in factors:
-        raise _err(path, "perturbations.push_dir_deg", "used only with the push_N factor (random pushes have a "
-                                                      "random direction)")
+        raise spec_error(path, "perturbations.push_dir_deg", "used only with the push_N factor (random pushes have "
+                                                           "a random direction)")
 
 
 def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
     """Validate a spec dict (as read by tomllib). Raises SpecError naming ``path``, the key and the range."""
     unknown = sorted(set(data) - {"campaign", "factors", "perturbations", "analysis"})
     if unknown:
-        raise _err(path, unknown[0], "unknown table; expected campaign, factors, perturbations, analysis")
-    camp = _table(path, "campaign", data.get("campaign", {}), CAMPAIGN)
+        raise spec_error(path, unknown[0], "unknown table; expected campaign, factors, perturbations, analysis")
+    camp = checked_table(path, "campaign", data.get("campaign", {}), CAMPAIGN)
     for key, allowed in (("backend", BACKENDS), ("scene", SCENES), ("variant", tuple(VARIANTS)),
                          ("terrain", TERRAINS), ("com_plan", COM_PLANS), ("sensing", SENSING)):
         if camp[key] not in allowed:
-            raise _err(path, f"campaign.{key}", f"= {camp[key]!r}: expected one of {', '.join(allowed)}")
+            raise spec_error(path, f"campaign.{key}", f"= {camp[key]!r}: expected one of {', '.join(allowed)}")
     if "factors" not in data:
-        raise _err(path, "factors", "missing table [factors] (level lists, e.g. m, mu, d)")
+        raise spec_error(path, "factors", "missing table [factors] (level lists, e.g. m, mu, d)")
     factors = _parse_factors(path, data["factors"])
-    pert = _table(path, "perturbations", data.get("perturbations", {}), PERTURBATIONS)
+    pert = checked_table(path, "perturbations", data.get("perturbations", {}), PERTURBATIONS)
     _check_fixed(path, camp, pert, factors)
-    analysis = _table(path, "analysis", data.get("analysis", {}), ANALYSIS)
+    analysis = checked_table(path, "analysis", data.get("analysis", {}), ANALYSIS)
     return Spec(path=str(path), campaign=camp, factors=factors, perturbations=pert, text_sha256=text_sha256,
                 analysis=analysis)
 

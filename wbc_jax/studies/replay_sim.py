@@ -4,7 +4,7 @@ The campaign's own builders make the batch (:func:`wbc_jax.campaign.build.build`
 gains, variants, physics backend and sensing); its rows are then chosen with
 :func:`wbc_jax.rollout.batch.take_runs` so that the batch keeps the campaign's size and every requested run sits in
 its own slot (XLA's outputs can depend on the batch's size and layout), the other slots repeating the requested
-runs. The same chunk program as the campaign's (:func:`wbc_jax.campaign.build._chunk_fn`: same Sim, chunk length
+runs. The same chunk program as the campaign's (:func:`wbc_jax.campaign.build.chunk_fn`: same Sim, chunk length
 and shapes, so a process that ran the campaign reuses its compiled program) steps the batch chunk by chunk, and the
 results come from :func:`wbc_jax.rollout.final_results` as the campaign's did. On one device with the same backend
 the replayed R, T, S therefore equal the campaign's bit for bit. On Warp physics the runs of a batch share one
@@ -21,7 +21,7 @@ import numpy as np
 
 from wbc_jax.campaign import gains as gains_mod
 from wbc_jax.campaign import interrupts
-from wbc_jax.campaign.build import Built, _chunk_fn, build, check_horizon
+from wbc_jax.campaign.build import Built, chunk_fn, build, check_horizon
 from wbc_jax.campaign.progress import ProgressBar
 from wbc_jax.errors import InputError
 from wbc_jax.rollout import final_results, runs
@@ -103,7 +103,7 @@ def simulate_runs(recorded: Recorded, run_ids, whole_batch: bool = False, progre
     spread = choose(built.sim.robot.backend)
     batch = spread.place(take_runs(built.batch, slots))
     print(announce(recorded, wanted, built, spread.mode), flush=True)
-    fn = _chunk_fn(built.sim, batch.in_axes, built.logs_per_chunk, spread.mesh, batch.state_axes)
+    fn = chunk_fn(built.sim, batch.in_axes, built.logs_per_chunk, spread.mesh, batch.state_axes)
     chunk_s = built.logs_per_chunk * built.sim.log_every * built.sim.dt_control
     bar = ProgressBar(built.n_chunks, 0, chunk_s, n, built.sim.dt_physics) if progress else None
     state, kept, t_start = batch.state, [], time.perf_counter()

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.campaign.build import LOG_EVERY, _chunk_fn, build
+from wbc_jax.campaign.build import LOG_EVERY, build, chunk_fn
 from wbc_jax.control.transport import TransportGains
 from wbc_jax.rollout import final_results
 from wbc_jax.rollout.batch import take_runs
@@ -60,7 +60,7 @@ class Evaluator:
         self.size = int(size)
         self.batch, self.sel = b, np.asarray(sel)
         self.spread = choose(sim.robot.backend)  # every sub-batch over every device (wbc_jax.rollout.spread)
-        self.fn = _chunk_fn(sim, b.in_axes, logs_per_chunk, self.spread.mesh, b.state_axes)
+        self.fn = chunk_fn(sim, b.in_axes, logs_per_chunk, self.spread.mesh, b.state_axes)
         self.calls = 0
 
     def compiled_variants(self) -> int | None:

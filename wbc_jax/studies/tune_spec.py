@@ -46,7 +46,7 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-from wbc_jax.campaign.spec import SWEEPS, Spec, _err, _number, _table, load_spec, parse_spec
+from wbc_jax.campaign.spec import SWEEPS, Spec, checked_number, checked_table, load_spec, parse_spec, spec_error
 from wbc_jax.control.transport import TransportGains
 from wbc_jax.errors import SpecError
 
@@ -118,8 +118,8 @@ class TuneSpec:
     cem: dict
     grid: dict
     campaign: Spec
-    halving: dict = dataclasses.field(default_factory=lambda: _table("", "halving", {}, _HALVING))
-    confirm: dict = dataclasses.field(default_factory=lambda: _table("", "confirm", {}, _CONFIRM))
+    halving: dict = dataclasses.field(default_factory=lambda: checked_table("", "halving", {}, _HALVING))
+    confirm: dict = dataclasses.field(default_factory=lambda: checked_table("", "confirm", {}, _CONFIRM))
     confirm_campaign: Spec | None = None
     text_sha256: str = ""
 
@@ -144,7 +144,7 @@ class TuneSpec:
         for key, v in (("candidates", candidates), ("rounds", rounds), ("batch", batch)):
             if v is not None:
                 typ, _, lo, hi, lo_open, unit = _TUNE[key]
-                t[key] = _number(f"--{key}", "value", v, typ, lo, hi, lo_open, unit)
+                t[key] = checked_number(f"--{key}", "value", v, typ, lo, hi, lo_open, unit)
         out = dataclasses.replace(self, tune=t)
         _check_method(out)
         return out
@@ -152,10 +152,10 @@ class TuneSpec:
 
 def _check_method(s: TuneSpec) -> None:
     if s.tune["method"] == "cem" and s.tune["candidates"] < 2:
-        raise _err(s.path, "tune.candidates", f"= {s.tune['candidates']}: the cross-entropy method needs >= 2")
+        raise spec_error(s.path, "tune.candidates", f"= {s.tune['candidates']}: the cross-entropy method needs >= 2")
     if s.tune["method"] == "grid" and s.grid["points"] ** len(s.leaves) > GRID_MAX:
-        raise _err(s.path, "grid.points", f"= {s.grid['points']}: {s.grid['points']}^{len(s.leaves)} grid points, "
-                                          f"more than {GRID_MAX}")
+        raise spec_error(s.path, "grid.points", f"= {s.grid['points']}: {s.grid['points']}^{len(s.leaves)} grid "
+                                                f"points, more than {GRID_MAX}")
 
 
 def _campaign(path, rel: str, reps: int = 0, max_seconds: float = 0.0, qp_iters: int = 0) -> Spec:
@@ -187,32 +187,32 @@ def _cells(path, raw, camp) -> list | None:
     if raw == "all":
         return None
     if not isinstance(raw, list) or not raw:
-        raise _err(path, "tune.cells", f'expected "all" or a list of [m, mu, d] cells, got {raw!r}')
+        raise spec_error(path, "tune.cells", f'expected "all" or a list of [m, mu, d] cells, got {raw!r}')
     out = []
     for i, c in enumerate(raw):
         key = f"tune.cells[{i}]"
         if not isinstance(c, list) or len(c) != 3:
-            raise _err(path, key, f"expected [m, mu, d], got {c!r}")
-        cell = [_number(path, key, v, float, 0.0, 1e3, False, "") for v in c]
+            raise spec_error(path, key, f"expected [m, mu, d], got {c!r}")
+        cell = [checked_number(path, key, v, float, 0.0, 1e3, False, "") for v in c]
         for name, v in zip(("m", "mu", "d"), cell):
             levels = camp.factors.get(name, [camp.campaign[name]])
             if not any(math.isclose(v, lv, rel_tol=1e-9, abs_tol=1e-12) for lv in levels):
                 what = "a level" if name in camp.factors else "the fixed value"
-                raise _err(path, key, f"{name} = {v} is not {what} of the campaign ({levels})")
+                raise spec_error(path, key, f"{name} = {v} is not {what} of the campaign ({levels})")
         if cell in out:
-            raise _err(path, key, f"{cell} listed twice")
+            raise spec_error(path, key, f"{cell} listed twice")
         out.append(cell)
     return out
 
 
 def _start(path, raw) -> dict:
     if not isinstance(raw, dict):
-        raise _err(path, "start", "expected a table [start]")
+        raise spec_error(path, "start", "expected a table [start]")
     scale = {k: 1.0 for k in LEAVES}
     for key in sorted(raw, key=lambda k: k not in GROUPS):  # groups first, then leaf overrides
         if key not in GROUPS and key not in LEAVES:
-            raise _err(path, f"start.{key}", f"unknown key; expected kp, kd or a leaf ({', '.join(LEAVES)})")
-        v = _number(path, f"start.{key}", raw[key], float, 0.0, MULT_MAX, True, "(multiplier of the default)")
+            raise spec_error(path, f"start.{key}", f"unknown key; expected kp, kd or a leaf ({', '.join(LEAVES)})")
+        v = checked_number(path, f"start.{key}", raw[key], float, 0.0, MULT_MAX, True, "(multiplier of the default)")
         for leaf in GROUPS.get(key, (key,)):
             scale[leaf] = v
     return scale
@@ -220,17 +220,17 @@ def _start(path, raw) -> dict:
 
 def _leaves(path, raw) -> dict:
     if not isinstance(raw, dict) or not raw:
-        raise _err(path, "leaves", "expected a table [leaves] with at least one tuned leaf = [lo, hi]")
+        raise spec_error(path, "leaves", "expected a table [leaves] with at least one tuned leaf = [lo, hi]")
     out = {}
     for key, v in raw.items():
         full = f"leaves.{key}"
         if key not in LEAVES:
-            raise _err(path, full, f"unknown leaf; expected one of {', '.join(LEAVES)}")
+            raise spec_error(path, full, f"unknown leaf; expected one of {', '.join(LEAVES)}")
         if not isinstance(v, list) or len(v) != 2:
-            raise _err(path, full, f"expected [lo, hi] (multipliers of the default), got {v!r}")
-        lo, hi = (_number(path, full, x, float, 0.0, MULT_MAX, True, "(multiplier)") for x in v)
+            raise spec_error(path, full, f"expected [lo, hi] (multipliers of the default), got {v!r}")
+        lo, hi = (checked_number(path, full, x, float, 0.0, MULT_MAX, True, "(multiplier)") for x in v)
         if not lo < hi:
-            raise _err(path, full, f"= {v}: expected lo < hi")
+            raise spec_error(path, full, f"= {v}: expected lo < hi")
         out[key] = (lo, hi)
     return out
 
@@ -240,32 +240,32 @@ def parse_tune_spec(data: dict, path: str = "<tune spec>", text_sha256: str = ""
     tables = ("tune", "start", "leaves", "objective", "cem", "grid", "halving", "confirm")
     unknown = sorted(set(data) - set(tables))
     if unknown:
-        raise _err(path, unknown[0], f"unknown table; expected {', '.join(tables)}")
+        raise spec_error(path, unknown[0], f"unknown table; expected {', '.join(tables)}")
     raw_t = data.get("tune", {})
     if not isinstance(raw_t, dict):
-        raise _err(path, "tune", "expected a table [tune]")
+        raise spec_error(path, "tune", "expected a table [tune]")
     raw_t = dict(raw_t)
     raw_cells = raw_t.pop("cells", "all")
-    tune = _table(path, "tune", raw_t, _TUNE)
+    tune = checked_table(path, "tune", raw_t, _TUNE)
     if tune["method"] not in METHODS:
-        raise _err(path, "tune.method", f"= {tune['method']!r}: expected one of {', '.join(METHODS)}")
+        raise spec_error(path, "tune.method", f"= {tune['method']!r}: expected one of {', '.join(METHODS)}")
     camp = _campaign(path, tune["campaign"], reps=tune["reps"], max_seconds=tune["max_seconds"],
                      qp_iters=tune["qp_iters"])
-    confirm = _table(path, "confirm", data.get("confirm", {}), _CONFIRM)
+    confirm = checked_table(path, "confirm", data.get("confirm", {}), _CONFIRM)
     confirm_camp = _campaign(path, confirm["campaign"], reps=confirm["reps"]) if confirm["campaign"] else None
     leaves = _leaves(path, data.get("leaves"))
     start = _start(path, data.get("start", {}))
     for leaf, (lo, hi) in leaves.items():
         if not lo <= start[leaf] <= hi:
-            raise _err(path, f"leaves.{leaf}", f"= [{lo}, {hi}] does not contain the start scale {start[leaf]}")
+            raise spec_error(path, f"leaves.{leaf}", f"= [{lo}, {hi}] does not contain the start scale {start[leaf]}")
     s = TuneSpec(path=str(path), tune=tune, cells=_cells(path, raw_cells, camp), start=start, leaves=leaves,
-                 objective=_table(path, "objective", data.get("objective", {}), _OBJECTIVE),
-                 cem=_table(path, "cem", data.get("cem", {}), _CEM),
-                 grid=_table(path, "grid", data.get("grid", {}), _GRID),
-                 halving=_table(path, "halving", data.get("halving", {}), _HALVING), confirm=confirm,
+                 objective=checked_table(path, "objective", data.get("objective", {}), _OBJECTIVE),
+                 cem=checked_table(path, "cem", data.get("cem", {}), _CEM),
+                 grid=checked_table(path, "grid", data.get("grid", {}), _GRID),
+                 halving=checked_table(path, "halving", data.get("halving", {}), _HALVING), confirm=confirm,
                  campaign=camp, confirm_campaign=confirm_camp, text_sha256=text_sha256)
     if s.cem["min_std"] > s.cem["init_std"]:
-        raise _err(path, "cem.min_std", f"= {s.cem['min_std']}: expected <= cem.init_std ({s.cem['init_std']})")
+        raise spec_error(path, "cem.min_std", f"= {s.cem['min_std']}: expected <= cem.init_std ({s.cem['init_std']})")
     _check_method(s)
     return s
 
