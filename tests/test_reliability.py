@@ -386,7 +386,7 @@ def test_run_identity_names_what_determines_the_result():
 
     spec = load_spec(TINY)
     a = run_identity(spec)
-    assert set(a) == {"spec_hash", "gains_hash", "backend", "platform", "versions", "n_runs"}
+    assert set(a) == {"spec_hash", "gains_hash", "backend", "platform", "versions", "n_runs", "deterministic_ops"}
     assert a["backend"] == "jax" and a["n_runs"] == 8 and a["versions"]["jax"] and a["versions"]["mujoco"]
     assert run_identity(spec, default_gains()) == a  # the defaults, given or not
     assert run_identity(spec, default_gains()._replace(kp_obj=default_gains().kp_obj * 2))["gains_hash"] != \

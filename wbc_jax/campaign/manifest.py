@@ -2,7 +2,8 @@
 
 :func:`run_identity` names everything that determines a campaign's results (spec, gains, backend, numerics
 versions, run count); :func:`campaign_manifest` assembles ``manifest.json``: provenance (spec, gains, versions, git
-commit), device and layout, the design's size, timings and the outcome (successes, failures, warnings, metric means).
+commit), device, layout and what shaped the compiled program, the design's size, timings and the outcome
+(successes, failures, warnings, metric means).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from wbc_jax.campaign.build import n_runs_of
 from wbc_jax.campaign.results import Summary, nan_none
 from wbc_jax.campaign.spec import Spec
 from wbc_jax.rollout import distributed
+from wbc_jax.runtime import jaxcfg
 
 COMMAND = "wbc-jax campaign"
 PACKAGES = ("wbc_jax", "jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy", "scipy", "statsmodels", "pandas")
@@ -115,18 +117,37 @@ def run_identity(spec: Spec, gains=None, n_runs: int | None = None, backend: str
 
     Returns:
         dict with ``spec_hash``, ``gains_hash`` (:func:`gains_hash`), ``backend``, ``platform`` (jax's default
-        backend: cpu, gpu, ...), ``versions`` (of :data:`NUMERICS`) and ``n_runs``.
+        backend: cpu, gpu, ...), ``versions`` (of :data:`NUMERICS`), ``n_runs`` and ``deterministic_ops`` (XLA's
+        GPU deterministic ops: :func:`wbc_jax.runtime.jaxcfg.deterministic_ops`).
     """
     found = versions()
     return dict(spec_hash=spec.hash, gains_hash=gains_hash(gains), backend=backend, platform=jax.default_backend(),
                 versions={p: found.get(p) for p in NUMERICS},
-                n_runs=int(n_runs if n_runs is not None else n_runs_of(spec)))
+                n_runs=int(n_runs if n_runs is not None else n_runs_of(spec)),
+                deterministic_ops=jaxcfg.deterministic_ops())
 
 
 def device_record() -> dict:
     """This process's device: backend, kind, count, host name and CPU count."""
     return dict(backend=jax.default_backend(), kind=jax.devices()[0].device_kind, count=jax.device_count(),
                 host=platform.node(), cpu_count=os.cpu_count())
+
+
+def program_record(n_runs: int, spread_mode: str, logs_per_chunk: int, n_chunks: int) -> dict:
+    """What shaped the campaign's compiled chunk program, as a replay needs it to compile the same one.
+
+    Returns:
+        dict with ``spread`` (one, mesh, blocks: :mod:`wbc_jax.rollout.spread`), ``devices`` (the devices one
+        program spans: the mesh's size, else 1), ``parts`` (the batch's parts: devices of the mesh, processes of
+        the blocks, else 1), ``per_device_runs`` (the runs each part's program steps, padding included),
+        ``padded_runs`` (parts x per_device_runs; the padding repeats the last run), ``logs_per_chunk``,
+        ``n_chunks``, ``platform`` and ``xla`` (:func:`wbc_jax.runtime.jaxcfg.xla_record`).
+    """
+    parts = {"mesh": jax.device_count(), "blocks": jax.process_count()}.get(spread_mode, 1)
+    per_device = -(-int(n_runs) // parts)
+    return dict(spread=spread_mode, devices=parts if spread_mode == "mesh" else 1, parts=parts,
+                per_device_runs=per_device, padded_runs=per_device * parts, logs_per_chunk=int(logs_per_chunk),
+                n_chunks=int(n_chunks), platform=jax.default_backend(), xla=jaxcfg.xla_record())
 
 
 def session_record(chunks_before: int) -> dict:
@@ -163,6 +184,7 @@ def campaign_manifest(spec: Spec, built, df, summary: Summary, timing: Timing, *
         sessions=sessions,
         physics_backend=identity["backend"], sensing=sensing, device=device_record(),
         layout=dict(distributed.layout_record(), spread=spread_mode),
+        program=program_record(built.design.n, spread_mode, built.logs_per_chunk, built.n_chunks),
         n_runs=built.design.n, n_cells=summary.n_cells, reps=spec.reps, seeds=[int(s) for s in built.design.seed],
         simulated_s=built.n_chunks * chunk_s, planned_s=built.planned_s, chunk_s=chunk_s, n_chunks=built.n_chunks,
         control_dt_s=sim.dt_control, wall_s_total=timing.total, wall_s_rollout=timing.rollout,

@@ -134,10 +134,11 @@ def replay(campaign_dir, runs=None, *, failed: bool = False, out=None, window=No
     from wbc_jax.errors import InputError
     from wbc_jax.io_utils import claim_out_dir, release_out_dir
     from wbc_jax.studies.replay_check import compare, line
-    from wbc_jax.studies.replay_inputs import read_campaign, select_runs
-    from wbc_jax.studies.replay_sim import simulate_runs
+    from wbc_jax.studies.replay_inputs import read_campaign, read_manifest, select_runs
+    from wbc_jax.studies.replay_sim import adopt_xla, simulate_runs
     from wbc_jax.studies.replay_write import levels_text, write_run
 
+    xla_notes = adopt_xla(read_manifest(Path(campaign_dir)))  # before JAX starts: XLA reads its flags then
     recorded = read_campaign(campaign_dir, spec, gains)
     run_ids = select_runs(recorded, runs, failed)
     out = Path(out) if out is not None else recorded.folder / "replay"
@@ -152,6 +153,9 @@ def replay(campaign_dir, runs=None, *, failed: bool = False, out=None, window=No
     try:
         folders = _check_outputs(out, run_ids, force, inputs)
         replayed = simulate_runs(recorded, run_ids, whole_batch=whole_batch, progress=progress)
+        notes = xla_notes + replayed.notes
+        for note in notes:
+            print(f"note: {note}", flush=True)
         checks = []
         for r in run_ids:
             checks.append(compare(r, recorded.results.iloc[r], replayed.results[r]))
@@ -161,8 +165,18 @@ def replay(campaign_dir, runs=None, *, failed: bool = False, out=None, window=No
                 print(f"  {note}", flush=True)
     finally:
         release_out_dir(out)
-    differ = [c.run for c in checks if not c.equal]
-    print((f"{len(differ)} of {len(checks)} runs differ from the campaign's results.csv: {', '.join(map(str, differ))}"
-           if differ else f"{len(checks)} of {len(checks)} runs reproduce the campaign's results")
-          + f"; written to {out}", flush=True)
+    print(verdict(checks, notes) + f"; written to {out}", flush=True)
     return ReplaySummary(out, checks, folders)
+
+
+def verdict(checks: list, notes: list) -> str:
+    """The closing line: how many runs reproduce the campaign's results; where some do not, whether the replay ran
+    as the campaign did (then the difference is unexplained) or what differed (``notes``)."""
+    differ = [c.run for c in checks if not c.equal]
+    if not differ:
+        return f"{len(checks)} of {len(checks)} runs reproduce the campaign's results"
+    why = (f"the replay did not run exactly as the campaign did ({'; '.join(notes)})" if notes else
+           "the replay ran as the campaign did (device, layout, XLA settings, versions): unexplained, please report "
+           "it")
+    return f"REPLAY MISMATCH: {len(differ)} of {len(checks)} runs differ from the campaign's results.csv " \
+           f"({', '.join(map(str, differ))}); {why}"

@@ -62,13 +62,14 @@ def read_campaign(folder, spec_path=None, gains_path=None) -> Recorded:
         SpecError: the spec differs from the one the campaign ran, or its backend or sensing cannot be rebuilt.
     """
     folder = Path(folder)
-    manifest = _manifest(folder)
+    manifest = read_manifest(folder)
     spec = _spec(folder, manifest, spec_path)
     results = _results(folder, manifest)
     return Recorded(folder, manifest, spec, results, _gains(manifest, gains_path))
 
 
-def _manifest(folder: Path) -> dict:
+def read_manifest(folder: Path) -> dict:
+    """A campaign folder's ``manifest.json``, checked to be a campaign's with the keys a replay needs."""
     path = folder / "manifest.json"
     if not folder.is_dir():
         raise InputError(f"{folder}: not a folder; name a finished campaign's folder (wbc-jax campaign --out)")

@@ -14,6 +14,7 @@ from wbc_jax.metrics.paper import FALL_Z_COURSE, FALL_Z_FLAT
 from wbc_jax.physics.clearance import clearance_pairs
 from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.robot.scenario import single_run_mj_model
+from wbc_jax.runtime import jaxcfg
 from wbc_jax.studies.replay_check import Check, outcome
 from wbc_jax.studies.replay_inputs import Recorded
 from wbc_jax.studies.replay_output import clearance, sample_times, write_plots, write_trajectory
@@ -61,8 +62,11 @@ def _manifest(recorded: Recorded, replayed: Replayed, check: Check, run: int, wi
         levels={k: row[k] for k in recorded.spec.factors}, rep=row["rep"], seed=row["seed"],
         spec_path=str(recorded.spec.path), spec_hash=man["spec_hash"], gains_hash=man["gains_hash"],
         physics_backend=man["physics_backend"], sensing=man["sensing"],
-        batch=dict(runs=built.design.n, chunks=built.n_chunks, whole_batch=bool(np.array_equal(
-            replayed.slots, np.arange(built.design.n)))),
+        batch=dict(campaign_runs=built.design.n, chunks=built.n_chunks, same_layout=replayed.same_layout,
+                   batches=[len(rows) for rows in replayed.batches],
+                   whole_batch=all(np.array_equal(rows, np.minimum(np.arange(len(rows)) + rows[0], built.design.n - 1))
+                                   for rows in replayed.batches)),
+        xla=jaxcfg.xla_record(), campaign_program=man.get("program"), notes=replayed.notes,
         device=device_record(), campaign_device=man.get("device"), versions=versions(), git_commit=git_commit(),
         campaign_git_commit=man.get("git_commit"), outcome=outcome(check.replay),
         check=dict(equal=check.equal, bit_for_bit=check.bit_for_bit, max_relative_difference=check.max_rel,
