@@ -92,7 +92,7 @@ class CentroidalGains(NamedTuple):
 
 
 def default_gains(**overrides) -> CentroidalGains:
-    """Defaults (paper's Q and W; the rest tuned on this robot, see README "Centroidal controller")."""
+    """Defaults (paper's Q and W; the rest tuned on this robot, docs/method.md, "Centroidal controller")."""
     f = lambda *x: jnp.asarray(x if len(x) > 1 else x[0], dtype=float)  # noqa: E731
     g = CentroidalGains(
         kd_xy=f(10.0, 30.0), kp_z=f(400.0), kd_z=f(40.0), kp_rot=f(200.0, 200.0, 200.0),

@@ -92,7 +92,7 @@ class TransportGains(NamedTuple):
 
 
 def default_gains() -> TransportGains:
-    """Defaults; public-code values where they exist (see README, "Transport controller")."""
+    """Defaults; public-code values where they exist (docs/method.md, "Transport controller")."""
     f = lambda *x: jnp.asarray(x if len(x) > 1 else x[0], dtype=float)  # noqa: E731
     return TransportGains(
         kp_com=f(2000.0, 2000.0, 2000.0), kd_com=f(300.0, 300.0, 300.0),

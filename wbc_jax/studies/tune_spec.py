@@ -55,13 +55,9 @@ GROUPS = {"kp": tuple(f for f in LEAVES if f.startswith("kp_")), "kd": tuple(f f
 METHODS = ("grid", "random", "cem", "halving")
 MULT_MAX = 1e4  # largest multiplier of a default gain (start scale or range end)
 GRID_MAX = 1_000_000  # largest grid (points ** tuned leaves)
-# Runs per rollout call on a CPU when tune.batch = 0. jaxlib 0.10's batched LAPACK kernels (Cholesky, triangular
-# solve) split a batch over XLA's intra-op thread pool when batch x n^3 / 3 >= 200,000 and then block their pool
-# thread until the pieces finish; two such kernels running at once on a 2-thread pool (2 cores) wait for each other
-# forever (the `wbc-jax tune --candidates 4` hang: batch 108, every thread in a futex wait). The largest
-# factorisations of a control step are the QP's 68 x 68 (68^3 / 3 = 104,811) and MJX's 30 x 30, so with one run
-# per call every LAPACK kernel runs inline on its own thread and the deadlock cannot happen. On a CPU batch 1 costs
-# little: more runs per call do not run faster there (README, performance).
+# Runs per rollout call on a CPU when tune.batch = 0: one, so that every batched LAPACK kernel (Cholesky, triangular
+# solve) runs inline on its own thread; larger batches split over XLA's intra-op thread pool, where two such kernels
+# can wait for each other forever (docs/cluster.md, the CPU-device deadlock).
 CPU_BATCH = 1
 GPU_SPEC = SWEEPS / "gain_tuning_course.toml"
 CPU_SPEC = SWEEPS / "gain_tuning_cpu.toml"
