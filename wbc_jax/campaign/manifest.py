@@ -3,7 +3,7 @@
 :func:`run_identity` names everything that determines a campaign's results (spec, gains, backend, numerics
 versions, run count); :func:`campaign_manifest` assembles ``manifest.json``: provenance (spec, gains, versions, git
 commit), device, layout and what shaped the compiled program, the design's size, timings and the outcome
-(successes, failures, warnings, metric means).
+(successes, failures, warnings, metric means); :func:`study_manifest` the same provenance for ``demo`` and ``trot``.
 """
 
 from __future__ import annotations
@@ -155,6 +155,26 @@ def session_record(chunks_before: int) -> dict:
     and the chunks done before it."""
     return dict(git_commit=git_commit(), versions=versions(), host=platform.node(),
                 started=time.strftime("%Y-%m-%d %H:%M:%S %z"), chunks_before=int(chunks_before))
+
+
+def study_manifest(command: str, *, arguments: dict, clock_s: dict, seeds=(), physics_backend: str | None = None,
+                   sensing: str | None = None) -> dict:
+    """``manifest.json`` of a study command (``wbc-jax demo``, ``wbc-jax trot``): what ran, with which code, where.
+
+    Args:
+        command: the command, e.g. "wbc-jax demo".
+        arguments: its arguments (JSON values).
+        clock_s: clock (wall) times of its stages [s], e.g. ``total``, ``compile_and_first_chunk``.
+        seeds: the random seeds of its runs (none: the runs draw nothing random).
+        physics_backend, sensing: the rollout's physics backend and sensing (None: not a transport rollout).
+
+    Returns:
+        dict with the command, arguments, versions, git commit, device, XLA settings, physics backend, sensing,
+        seeds, ``clock_time_s`` and when it was written.
+    """
+    return dict(command=command, arguments=arguments, versions=versions(), git_commit=git_commit(),
+                device=device_record(), xla=jaxcfg.xla_record(), physics_backend=physics_backend, sensing=sensing,
+                seeds=[int(s) for s in seeds], clock_time_s=clock_s, written=time.strftime("%Y-%m-%d %H:%M:%S %z"))
 
 
 def campaign_manifest(spec: Spec, built, df, summary: Summary, timing: Timing, *, identity: dict, gains,

@@ -1,7 +1,8 @@
 """``wbc-jax demo``: the transport WBC carrying the object through the course (or on flat ground), one
 run or all 27 cells in one batch.
 
-Writes ``summary.json`` (one entry per run, plus the batch's wall time and simulation rate), ``runs.csv``,
+Writes ``summary.json`` (one entry per run, plus the batch's clock time and simulation rate), ``manifest.json``
+(arguments, versions, git commit, device, clock times: :func:`wbc_jax.campaign.manifest.study_manifest`), ``runs.csv``,
 ``plots.png`` (object and CoM reference vs actual, object slip on the tray), ``trajectory.npz`` (logged
 configurations of every run: t (T,), qpos (B, T, nq), factors) and ``video.gif`` (the first run, when
 offscreen rendering is available) into DIR, atomically.
@@ -18,8 +19,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.analysis.video import render_gif
+from wbc_jax.campaign.manifest import study_manifest
 from wbc_jax.control.transport import TransportConfig, control_qp_settings, default_gains
-from wbc_jax.io_utils import atomic_dir
+from wbc_jax.io_utils import atomic_dir, write_json_atomic
 from wbc_jax.metrics import paper as metrics
 from wbc_jax.physics.backend import resolve_backend
 from wbc_jax.planner.scene_geometry import scene_geometry
@@ -49,6 +51,9 @@ def run_demo(out: str, scene: str = "transport", seconds: float | None = None, a
     """Run the demo and write DIR. ``push_at``: push start as a fraction of the planned duration (0.35 is
     mid-course, before the wall). ``backend``: MJX physics implementation ("auto" for None; sensing as the
     campaign's default, ``wbc_jax.rollout.config.resolve_sensing``)."""
+    arguments = dict(scene=scene, seconds=seconds, all_cells=all_cells, push=push, observer=observer, iters=iters,
+                     distance=distance, speed=speed, push_at=push_at, video=video, backend=backend)
+    t_start = time.perf_counter()
     backend = demo_backend(backend)
     robot = Robot(scene, backend=backend)
     sim = make_sim(robot, TransportConfig(qp=control_qp_settings(iters)), log_every=20,
@@ -71,7 +76,7 @@ def run_demo(out: str, scene: str = "transport", seconds: float | None = None, a
 
     def progress(s):
         marks.append((s, time.perf_counter() - tw))
-        print(f"  simulated {s:6.2f} / {seconds:.2f} s   wall {marks[-1][1]:7.1f} s", flush=True)
+        print(f"  simulated {s:6.2f} / {seconds:.2f} s   clock time {marks[-1][1]:7.1f} s", flush=True)
 
     st, logs = simulate(sim, b.model, b.in_axes, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground, seconds,
                         chunk_seconds=2.0, progress=progress)
@@ -90,8 +95,12 @@ def run_demo(out: str, scene: str = "transport", seconds: float | None = None, a
                    env_steps_per_s=_steps_per_s(marks, len(cells), sim.dt_control),
                    compile_and_first_chunk_s=marks[0][1],
                    device=jax.devices()[0].device_kind)
+    clock = dict(total=time.perf_counter() - t_start, batch_and_simulation=wall,
+                 compile_and_first_chunk=marks[0][1])
     with atomic_dir(out, command="wbc-jax demo") as tmp:
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2))
+        write_json_atomic(tmp / "manifest.json", study_manifest(
+            "wbc-jax demo", arguments=arguments, clock_s=clock, physics_backend=backend, sensing=sim.sensing))
         import pandas as pd
 
         pd.DataFrame(runs).to_csv(tmp / "runs.csv", index=False)
@@ -105,7 +114,9 @@ def run_demo(out: str, scene: str = "transport", seconds: float | None = None, a
             if why:
                 print(why)
     _print_table(runs)
-    print(f"wall {wall:.1f} s, {summary['env_steps_per_s']:.0f} env steps/s; written to {out}")
+    print(f"clock time {time.perf_counter() - t_start:.1f} s since the demo started ({wall:.1f} s building the batch "
+          f"and simulating), {summary['env_steps_per_s']:,.0f} env-steps per second "
+          f"{'after the first chunk' if len(marks) > 1 else 'with the compile (one chunk)'}; written to {out}")
     return summary
 
 
@@ -126,18 +137,28 @@ def _run_rows(cells, res: dict, acc, err, logs, n_steps: int) -> list[dict]:
     return runs
 
 
+# the console table of the runs: (header, summary.json key, format); headers name the quantity and its unit
+TABLE = [("m [kg]", "m", "{:.1f}"), ("mu", "mu", "{:.1f}"), ("d [m]", "d", "{:.2f}"),
+         ("delivered", "completed", "{}"), ("fell", "fell", "{}"), ("dropped", "dropped", "{}"),
+         ("wall contact", "hit_wall", "{}"), ("max slip [mm]", "max_slip_mm", "{:.2f}"),
+         ("off tray [ms]", "max_off_tray_ms", "{:.0f}"), ("final err [cm]", "final_object_error_m", "{:.2f}"),
+         ("T [mm]", "T_mean_tracking_m", "{:.2f}"), ("min trunk z [m]", "min_trunk_z_m", "{:.3f}"),
+         ("tau over limit [Nm]", "max_qp_tau_excess_Nm", "{:.1f}"), ("QP residual", "qp_prim_res_median", "{:.1e}"),
+         ("QP flagged [%]", "qp_flag_fraction", "{:.1f}")]
+TABLE_SCALE = {"final_object_error_m": 100.0, "T_mean_tracking_m": 1e3, "qp_flag_fraction": 100.0}
+TABLE_LEGEND = ("off tray: the longest spell of the object off the tray; final err: object to goal at the end; T: "
+                "mean object tracking error; tau over limit: the largest unclipped joint torque over its limit; QP "
+                "residual: median primal residual; QP flagged: control steps whose QP was flagged")
+
+
 def _print_table(runs):
-    cols = [("m", "m", "{:.1f}"), ("mu", "mu", "{:.1f}"), ("d", "d", "{:.2f}"), ("ok", "completed", "{}"),
-            ("fell", "fell", "{}"), ("drop", "dropped", "{}"), ("wall", "hit_wall", "{}"),
-            ("slip mm", "max_slip_mm", "{:.2f}"), ("off ms", "max_off_tray_ms", "{:.0f}"),
-            ("final cm", "final_object_error_m", "{:.2f}"), ("T mm", "T_mean_tracking_m", "{:.2f}"),
-            ("trunk min", "min_trunk_z_m", "{:.3f}"), ("tau excess", "max_qp_tau_excess_Nm", "{:.1f}"),
-            ("prim med", "qp_prim_res_median", "{:.1e}"), ("flag %", "qp_flag_fraction", "{:.1f}")]
-    scale = {"final_object_error_m": 100.0, "T_mean_tracking_m": 1e3, "qp_flag_fraction": 100.0}
-    print("  ".join(f"{h:>9}" for h, _, _ in cols))
+    """One line per run under :data:`TABLE`'s headers (each column as wide as its header), then the legend."""
+    widths = [max(len(h), 6) for h, _, _ in TABLE]
+    print("  ".join(f"{h:>{w}}" for (h, _, _), w in zip(TABLE, widths)))
     for r in runs:
-        print("  ".join(f"{f.format(r[k] * scale.get(k, 1.0) if isinstance(r[k], float) else r[k]):>9}"
-                        for _, k, f in cols))
+        print("  ".join(f"{f.format(r[k] * TABLE_SCALE.get(k, 1.0) if isinstance(r[k], float) else r[k]):>{w}}"
+                        for (_, k, f), w in zip(TABLE, widths)))
+    print(TABLE_LEGEND)
 
 
 def _steps_per_s(marks, n_runs, dt):

@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from wbc_jax.campaign.manifest import study_manifest
 from wbc_jax.control.centroidal import (
     CentroidalConfig,
     CentroidalGains,
@@ -40,7 +41,7 @@ from wbc_jax.control.centroidal import (
     init_state,
 )
 from wbc_jax.errors import WbcJaxError
-from wbc_jax.io_utils import atomic_dir
+from wbc_jax.io_utils import atomic_dir, write_json_atomic
 from wbc_jax.physics import backend as physics
 from wbc_jax.physics import contacts
 from wbc_jax.physics.contacts import contact_slots
@@ -341,6 +342,12 @@ def run_trot(out: str, seconds: float = 10.0, stride: float = 0.10, step_time: f
         summary["snapshots"] = write_snapshots(tmp / "fig9_snapshots.png", study.robot, logs, i0, study.plan, t_start,
                                                t_end, step_time, snapshots)
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2))
+        write_json_atomic(tmp / "manifest.json", study_manifest("wbc-jax trot", arguments=dict(
+            seconds=seconds, stride=stride, step_time=step_time, t_four=t_four, mass_errors=list(mass_errors),
+            carry_object=carry_object, iters=iters, log_every=log_every, default_gains=gains is None,
+            t_start=t_start, t_settle=t_settle, snapshots=snapshots), clock_s=dict(
+            total=summary["manifest"]["wall_time_s"], compile_and_first_chunk=marks[0][1]),
+            physics_backend=study.robot.backend))
         plot_figures(tmp, logs, study.plan, mass_errors, i0, ids, t_start, t_end)
     _print_runs(runs, summary, checks, out)
     return summary
