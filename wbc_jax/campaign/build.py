@@ -9,6 +9,9 @@ intervals. :func:`check_size` refuses a batch that cannot fit in memory before a
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
+import tempfile
 from pathlib import Path
 from typing import NamedTuple
 
@@ -172,7 +175,7 @@ def build(spec: Spec, gains=None) -> Built:
 
     c = spec.campaign
     dz = design(spec)
-    sim = _sim(c["scene"], c["qp_iters"], bool(np.any(dz.qvel_noise_std > 0)), c["control_substeps"],
+    sim = _sim(contact_scene(c), c["qp_iters"], bool(np.any(dz.qvel_noise_std > 0)), c["control_substeps"],
                backend_of(spec), c["solver_iterations"], sensing_of(spec))
     qpos0, qvel0 = initial_configuration(sim.robot, dz)
     b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=run_gains(gains, dz),
@@ -180,11 +183,13 @@ def build(spec: Spec, gains=None) -> Built:
                                        com_plan=c["com_plan"]),
                       qpos0=qpos0, qvel0=qvel0,
                       speed=dz.speed if "speed" in spec.factors else None,
-                      ground_mu=dz.ground_mu if np.all(dz.ground_mu > 0) else None)
+                      ground_mu=dz.ground_mu if np.all(dz.ground_mu > 0) else None,
+                      ramp=speed_ramps(spec, dz))
     planned_s = plan_duration(b.plan)
     t_plan = np.asarray(b.plan.obj_path.t_knots)[:, -1]  # (B,) each run's plan end [s]
-    # push start: a fraction of the planned duration (each run's own when the speed is varied)
-    push = make_push(dz.push_force, dz.push_frac * (t_plan if "speed" in spec.factors else planned_s),
+    # push start: a fraction of the planned duration (each run's own when the speed or the ramps are varied)
+    own = "speed" in spec.factors or "obj_accel" in spec.factors
+    push = make_push(dz.push_force, dz.push_frac * (t_plan if own else planned_s),
                      dz.push_duration, dz.qvel_noise_std, dz.seed)
     # metric window (wbc_jax.metrics.paper): each run's own plan end + the settling time, capped like the horizon
     t_end = t_plan + c["extra_seconds"]
@@ -193,6 +198,29 @@ def build(spec: Spec, gains=None) -> Built:
     state = with_variant(with_metric_window(b.state, t_end), Variant(*dz.variant.T))
     b = b._replace(push=push, state=state)
     return Built(sim, dz, b, planned_s, *chunk_plan(c, sim.dt_control, planned_s))
+
+
+def contact_scene(campaign: dict) -> str:
+    """The campaign's scene with its contact options (``cone``, ``impratio``) applied: a copy in a folder of the
+    system's temporary directory named by the options (:func:`wbc_jax.robot.scenario.scene_variant`), or the scene
+    itself when both keep the scene's."""
+    from wbc_jax.robot.scenario import scene_variant
+
+    options = {k: campaign[k] for k, keep in (("cone", "scene"), ("impratio", 0.0)) if campaign[k] != keep}
+    if not options:
+        return campaign["scene"]
+    name = hashlib.sha256(json.dumps([campaign["scene"], options], sort_keys=True).encode()).hexdigest()[:16]
+    return scene_variant(campaign["scene"], options, out_dir=str(Path(tempfile.gettempdir()) / f"wbc_jax_scene_{name}"))
+
+
+def speed_ramps(spec: Spec, dz: Design):
+    """(B,) each run's speed-ramp duration [s] from its peak object acceleration (``obj_accel``, a factor or the
+    campaign's value): 2 speed / obj_accel (:func:`wbc_jax.planner.spline.straight_path`: peak 2 speed / ramp);
+    None where no run sets one (the planner's default ramps)."""
+    accel = dz.levels.get("obj_accel", np.full(dz.n, spec.campaign["obj_accel"]))
+    if not np.any(accel > 0):
+        return None
+    return np.where(accel > 0, 2 * dz.speed / np.where(accel > 0, accel, 1.0), 1.0)
 
 
 def chunk_plan(campaign: dict, dt_control: float, planned_s: float) -> tuple[int, int]:

@@ -57,6 +57,7 @@ REGISTRY = {
     "d": FactorDef("number", "campaign.d", 0.008, 0.2, True, "[m]"),
     "ground_mu": FactorDef("number", "campaign.ground_mu", 0.0, 5.0, True, "[-]"),
     "speed": FactorDef("number", "campaign.speed", 0.01, 0.5, False, "[m/s]"),
+    "obj_accel": FactorDef("number", "campaign.obj_accel", 0.0, 20.0, False, "[m/s^2]"),
     "push_N": FactorDef("number", "perturbations.push_max_N", 0.0, 200.0, False, "[N]"),
     "qvel_noise_std": FactorDef("number", "perturbations.qvel_noise_std", 0.0, 1.0, False, "[m/s, rad/s]"),
     "observer": FactorDef("bool", "on (unless the variant turns it off)"),

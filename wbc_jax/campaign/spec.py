@@ -11,6 +11,8 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     scene = "transport"        # "transport" (obstacle course) or "flat"
     distance = 3.4             # object travel [m], 0.05..10
     speed = 0.13               # cruise speed [m/s], 0.01..0.5
+    obj_accel = 0.0            # peak acceleration of the object's start and stop [m/s^2], 0..20 (the speed ramps
+                               # last 2 speed / obj_accel; 0: the planner's 1 s ramps)
     extra_seconds = 0.5        # simulated time after the planned path ends [s], 0..10
     max_seconds = 0.0          # cap on the simulated time [s] (0: no cap; a capped run stops mid-path), 0..600
     qp_iters = 4               # ADMM iterations per control step before the convergence checks (up to 200), 1..1000
@@ -27,6 +29,9 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
                                # floor's height, the touchdown rules handle the blocks (wbc_jax.planner.transport)
     com_plan = "zmp"           # "zmp": the CoM replanned per footstep, ZMP on the stance pair's line (the paper's;
                                # wbc_jax.planner.transport.zmp_com_path); "spline": it follows the object (+ offset)
+    cone = "scene"             # MuJoCo's friction cone of every contact: "scene" (the scene file's: pyramidal),
+    impratio = 0.0             # "pyramidal" or "elliptic"; impratio: frictional-to-normal impedance ratio (0: the
+                               # scene's, 10); both for studies of the contact law (wbc_jax.studies.s_cause)
     sensing = "auto"           # Warp: "exact" (a forward call gives the controller the current state) or "delayed"
                                # (it reads what Warp's step left: the state one physics step old; one call fewer);
                                # "auto": delayed on Warp (same statistics, measured), exact on JAX
@@ -35,7 +40,8 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     m = [0.2, 0.3, 0.4]        # paper's 3 x 3 x 3: object mass [kg], 0 < m <= 20
     mu = [0.4, 0.7, 1.0]       # tray friction, 0 < mu <= 5
     d = [0.06, 0.08, 0.10]     # object side [m], 0.008 < d <= 0.2 (the robot's tray narrows it further)
-                               # others: ground_mu, speed, push_N, qvel_noise_std, observer, variant, gain.<leaf>
+                               # others: ground_mu, speed, obj_accel, push_N, qvel_noise_std, observer, variant,
+                               # gain.<leaf>
 
     [perturbations]            # per run, drawn from the run's own seed; all zero = deterministic repetitions
     object_xy_mm = 3.0         # object placement on the tray: uniform in +-value along x and y [mm], 0..20
@@ -82,6 +88,7 @@ CAMPAIGN = {
     "scene": (str, "transport", None, None, False, '"transport" or "flat"'),
     "distance": (float, 3.4, 0.05, 10.0, False, "[m]"),
     "speed": (float, 0.13, 0.01, 0.5, False, "[m/s]"),
+    "obj_accel": (float, 0.0, 0.0, 20.0, False, "[m/s^2], 0 = the planner's 1 s ramps"),
     "extra_seconds": (float, 0.5, 0.0, 10.0, False, "[s]"),
     "max_seconds": (float, 0.0, 0.0, 600.0, False, "[s], 0 = no cap"),
     "qp_iters": (int, 4, 1, 1000, False, "ADMM iterations before the convergence checks"),
@@ -90,6 +97,9 @@ CAMPAIGN = {
     "chunk_seconds": (float, 2.0, 0.02, 60.0, False, "[s]"),
     "solver_iterations": (int, 0, 0, 1000, False,
                           "MuJoCo constraint-solver iterations per physics step; 0 = the scene's"),
+    "cone": (str, "scene", None, None, False,
+             '"scene" (the scene file\'s), "pyramidal" or "elliptic": MuJoCo\'s friction cone of every contact'),
+    "impratio": (float, 0.0, 0.0, 1000.0, False, "MuJoCo's frictional-to-normal impedance ratio; 0 = the scene's"),
     "backend": (str, "auto", None, None, False,
                 '"auto" (Warp on a CUDA GPU with warp-lang, else JAX), "jax" or "warp": the MJX physics '
                 'implementation'),
@@ -130,13 +140,15 @@ SCENES = ("transport", "flat")
 SENSING = ("auto", "exact", "delayed")  # wbc_jax.rollout.config.SENSING (not imported: spec loading stays JAX-free)
 TERRAINS = ("known", "blind")  # wbc_jax.planner.transport.TERRAINS (not imported: spec loading stays JAX-free)
 COM_PLANS = ("spline", "zmp")  # wbc_jax.planner.transport.COM_PLANS (not imported, as above)
+CONES = ("scene", "pyramidal", "elliptic")  # MuJoCo's opt.cone, or the scene file's
 BACKENDS = ("auto", "jax", "warp")  # wbc_jax.physics.backend.BACKENDS (not imported here: spec loading stays JAX-free)
 # keys added after specs were first hashed: left out of Spec.hash at these values (the behaviour from before the key
 # existed), so existing baselines and checkpoints stay valid; a default unlike its neutral value (com_plan "zmp")
 # changes the hash of every spec that omits the key, as the behaviour changed
 _HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_iterations": 0, "m": 0.3, "mu": 0.7,
                                "d": 0.08, "ground_mu": 0.0, "variant": "full", "terrain": "known",
-                               "com_plan": "spline", "sensing": "auto"},
+                               "com_plan": "spline", "sensing": "auto",
+                               "obj_accel": 0.0, "cone": "scene", "impratio": 0.0},
                  "perturbations": {"push_dir_deg": 0.0}}
 
 
@@ -292,7 +304,7 @@ def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
         raise spec_error(path, unknown[0], "unknown table; expected campaign, factors, perturbations, analysis")
     camp = checked_table(path, "campaign", data.get("campaign", {}), CAMPAIGN)
     for key, allowed in (("backend", BACKENDS), ("scene", SCENES), ("variant", tuple(VARIANTS)),
-                         ("terrain", TERRAINS), ("com_plan", COM_PLANS), ("sensing", SENSING)):
+                         ("terrain", TERRAINS), ("com_plan", COM_PLANS), ("sensing", SENSING), ("cone", CONES)):
         if camp[key] not in allowed:
             raise spec_error(path, f"campaign.{key}", f"= {camp[key]!r}: expected one of {', '.join(allowed)}")
     if "factors" not in data:

@@ -9,6 +9,9 @@ inverse weights of the object's body and dofs from its mass and inertia.
 
 from __future__ import annotations
 
+import re
+import tempfile
+from pathlib import Path
 from typing import NamedTuple
 
 import jax
@@ -17,6 +20,7 @@ import mujoco
 import numpy as np
 
 from wbc_jax.errors import FactorError
+from wbc_jax.robot.model import mjcf_dir, scene_path
 from wbc_jax.spatial import cube_inertia
 from wbc_jax.types import RobotIds
 
@@ -168,3 +172,37 @@ def single_run_mj_model(scene_xml: str, m: float, mu: float, d: float) -> mujoco
         p = spec.pair(f"obj_c{i}_tray")
         p.friction = [mu, mu, *PAIR_FRICTION_TAIL]
     return spec.compile()
+
+
+def scene_variant(scene: str, options: dict | None = None, obj_solref: tuple | None = None,
+                  obj_solimp: tuple | None = None, out_dir: str | None = None) -> str:
+    """A copy of scene ``scene`` ('flat', 'transport' or a path) with MuJoCo's contact law changed.
+
+    Args:
+        options: ``<option>`` attributes to set, e.g. ``{"cone": "elliptic", "impratio": 1, "iterations": 50,
+            "noslip_iterations": 10}``.
+        obj_solref, obj_solimp: the object/tray pairs' ``solref`` (2 numbers) and ``solimp`` (5 numbers).
+        out_dir: folder for the copy (beside a copy of the robot file it includes); None: a new temporary folder.
+
+    Returns:
+        The new scene file's path.
+    """
+    src = scene_path(scene)
+    text = src.read_text()
+    for key, value in (options or {}).items():
+        value = f"{value:g}" if isinstance(value, float) else str(value)
+        if re.search(rf'<option[^>]*\b{key}="', text):
+            text = re.sub(rf'(<option[^>]*\b{key}=")[^"]*"', rf'\g<1>{value}"', text, count=1)
+        else:
+            text = text.replace("<option ", f'<option {key}="{value}" ', 1)
+    for attr, value in (("solref", obj_solref), ("solimp", obj_solimp)):
+        if value is not None:
+            words = " ".join(f"{v:g}" for v in value)
+            text = re.sub(rf'(<pair name="obj_c\d_tray"[^>]*\b{attr}=")[^"]*"', rf'\g<1>{words}"', text)
+    folder = Path(out_dir or tempfile.mkdtemp(prefix="wbc_scene_"))
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in re.findall(r'<include file="([^"]+)"', text):
+        (folder / name).write_text((mjcf_dir() / name).read_text())
+    out = folder / src.name
+    out.write_text(text)
+    return str(out)

@@ -110,7 +110,8 @@ def _init_fn(sim: Sim, in_axes, n_runs: int):
 
 
 def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push: Push | None = None,
-                  plan_kwargs: dict | None = None, qpos0=None, qvel0=None, speed=None, ground_mu=None) -> Batch:
+                  plan_kwargs: dict | None = None, qpos0=None, qvel0=None, speed=None, ground_mu=None,
+                  ramp=None) -> Batch:
     """Validated factors (each (B,) or scalar) -> a ready Batch.
 
     Args:
@@ -123,6 +124,7 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
             object side, at rest.
         speed: (B,) cruise speed of each run's plan [m/s] instead of ``plan_kwargs``' (None: that one).
         ground_mu: (B,) foot/ground friction of each run, in the physics and the controller (None: the scene's).
+        ramp: (B,) duration of each run's speed ramps [s] (the planner's ``ramp``) instead of ``plan_kwargs``'.
     """
     robot = sim.robot
     f = scenario.validate_factors(robot.ids, m, mu, d)
@@ -130,8 +132,9 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
     bm, in_axes = scenario.batch_model(robot.mjx_model, robot.mj_model, robot.ids, f, ground_mu)
     kw = plan_kwargs or {}
     course = scene_geometry(robot).is_course
-    # start pose and plan depend on the run only through d (carried height) and the speed: each pair once
-    keys = f.d[:, None] if speed is None else np.stack([f.d, np.broadcast_to(speed, f.d.shape)], axis=1)
+    # start pose and plan depend on the run only through d (carried height), the speed and the ramp: each once
+    per_run = {k: np.broadcast_to(v, f.d.shape) for k, v in (("speed", speed), ("ramp", ramp)) if v is not None}
+    keys = np.stack([f.d, *per_run.values()], axis=1)
     levels, inverse = np.unique(keys, axis=0, return_inverse=True)
     inverse = inverse.reshape(-1)
     q_levels = [robot.home_qpos(key[0]) for key in levels]
@@ -139,7 +142,7 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
         qpos0 = np.stack(q_levels)[inverse]
     if qvel0 is None:
         qvel0 = np.zeros((B, robot.mj_model.nv))
-    kws = [kw if speed is None else dict(kw, speed=float(key[1])) for key in levels]
+    kws = [dict(kw, **{k: float(v) for k, v in zip(per_run, key[1:])}) for key in levels]
     unique = [_plan(robot, course, q, dict(k, side=float(key[0])) if course else k)
               for q, key, k in zip(q_levels, levels, kws)]
     if unique[0].com_xy is not None:  # per-footstep CoM paths: as many knots as the longest plan's

@@ -31,6 +31,10 @@ CAMPAIGN_MEANING = {
     "scene": "`transport` (the obstacle course) or `flat`",
     "distance": "object travel along the path",
     "speed": "cruise speed of the rest-to-rest speed profile",
+    "cone": "MuJoCo's friction cone of every contact (`opt.cone`): `scene` keeps the scene file's (pyramidal)",
+    "impratio": "MuJoCo's frictional-to-normal impedance ratio (`opt.impratio`); 0 keeps the scene's (10)",
+    "obj_accel": "peak acceleration of the object's start and stop: speed ramps of 2 speed / obj_accel; 0 keeps the "
+                 "planner's 1 s ramps",
     "extra_seconds": "simulated time after the planned path ends",
     "max_seconds": "cap on the simulated time (a capped run stops mid-path)",
     "qp_iters": "ADMM iterations per control step (static: one compile per value)",
@@ -68,6 +72,8 @@ FACTOR_MEANING = {
     "d": "object side (the robot's tray narrows it further)",
     "ground_mu": "foot/ground friction: the physics' foot pairs and the controller's ground cone",
     "speed": "cruise speed of the plan (the push start and metric window follow each run's own plan)",
+    "obj_accel": "peak acceleration of the object's reference at start and stop (the speed ramps last 2 speed / "
+                 "obj_accel)",
     "push_N": "one trunk push of this magnitude per run, direction `perturbations.push_dir_deg`, duration "
               "`push_duration_s`, start drawn in `push_window` (0: no push); `perturbations.push_max_N` must stay 0",
     "qvel_noise_std": "controller-view velocity noise std; `perturbations.qvel_noise_std` must stay 0",

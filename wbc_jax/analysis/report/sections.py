@@ -10,6 +10,7 @@ import pandas as pd
 from wbc_jax.analysis import stats
 from wbc_jax.analysis.report.campaign_sections import campaign_sections, success_sections
 from wbc_jax.analysis.report.document import Doc, fmt
+from wbc_jax.analysis.report.envelope_section import claims_section, envelope_section
 from wbc_jax.analysis.report.failed_runs import campaign_folder, failed_runs_section
 from wbc_jax.analysis.report.figure_jobs import FIGURE_CAPTIONS, caption
 from wbc_jax.analysis.report.inputs import Campaign, Table
@@ -69,6 +70,8 @@ def document(res: dict, summary: dict, table: Table, metrics, alpha: float, imag
     d.h(2, "Cell means (successful runs)")
     d.table(_cell_means(res["cell_means"], factors, metrics, shown))
     success_sections(d, extra, factors, alpha)
+    envelope_section(d, table.frame, factors)
+    claims_section(d, table.frame, factors, alpha)
     failed_runs_section(d, table.frame, factors, campaign_folder(summary["manifest"]["input"], table.campaign))
     if images:
         d.h(2, "Figures")
@@ -92,6 +95,8 @@ def design_only_document(res: dict, extra: dict, results_csv: str, table: Table,
     d.h(2, "Design")
     d.table(res["design"])
     success_sections(d, extra, factors, alpha)
+    envelope_section(d, table.frame, factors)
+    claims_section(d, table.frame, factors, alpha)
     failed_runs_section(d, table.frame, factors, campaign_folder(results_csv, table.campaign))
     for name in images:
         d.img(name, FIGURE_CAPTIONS[name])
