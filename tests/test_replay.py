@@ -17,7 +17,7 @@ from wbc_jax.errors import InputError, SpecError
 from wbc_jax.studies import replay
 from wbc_jax.studies.replay_check import REPLAY_RTOL, compare, relative_difference
 from wbc_jax.studies.replay_inputs import read_campaign, read_results
-from wbc_jax.studies.replay_sim import fill_slots
+from wbc_jax.studies.replay_sim import Program, adopt_xla, campaign_program, fill_slots, part_rows
 from wbc_jax.studies.replay_write import default_window
 
 RUN = 5  # the replayed run of the tiny campaign (8 runs)
@@ -41,6 +41,52 @@ def test_fill_slots_keeps_each_run_in_its_own_slot():
     assert fill_slots([5], 8).tolist() == [5] * 8
     assert fill_slots([6, 1], 8).tolist() == [1, 1, 1, 6, 1, 6, 6, 6]
     assert fill_slots([2], 4, whole_batch=True).tolist() == [0, 1, 2, 3]
+
+
+def test_part_rows_keep_each_run_in_its_slot_of_its_part():
+    """A campaign of 7 runs over 2 devices (4 per device, the last padded with run 6): run 5 sits in slot 1 of part
+    1, run 2 in slot 2 of part 0; each part is replayed as a batch of the part's size."""
+    assert [r.tolist() for r in part_rows([5, 2], 7, 4)] == [[2, 2, 2, 2], [5, 5, 5, 5]]
+    assert [r.tolist() for r in part_rows([4, 6], 7, 4)] == [[4, 6, 6, 6]]
+    assert [r.tolist() for r in part_rows([5], 7, 4, whole_batch=True)] == [[4, 5, 6, 6]]
+    assert [r.tolist() for r in part_rows([3], 8, 8)] == [fill_slots([3], 8).tolist()]
+
+
+def test_campaign_program_from_the_manifest_or_its_layout():
+    record = dict(spread="mesh", devices=2, parts=2, per_device_runs=4, padded_runs=8)
+    assert campaign_program({"program": record}, 7) == Program("mesh", 2, 4)
+    older = {"layout": {"spread": "mesh", "processes": 1, "devices": [{}, {}, {}]}}
+    assert campaign_program(older, 7) == Program("mesh", 3, 3)
+    assert campaign_program({"layout": {"spread": "blocks", "processes": 2}}, 7) == Program("blocks", 2, 4)
+    assert campaign_program({}, 7) == Program("one", 1, 7)
+
+
+def test_xla_settings_taken_from_the_campaign_or_named(monkeypatch):
+    """The campaign's deterministic setting is taken before JAX starts and named after; other XLA flags and a GPU
+    campaign without deterministic ops are named."""
+    from wbc_jax.runtime import jaxcfg
+
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_foo=1")
+    monkeypatch.setattr(jaxcfg, "backends_started", lambda: False)
+    gpu = {"device": {"backend": "gpu"}}
+    same = {"program": {"xla": {"flags": "--xla_cpu_foo=1", "deterministic_ops": False}}}
+    assert adopt_xla(same) == []
+    assert adopt_xla({"program": {"xla": {"flags": "--xla_cpu_foo=1", "deterministic_ops": True}}}) == []
+    assert jaxcfg.deterministic_ops()  # taken: JAX had not started
+    monkeypatch.setattr(jaxcfg, "backends_started", lambda: True)
+    notes = adopt_xla(dict(gpu, program={"xla": {"flags": "", "deterministic_ops": False}}))
+    assert len(notes) == 3 and "scatter adds" in notes[0] and "deterministic GPU ops off, this process started " \
+        "JAX with them on" in notes[1] and "XLA_FLAGS differ" in notes[2]
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_foo=1")
+    assert "scatter adds" in adopt_xla(dict(same, **gpu))[0]
+    assert "records no XLA settings" in adopt_xla(gpu)[0] and adopt_xla({}) == []
+    assert replay.verdict([], []) == "0 of 0 runs reproduce the campaign's results"
+    differ = compare(3, pd.Series(dict(R=0.5, T=0.1, S=1.0, success=True, fail_reason="")),
+                     dict(R=0.5, T=0.1, S=1.0, success=False, fail_reason="fell"))
+    assert replay.verdict([differ], []).startswith("REPLAY MISMATCH: 1 of 1 runs differ") and "unexplained" in \
+        replay.verdict([differ], [])
+    assert replay.verdict([differ], ["another device"]).endswith("did not run exactly as the campaign did (another "
+                                                                  "device)")
 
 
 def test_arguments_are_one_line_errors():
@@ -85,6 +131,9 @@ def test_replay_is_bit_for_bit_with_the_campaigns_program(full_run, tmp_path, ca
     folder = out / f"run_{RUN}"
     man = json.loads((folder / "manifest.json").read_text())
     assert man["command"] == "wbc-jax replay" and man["run"] == RUN and man["check"]["bit_for_bit"]
+    assert man["batch"]["same_layout"] and man["batch"]["batches"] == [8] and man["notes"] == []
+    assert man["campaign_program"] == dict(spread="one", devices=1, parts=1, per_device_runs=8, padded_runs=8,
+                                           logs_per_chunk=2, n_chunks=3, platform="cpu", xla=man["xla"])
     for k in ("R", "T", "S"):
         assert man["check"]["replay"][k] == row[k]
     assert man["check"]["replay"]["success"] == bool(row["success"])
@@ -97,6 +146,30 @@ def test_replay_is_bit_for_bit_with_the_campaigns_program(full_run, tmp_path, ca
     videos = [p.name for p in folder.iterdir() if p.name.startswith("video.")]
     assert videos or man["video_note"].startswith("no video: offscreen rendering unavailable")
     assert sorted(man["files"]) == sorted(["manifest.json", "plots.png", "trajectory.npz", *videos])
+
+
+@pytest.mark.slow
+def test_replay_part_by_part_where_the_layout_differs(full_run, tmp_path, capsys):
+    """The tiny campaign's manifest made to say it ran over 2 devices of 4 runs (this process has one device): run
+    RUN is replayed in a batch of 4 runs on one device, in its slot of its part, and the note names the layout."""
+    camp, _ = full_run
+    man = json.loads((camp / "manifest.json").read_text())
+    copy = tmp_path / "camp"
+    copy.mkdir()
+    (copy / "results.csv").write_text((camp / "results.csv").read_text())
+    program = dict(man["program"], spread="mesh", devices=2, parts=2, per_device_runs=4, padded_runs=8)
+    (copy / "manifest.json").write_text(json.dumps(dict(man, program=program)))
+    code = replay.main(_args(copy, "--run", RUN, "--out", tmp_path / "out", "--no-video", "--no-progress"))
+    out = capsys.readouterr().out
+    assert "1 batch(es) of 4 runs, the campaign's per-device batch, on one device" in out
+    record = json.loads((tmp_path / "out" / f"run_{RUN}" / "manifest.json").read_text())
+    assert record["batch"]["batches"] == [4] and not record["batch"]["same_layout"]
+    assert "2 part(s) of 4 runs (mesh), this machine would run 1 (one)" in record["notes"][0]
+    check = record["check"]
+    assert code == (0 if check["equal"] else 1)
+    assert check["replay"]["success"] == check["campaign"]["success"]
+    if not check["equal"]:
+        assert "REPLAY MISMATCH" in out and "did not run exactly as the campaign did" in out
 
 
 def test_spec_that_differs_is_one_line_and_nothing_written(full_run, tmp_path):

@@ -187,10 +187,11 @@ def announce(recorded: Recorded, run_ids, built: Built, batches: list, same_layo
     chunk_s = built.logs_per_chunk * built.sim.log_every * built.sim.dt_control
     shape = (f"a batch of {built.design.n} runs as the campaign's ({spread_mode})" if same_layout else
              f"{len(batches)} batch(es) of {len(batches[0])} runs, the campaign's per-device batch, on one device")
+    xla = (f", XLA deterministic ops {'on' if jaxcfg.deterministic_ops() else 'off'}"
+           if jax.default_backend() == "gpu" else "")
     return (f"replaying run{'s' if len(run_ids) > 1 else ''} {', '.join(map(str, run_ids))} of campaign "
             f"{c['name']!r} ({recorded.folder}): {shape}, {built.n_chunks} chunks of {chunk_s:.2f} s, physics "
-            f"{man['physics_backend']}, sensing {man['sensing']}, device {jax.devices()[0].device_kind}, XLA "
-            f"deterministic ops {'on' if jaxcfg.deterministic_ops() else 'off'}")
+            f"{man['physics_backend']}, sensing {man['sensing']}, device {jax.devices()[0].device_kind}{xla}")
 
 
 def _simulate_batch(built: Built, rows: np.ndarray, spread: Spread, slots: dict, bar, first: bool):
