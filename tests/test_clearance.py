@@ -24,6 +24,8 @@ DISTMAX = 10.0  # [m] mj_geomDistance's search radius: every pair of the scene i
 CROUCH = ((-1.66, -0.14, 1.1, -2.2), (-1.70, -0.13, 1.15, -2.3), (-1.75, -0.10, 1.1, -2.1),
           (-1.70, -0.16, 1.15, -2.3), (-1.66, -0.17, 1.1, -2.2))  # (dy, dz, FR pitch, FR knee); the last penetrates
 N_RANDOM = 24
+RECOMPUTE_TOL = 1e-7  # [m] a broad-phase candidate's distance against the all-pairs one: float32 rounding (XLA fuses
+#                       the two programs differently; measured <= 3.1e-8)
 
 
 @pytest.fixture(scope="module")
@@ -179,7 +181,7 @@ def test_capsule_box_matches_sampled_segment_at_random_poses(course):
 
 def test_rollout_clearance_is_the_min_over_the_pairs(course):
     robot, sim, pairs, names, Q, got, c, k = course
-    np.testing.assert_allclose(c, got.min(axis=1), rtol=0, atol=0)
+    np.testing.assert_allclose(c, got.min(axis=1), rtol=0, atol=RECOMPUTE_TOL)
     np.testing.assert_array_equal(k, got.argmin(axis=1))
     m = robot.mj_model
     for i in range(len(names)):
@@ -279,3 +281,75 @@ def test_box_box_equals_mujoco_at_close_random_poses():
     far = (ref >= 0.05) & (ref < DISTMAX)
     np.testing.assert_allclose(got[far], ref[far], atol=POS_TOL)
     assert np.all(got[ref < 0.0] < 0.0)  # overlapping: the separating-axis depth, negative as MuJoCo's
+
+
+N_BROAD = 1500
+
+
+@pytest.fixture(scope="module")
+def broad():
+    """N_BROAD random course poses (base anywhere along the course, tilted, lowered up to 0.3 m, joints +-0.8 rad:
+    legs over and into the blocks, arm and trunk at the wall): every pair's exact distance, the broad phase's
+    result and every bounded pair's lower bound."""
+    robot = Robot("transport")
+    pairs = CL.clearance_pairs(robot)
+    rng = np.random.default_rng(1)
+    Q = np.repeat(robot.home_qpos(0.08)[None], N_BROAD, 0)
+    Q[:, 0] += rng.uniform(-0.4, 0.4, N_BROAD)
+    Q[:, 1] = rng.uniform(-3.7, -0.3, N_BROAD)
+    Q[:, 2] += rng.uniform(-0.3, 0.15, N_BROAD)
+    ax = rng.normal(size=(N_BROAD, 3))
+    ang = rng.uniform(0.0, 0.6, N_BROAD)
+    Q[:, 3:7] = np.c_[np.cos(ang / 2), np.sin(ang / 2)[:, None] * ax / np.linalg.norm(ax, axis=1, keepdims=True)]
+    Q[:, 7:25] += rng.uniform(-0.8, 0.8, (N_BROAD, 18))
+    bounded = [k for k, name in enumerate(CL.KINDS) if name in CL.CANDIDATES]
+
+    def one(qp):
+        d = mjx.kinematics(robot.mjx_model, mjx.make_data(robot.mjx_model).replace(qpos=qp))
+        lower = {k: jax.vmap(CL._BOUNDS[CL.KINDS[k]])(*CL._kind_inputs(pairs, d, np.where(pairs.kind == k)[0]))
+                 for k in bounded}
+        return CL.pair_distances(pairs, d), CL.bounded_min_clearance(pairs, d), lower
+
+    exact, got, lower = jax.device_get(jax.jit(jax.vmap(one))(jnp.asarray(Q)))
+    return pairs, np.asarray(exact), got, lower
+
+
+def test_broad_phase_bounds_are_lower_bounds(broad):
+    """Every capsule/box and box/box bound is at most the pair's exact distance (float32 rounding: within the
+    reported bound's BOUND_ROUNDING), penetrating pairs included; and tight enough to leave pairs out."""
+    pairs, exact, _, lower = broad
+    for k, lb in lower.items():
+        sel = np.where(pairs.kind == k)[0]
+        assert np.all(lb <= exact[:, sel] + CL.BOUND_ROUNDING), CL.KINDS[k]
+        assert np.mean(lb > 0.1) > 0.5
+
+
+def test_broad_phase_equals_the_exact_minimum_below_its_bound(broad):
+    """Below the returned bound the broad phase gives the exact minimum over all 54 pairs and its pair (a
+    capsule/box or box/box pair's distance within float32 rounding, RECOMPUTE_TOL; the others bit for bit); at or
+    above it, the exact distance of the reported pair, never below the minimum. The bound is below the minimum at
+    few of these (extreme) poses."""
+    pairs, exact, got, _ = broad
+    low = exact.min(axis=1)
+    below = got.distance < got.bound
+    assert np.mean(below) > 0.99
+    np.testing.assert_array_equal(got.pair[below], exact[below].argmin(axis=1))
+    bounded = np.isin(np.asarray(CL.KINDS)[pairs.kind[got.pair[below]]], list(CL.CANDIDATES))
+    assert np.all((got.distance[below] == low[below]) | bounded)
+    np.testing.assert_allclose(got.distance[below], low[below], rtol=0, atol=RECOMPUTE_TOL)
+    assert np.all(got.distance >= low - RECOMPUTE_TOL)
+    np.testing.assert_allclose(got.distance, exact[np.arange(len(low)), got.pair], rtol=0, atol=RECOMPUTE_TOL)
+
+
+def test_broad_phase_non_finite_pose_and_empty_scene():
+    """A NaN pose gives NaN and pair -1 (as the exact minimum does); a scene without pairs +inf and -1."""
+    robot = Robot("transport")
+    pairs = CL.clearance_pairs(robot)
+    d = mjx.kinematics(robot.mjx_model, mjx.make_data(robot.mjx_model).replace(qpos=jnp.asarray(robot.home_qpos(0.08))))
+    d = d.replace(geom_xpos=d.geom_xpos.at[pairs.robot[-1]].set(jnp.nan))
+    got = CL.bounded_min_clearance(pairs, d)
+    assert np.isnan(float(got.distance)) and int(got.pair) == -1
+    empty = CL.ClearancePairs(*(np.zeros((0,) + s, t) for s, t in [((), int), ((), int), ((), int), ((3,), float),
+                                                                     ((3,), float)]))
+    none = CL.bounded_min_clearance(empty, d)
+    assert float(none.distance) == np.inf and int(none.pair) == -1 and float(none.bound) == np.inf

@@ -32,12 +32,18 @@ with the floor or the terrain, against the floor and every terrain block; and ev
 with a wall part, against every wall part. A pair the scene does not list (e.g. a thigh against a block) is
 measured too, at no physics cost (the clearance is not a contact). Sizes are the scene's (static); poses are per
 run. Other geom types raise :class:`wbc_jax.errors.SceneError` when the pairs are built.
+
+Broad phase (:func:`bounded_min_clearance`, which :func:`min_clearance` uses): capsule/box and box/box pairs first
+get a cheap lower bound of their distance (the robot geom's extent along the scene box's axes); only the few with
+the smallest bounds (:data:`CANDIDATES`, a fixed count, so shapes stay static) get the exact distance. The minimum is
+the exact one whenever it lies below the smallest bound left out, which the call returns.
 """
 
 from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -278,28 +284,101 @@ _FNS = {"capsule_plane": capsule_plane, "capsule_box": capsule_box, "sphere_plan
         "sphere_box": sphere_box, "box_plane": box_plane, "box_box": box_box}
 
 
+def _kind_inputs(pairs: ClearancePairs, d, sel):
+    """The primitives' arguments for pairs ``sel`` (indices of one kind): robot geom pose and size, scene geom pose
+    and size, each with the pairs on axis 0."""
+    r, e = pairs.robot[sel], pairs.env[sel]
+    dt = d.geom_xpos.dtype
+    return (d.geom_xpos[r], d.geom_xmat[r].reshape(-1, 3, 3), jnp.asarray(pairs.size[sel], dt), d.geom_xpos[e],
+            d.geom_xmat[e].reshape(-1, 3, 3), jnp.asarray(pairs.env_size[sel], dt))
+
+
 def pair_distances(pairs: ClearancePairs, d) -> jax.Array:
     """(len(pairs),) signed distance [m] of each pair at the geom poses of ``d`` (one run; vmap for a batch)."""
     out = []
     for k, name in enumerate(KINDS):
         sel = np.where(pairs.kind == k)[0]
-        if sel.size == 0:
-            continue
-        r, e = pairs.robot[sel], pairs.env[sel]
-        dt = d.geom_xpos.dtype
-        out.append(jax.vmap(_FNS[name])(d.geom_xpos[r], d.geom_xmat[r].reshape(-1, 3, 3),
-                                        jnp.asarray(pairs.size[sel], dt), d.geom_xpos[e],
-                                        d.geom_xmat[e].reshape(-1, 3, 3), jnp.asarray(pairs.env_size[sel], dt)))
+        if sel.size:
+            out.append(jax.vmap(_FNS[name])(*_kind_inputs(pairs, d, sel)))
     if not out:
         return jnp.zeros((0,))
     return jnp.concatenate(out)
 
 
+# ---------------------------------------------------------------------------------------------------------------
+# broad phase: a lower bound of each expensive pair's distance from the geoms' extents along the scene box's axes
+
+def _extent_bound(c, e, h):
+    """Lower bound of the signed distance between a box of half-sizes ``h`` (its frame) and a set that lies within
+    |p_i - c_i| <= e_i (components). Clear of the box along an axis (g_i = |c_i| - e_i - h_i > 0): every point of the
+    set is outside with |p_i| - h_i >= g_i, so the box SDF formula over max(g, 0) bounds it; otherwise max_i g_i, a
+    separating-axis gap, which bounds minus the penetration depth."""
+    g = [jnp.abs(c[i]) - e[i] - h[i] for i in range(3)]
+    out = [jnp.maximum(x, 0.0) for x in g]
+    return jnp.sqrt(_dot(out, out)) + jnp.minimum(jnp.maximum(jnp.maximum(g[0], g[1]), g[2]), 0.0)
+
+
+def capsule_box_bound(pos, R, size, bpos, bR, bsize):
+    """A lower bound of :func:`capsule_box`: the segment's extent along the box's axes, minus the radius."""
+    axis = tuple(_dot(_col(R, 2), _col(bR, j)) * size[1] for j in range(3))
+    c = _in_frame(_v(pos), _v(bpos), bR)
+    return _extent_bound(c, tuple(jnp.abs(a) for a in axis), _v(bsize)) - size[0]
+
+
+def box_box_bound(pos, R, size, bpos, bR, bsize):
+    """A lower bound of :func:`box_box`: the robot box's extent along the scene box's axes."""
+    e = tuple(sum(jnp.abs(_dot(_col(bR, i), _col(R, j))) * size[j] for j in range(3)) for i in range(3))
+    return _extent_bound(_in_frame(_v(pos), _v(bpos), bR), e, _v(bsize))
+
+
+_BOUNDS = {"capsule_box": capsule_box_bound, "box_box": box_box_bound}
+CANDIDATES = {"capsule_box": 8, "box_box": 3}
+"""Pairs of each bounded kind whose exact distance is computed at every pose: those with the smallest bounds."""
+BOUND_ROUNDING = 1e-5  # [m] taken off the reported bound: a float32 bound can exceed the exact distance by rounding
+
+
+class Clearance(NamedTuple):
+    """The smallest clearance over a scene's pairs at one pose (:func:`bounded_min_clearance`)."""
+
+    distance: jax.Array  # () [m] the smallest exact distance over the candidate pairs (+inf: no pairs)
+    pair: jax.Array  # () int32 its pair index (-1: none or not finite)
+    bound: jax.Array  # () [m] every pair left out is at least this far (+inf: none left out)
+
+
+def bounded_min_clearance(pairs: ClearancePairs, d) -> Clearance:
+    """The smallest signed distance over ``pairs`` at the geom poses of ``d`` (one run), with a broad phase.
+
+    Planes and spheres are exact for every pair; of each kind in :data:`CANDIDATES` only that many pairs, those with
+    the smallest lower bounds (:func:`capsule_box_bound`, :func:`box_box_bound`), get their exact distance. The
+    distance equals the minimum of :func:`pair_distances` (same value, same pair, ties to the lowest index) whenever
+    it is below ``bound``, the smallest bound of a pair left out; otherwise it is the exact distance of a pair and at
+    least that minimum. Non-finite poses give NaN and -1 as the exact minimum does."""
+    dist, index, bounds, bad = [], [], [], jnp.bool_(False)
+    for k, name in enumerate(KINDS):
+        sel = np.where(pairs.kind == k)[0]
+        if sel.size == 0:
+            continue
+        args, idx = _kind_inputs(pairs, d, sel), jnp.asarray(sel, jnp.int32)
+        n_exact = CANDIDATES.get(name, sel.size)
+        if n_exact < sel.size:
+            lower = jax.vmap(_BOUNDS[name])(*args)
+            neg, pick = jax.lax.top_k(-lower, n_exact + 1)
+            bounds.append(-neg[n_exact])
+            bad = bad | jnp.any(jnp.isnan(lower))
+            args, idx = tuple(a[pick[:n_exact]] for a in args), idx[pick[:n_exact]]
+        dist.append(jax.vmap(_FNS[name])(*args))
+        index.append(idx)
+    if not dist:
+        return Clearance(jnp.full((), jnp.inf), jnp.full((), -1, jnp.int32), jnp.full((), jnp.inf))
+    dist, index = jnp.concatenate(dist), jnp.concatenate(index)
+    best = jnp.where(bad, jnp.nan, jnp.min(dist))
+    k = jnp.min(jnp.where(dist == best, index, len(pairs)))
+    bound = jnp.min(jnp.stack(bounds)) - BOUND_ROUNDING if bounds else jnp.full((), jnp.inf, best.dtype)
+    return Clearance(best, jnp.where(jnp.isfinite(best), k, -1).astype(jnp.int32), bound)
+
+
 def min_clearance(pairs: ClearancePairs, d):
     """(() smallest signed distance [m] over ``pairs`` (+inf: no pairs), () int32 its pair index (-1: none or
-    not finite))."""
-    if len(pairs) == 0:
-        return jnp.full((), jnp.inf), jnp.full((), -1, jnp.int32)
-    dist = pair_distances(pairs, d)
-    k = jnp.argmin(dist)
-    return dist[k], jnp.where(jnp.isfinite(dist[k]), k, -1).astype(jnp.int32)
+    not finite)), by :func:`bounded_min_clearance`: exact below its bound."""
+    out = bounded_min_clearance(pairs, d)
+    return out.distance, out.pair
