@@ -61,6 +61,26 @@ def test_campaign_program_from_the_manifest_or_its_layout():
     assert campaign_program({}, 7) == Program("one", 1, 7)
 
 
+def test_deterministic_gpu_ops_by_default_where_cuda_can_start(monkeypatch):
+    from wbc_jax.runtime import jaxcfg
+
+    flag = jaxcfg.DETERMINISTIC_FLAG
+    assert jaxcfg.xla_flag_value(f"--a=1 {flag}=true {flag}=false", flag) is False
+    assert jaxcfg.with_xla_flag(f"{flag}=false --a=1", flag, True) == f"--a=1 {flag}=true"
+    monkeypatch.setattr(jaxcfg, "backends_started", lambda: False)
+    monkeypatch.setattr(jaxcfg, "_cuda_plugin_installed", lambda: True)
+    for env, flags, expect in ((None, "--a=1", f"--a=1 {flag}=true"), ("off", "--a=1", "--a=1"),
+                               (None, f"{flag}=false", f"{flag}=false")):
+        monkeypatch.setattr(jaxcfg, "_configured", False)
+        monkeypatch.setenv("XLA_FLAGS", flags)
+        if env is None:
+            monkeypatch.delenv("WBC_JAX_DETERMINISTIC", raising=False)
+        else:
+            monkeypatch.setenv("WBC_JAX_DETERMINISTIC", env)
+        jaxcfg.configure()
+        assert jaxcfg.xla_record()["flags"] == expect
+
+
 def test_xla_settings_taken_from_the_campaign_or_named(monkeypatch):
     """The campaign's deterministic setting is taken before JAX starts and named after; other XLA flags and a GPU
     campaign without deterministic ops are named."""
