@@ -1,5 +1,9 @@
 #!/usr/bin/env bash
 # The README's test command and CI's (.ci/run): a fresh venv, the package installed with its test extras, ruff, pytest.
+#   bash tests/run.sh          the suite without the tests marked `slow` (long closed loops whose parts cheaper tests
+#                              check; pyproject.toml registers the markers `slow` and `gpu`)
+#   bash tests/run.sh --all    every test, the slow ones included
+#   bash tests/run.sh ARGS     one pytest process on ARGS, e.g. `bash tests/run.sh tests/test_qp.py`, `-m slow`
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python3 -m venv .venv
@@ -7,33 +11,71 @@ python3 -m venv .venv
 .venv/bin/pip install -q -e '.[test]'
 .venv/bin/ruff check wbc_jax tests examples
 export WBC_JAX_CACHE="${WBC_JAX_CACHE:-$PWD/.venv/jax-cache}"
+select=(-m "not slow")
+if [ "${1:-}" = "--all" ]; then
+  select=()
+  shift
+fi
 if [ "$#" -gt 0 ]; then
   exec .venv/bin/python -m pytest -q "$@"
 fi
-# Without arguments: the whole suite in three pytest processes ("lanes"), two at a time (lane 1 alongside lanes 2
-# then 3), each lane's output shown when it ends. Most of the suite's time is single-threaded XLA compilation, so on
-# a 2-core CI machine two processes run at once; one process of the whole suite also made XLA's CPU compiler abort.
-# The lanes share the persistent compilation cache, and their lists and order are chosen so that a program several
-# files compile is compiled once and then read from the cache (lane 1 starts with the tiny campaign's programs, lane
-# 2 with the QP tests, which need no MJX model), keeping the suite under ~15 minutes on 2 cores. A test file in none
-# of the lists runs at the end of lane 3. With arguments: one pytest process on them, e.g. `bash tests/run.sh
-# tests/test_qp.py`; `bash tests/run.sh -m "not slow"` gives a quick pass that skips the tests marked `slow` (the
-# markers `slow` and `gpu` are registered in pyproject.toml).
-lane1=(campaign backends centroidal course aot api distributed clearance)
-lane2=(qp metrics packed planner interaction kernel_trace reliability snapshots spec_docs stats model)
-lane3=(sharding tune window transport substeps factors report)
-named=" ${lane1[*]} ${lane2[*]} ${lane3[*]} "
-paths() { for f in "$@"; do [ -f "tests/test_$f.py" ] && echo "tests/test_$f.py"; done; }
-mapfile -t files1 < <(paths "${lane1[@]}")
-mapfile -t files2 < <(paths "${lane2[@]}")
-mapfile -t files3 < <(paths "${lane3[@]}"; for f in $(ls tests/test_*.py | sort); do
-  n=${f#tests/test_}; n=${n%.py}; [[ "$named" == *" $n "* ]] || echo "$f"; done)
+# The suite is a queue of groups of test files, each group one pytest process; two workers take the next unclaimed
+# group until none is left, so both cores of a 2-core CI machine stay busy to the end (most of the time is
+# single-threaded XLA compilation; one process of the whole suite also made XLA's CPU compiler abort). The groups
+# share the persistent compilation cache. A group's files run in one process so that the programs they share are
+# traced once (test_campaign's tiny campaign, reused by test_replay, test_window, test_sharding and test_tune; the
+# flat-scene chunk program of test_transport and test_backends' JAX walk); the longest groups come first and a
+# group reusing another's programs comes after it. A test file in no group runs in a last group of its own. Each
+# group prints a line when it ends; the outputs follow, in group order, at the end.
+groups=(
+  "transport backends"
+  "campaign replay window sharding tune"
+  "model metrics"
+  "qp"
+  "distributed"
+  "centroidal"
+  "course clearance"
+  "substeps factors freeze"
+  "reliability safety report stats planner zmp capture_point interaction kernel_trace snapshots spec_docs packed aot
+   api architecture cli_docs progress"
+)
+named=" ${groups[*]} "
+rest=()
+for f in tests/test_*.py; do
+  n=${f#tests/test_}
+  n=${n%.py}
+  [[ "$named" == *[[:space:]]"$n"[[:space:]]* ]] || rest+=("$n")
+done
+if [ "${#rest[@]}" -gt 0 ]; then
+  groups+=("${rest[*]}")
+fi
 logs=$(mktemp -d)
-( .venv/bin/python -m pytest -q "${files1[@]}" > "$logs/1" 2>&1 ) & first=$!
+run_group() {  # $1: the group's index
+  local files=() n r=0 t0=$SECONDS
+  for n in ${groups[$1]}; do
+    if [ -f "tests/test_$n.py" ]; then files+=("tests/test_$n.py"); fi
+  done
+  if [ "${#files[@]}" -gt 0 ]; then
+    .venv/bin/python -m pytest -q "${select[@]}" "${files[@]}" > "$logs/$1.log" 2>&1 || r=$?
+  fi
+  if [ "$r" -eq 5 ]; then r=0; fi  # every test of the group deselected
+  echo "$r" > "$logs/$1.rc"
+  echo "tests/run.sh: group $1 ended after $((SECONDS - t0)) s, exit $r: ${groups[$1]//$'\n'/}" | tr -s ' '
+}
+worker() {
+  local i
+  for i in "${!groups[@]}"; do
+    if mkdir "$logs/claim.$i" 2> /dev/null; then run_group "$i"; fi
+  done
+}
+worker & other=$!
+worker
+wait "$other"
 rc=0
-( r=0; .venv/bin/python -m pytest -q "${files2[@]}" || r=$?
-  .venv/bin/python -m pytest -q "${files3[@]}" || r=$?; exit "$r" ) > "$logs/2" 2>&1 || rc=$?
-wait "$first" || rc=$?
-cat "$logs/1" "$logs/2"
+for i in "${!groups[@]}"; do
+  cat "$logs/$i.log" 2> /dev/null || true
+  r=$(cat "$logs/$i.rc" 2> /dev/null || echo 1)
+  if [ "$r" -ne 0 ]; then rc=$r; fi
+done
 rm -rf "$logs"
 exit "$rc"

@@ -139,6 +139,7 @@ def wall_segment(tmp_path_factory):
     return robot, st, logs
 
 
+@pytest.mark.slow  # seconds of a batch-1 closed loop; the scene geometry, clearance and footholds are checked above
 def test_wall_passage_segment(wall_segment):
     """Heaviest, largest, least grippy cell (m 0.4, d 0.10, mu 0.4) walks under the lintel."""
     robot, st, logs = wall_segment

@@ -370,6 +370,7 @@ def _box_last(b):
     return (b.P[:, cols][:, :, cols], b.q[:, cols], A, b.l[:, rows], b.u[:, rows]), nrho
 
 
+@pytest.mark.slow  # the Pallas interpreter's compiles; the kernels' flags and factorization are checked below
 @pytest.mark.parametrize("eq_rows,max_iters,box", [(24, 200, True), (0, 0, False)])
 def test_fused_kernel_equals_xla_iterations(eq_rows, max_iters, box):
     """QPSettings.kernel='fused' (the whole solve in three Pallas kernels: preparation, factorization, iterations
