@@ -1,16 +1,18 @@
 """``wbc-jax replay CAMPAIGN_DIR --run N``: re-simulate runs of a finished campaign and look at them.
 
 The runs (``--run N``, ``--runs N,M`` or ``--failed``) are simulated again exactly as the campaign simulated them
-(:mod:`~wbc_jax.studies.replay_sim`: its spec, per-run draws, gains, variants, physics backend and sensing, in a
-batch of its size with its chunks), after its record is checked (:mod:`~wbc_jax.studies.replay_inputs`: a spec,
-gains or results table that does not match ``manifest.json`` is a one-line error and nothing is written). Each
+(:mod:`~wbc_jax.studies.replay_sim`: its spec, per-run draws, gains, variants, physics backend, sensing and XLA
+settings, in a batch of its shape with its chunks), after its record is checked
+(:mod:`~wbc_jax.studies.replay_inputs`: a spec, gains or results table that does not match ``manifest.json`` is a
+one-line error and nothing is written). Each
 run's R, T, S, success, failure reason and failure instant are compared with its row of ``results.csv``
 (:mod:`~wbc_jax.studies.replay_check`); one line per run says whether they agree (bit for bit on the campaign's
 device and backend). Per run, ``OUT/run_N/`` (its own output folder, :mod:`~wbc_jax.studies.replay_write`) holds
 ``trajectory.npz``, ``plots.png``, ``video.mp4`` (``video.gif`` without ffmpeg; none without an OpenGL backend)
 and ``manifest.json``. An earlier replay's ``run_N`` is replaced only with ``--force``; other runs' folders stay.
 
-Exit codes (:func:`main`): 0 every run agrees with the campaign, 1 some run does not (the line says which field).
+Exit codes (:func:`main`): 0 every run agrees with the campaign, 1 some run does not (its line says which field; the
+closing ``REPLAY MISMATCH`` line says what differed from the campaign's run, or that nothing did).
 """
 
 from __future__ import annotations
