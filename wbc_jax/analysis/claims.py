@@ -11,8 +11,9 @@ there (else "not tested: <factor> is not varied"):
   heaviest level) and the Spearman rank correlation of m with max slip and T (all runs with finite values). Holds
   where a heavier object lowers success or raises slip or T significantly, and nothing goes the other way.
 - **"the effect of d is mostly negligible"**: the share of each metric's variance (R, T, S over successful runs)
-  that d's level means explain (eta^2 of a one-way layout) and the Kruskal-Wallis p. Negligible where eta^2 <
-  :data:`NEGLIGIBLE_ETA2` for every metric, whatever the p (with many runs a tiny effect is significant).
+  that d's level means explain (eta^2 of a one-way layout) and the Kruskal-Wallis p. Not negligible for a metric
+  where eta^2 >= :data:`NEGLIGIBLE_ETA2` and p < alpha (with many runs a tiny effect is significant, so p alone
+  does not decide).
 
 Plain pandas and scipy (no JAX).
 """
@@ -35,6 +36,12 @@ COLUMNS = ["claim", "factor", "answer", "evidence"]
 
 def _num(df: pd.DataFrame, col: str) -> np.ndarray:
     return pd.to_numeric(df[col], errors="coerce").to_numpy(float) if col in df else np.full(len(df), np.nan)
+
+
+def _median(x: np.ndarray) -> float:
+    """Median of the finite values; NaN when there are none."""
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if len(x) else np.nan
 
 
 def _fisher(a_ok: np.ndarray, b_ok: np.ndarray) -> float:
@@ -68,8 +75,8 @@ def mu_worse_regions(df: pd.DataFrame, factors, alpha: float) -> pd.DataFrame:
                 continue
             p_ok, p_slip = _fisher(ok[b], ok[a]), _mwu(slip[b], slip[a])
             worse_ok = ok[b].mean() < ok[a].mean() and p_ok < alpha
-            worse_slip = np.nanmedian(slip[b]) > np.nanmedian(slip[a]) and p_slip < alpha
-            rows.append([key, lo, hi, ok[a].mean(), ok[b].mean(), np.nanmedian(slip[a]), np.nanmedian(slip[b]), p_ok,
+            worse_slip = _median(slip[b]) > _median(slip[a]) and p_slip < alpha
+            rows.append([key, lo, hi, ok[a].mean(), ok[b].mean(), _median(slip[a]), _median(slip[b]), p_ok,
                          p_slip, bool(worse_ok or worse_slip)])
     return pd.DataFrame(rows, columns=["region", "mu_lo", "mu_hi", "rate_lo", "rate_hi", "slip_lo", "slip_hi",
                                        "fisher_p", "mwu_p", "worse"])
@@ -80,16 +87,17 @@ def _mu_claim(df: pd.DataFrame, factors, alpha: float) -> tuple[str, str]:
     ok, slip, mu = success_column(df).to_numpy(), _num(df, "max_slip_mm"), df["mu"].to_numpy(float)
     levels = np.sort(np.unique(mu))
     rates = [ok[mu == v].mean() for v in levels]
-    slips = [np.nanmedian(slip[mu == v]) for v in levels]
-    pooled = ", ".join(f"mu {v:g}: {r:.0%} succeed, median max slip {s:.3g} mm" for v, r, s in zip(levels, rates,
-                                                                                                  slips))
+    slips = [_median(slip[mu == v]) for v in levels]
+    r_med = [_median(_num(df, "R")[(mu == v) & ok]) for v in levels]
+    pooled = ", ".join(f"mu {v:g}: {r:.0%} succeed, median max slip {s:.3g} mm, median R {q:.4g}"
+                       for v, r, s, q in zip(levels, rates, slips, r_med))
     worse = t[t["worse"]]
     evidence = f"{pooled}; {len(worse)} of {len(t)} (region, adjacent mu pair) comparisons with the larger mu worse"
     if len(worse):
         r = worse.iloc[0]
         evidence += (f" (e.g. {r.region}: mu {r.mu_lo:g} -> {r.mu_hi:g}, success {r.rate_lo:.0%} -> {r.rate_hi:.0%}, "
                      f"median slip {r.slip_lo:.3g} -> {r.slip_hi:.3g} mm)")
-    monotone = all(np.diff(rates) >= 0) and all(np.diff(slips) <= 0)
+    monotone = all(np.diff(rates) >= 0) and not np.any(np.diff(slips) > 0)  # NaN (no slip column): success only
     answer = "contradicted" if len(worse) else ("holds" if monotone else "not always (pooled trend not monotone)")
     return answer, evidence
 
@@ -150,10 +158,10 @@ def _d_claim(df: pd.DataFrame, alpha: float) -> tuple[str, str]:
         testable = all(len(s) for s in samples) and np.ptp(y[np.isfinite(y)]) > 0
         p = float(sps.kruskal(*samples).pvalue) if testable else np.nan
         parts.append(f"{col}: eta^2 = {eta:.3g}, Kruskal-Wallis p = {p:.3g}")
-        if eta >= NEGLIGIBLE_ETA2:
+        if eta >= NEGLIGIBLE_ETA2 and p < alpha:
             large.append(col)
     answer = "holds" if not large else f"contradicted for {', '.join(large)}"
-    return answer, "; ".join(parts) + f" (negligible: eta^2 < {NEGLIGIBLE_ETA2:g})"
+    return answer, "; ".join(parts) + f" (not negligible: eta^2 >= {NEGLIGIBLE_ETA2:g} with p < {alpha:g})"
 
 
 def answer_claims(df: pd.DataFrame, factors, alpha: float = 0.05) -> pd.DataFrame:
