@@ -142,3 +142,21 @@ def test_obj_accel_ramps():
         paper = tomllib.load(f)
     assert spec.parse_spec(paper).hash == spec.parse_spec({**paper, "campaign": {**paper["campaign"],
                                                                                 "obj_accel": 0.0}}).hash
+
+
+def test_obj_accel_is_the_plans_peak_acceleration():
+    import jax
+    import jax.numpy as jnp
+
+    from wbc_jax.planner.spline import eval_path
+    from wbc_jax.planner.transport import straight_plan
+    from wbc_jax.robot.model import Robot
+
+    s = spec.parse_spec({"campaign": dict(reps=1, scene="flat", distance=0.5, speed=0.2),
+                         "factors": dict(obj_accel=[1.0, 4.0])})
+    robot = Robot("flat")
+    for accel, ramp in zip((1.0, 4.0), build.speed_ramps(s, design(s))):
+        plan = straight_plan(robot, robot.home_qpos(0.08), distance=0.5, speed=0.2, ramp=float(ramp))
+        t = jnp.linspace(0.0, float(plan.obj_path.t_knots[-1]), 8001)
+        a = jax.vmap(eval_path, in_axes=(None, 0))(plan.obj_path, t)[2]
+        assert abs(float(jnp.max(jnp.linalg.norm(a, axis=1))) - accel) < 0.02 * accel
