@@ -138,8 +138,8 @@ class CentroidalDiag(NamedTuple):
     Attributes:
         tau: (18,) applied (clipped) torques [N m]; tau_grf: (18,) the part -J_f,a^T f against the ground
         forces (the paper's Fig. 10 split: tau_qp = tau_star + tau_grf); f: (4, 3) QP ground forces [N];
-        hdot_d: (6,) momentum-rate reference [N, N m]; prim_res, flag: ADMM residual and flag;
-        tau_excess: () largest |tau| - limit before clipping [N m] (< 0: within).
+        hdot_d: (6,) momentum-rate reference [N, N m]; prim_res, flag: ADMM residual and flag; iters: () int32
+        ADMM iterations; tau_excess: () largest |tau| - limit before clipping [N m] (< 0: within).
     """
 
     tau: jax.Array
@@ -148,6 +148,7 @@ class CentroidalDiag(NamedTuple):
     hdot_d: jax.Array
     prim_res: jax.Array
     flag: jax.Array
+    iters: jax.Array
     tau_excess: jax.Array
 
 
@@ -341,5 +342,5 @@ def centroidal_control(obs: Observation, ref: CentroidalRef, gains: CentroidalGa
     f = res.x[nv:]
     tau_grf = -dyn_c.J_foot.reshape(12, nv)[:, jnp.asarray(ids.act_dof)].T @ f
     diag = CentroidalDiag(tau=tau, tau_grf=tau_grf, f=f.reshape(N_FEET, 3), hdot_d=qp.hdot_d, prim_res=res.prim_res,
-                          flag=res.flag, tau_excess=jnp.max(jnp.abs(tau_raw) - tmax))
+                          flag=res.flag, iters=res.iters, tau_excess=jnp.max(jnp.abs(tau_raw) - tmax))
     return tau, cs._replace(warm=res, sw_int=sw_int), diag

@@ -1,7 +1,8 @@
-"""Build everything one batched transport rollout needs from factor values.
+"""Build everything one batched rollout needs from factor values.
 
 :func:`prepare_batch` returns the batched MJX model and its in_axes, per-run initial states,
-plans, object models, gains, pushes and ground friction, each with a leading run axis B.
+plans, object models, gains, pushes and ground friction, each with a leading run axis B; the plans and gains are
+those of the Sim's controller (:mod:`wbc_jax.rollout.controllers`).
 """
 
 from __future__ import annotations
@@ -13,10 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.control.transport import TransportGains, default_gains
 from wbc_jax.planner.scene_geometry import scene_geometry
-from wbc_jax.planner.spline import pad_path
-from wbc_jax.planner.transport import TransportPlan, course_plan, straight_plan
 from wbc_jax.robot import scenario
 from wbc_jax.rollout import runs
 from wbc_jax.rollout.config import Sim
@@ -32,9 +30,9 @@ class Batch(NamedTuple):
     model: object  # batched mjx.Model
     in_axes: object  # the model's run axes (0 per run, None shared)
     state: RunState
-    plan: TransportPlan
+    plan: object  # the controller's plan of each run (the transport's: wbc_jax.planner.transport.TransportPlan)
     om: ObjectModel  # the object model of each run
-    gains: TransportGains
+    gains: object  # the controller's parameters of each run (the transport's: TransportGains)
     push: Push
     mu_ground: jax.Array
     factors: scenario.Factors
@@ -78,22 +76,6 @@ def broadcast(tree, B: int):
     return jax.tree_util.tree_map(lambda x: _device(np.broadcast_to(np.asarray(x), (B,) + np.shape(x))), tree)
 
 
-def _plan(robot, course: bool, qpos0, kw: dict) -> TransportPlan:
-    """One plan (:func:`course_plan` when ``course``, else :func:`straight_plan`, with keyword arguments ``kw``) and
-    numpy leaves, kept on disk like a compiled program (:func:`wbc_jax.runtime.aot.cached_value`: keyed by the model's
-    bytes, the start pose, ``kw``, the package's sources and the versions; off with ``WBC_JAX_CACHE=off``).
-
-    A plan is a deterministic function of those, and computing the course's (tracing and loading the landing
-    table's and the ZMP path's programs) is most of a warm campaign's setup."""
-    def compute():
-        p = course_plan(robot, qpos0, **kw) if course else straight_plan(robot, qpos0, **kw)
-        return jax.tree_util.tree_map(np.asarray, p)
-
-    static = aot.describe(robot, np.asarray(qpos0, float), "course" if course else "straight",
-                          *(f"{k}={aot.describe(v)}" for k, v in sorted(kw.items())))
-    return aot.cached_value("plan", static, compute)
-
-
 _INIT_FNS: dict = {}
 
 
@@ -109,7 +91,7 @@ def _init_fn(sim: Sim, in_axes, n_runs: int):
     return _INIT_FNS[key]
 
 
-def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push: Push | None = None,
+def prepare_batch(sim: Sim, m, mu, d, gains=None, push: Push | None = None,
                   plan_kwargs: dict | None = None, qpos0=None, qvel0=None, speed=None, ground_mu=None,
                   ramp=None) -> Batch:
     """Validated factors (each (B,) or scalar) -> a ready Batch.
@@ -118,15 +100,16 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
         sim: static rollout structure; m, mu, d: object mass [kg], tray friction, object side [m].
         gains: per-run gains with leading axis B, or unbatched (broadcast), default gains if None.
         push: per-run or unbatched Push (none if None).
-        plan_kwargs: keyword arguments of the planner: :func:`wbc_jax.planner.transport.course_plan` when
-            the scene has obstacles or terrain (blocks, a wall), else :func:`~wbc_jax.planner.transport.straight_plan`.
+        plan_kwargs: keyword arguments of the controller's planner (``Controller.make_plan``; the transport's:
+            :func:`wbc_jax.planner.transport.course_plan` when the scene has obstacles or terrain (blocks, a wall),
+            else :func:`~wbc_jax.planner.transport.straight_plan`).
         qpos0, qvel0: (B, nq), (B, nv) initial configurations and velocities; None: the home pose of each run's
             object side, at rest.
         speed: (B,) cruise speed of each run's plan [m/s] instead of ``plan_kwargs``' (None: that one).
         ground_mu: (B,) foot/ground friction of each run, in the physics and the controller (None: the scene's).
         ramp: (B,) duration of each run's speed ramps [s] (the planner's ``ramp``) instead of ``plan_kwargs``'.
     """
-    robot = sim.robot
+    robot, controller = sim.robot, sim.controller
     f = scenario.validate_factors(robot.ids, m, mu, d)
     B = f.m.shape[0]
     bm, in_axes = scenario.batch_model(robot.mjx_model, robot.mj_model, robot.ids, f, ground_mu)
@@ -143,20 +126,14 @@ def prepare_batch(sim: Sim, m, mu, d, gains: TransportGains | None = None, push:
     if qvel0 is None:
         qvel0 = np.zeros((B, robot.mj_model.nv))
     kws = [dict(kw, **{k: float(v) for k, v in zip(per_run, key[1:])}) for key in levels]
-    unique = [_plan(robot, course, q, dict(k, side=float(key[0])) if course else k)
+    unique = [controller.make_plan(robot, course, q, dict(k, side=float(key[0])) if course else k)
               for q, key, k in zip(q_levels, levels, kws)]
-    if unique[0].com_xy is not None:  # per-footstep CoM paths: as many knots as the longest plan's
-        n = max(len(p.com_xy.t_knots) for p in unique)
-        unique = [p._replace(com_xy=pad_path(p.com_xy, n)) for p in unique]
-    n = max(len(p.landing) for p in unique)  # landing tables: as many half-cycles as the longest plan's
-    unique = [p._replace(landing=np.pad(np.asarray(p.landing), ((0, n - len(p.landing)), (0, 0), (0, 0)), mode="edge"))
-              for p in unique]
-    plans = stack(unique, index=inverse)
+    plans = stack(controller.align_plans(unique), index=inverse)
     state = _init_fn(sim, in_axes, B)(bm, jnp.asarray(qpos0, float), jnp.asarray(qvel0, float))
     obj_model = ObjectModel(mass=jnp.asarray(f.m), side=jnp.asarray(f.d), mu=jnp.asarray(f.mu),
                             inset=jnp.full(B, robot.ids.obj_sphere_radius))
-    gains = default_gains() if gains is None else gains
-    if jnp.ndim(gains.kp_obj) == 0:
+    gains = controller.default_gains() if gains is None else gains
+    if not controller.batched(gains):
         gains = broadcast(gains, B)
     push = no_push() if push is None else push
     if jnp.ndim(push.t0) == 0:

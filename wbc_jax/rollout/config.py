@@ -6,9 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wbc_jax.control.transport import TransportConfig
 from wbc_jax.physics import contacts
 from wbc_jax.robot.model import Robot
+from wbc_jax.rollout.controllers import controller_class
 from wbc_jax.runtime.static import ByValue
 
 SENSING = ("auto", "exact", "delayed")
@@ -42,7 +42,8 @@ def resolve_sensing(sensing: str, backend: str, n_substeps: int = 1) -> str:
 
 @dataclass(frozen=True, eq=False)
 class Sim(ByValue):
-    """Static rollout structure: the robot, controller config, physics substeps and contact indices.
+    """Static rollout structure: the robot, the controller (:mod:`wbc_jax.rollout.controllers`), physics substeps
+    and contact indices.
 
     Compared and hashed by value (:class:`wbc_jax.runtime.static.ByValue`): equal Sims share compiled programs.
     The ``*_slots`` fields index MJX contact slots on the JAX backend and contact-sensor addresses in ``sensordata``
@@ -50,7 +51,7 @@ class Sim(ByValue):
     """
 
     robot: Robot
-    cfg: TransportConfig
+    controller: object  # a wbc_jax.rollout.controllers.Controller (its settings: .cfg)
     n_substeps: int
     log_every: int
     nonfoot_slots: np.ndarray
@@ -60,6 +61,11 @@ class Sim(ByValue):
     obj_slots: np.ndarray
     sensor_noise: bool = False  # the controller sees qvel + noise (Push.qvel_noise_std); costs a velocity pass
     sensing: str = "exact"  # "exact" (Warp: a forward call for the controller) or "delayed" (:data:`SENSING`)
+
+    @property
+    def cfg(self):
+        """The controller's static settings."""
+        return self.controller.cfg
 
     @property
     def dt_control(self) -> float:
@@ -72,16 +78,17 @@ class Sim(ByValue):
         return float(self.robot.mj_model.opt.timestep)
 
 
-def make_sim(robot: Robot, cfg: TransportConfig | None = None, n_substeps: int = 1, log_every: int = 20,
-             sensor_noise: bool = False, sensing: str = "exact") -> Sim:
+def make_sim(robot: Robot, cfg=None, n_substeps: int = 1, log_every: int = 20, sensor_noise: bool = False,
+             sensing: str = "exact", controller: str = "transport") -> Sim:
     """The Sim of ``robot``.
 
     Args:
-        robot: the scene. cfg: controller settings; ``cfg.dt`` (the control period [s]) must equal ``n_substeps``
-            x the model's timestep; None: default settings with that period.
+        robot: the scene. cfg: the controller's settings; ``cfg.dt`` (the control period [s]) must equal
+            ``n_substeps`` x the model's timestep; None: default settings with that period.
         n_substeps: physics steps per control step (>= 1). log_every: control steps per logged row.
         sensor_noise: the controller sees noisy velocities (``Push.qvel_noise_std``).
         sensing: :data:`SENSING` (:func:`resolve_sensing`).
+        controller: the controller's name (:data:`wbc_jax.rollout.controllers.CONTROLLERS`).
 
     Raises:
         ValueError: ``n_substeps`` < 1, a control period that is not ``n_substeps`` physics steps, or a sensing
@@ -92,11 +99,13 @@ def make_sim(robot: Robot, cfg: TransportConfig | None = None, n_substeps: int =
     if n_substeps < 1:
         raise ValueError(f"n_substeps = {n_substeps}: expected >= 1")
     sensing = resolve_sensing(sensing, robot.backend, n_substeps)
-    cfg = cfg or TransportConfig(dt=h * n_substeps)
+    kind = controller_class(controller)
+    plug_in = kind.default(h * n_substeps) if cfg is None else kind(cfg)
+    cfg = plug_in.cfg
     if abs(cfg.dt - h * n_substeps) > 1e-9 * h:
         raise ValueError(f"control period cfg.dt = {cfg.dt} s != n_substeps ({n_substeps}) x the model's timestep "
                          f"({h} s)")
     idx = contacts.sim_indices(robot)
-    return Sim(robot=robot, cfg=cfg, n_substeps=n_substeps, log_every=log_every, nonfoot_slots=idx.nonfoot,
+    return Sim(robot=robot, controller=plug_in, n_substeps=n_substeps, log_every=log_every, nonfoot_slots=idx.nonfoot,
                nonfoot_geoms=idx.nonfoot_geoms, wall_slots=idx.wall, foot_slots=idx.foot, obj_slots=idx.obj,
                sensor_noise=sensor_noise, sensing=sensing)

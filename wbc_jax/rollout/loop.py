@@ -22,7 +22,8 @@ from wbc_jax.runtime.static import axes_key
 def make_chunk_fn(sim: Sim, n_logs: int, model_axes):
     """One chunk of every run: ``n_logs`` x ``log_every`` control steps, the runs batched inside each step.
 
-    Returns f(batched model, state, plan, obj_model, gains, push, mu_ground) -> (state, Log with axes (run, log)),
+    Returns f(batched model, state, plan, obj_model, gains, push, mu_ground) -> (state, the controller's log with
+    axes (run, log)),
     for ``jax.jit``; every argument after the model has the runs on its axis 0, the model on ``model_axes``
     (``Batch.in_axes``).
 
@@ -30,13 +31,12 @@ def make_chunk_fn(sim: Sim, n_logs: int, model_axes):
     (``vmap(scan(step))``): the step is traced once, batched, instead of traced and then run again under the scans'
     batching rules; the compiled programs are the same.
     """
-    nu = sim.robot.mj_model.nu
     step = jax.vmap(functools.partial(control_step, sim), in_axes=(model_axes, 0, 0, 0, 0, 0, 0))
 
     def chunk(m, run_state, plan, obj_model, gains, push, mu_ground):
         # the log of the period's last step rides in the carry (overwritten every step) rather than as the inner
         # scan's stacked output, of which only the last row was kept
-        log0 = jax.vmap(lambda d: empty_log(d, nu))(run_state.d)
+        log0 = jax.vmap(lambda d: empty_log(sim, d))(run_state.d)
 
         def inner(carry, _):
             return step(m, carry[0], plan, obj_model, gains, push, mu_ground), None

@@ -6,7 +6,6 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-from wbc_jax.metrics import paper
 from wbc_jax.physics import backend as physics
 from wbc_jax.physics.clearance import clearance_pairs
 from wbc_jax.planner.scene_geometry import scene_geometry
@@ -14,22 +13,21 @@ from wbc_jax.rollout.config import Sim
 from wbc_jax.rollout.state import RunState
 
 
-def final_results(sim: Sim, state: RunState, p_goal, mu, n: int | None = None) -> dict[str, np.ndarray]:
-    """:func:`wbc_jax.metrics.paper.finalize` of a batch's final state.
+def final_results(sim: Sim, state: RunState, final_input, mu, n: int | None = None) -> dict[str, np.ndarray]:
+    """The per-run results of a batch's final state: the controller's (``Controller.finalize``; the transport's:
+    :func:`wbc_jax.metrics.paper.finalize`) and the shared ones (constraint-solver cap, first non-foot contact,
+    closest clearance pair).
 
     Args:
-        state: batched RunState at the end of the runs; p_goal: (B, 3) the object's goal position [m] (the
-            reference's last point); mu: (n or B,) tray friction of each run.
+        state: batched RunState at the end of the runs; final_input: ``Controller.final_input`` of the last logs
+            (the transport's: (B, 3) the object's goal position [m], the reference's last point); mu: (n or B,)
+            tray friction of each run.
         n: keep the first n runs (drops the padding of a sharded batch); None: all.
     """
     acc = jax.device_get(state.acc)
-    p_obj = np.asarray(state.d.xpos[:, sim.robot.ids.obj_body])
-    p_goal = np.asarray(p_goal)
     if n is not None:
         acc = jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], acc)
-        p_obj, p_goal = p_obj[:n], p_goal[:n]
-    out = paper.finalize(acc, sim.dt_control, mu, course=scene_geometry(sim.robot).is_course,
-                         final_err=np.linalg.norm(p_obj - p_goal, axis=1), substeps=sim.n_substeps)
+    out = sim.controller.finalize(sim, acc, state, final_input, mu, n, scene_geometry(sim.robot).is_course)
     if not physics.reports_solver_cap(sim.robot):  # MJX's JAX solver does not report its iteration count
         out["solver_cap_fraction"] = np.full(len(out["success"]), np.nan)
     out["first_contact_s"] = np.asarray(acc.first_contact_t, float)

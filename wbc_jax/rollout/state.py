@@ -8,15 +8,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.control.transport import ControlState, init_control_state
 from wbc_jax.control.variants import Variant
 from wbc_jax.metrics.accumulate import init_accum
 from wbc_jax.physics import backend as physics
 from wbc_jax.physics.observe import dyn_terms
 from wbc_jax.robot.model import mjx
 from wbc_jax.rollout.config import Sim
+from wbc_jax.rollout.controllers.base import object_in_tray
+from wbc_jax.rollout.controllers.transport import Log
 from wbc_jax.rollout.packed import Packed, pack, placed_like
-from wbc_jax.types import RobotIds
+
+__all__ = ["Log", "Push", "RunState", "empty_log", "init_state", "make_push", "no_push", "object_in_tray",
+           "state_axes", "with_metric_window", "with_variant"]
 
 
 class Push(NamedTuple):
@@ -56,36 +59,19 @@ class RunState(NamedTuple):
     """Carried state of one run: MJX data, controller memory, swing bookkeeping, accumulators."""
 
     d: mjx.Data
-    cs: ControlState  # the controller's state
+    cs: Any  # the controller's state (Controller.init_state; the transport's: wbc_jax.control.transport.ControlState)
     p_lift: jax.Array  # (4, 3) [m] each foot's lift-off position
     rel0: jax.Array  # (3,) [m] object position in the tray frame at t = 0
     acc: Packed  # the run's wbc_jax.metrics.accumulate.Accum, packed (acc.max_slip reads a field; acc.unpack())
     prev: Any = None  # Sim.sensing "delayed": (qpos (nq,), qvel (nv,), time ()) of the state d's derived fields
     #                   (kinematics, M, contacts, sensors) belong to, the start of the last physics step; else None
+    metrics: Any = None  # the controller's own online reductions (Controller.init_metrics; None: none)
 
 
-class Log(NamedTuple):
-    """Logged every ``log_every`` steps (per run): time, object and CoM actual vs reference, QP residual,
-    torques, and the full configuration qpos (nq,) for replay and video."""
-
-    t: jax.Array
-    p_obj: jax.Array
-    p_obj_ref: jax.Array
-    com: jax.Array
-    com_ref: jax.Array
-    slip: jax.Array
-    trunk_z: jax.Array
-    prim_res: jax.Array
-    tau: jax.Array
-    qpos: jax.Array
-
-
-def empty_log(d, nu: int) -> Log:
-    """A Log of zeros shaped like one run's (``d``: that run's mjx.Data; ``nu``: actuators): the inner loop's
+def empty_log(sim: Sim, d):
+    """The controller's log row of zeros shaped like one run's (``d``: that run's mjx.Data): the inner loop's
     initial carry, which the first control step overwrites."""
-    z, z3 = jnp.zeros_like(d.time), jnp.zeros(3, d.qpos.dtype)
-    return Log(t=z, p_obj=z3, p_obj_ref=z3, com=z3, com_ref=z3, slip=z, trunk_z=z, prim_res=z,
-               tau=jnp.zeros(nu, d.qpos.dtype), qpos=jnp.zeros_like(d.qpos))
+    return sim.controller.empty_log(d, sim.robot.mj_model.nu)
 
 
 def state_axes(sim: Sim, state: RunState) -> RunState:
@@ -94,12 +80,6 @@ def state_axes(sim: Sim, state: RunState) -> RunState:
     (``wbc_jax.rollout.runs``)."""
     zeros = jax.tree_util.tree_map(lambda _: 0, state)
     return zeros._replace(d=physics.data_axes(sim.robot, state.d))
-
-
-def object_in_tray(d, ids: RobotIds) -> jax.Array:
-    """(3,) [m] the object's position in the tray-top frame."""
-    R = d.site_xmat[ids.tray_site]
-    return R.T @ (d.xpos[ids.obj_body] - d.site_xpos[ids.tray_site])
 
 
 def init_state(sim: Sim, m, qpos0, qvel0=None, n_runs: int = 1) -> RunState:
@@ -113,8 +93,9 @@ def init_state(sim: Sim, m, qpos0, qvel0=None, n_runs: int = 1) -> RunState:
     dyn = dyn_terms(m, d, ids)
     acc = init_accum(dyn.p_base[2])
     prev = (d.qpos, d.qvel, d.time) if sim.sensing == "delayed" else None
-    return RunState(d=d, cs=init_control_state(sim.cfg, dyn, ids), p_lift=dyn.p_foot, rel0=object_in_tray(d, ids),
-                    acc=pack(acc), prev=prev)
+    return RunState(d=d, cs=sim.controller.init_state(sim.robot, d, dyn), p_lift=dyn.p_foot,
+                    rel0=object_in_tray(d, ids), acc=pack(acc), prev=prev,
+                    metrics=sim.controller.init_metrics(sim.robot, d, dyn))
 
 
 def _like(old, value):

@@ -1,16 +1,17 @@
 """One control step of one run: sense -> observation and reference -> controller -> physics period -> metrics.
 
 A control step (period ``Sim.dt_control`` = ``Sim.n_substeps`` physics steps of ``Sim.dt_physics``):
-:func:`wbc_jax.physics.backend.sense` (kinematics, M, bias) -> planner reference -> transport WBC -> torques ->
+:func:`wbc_jax.physics.backend.sense` (kinematics, M, bias) -> planner reference -> the controller (the plug-in
+``Sim.controller``, :mod:`wbc_jax.rollout.controllers`) -> torques ->
 :func:`physics_period`: :func:`wbc_jax.physics.backend.finish` (rest of the forward pass + integration), then
 ``n_substeps - 1`` further ``mjx.step`` calls with the torques (and any push force) held, as a ``lax.scan``.
 
 Monitors run at two rates. *Physics rate* (after every physics step, :func:`substep_monitors`): the paper's
 integrands 1/H and ||object acceleration|| (dt = the physics step), non-foot/floor and wall contact, object off the
 tray, clearance; so a contact or an acceleration spike inside a control period is not missed and the integrals do
-not depend on the control period. *Control rate* (from the sensed state, once per control step): trunk height,
-slip and lift on the tray, tracking error, torque ratios, QP residuals and flags, and the log. Both fold into the
-run's :class:`wbc_jax.metrics.accumulate.Accum`.
+not depend on the control period. *Control rate* (from the sensed state, once per control step): the controller's
+sample (``Controller.record``; the transport's: trunk height, slip and lift on the tray, tracking error, torque
+ratios, QP residuals and flags) and the log. Both fold into the run's :class:`wbc_jax.metrics.accumulate.Accum`.
 """
 
 from __future__ import annotations
@@ -20,11 +21,9 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from wbc_jax.control.transport import TransportGains, transport_control
 from wbc_jax.metrics import paper
 from wbc_jax.metrics.accumulate import (
     Accum,
-    ControlSample,
     SubstepMonitors,
     fold_control_step,
     fold_physics_step,
@@ -37,12 +36,11 @@ from wbc_jax.physics import contacts
 from wbc_jax.physics.contacts import CONTACT_DIST
 from wbc_jax.physics.observe import observe
 from wbc_jax.planner.scene_geometry import scene_geometry
-from wbc_jax.planner.transport import TransportPlan, reference
 from wbc_jax.robot.model import mjx
 from wbc_jax.rollout.config import Sim
 from wbc_jax.rollout.packed import pack
-from wbc_jax.rollout.state import Log, Push, RunState, object_in_tray
-from wbc_jax.types import ObjectModel, Observation, Reference
+from wbc_jax.rollout.state import Push, RunState
+from wbc_jax.types import ObjectModel, Observation
 
 
 def seen_qvel(sim: Sim, d, push: Push, step):
@@ -59,14 +57,13 @@ class ControllerInputs(NamedTuple):
 
     d: mjx.Data  # the sensed state
     obs: Observation  # the controller's observation of it (with the run's velocity noise)
-    ref: Reference  # the planner's reference (with foot contacts from the simulator)
+    ref: object  # the planner's reference (Controller.reference; with foot contacts from the simulator)
     mu_feet: jax.Array  # (4,) each foot pyramid's friction: that of the ground surface the foot is nearest to (floor
     #                     or a block), capped by the run's mu_ground (the scene's floor friction, or the campaign's
     #                     ground_mu, which the physics then also uses for every foot pair)
 
 
-def controller_inputs(sim: Sim, m, run_state: RunState, plan: TransportPlan, push: Push,
-                      mu_ground) -> ControllerInputs:
+def controller_inputs(sim: Sim, m, run_state: RunState, plan, push: Push, mu_ground) -> ControllerInputs:
     """The sensed state, the controller's observation and the reference of one control step
     (:class:`ControllerInputs`)."""
     with jax.named_scope("sense"):
@@ -81,7 +78,7 @@ def controller_inputs(sim: Sim, m, run_state: RunState, plan: TransportPlan, pus
     with jax.named_scope("dynamics_reference"):
         obs = observe(m, d_ctl, sim.robot.ids)
         dist, mu_feet = contacts.foot_ground(sim, m, d)  # (4,), (4,)
-        ref = reference(plan, d.time, run_state.p_lift, dist < CONTACT_DIST, obs.robot.p_foot)
+        ref = sim.controller.reference(plan, d.time, obs, run_state.p_lift, dist < CONTACT_DIST)
     return ControllerInputs(d, obs, ref, jnp.minimum(mu_ground, mu_feet))
 
 
@@ -181,13 +178,16 @@ def _push_force(d, push: Push, trunk_body: int):
     return jnp.zeros_like(d.xfrc_applied).at[trunk_body, 0:3].set(jnp.where(on, push.force, 0.0))
 
 
-def control_step(sim: Sim, m, run_state: RunState, plan: TransportPlan, obj_model: ObjectModel,
-                 gains: TransportGains, push: Push, mu_ground):
-    """One control period of one run. Returns (new RunState, per-step values for the log)."""
-    ids = sim.robot.ids
+def control_step(sim: Sim, m, run_state: RunState, plan, obj_model: ObjectModel, gains, push: Push, mu_ground):
+    """One control period of one run. Returns (new RunState, the controller's log row).
+
+    ``plan``, ``gains``: the run's plan and parameters of ``sim.controller``; ``obj_model``: the object on the
+    tray; ``mu_ground``: () the run's foot/ground friction.
+    """
+    ids, controller = sim.robot.ids, sim.controller
     d, obs, ref, mu = controller_inputs(sim, m, run_state, plan, push, mu_ground)
     dyn = obs.robot
-    tau, control_state, qp_diag = transport_control(obs, ref, obj_model, gains, run_state.cs, ids, sim.cfg, mu)
+    tau, control_state, diag = controller.control(obs, ref, obj_model, gains, run_state.cs, ids, mu)
     d_phys = run_state.d if sim.sensing == "delayed" else d  # delayed: d is one physics step old, torques act now
     d_phys = d_phys.replace(xfrc_applied=_push_force(d_phys, push, ids.trunk_body))
     with jax.named_scope("physics"):
@@ -195,24 +195,17 @@ def control_step(sim: Sim, m, run_state: RunState, plan: TransportPlan, obj_mode
     p_lift = jnp.where(ref.swing[:, None], run_state.p_lift, dyn.p_foot)
 
     # control-rate metrics (from the sensed state d at time t)
-    rel = object_in_tray(d, ids)
-    slip = jnp.linalg.norm(rel[:2] - run_state.rel0[:2])
-    p_obj = d.xpos[ids.obj_body]
-    sample = ControlSample(trunk_z=dyn.p_base[2], slip=slip, lift=rel[2] - run_state.rel0[2],
-                           tau_ratio=jnp.max(jnp.abs(tau) / jnp.asarray(ids.tau_max)),
-                           track_err=jnp.linalg.norm(ref.p_obj - p_obj), qp=qp_diag, obj_mu=obj_model.mu)
-    acc = fold_control_step(acc, sample, sim.dt_control)
-    acc = mark_failure(acc, paper.run_failed(acc, scene_geometry(sim.robot).is_course), d.time)
+    record = controller.record(sim, d, obs, ref, tau, diag, run_state.rel0, obj_model, run_state.metrics, plan)
+    acc = fold_control_step(acc, record.sample, sim.dt_control)
+    acc = mark_failure(acc, controller.failed(acc, scene_geometry(sim.robot).is_course), d.time)
     # a failed run (by an earlier step) is frozen: nothing of this step is kept, so its state, its metrics and its
     # failure stay as they were at its failure; a step that went non-finite keeps its last finite state
     frozen = run_state.acc.failed
     d_next = physics.freeze(finite & ~frozen, d_next, run_state.d)
     # delayed: d_next's derived fields belong to the state the step started from (a frozen run's too)
     prev = (d_phys.qpos, d_phys.qvel, d_phys.time) if sim.sensing == "delayed" else None
-    log = Log(t=d.time, p_obj=p_obj, p_obj_ref=ref.p_obj, com=dyn.com, com_ref=ref.p_com, slip=slip,
-              trunk_z=dyn.p_base[2], prim_res=qp_diag.prim_res, tau=tau, qpos=d.qpos)
     stepped = RunState(d=d_next, cs=control_state, p_lift=p_lift, rel0=run_state.rel0,
-                       acc=pack(acc, run_state.acc.layout), prev=prev)
+                       acc=pack(acc, run_state.acc.layout), prev=prev, metrics=record.metrics)
     kept = jax.tree_util.tree_map(lambda new, old: jnp.where(frozen, old, new),
                                   stepped._replace(d=None), run_state._replace(d=None))
-    return kept._replace(d=d_next), log
+    return kept._replace(d=d_next), record.log

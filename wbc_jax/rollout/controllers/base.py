@@ -1,0 +1,31 @@
+"""The controller plug-in interface: :class:`Controller` (described in :mod:`wbc_jax.rollout.controllers`) and
+its per-step :class:`Record`."""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+
+class Record(NamedTuple):
+    """What :meth:`Controller.record` returns for one control step of one run."""
+
+    sample: Any  # wbc_jax.metrics.accumulate.ControlSample folded into the shared Accum
+    metrics: Any  # the controller's own online reductions after this step (None: none)
+    log: Any  # the step's log row
+
+
+def object_in_tray(d, ids):
+    """(3,) [m] the object's position in the tray-top frame."""
+    R = d.site_xmat[ids.tray_site]
+    return R.T @ (d.xpos[ids.obj_body] - d.site_xpos[ids.tray_site])
+
+
+class Controller:
+    """Base of the controller definitions (module docstring); subclasses are frozen dataclasses with a ``cfg``
+    field (static settings; ``cfg.dt``: the control period [s]) and a class attribute ``name``."""
+
+    name = ""
+
+    def init_metrics(self, robot, d, dyn):
+        """The controller's own online reductions at t = 0 (None: it has none)."""
+        return None
