@@ -9,23 +9,16 @@ import osqp
 import pytest
 import scipy.sparse as sp
 
-from wbc_jax.control.centroidal import (
-    CentroidalConfig,
-    CentroidalRef,
-    build_qp,
-    centroidal_qp_settings,
-    default_gains,
-    scaled_model,
-)
+from wbc_jax.control.centroidal import CentroidalRef, build_qp, default_gains, scaled_model
 from wbc_jax.control.centroidal_dynamics import centroidal_terms
 from wbc_jax.physics import backend as physics
-from wbc_jax.physics.contacts import contact_slots
 from wbc_jax.physics.observe import dyn_terms
 from wbc_jax.planner import capture_point as cpm
 from wbc_jax.planner.gait import GaitParams
 from wbc_jax.qp import QPSettings, solve_qp
 from wbc_jax.robot.model import Robot, mjx
-from wbc_jax.studies.trot import TrotSim, init_run, make_plan, simulate
+from wbc_jax.rollout.controllers.centroidal import walk_plan
+from wbc_jax.studies.trot import TrotSettings, run_study
 from wbc_jax.studies.trot_analysis import SNAPSHOT_SIZE, write_snapshots
 
 MOM_RTOL = 2e-5  # float32 A_G v vs float64 references, relative to ||h||
@@ -171,13 +164,13 @@ def test_cp_recursion_matches_closed_form_and_pattern_starts_at_rest():
     np.testing.assert_allclose(np.asarray(plan.feet[-1]).mean(axis=0), com0[:2] + [0.0, -(N - 1) * 0.1], atol=CP_TOL)
 
 
-@pytest.fixture(scope="module")
-def trot_sim(robot):
-    return TrotSim(robot=robot, cfg=CentroidalConfig(qp=centroidal_qp_settings(40)), log_every=10,
-                   nonfoot_slots=contact_slots(robot)[0])
+def make_plan(robot, qpos0, stride, step_time, t_four, n_steps, t_start=0.5):
+    """(CPWalkPlan, trunk R0 (3, 3)) of the rollout's centroidal plug-in."""
+    plan = walk_plan(robot, qpos0, stride, step_time, t_four, n_steps, t_start=t_start)
+    return plan.walk, plan.R0
 
 
-def test_qp_matches_osqp_and_obeys_the_model(robot, trot_sim):
+def test_qp_matches_osqp_and_obeys_the_model(robot):
     """A two-foot-support QP (FL, BR swinging): ADMM against OSQP, floating-base rows and friction pyramids."""
     ids = robot.ids
     q0 = robot.home_qpos()
@@ -219,29 +212,26 @@ def test_qp_matches_osqp_and_obeys_the_model(robot, trot_sim):
     assert np.all(np.abs(np.asarray(A_tau, float) @ x + np.asarray(b_tau, float)) <= np.asarray(ids.tau_max))
 
 
-def test_short_trot_keeps_the_robot_up(robot, trot_sim, tmp_path):
-    """Four steps at 0.4 m/s with the exact model and a 20 % too light one (one batch); the Fig. 9 strip of its
-    logged configurations (skipped part without an offscreen OpenGL backend)."""
+def test_short_trot_keeps_the_robot_up(robot, tmp_path):
+    """Four steps at 0.4 m/s with the exact model and a 20 % too light one (one batch of the shared rollout with
+    the centroidal plug-in); the Fig. 9 strip of its logged configurations (skipped part without an offscreen
+    OpenGL backend)."""
     ids = robot.ids
-    q0 = robot.home_qpos()
-    plan, R0 = make_plan(robot, q0, 0.1, 0.25, 0.08, 4, t_start=0.2)
-    errors = jnp.array([0.0, -0.2])
-    B = errors.shape[0]
-    gains = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (B,) + x.shape), default_gains())
-    gains = gains._replace(mass_scale=1.0 + errors)
-    init = jax.jit(jax.vmap(lambda q: init_run(trot_sim, robot.mjx_model, q)))
-    runs0 = init(jnp.broadcast_to(jnp.asarray(q0), (B,) + q0.shape))
-    st, logs = simulate(trot_sim, runs0, plan, jnp.asarray(R0), gains, TROT_SECONDS, chunk_seconds=TROT_SECONDS)
-    acc = jax.device_get(st.acc)
-    assert not acc.nonfinite.any() and not acc.nonfoot_floor.any()
+    study = run_study(TrotSettings(n_steps=4, mass_errors=(0.0, -0.2), log_every=10, t_start=0.2, t_settle=0.3),
+                      chunk_seconds=TROT_SECONDS, verbose=False)
+    acc, res, logs = jax.device_get(study.state.acc), study.results, study.logs
+    assert not acc.nonfinite.any() and not acc.nonfoot_floor.any() and res["success"].all()
     assert np.all(acc.min_trunk_z > TROT_Z_MIN), acc.min_trunk_z
-    assert np.all(acc.max_abs_tau <= np.asarray(ids.tau_max))
+    assert np.all(res["max_tau_ratio"] <= 1.0)
     assert np.all(np.abs(logs.rpy).max(axis=(1, 2)) < TROT_ATTITUDE_MAX), np.abs(logs.rpy).max(axis=1)
+    plan = jax.tree_util.tree_map(lambda x: np.asarray(x)[0], study.batch.plan.walk)
     h = np.asarray(plan.heading)
     progress = (logs.com[:, -1, :2] - logs.com[:, 0, :2]) @ h  # planned: 3 strides = 0.3 m
     assert np.all(progress > 0.2), progress
+    np.testing.assert_allclose(res["planned_distance_m"], 0.3, rtol=1e-6)
     # it stepped: every foot moved forward by about two strides or more
-    feet = np.asarray(st.d.site_xpos[:, ids.foot_site, :2] - runs0.d.site_xpos[:, ids.foot_site, :2]) @ h
+    feet0 = np.asarray(jax.device_get(study.batch.state.d.site_xpos[:, ids.foot_site, :2]))
+    feet = (np.asarray(study.state.d.site_xpos[:, ids.foot_site, :2]) - feet0) @ h
     assert np.all(feet > 0.15), feet
     snap = write_snapshots(tmp_path / "fig9.png", robot, logs, 0, plan, 0.2, 1.2, 0.25, 4)
     assert len(snap["times_s"]) == 4

@@ -90,18 +90,22 @@ def sensing_of(spec: Spec) -> str:
 
 
 def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, backend: str = "jax",
-         solver_iterations: int = 0, sensing: str = "exact"):
-    """The (cached) Sim of a scene: ``iters`` ADMM iterations, control period ``substeps`` x the scene's timestep."""
+         solver_iterations: int = 0, sensing: str = "exact", controller: str = "transport"):
+    """The (cached) Sim of a scene: ``controller`` with ``iters`` ADMM iterations, control period ``substeps`` x the
+    scene's timestep."""
+    from wbc_jax.control.centroidal import CentroidalConfig, centroidal_qp_settings
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
     from wbc_jax.robot.model import Robot
     from wbc_jax.rollout import make_sim
 
-    key = (scene, iters, sensor_noise, substeps, backend, solver_iterations, sensing)
+    key = (scene, iters, sensor_noise, substeps, backend, solver_iterations, sensing, controller)
     if key not in _SIMS:
         robot = Robot(scene, backend=backend, solver_iterations=solver_iterations)
-        cfg = TransportConfig(dt=float(robot.mj_model.opt.timestep) * substeps, qp=control_qp_settings(iters))
+        dt = float(robot.mj_model.opt.timestep) * substeps
+        cfg = (TransportConfig(dt=dt, qp=control_qp_settings(iters)) if controller == "transport"
+               else CentroidalConfig(qp=centroidal_qp_settings(iters), dt=dt))
         _SIMS[key] = make_sim(robot, cfg, n_substeps=substeps, log_every=LOG_EVERY, sensor_noise=sensor_noise,
-                              sensing=sensing)
+                              sensing=sensing, controller=controller)
     return _SIMS[key]
 
 
@@ -147,6 +151,20 @@ def initial_configuration(robot, dz: Design):
     return qpos, qvel
 
 
+def centroidal_gains(gains, dz: Design):
+    """Per-run gains of the centroidal controller (leading run axis): ``gains`` (unbatched CentroidalGains; None: the
+    defaults) with ``mass_scale`` = 1 + the run's mass error and ``load_mass`` = its object mass (the controller
+    knows its payload)."""
+    from wbc_jax.control.centroidal import default_gains
+
+    base = default_gains() if gains is None else gains
+    out = {name: np.broadcast_to(np.asarray(leaf), (dz.n,) + np.shape(leaf)) for name, leaf in zip(base._fields, base)}
+    dtype = out["mass_scale"].dtype
+    out["mass_scale"] = (1.0 + dz.mass_error).astype(dtype)
+    out["load_mass"] = np.asarray(dz.m).astype(dtype)
+    return type(base)(**{k: jax.numpy.asarray(v) for k, v in out.items()})
+
+
 def run_gains(gains, dz: Design):
     """Per-run gains of a design: ``gains`` (unbatched TransportGains; None: the defaults) with each ``gain.*``
     factor's multiplier applied (leaves with a leading run axis); unbatched as given without such factors."""
@@ -165,28 +183,40 @@ def run_gains(gains, dz: Design):
     return type(base)(**out)
 
 
+def walk_steps(campaign: dict) -> int:
+    """The centroidal trot's half-cycles: walk_seconds in half-cycles of step_time, at least 2."""
+    return max(2, int(round(campaign["walk_seconds"] / campaign["step_time"])))
+
+
+def _plan_kwargs(campaign: dict) -> dict:
+    """The controller's planner keywords of a spec's ``campaign`` table."""
+    if campaign["controller"] == "centroidal":
+        return dict(speed=campaign["speed"], step_time=campaign["step_time"], four_foot=campaign["four_foot"],
+                    n_steps=walk_steps(campaign))
+    return dict(distance=campaign["distance"], speed=campaign["speed"], terrain=campaign["terrain"],
+                com_plan=campaign["com_plan"])
+
+
 def build(spec: Spec, gains=None) -> Built:
     """Spec -> :class:`Built` (the Sim, the design, the Batch with perturbed initial states and pushes, the chunk
-    plan). ``gains``: controller gains (TransportGains, unbatched) instead of the defaults."""
+    plan). ``gains``: controller gains (unbatched, of the spec's controller) instead of the defaults."""
     from wbc_jax.control.variants import Variant
-    from wbc_jax.planner.transport import plan_duration
     from wbc_jax.rollout import make_push, with_metric_window, with_variant
     from wbc_jax.rollout.batch import prepare_batch
 
     c = spec.campaign
     dz = design(spec)
+    transport = c["controller"] == "transport"
     sim = _sim(contact_scene(c), c["qp_iters"], bool(np.any(dz.qvel_noise_std > 0)), c["control_substeps"],
-               backend_of(spec), c["solver_iterations"], sensing_of(spec))
+               backend_of(spec), c["solver_iterations"], sensing_of(spec), c["controller"])
     qpos0, qvel0 = initial_configuration(sim.robot, dz)
-    b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=run_gains(gains, dz),
-                      plan_kwargs=dict(distance=c["distance"], speed=c["speed"], terrain=c["terrain"],
-                                       com_plan=c["com_plan"]),
-                      qpos0=qpos0, qvel0=qvel0,
+    gains = run_gains(gains, dz) if transport else centroidal_gains(gains, dz)
+    b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=gains, plan_kwargs=_plan_kwargs(c), qpos0=qpos0, qvel0=qvel0,
                       speed=dz.speed if "speed" in spec.factors else None,
                       ground_mu=dz.ground_mu if np.all(dz.ground_mu > 0) else None,
                       ramp=speed_ramps(spec, dz))
-    planned_s = plan_duration(b.plan)
-    t_plan = np.asarray(b.plan.obj_path.t_knots)[:, -1]  # (B,) each run's plan end [s]
+    planned_s = sim.controller.planned_s(b.plan)
+    t_plan = sim.controller.plan_end(b.plan)  # (B,) each run's plan end [s]
     # push start: a fraction of the planned duration (each run's own when the speed or the ramps are varied)
     own = "speed" in spec.factors or "obj_accel" in spec.factors
     push = make_push(dz.push_force, dz.push_frac * (t_plan if own else planned_s),
@@ -195,7 +225,9 @@ def build(spec: Spec, gains=None) -> Built:
     t_end = t_plan + c["extra_seconds"]
     if c["max_seconds"] > 0:
         t_end = np.minimum(t_end, c["max_seconds"])
-    state = with_variant(with_metric_window(b.state, t_end), Variant(*dz.variant.T))
+    state = with_metric_window(b.state, t_end)
+    if transport:
+        state = with_variant(state, Variant(*dz.variant.T))
     b = b._replace(push=push, state=state)
     return Built(sim, dz, b, planned_s, *chunk_plan(c, sim.dt_control, planned_s))
 

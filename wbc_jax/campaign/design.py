@@ -29,7 +29,8 @@ class Design:
     :func:`wbc_jax.campaign.build.build`), push_duration [s]; qvel_noise_std [m/s, rad/s] (controller-view
     velocity noise, drawn during the rollout from the run's seed); ground_mu (foot/ground friction, 0: the
     scene's), speed [m/s] (cruise speed of the run's plan); variant (B, 3) the controller's ablation switches
-    (tray_cone, observer, posture; :mod:`wbc_jax.control.variants`); gain_scale: leaf -> (B,) multiplier of that
+    (tray_cone, observer, posture; :mod:`wbc_jax.control.variants`); mass_error: the centroidal controller's
+    model mass error (fraction); gain_scale: leaf -> (B,) multiplier of that
     ``TransportGains`` leaf (the ``gain.*`` factors); levels: factor name -> (B,) the run's level of each
     varied factor (the results table's factor columns).
     """
@@ -50,6 +51,7 @@ class Design:
     ground_mu: np.ndarray
     speed: np.ndarray
     variant: np.ndarray
+    mass_error: np.ndarray
     gain_scale: dict
     levels: dict
 
@@ -101,7 +103,7 @@ def design(spec) -> Design:
         push_force=push, push_frac=a + (b - a) * draws[:, 7],
         push_duration=np.where(pushed, p["push_duration_s"], 0.0),
         qvel_noise_std=value("qvel_noise_std", p["qvel_noise_std"]), ground_mu=value("ground_mu", c["ground_mu"]),
-        speed=value("speed", c["speed"]), variant=switches,
+        speed=value("speed", c["speed"]), variant=switches, mass_error=value("mass_error", c["mass_error"]),
         gain_scale={k[len(factors_mod.GAIN_PREFIX):]: v for k, v in levels.items()
                     if k.startswith(factors_mod.GAIN_PREFIX)},
         levels=levels)

@@ -62,6 +62,7 @@ REGISTRY = {
     "qvel_noise_std": FactorDef("number", "perturbations.qvel_noise_std", 0.0, 1.0, False, "[m/s, rad/s]"),
     "observer": FactorDef("bool", "on (unless the variant turns it off)"),
     "variant": FactorDef("choice", "campaign.variant", choices=tuple(VARIANTS)),
+    "mass_error": FactorDef("number", "campaign.mass_error", -0.5, 1.0, True, "[-] fraction (centroidal)"),
 }
 GAIN = FactorDef("number", "1 (the campaign's gains)", 0.0, 100.0, False, "[x the leaf's value]")
 

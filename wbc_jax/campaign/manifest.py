@@ -20,6 +20,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
+from wbc_jax.campaign import controllers
 from wbc_jax.campaign.build import n_runs_of
 from wbc_jax.campaign.results import Summary, nan_none
 from wbc_jax.campaign.spec import Spec
@@ -29,7 +30,6 @@ from wbc_jax.runtime import jaxcfg
 COMMAND = "wbc-jax campaign"
 PACKAGES = ("wbc_jax", "jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy", "scipy", "statsmodels", "pandas")
 NUMERICS = ("wbc_jax", "jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy")  # their versions can change a rollout
-METRIC_MEANS = ("R", "T", "S", "max_slip_mm")
 
 
 class Timing(NamedTuple):
@@ -95,7 +95,7 @@ def git_commit(package_dir: Path | None = None) -> str | None:
 
 
 def gains_hash(gains=None) -> str:
-    """SHA-256 of every gains leaf's dtype, shape and value (None: the default gains)."""
+    """SHA-256 of every gains leaf's dtype, shape and value (None: the transport's default gains)."""
     from wbc_jax.control.transport import default_gains
 
     h = hashlib.sha256()
@@ -213,7 +213,8 @@ def campaign_manifest(spec: Spec, built, df, summary: Summary, timing: Timing, *
         resumed=len(sessions) > 1, n_success=int(ok.sum()), failures_per_cell=summary.failures_per_cell,
         failed_runs=summary.failed_runs, qp_flagged_runs=summary.qp_flagged_runs,
         qp_flag_fraction_max=nan_none(df.qp_flag_fraction.max()), warnings=summary.warnings,
-        metric_means={k: float(df.loc[ok, k].mean()) if ok.any() else None for k in METRIC_MEANS},
+        metric_means={k: float(df.loc[ok, k].mean()) if ok.any() else None
+                      for k in controllers.info(spec.campaign).means},
         constraint_solver=dict(iterations=int(sim.robot.mj_model.opt.iterations),
                                cap_fraction_mean=nan_none(df.solver_cap_fraction.mean()),
                                cap_fraction_max=nan_none(df.solver_cap_fraction.max())),

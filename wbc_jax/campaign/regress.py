@@ -16,14 +16,16 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from wbc_jax.campaign import controllers
 from wbc_jax.campaign.factors import OBJECT
 from wbc_jax.campaign.runner import run_campaign, run_in_fresh_process
 from wbc_jax.campaign.spec import load_spec
 from wbc_jax.errors import InputError, SpecError, WbcJaxError
 from wbc_jax.io_utils import read_capped, write_json_atomic
 
-REGRESS_METRICS = ("R", "T", "S", "max_slip_mm")
-DEFAULT_TOL = {"R": (0.02, 1e-3), "T": (0.05, 2e-5), "S": (0.05, 1e-3), "max_slip_mm": (0.10, 0.05)}  # (rel, abs)
+DEFAULT_TOL = controllers.CONTROLLERS["transport"].regress  # the transport's (rel, abs) bands; each controller's:
+#                                                             wbc_jax.campaign.controllers (.regress)
+REGRESS_METRICS = tuple(DEFAULT_TOL)
 # Rounding probes of `regress --update` on the CPU: the baseline spec rerun with XLA's CPU code generation capped at
 # these instruction sets. Another machine's CPU (vector width, FMA contraction) rounds float32 differently, which in
 # short runs with sliding contacts moves some cell means by more than the tolerance; the probes' spread is stored per
@@ -32,7 +34,7 @@ ROUNDING_PROBE_ISAS = ("SSE4_2", "AVX", "AVX2")
 NOISE_FACTOR = 2.0  # band = rel |baseline| + abs + NOISE_FACTOR x the probes' largest deviation from their mean
 
 
-def _rounding_probes(spec_p: Path, factors) -> list[list[dict]]:
+def _rounding_probes(spec_p: Path, factors, metrics) -> list[list[dict]]:
     """Cell means of the spec rerun in fresh processes with XLA's CPU codegen capped at each ROUNDING_PROBE_ISAS
     entry (one compile each, no persistent cache). A probe that fails is an error: the noise floor would be unknown."""
     import pandas as pd
@@ -44,11 +46,11 @@ def _rounding_probes(spec_p: Path, factors) -> list[list[dict]]:
             flags = (os.environ.get("XLA_FLAGS", "") + f" --xla_cpu_max_isa={isa}").strip()
             run = run_in_fresh_process(spec_p, Path(td) / "run", JAX_PLATFORMS="cpu", WBC_JAX_CACHE="off",
                                        XLA_FLAGS=flags)
-            out.append(cell_means(pd.read_csv(run / "results.csv"), factors))
+            out.append(cell_means(pd.read_csv(run / "results.csv"), factors, metrics))
     return out
 
 
-def _with_noise(cells: list[dict], probes: list[list[dict]]) -> list[dict]:
+def _with_noise(cells: list[dict], probes: list[list[dict]], metrics=REGRESS_METRICS) -> list[dict]:
     """``cells`` with each metric replaced by its mean over this run and the probes, and ``noise``: per metric the
     largest |run - mean| (None where a metric is undefined in some run). Success counts stay this run's."""
     runs = [cells] + probes
@@ -56,7 +58,7 @@ def _with_noise(cells: list[dict], probes: list[list[dict]]) -> list[dict]:
     for i, c in enumerate(cells):
         c = dict(c)
         noise = {}
-        for k in REGRESS_METRICS:
+        for k in metrics:
             vals = [r[i][k] for r in runs]
             if any(v is None for v in vals):
                 noise[k] = None
@@ -69,8 +71,8 @@ def _with_noise(cells: list[dict], probes: list[list[dict]]) -> list[dict]:
     return out
 
 
-def cell_means(df, factors=OBJECT) -> list[dict]:
-    """Per-cell means of the regression metrics over successful runs, and success counts; a cell is one
+def cell_means(df, factors=OBJECT, metrics=REGRESS_METRICS) -> list[dict]:
+    """Per-cell means of the regression ``metrics`` over successful runs, and success counts; a cell is one
     combination of ``factors``' levels (the spec's factors: every one of them, so distinct cells never merge)."""
     rows = []
     for key, g in df.groupby(list(factors)):
@@ -78,7 +80,7 @@ def cell_means(df, factors=OBJECT) -> list[dict]:
         ok = g[g.success.astype(bool)]
         rows.append(dict(**{f: _plain_level(v) for f, v in zip(factors, key)}, runs=int(len(g)),
                          n_success=int(len(ok)),
-                         **{k: (float(ok[k].mean()) if len(ok) else None) for k in REGRESS_METRICS}))
+                         **{k: (float(ok[k].mean()) if len(ok) else None) for k in metrics}))
     return rows
 
 
@@ -99,7 +101,8 @@ def _label(key: tuple, factors) -> str:
 def compare(baseline: dict, cells: list[dict], factors=None) -> list[dict]:
     """Rows that moved: a metric mean outside |new - old| <= rel |old| + abs + NOISE_FACTOR x noise (the cell's
     rounding noise, ``old["noise"][metric]``, 0 where the baseline has none), a success count change or a
-    missing cell. Cells are matched on ``factors`` (default: the baseline's, else m, mu, d)."""
+    missing cell. Cells are matched on ``factors`` (default: the baseline's, else m, mu, d); the metrics are those
+    of the baseline's ``tolerance``."""
     factors = list(factors or baseline.get("factors") or OBJECT)
     tol = baseline["tolerance"]
     new = {_key(c, factors): c for c in cells}
@@ -114,7 +117,7 @@ def compare(baseline: dict, cells: list[dict], factors=None) -> list[dict]:
         if c["n_success"] != old["n_success"]:
             moved.append(dict(cell=key, metric="n_success", baseline=old["n_success"], now=c["n_success"],
                               band="exact"))
-        for k in REGRESS_METRICS:
+        for k in tol:
             a, b = old.get(k), c.get(k)
             rel, ab = tol[k]["rel"], tol[k]["abs"]
             if a is None or b is None:
@@ -127,8 +130,8 @@ def compare(baseline: dict, cells: list[dict], factors=None) -> list[dict]:
     return moved
 
 
-def load_baseline(base_p: Path, factors=OBJECT) -> dict:
-    """Read and check ``baseline.json``: a ``tolerance`` (rel, abs >= 0 per metric of REGRESS_METRICS), a non-empty
+def load_baseline(base_p: Path, factors=OBJECT, metrics=REGRESS_METRICS) -> dict:
+    """Read and check ``baseline.json``: a ``tolerance`` (rel, abs >= 0 per metric of ``metrics``), a non-empty
     list of ``cells`` (each factor's level, n_success and each metric a number or null) and the ``spec_hash``.
 
     Raises:
@@ -148,7 +151,7 @@ def load_baseline(base_p: Path, factors=OBJECT) -> dict:
         raise bad("expected keys tolerance, cells")
     if not isinstance(b.get("spec_hash"), str):
         raise bad("expected key spec_hash")
-    for k in REGRESS_METRICS:
+    for k in metrics:
         t = b["tolerance"].get(k)
         if not (isinstance(t, dict) and _num(t.get("rel")) and _num(t.get("abs")) and t["rel"] >= 0 and t["abs"] >= 0):
             raise bad(f"tolerance.{k}: expected rel and abs numbers >= 0")
@@ -156,7 +159,7 @@ def load_baseline(base_p: Path, factors=OBJECT) -> dict:
         raise bad("no cells: it would compare nothing")
     for i, c in enumerate(b["cells"]):
         if not (isinstance(c, dict) and all(_num(c.get(f)) or isinstance(c.get(f), str) for f in factors)
-                and _num(c.get("n_success")) and all(c.get(k) is None or _num(c.get(k)) for k in REGRESS_METRICS)
+                and _num(c.get("n_success")) and all(c.get(k) is None or _num(c.get(k)) for k in metrics)
                 and (c.get("noise") is None or isinstance(c["noise"], dict))):
             raise bad(f"cells[{i}]: expected {', '.join(factors)} levels, an n_success number and metric numbers "
                       "or null")
@@ -219,10 +222,11 @@ def run_regress(baseline_dir: str, update: bool = False, gains=None, out: str | 
         raise SpecError(f"{bdir}: no spec.toml in the baseline directory")
     spec = load_spec(spec_p)
     factors = list(spec.factors)
+    metrics = tuple(controllers.info(spec.campaign).regress)
     base_p = bdir / "baseline.json"
     baseline = None
     if base_p.exists():  # checked before anything is rerun
-        baseline = load_baseline(base_p, factors)
+        baseline = load_baseline(base_p, factors, metrics)
     elif not update:
         raise WbcJaxError(f"{base_p}: missing; create it with wbc-jax regress --baseline {bdir} --update")
     if update:
@@ -236,7 +240,7 @@ def run_regress(baseline_dir: str, update: bool = False, gains=None, out: str | 
         run_campaign(str(spec_p), str(run_dir), report=False, progress=False, gains=gains)
         import pandas as pd
 
-        cells = cell_means(pd.read_csv(run_dir / "results.csv"), factors)
+        cells = cell_means(pd.read_csv(run_dir / "results.csv"), factors, metrics)
     if update:
         _write_baseline(spec, base_p, baseline, cells)
         return 0, []
@@ -250,9 +254,12 @@ def run_regress(baseline_dir: str, update: bool = False, gains=None, out: str | 
 
 def _write_baseline(spec, base_p: Path, baseline: dict | None, cells: list[dict]) -> None:
     """baseline.json from this run's ``cells`` (tolerances kept), with the rounding probes' noise on the CPU."""
-    tol = baseline["tolerance"] if baseline else {k: dict(rel=r, abs=a) for k, (r, a) in DEFAULT_TOL.items()}
-    probes = _rounding_probes(base_p.parent / "spec.toml", list(spec.factors)) if jax.default_backend() == "cpu" else []
-    cells = _with_noise(cells, probes)
+    bands = controllers.info(spec.campaign).regress
+    tol = baseline["tolerance"] if baseline else {k: dict(rel=r, abs=a) for k, (r, a) in bands.items()}
+    metrics = tuple(bands)
+    probes = (_rounding_probes(base_p.parent / "spec.toml", list(spec.factors), metrics)
+              if jax.default_backend() == "cpu" else [])
+    cells = _with_noise(cells, probes, metrics)
     try:
         write_json_atomic(base_p, dict(spec_hash=spec.hash, factors=list(spec.factors), tolerance=tol, cells=cells,
                                        rounding_probes=["native"] + [f"xla_cpu_max_isa={i}" for i in

@@ -12,17 +12,12 @@ from typing import NamedTuple
 
 import numpy as np
 
+from wbc_jax.campaign import controllers
 from wbc_jax.campaign.design import Design
 from wbc_jax.campaign.spec import Spec
 from wbc_jax.errors import ReportError, WbcJaxError
 from wbc_jax.io_utils import write_json_atomic
 
-METRIC_COLUMNS = ("R", "T", "S", "R_plan", "max_slip_mm", "fell", "trunk_low", "body_contact", "dropped", "slid",
-                  "hit_wall", "qp_flagged", "qp_flag_fraction", "qp_iters_mean", "qp_iters_max", "nonfinite",
-                  "overflow", "solver_cap_fraction", "boundary_fraction", "boundary_cone_fraction",
-                  "boundary_fraction_plan", "boundary_cone_fraction_plan", "final_err_mm", "fail_reason", "failure_s",
-                  "first_contact_s", "first_contact", "window_s", "min_clearance_mm", "min_clearance_s",
-                  "min_clearance_pair")
 FAILED_RUNS_SHOWN = 10  # failed runs named in the warning line (all of them: manifest failed_runs)
 QP_FLAG_LIMIT = 0.01  # fraction of a run's control steps with a flagged QP above which the controller did not converge
 
@@ -69,7 +64,7 @@ def results_table(spec: Spec, dz: Design, res: dict):
     extra = {k: v for k, v in dz.levels.items() if k not in ("m", "mu", "d", "push_N")}
     df = pd.DataFrame(dict(run=np.arange(dz.n), m=dz.m, mu=dz.mu, d=dz.d, **extra, rep=dz.rep, seed=dz.seed,
                            success=res["success"]))
-    for k in METRIC_COLUMNS:
+    for k in controllers.info(spec.campaign).columns:
         df[k] = res[k]
     df["obj_dx_mm"] = dz.obj_dx * 1e3
     df["obj_dy_mm"] = dz.obj_dy * 1e3
@@ -124,13 +119,14 @@ def campaign_report(out: Path, manifest: dict, warnings: list[str], reporter=Non
         ReportError: the statistics failed; the failure is written to ``out/report_error.txt`` and the manifest,
             and results.csv stays.
     """
-    from wbc_jax.analysis.report import CAMPAIGN_METRICS, run_report
+    from wbc_jax.analysis.report import run_report
 
     write = run_report if reporter is None else reporter.run_report  # the same function, in the worker
     spec = manifest.get("spec", {})
     analysis = spec.get("analysis", {})
+    metrics = list(controllers.info(spec.get("campaign", {})).report)
     try:
-        write(str(out / "results.csv"), str(out / "report"), metrics=list(CAMPAIGN_METRICS),
+        write(str(out / "results.csv"), str(out / "report"), metrics=metrics,
               factors=list(spec["factors"]) if "factors" in spec else None, order=analysis.get("order", 2),
               alpha=analysis.get("alpha", 0.05))
         if warnings:

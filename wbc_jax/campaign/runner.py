@@ -112,6 +112,7 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool,
     t_run = time.perf_counter()
     first_in_process = True  # that chunk's wall time includes compilation
     step = lambda st: fn(b.model, st, b.plan, b.om, b.gains, b.push, b.mu_ground)  # noqa: E731  (dispatch only)
+    final_input = job.built.sim.controller.final_input  # what finalization needs of the last logs (p_goal)
     reporter = None
     if done < n_chunks and job.writer:
         stage("compiling the chunk program (the first run on a machine: minutes; later runs load it from the "
@@ -141,9 +142,9 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool,
             marks.append(dict(chunk=done, wall_s=dt_wall, fresh_process=first_in_process))
             first_in_process = False
             if sp.mode == "one":
-                p_goal, saved = np.asarray(logs.p_obj_ref[:, -1]), state
+                p_goal, saved = np.asarray(final_input(logs)), state
             else:  # every process takes part in the gathers; process 0 writes
-                p_goal, saved = sp.gather((logs.p_obj_ref[:, -1], state), dz.n, (0, b.state_axes))  # one collective
+                p_goal, saved = sp.gather((final_input(logs), state), dz.n, (0, b.state_axes))  # one collective
             if job.writer:
                 with guard.deferred():
                     checkpoint.save_state(job.ckpt, saved, dict(

@@ -35,13 +35,21 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     sensing = "auto"           # Warp: "exact" (a forward call gives the controller the current state) or "delayed"
                                # (it reads what Warp's step left: the state one physics step old; one call fewer);
                                # "auto": delayed on Warp (same statistics, measured), exact on JAX
+    controller = "transport"   # "transport" (the object-transport WBC; metrics R, T, S) or "centroidal" (the
+                               # capture-point trot of the centroidal WBC; wbc_jax.rollout.controllers.trot_metrics):
+                               # it stands 0.5 s, then walks walk_seconds at the commanded speed (campaign.speed or
+                               # the speed factor) in half-cycles of step_time with four_foot of four-foot support
+    mass_error = 0.0           # centroidal: the controller's model mass error (-0.2: model 20 % too light)
+    walk_seconds = 10.0        # centroidal: walking time [s] (round(walk_seconds / step_time) half-cycles)
+    step_time = 0.25           # centroidal: trot half-cycle [s]
+    four_foot = 0.08           # centroidal: four-foot support per half-cycle [s]
 
     [factors]                  # 1 to 5 factors of wbc_jax.campaign.factors, at least 2 levels each: here the
     m = [0.2, 0.3, 0.4]        # paper's 3 x 3 x 3: object mass [kg], 0 < m <= 20
     mu = [0.4, 0.7, 1.0]       # tray friction, 0 < mu <= 5
     d = [0.06, 0.08, 0.10]     # object side [m], 0.008 < d <= 0.2 (the robot's tray narrows it further)
                                # others: ground_mu, speed, obj_accel, push_N, qvel_noise_std, observer, variant,
-                               # gain.<leaf>
+                               # gain.<leaf>; centroidal: m, mu, d, ground_mu, speed, push_N, qvel_noise_std, mass_error
 
     [perturbations]            # per run, drawn from the run's own seed; all zero = deterministic repetitions
     object_xy_mm = 3.0         # object placement on the tray: uniform in +-value along x and y [mm], 0..20
@@ -71,6 +79,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from wbc_jax.campaign import controllers as controllers_mod
 from wbc_jax.campaign import factors as factors_mod
 from wbc_jax.campaign.design import Design, design  # noqa: F401  (a spec's design table, re-exported)
 from wbc_jax.control.variants import VARIANTS
@@ -118,6 +127,13 @@ CAMPAIGN = {
     "sensing": (str, "auto", None, None, False,
                 '"auto" (delayed on Warp, exact on JAX), "exact" or "delayed" (Warp only: the controller reads the '
                 'state one physics step old and Warp\'s forward call is saved; wbc_jax.rollout.config.SENSING)'),
+    "controller": (str, "transport", None, None, False,
+                   '"transport" (object transport; R, T, S) or "centroidal" (the capture-point trot; speed, CP error, '
+                   'attitude)'),
+    "mass_error": (float, 0.0, -0.5, 1.0, True, "centroidal: the controller's model mass error [-] (fraction)"),
+    "walk_seconds": (float, 10.0, 0.5, 600.0, False, "centroidal: walking time [s]"),
+    "step_time": (float, 0.25, 0.02, 2.0, False, "centroidal: trot half-cycle [s]"),
+    "four_foot": (float, 0.08, 0.0, 2.0, True, "centroidal: four-foot support per half-cycle [s], < step_time"),
 }
 # the factors a spec may vary: wbc_jax.campaign.factors (name -> FactorDef; plus gain.<leaf> multipliers)
 FACTORS = factors_mod.REGISTRY
@@ -141,6 +157,7 @@ SENSING = ("auto", "exact", "delayed")  # wbc_jax.rollout.config.SENSING (not im
 TERRAINS = ("known", "blind")  # wbc_jax.planner.transport.TERRAINS (not imported: spec loading stays JAX-free)
 COM_PLANS = ("spline", "zmp")  # wbc_jax.planner.transport.COM_PLANS (not imported, as above)
 CONES = ("scene", "pyramidal", "elliptic")  # MuJoCo's opt.cone, or the scene file's
+CONTROLLER_NAMES = tuple(controllers_mod.CONTROLLERS)  # wbc_jax.rollout.controllers.CONTROLLERS (JAX-free copy)
 BACKENDS = ("auto", "jax", "warp")  # wbc_jax.physics.backend.BACKENDS (not imported here: spec loading stays JAX-free)
 # keys added after specs were first hashed: left out of Spec.hash at these values (the behaviour from before the key
 # existed), so existing baselines and checkpoints stay valid; a default unlike its neutral value (com_plan "zmp")
@@ -148,7 +165,8 @@ BACKENDS = ("auto", "jax", "warp")  # wbc_jax.physics.backend.BACKENDS (not impo
 _HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_iterations": 0, "m": 0.3, "mu": 0.7,
                                "d": 0.08, "ground_mu": 0.0, "variant": "full", "terrain": "known",
                                "com_plan": "spline", "sensing": "auto",
-                               "obj_accel": 0.0, "cone": "scene", "impratio": 0.0},
+                               "obj_accel": 0.0, "cone": "scene", "impratio": 0.0, "controller": "transport",
+                               "mass_error": 0.0, "walk_seconds": 10.0, "step_time": 0.25, "four_foot": 0.08},
                  "perturbations": {"push_dir_deg": 0.0}}
 
 
@@ -297,6 +315,25 @@ def _check_fixed(path, camp: dict, pert: dict, factors: dict) -> None:
                                                            "a random direction)")
 
 
+def _check_controller(path, camp: dict, factors: dict) -> None:
+    """The factors and keys of the spec's controller: a factor it cannot vary, or a key of the other one away
+    from its default, is an error; the centroidal trot's four-foot support is shorter than its half-cycle."""
+    name = camp["controller"]
+    allowed = controllers_mod.CONTROLLERS[name].factors
+    for key in factors:
+        if key not in allowed and not (name == "transport" and key.startswith(factors_mod.GAIN_PREFIX)):
+            raise spec_error(path, f"factors.{key}", f"not a factor of controller {name!r}; expected one of "
+                                                     f"{', '.join(allowed)}")
+    own = (("mass_error", "walk_seconds", "step_time", "four_foot") if name == "transport"
+           else ("distance", "variant", "terrain", "com_plan", "obj_accel"))
+    for key in own:
+        if camp[key] != CAMPAIGN[key][1]:
+            raise spec_error(path, f"campaign.{key}", f"= {camp[key]!r}: not used by controller {name!r}; leave it out")
+    if name == "centroidal" and not camp["four_foot"] < camp["step_time"]:
+        raise spec_error(path, "campaign.four_foot", f"= {camp['four_foot']}: expected < campaign.step_time "
+                                                     f"({camp['step_time']})")
+
+
 def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
     """Validate a spec dict (as read by tomllib). Raises SpecError naming ``path``, the key and the range."""
     unknown = sorted(set(data) - {"campaign", "factors", "perturbations", "analysis"})
@@ -304,7 +341,8 @@ def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
         raise spec_error(path, unknown[0], "unknown table; expected campaign, factors, perturbations, analysis")
     camp = checked_table(path, "campaign", data.get("campaign", {}), CAMPAIGN)
     for key, allowed in (("backend", BACKENDS), ("scene", SCENES), ("variant", tuple(VARIANTS)),
-                         ("terrain", TERRAINS), ("com_plan", COM_PLANS), ("sensing", SENSING), ("cone", CONES)):
+                         ("terrain", TERRAINS), ("com_plan", COM_PLANS), ("sensing", SENSING), ("cone", CONES),
+                         ("controller", CONTROLLER_NAMES)):
         if camp[key] not in allowed:
             raise spec_error(path, f"campaign.{key}", f"= {camp[key]!r}: expected one of {', '.join(allowed)}")
     if "factors" not in data:
@@ -312,6 +350,7 @@ def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
     factors = _parse_factors(path, data["factors"])
     pert = checked_table(path, "perturbations", data.get("perturbations", {}), PERTURBATIONS)
     _check_fixed(path, camp, pert, factors)
+    _check_controller(path, camp, factors)
     analysis = checked_table(path, "analysis", data.get("analysis", {}), ANALYSIS)
     return Spec(path=str(path), campaign=camp, factors=factors, perturbations=pert, text_sha256=text_sha256,
                 analysis=analysis)

@@ -65,6 +65,14 @@ CAMPAIGN_MEANING = {
                "belong to the state one physics step old: one call per step; needs `backend = \"warp\"` and "
                "`control_substeps = 1`); `auto`: `delayed` where it applies, else `exact` (the same statistics, less "
                "wall time: docs/performance.md)",
+    "controller": "the controller every run uses: `transport` (the object-transport WBC on the object-path plan; "
+                  "metrics R, T, S) or `centroidal` (the centroidal-momentum WBC on a capture-point trot; metrics "
+                  "speed, CP error, attitude, torque, foot slip: see \"The centroidal controller\" below)",
+    "mass_error": "centroidal: the controller's model mass error of every run when `mass_error` is not a factor",
+    "walk_seconds": "centroidal: walking time after 0.5 s of standing (`round(walk_seconds / step_time)` "
+                    "half-cycles)",
+    "step_time": "centroidal: the trot's half-cycle",
+    "four_foot": "centroidal: the four-foot support at the start of each half-cycle",
 }
 FACTOR_MEANING = {
     "m": "object mass",
@@ -80,6 +88,8 @@ FACTOR_MEANING = {
     "observer": "momentum observer on (true / 1) or off (false / 0); combined with `variant` (off if either "
                 "turns it off)",
     "variant": "controller variant: `full`, `no_tray_cone`, `no_observer`, `no_posture` (docs/method.md)",
+    "mass_error": "centroidal: the controller's model mass error, a fraction (-0.2: every body mass and inertia of "
+                  "its model 20 % too light; the centroidal paper's Fig. 12)",
     "gain.<leaf>": "multiplier of that `TransportGains` leaf of the campaign's gains (defaults or `--gains`), "
                    "e.g. `gain.kp_obj`",
 }
@@ -246,6 +256,21 @@ def _campaign_section() -> list[str]:
         "push magnitude, push angle, push start.",
         "",
         *key_table("perturbations", spec.PERTURBATIONS, PERTURB_MEANING),
+        "",
+        "### The centroidal controller (`controller = \"centroidal\"`)",
+        "",
+        "Every run trots straight along the trunk's forward axis (world -y on the shipped scenes) at its commanded "
+        "speed (`campaign.speed` or the `speed` factor; stride = speed x `step_time`) with the cube on the tray, "
+        "whose mass the controller assumes as its payload. Its factors: `m`, `mu`, `d`, `ground_mu`, `speed`, "
+        "`push_N`, `qvel_noise_std`, `mass_error`; `distance`, `variant`, `terrain` and `com_plan` are the "
+        "transport's and must stay at their defaults (and the centroidal keys at theirs for the transport). "
+        "`qp_iters` is the centroidal QP's ADMM iterations (the shipped trot specs: 40). results.csv holds per "
+        "run `speed_mps`, `cp_err_x_rms_mm`, `cp_err_y_rms_mm`, `cp_err_x_max_mm`, `roll_amp_deg`, "
+        "`pitch_amp_deg`, `yaw_amp_deg`, `max_tau_ratio`, `foot_slip_mm`, `distance_m`, `walked` and the shared "
+        "flags (wbc_jax/rollout/controllers/trot_metrics.py); the report's ANOVA covers speed, the CP errors and "
+        "roll and pitch. Shipped: `sweeps/trot_paper.toml` (mass error x speed, the paper's Fig. 12, 10 reps), "
+        "`sweeps/trot_robustness.toml` (mass error x ground friction x lateral push) and `sweeps/trot_quick.toml` "
+        "(2 runs for a CPU).",
         "",
         "### `[analysis]`: the campaign report's statistics (not part of the spec hash)",
         "",

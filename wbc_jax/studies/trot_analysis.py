@@ -1,7 +1,7 @@
 """The trot study's per-run metrics, acceptance checks and figures (numpy and matplotlib, after the rollout).
 
-The logs are :class:`wbc_jax.studies.trot.TrotLog` with axes (run, time), the online reductions
-:class:`wbc_jax.studies.trot.Accum` with a leading run axis; the figures follow the centroidal paper's Figs. 6-12.
+The logs are :class:`wbc_jax.rollout.controllers.trot_metrics.TrotLog` with axes (run, time); the figures follow
+the centroidal paper's Figs. 6-12.
 """
 
 from __future__ import annotations
@@ -14,11 +14,8 @@ import numpy as np
 from wbc_jax.planner.capture_point import CPWalkPlan
 from wbc_jax.robot.model import Robot
 
-FALL_Z = 0.3  # [m] trunk height below which a run counts as fallen
 SPEED_TARGET, SPEED_TOL = 0.4, 0.05  # [m/s] acceptance of the nominal run
 ATTITUDE_TARGET = 0.02  # [rad] oscillation amplitude target (paper: < 0.01 on its lighter robot)
-STEADY_MARGIN = 1.0  # [s] start-up and stop excluded from the steady-state window
-PROGRESS_MIN = 0.8  # a run "walks" when it stays up and covers this fraction of the planned distance
 SNAPSHOT_SIZE = (240, 320)  # [px] (height, width) of one frame of fig9_snapshots.png
 
 
@@ -52,55 +49,17 @@ def forward(xy, heading):
     return xy @ np.asarray(heading)
 
 
-def analyse_run(logs, acc, i: int, err: float, plan: CPWalkPlan, t_start, t_end, stride, ids) -> dict:
-    """Per-run metrics from the logs and the online reductions (numpy)."""
-    t = logs.t[i]
-    h = np.asarray(plan.heading)
-    lat = np.array([-h[1], h[0]])
-    w = float(plan.w)
-    i0, i1 = np.searchsorted(t, t_start), min(np.searchsorted(t, t_end), t.size - 1)
-    fwd = forward(logs.com[i, :, :2], h)
-    speed = float((fwd[i1] - fwd[i0]) / (t[i1] - t[i0]))
-    steady = (t >= t_start + STEADY_MARGIN) & (t <= t_end - STEADY_MARGIN)
-    fwd_v = forward(logs.com_vel[i, :, :2], h)
-    xi = logs.com[i, :, :2] + logs.com_vel[i, :, :2] / w
-    e_cp = xi - logs.xi_d[i]
-    walk = (t >= t_start) & (t <= t_end)
-    ex, ey = forward(e_cp, h)[walk], (e_cp @ lat)[walk]
-    rpy = logs.rpy[i]
-    amp = {k: float((rpy[steady, j].max() - rpy[steady, j].min()) / 2) if steady.any() else float("nan")
-           for j, k in enumerate(("roll", "pitch", "yaw"))}
-    planned = (plan.P.shape[0] - 1) * stride
-    fell = bool(acc.min_trunk_z[i] < FALL_Z or acc.nonfoot_floor[i] or acc.nonfinite[i])
-    tmax = np.asarray(ids.tau_max)
-    joints = [f"{leg}_{j}" for leg in ("FL", "FR", "BL", "BR") for j in ("roll", "pitch", "knee")] + [
-        f"arm_j{k}" for k in range(1, 7)]
-    return dict(
-        mass_error=err, walked=bool(not fell and fwd[-1] - fwd[0] >= PROGRESS_MIN * planned), fell=fell,
-        distance_m=float(fwd[-1] - fwd[0]), planned_distance_m=float(planned),
-        mean_forward_speed_mps=speed,
-        steady_forward_speed_mps=float(fwd_v[steady].mean()) if steady.any() else float("nan"),
-        attitude_amplitude_rad=amp,
-        attitude_max_abs_rad={k: float(np.abs(rpy[:, j]).max()) for j, k in enumerate(("roll", "pitch", "yaw"))},
-        cp_x_error_rms_m=float(np.sqrt(np.mean(ex**2))), cp_x_error_max_m=float(np.abs(ex).max()),
-        cp_y_error_rms_m=float(np.sqrt(np.mean(ey**2))),
-        max_abs_tau_Nm={j: float(v) for j, v in zip(joints, acc.max_abs_tau[i])},
-        tau_limit_Nm=float(tmax.max()), max_tau_ratio=float(np.max(acc.max_abs_tau[i] / tmax)),
-        max_qp_tau_excess_Nm=float(acc.max_tau_excess[i]), min_trunk_z_m=float(acc.min_trunk_z[i]),
-        qp_flag_fraction=float(acc.n_flag[i] / max(int(acc.n_steps[i]), 1)),
-        qp_prim_res_median=float(np.median(logs.prim_res[i])),
-    )
-
-
 def acceptance(runs: list[dict], mass_errors: tuple, i0: int) -> dict:
     """The acceptance checks: the nominal run ``i0`` walks at ``SPEED_TARGET`` +- ``SPEED_TOL`` with attitude
-    amplitudes within ``ATTITUDE_TARGET``, no run exceeds a torque limit, every mass error walks."""
+    amplitudes within ``ATTITUDE_TARGET``, no run exceeds a torque limit, every mass error walks. ``runs``: per
+    run a dict of its results (``wbc_jax.rollout.controllers.trot_metrics.finalize`` columns)."""
     nom = runs[i0]
+    amplitude = max(nom[k] for k in ("roll_amp_deg", "pitch_amp_deg", "yaw_amp_deg"))
     return dict(
         nominal_mass_error=mass_errors[i0],
-        speed_ok=bool(abs(nom["mean_forward_speed_mps"] - SPEED_TARGET) <= SPEED_TOL and nom["walked"]),
+        speed_ok=bool(abs(nom["speed_mps"] - SPEED_TARGET) <= SPEED_TOL and nom["walked"]),
         torques_within_limits=bool(all(r["max_tau_ratio"] <= 1.0 for r in runs) and nom["max_qp_tau_excess_Nm"] <= 0),
-        attitude_amplitude_ok=bool(max(nom["attitude_amplitude_rad"].values()) <= ATTITUDE_TARGET),
+        attitude_amplitude_ok=bool(amplitude <= np.rad2deg(ATTITUDE_TARGET)),
         all_mass_errors_walk=bool(all(r["walked"] for r in runs)),
     )
 

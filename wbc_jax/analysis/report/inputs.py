@@ -15,6 +15,8 @@ from wbc_jax.errors import InputError
 from wbc_jax.io_utils import read_capped
 
 CAMPAIGN_METRICS = ("R", "T", "S")  # the metrics of a campaign's report (its results.csv has more columns)
+TROT_METRICS = ("speed_mps", "cp_err_x_rms_mm", "cp_err_y_rms_mm", "roll_amp_deg", "pitch_amp_deg")  # the
+#                                                                        centroidal controller's campaign report
 CAMPAIGN_COMMAND = "wbc-jax campaign"
 RESULTS_LIMIT = 64 << 20  # largest results CSV read [bytes] (16384 runs: about 6 MB)
 MANIFEST_LIMIT = 16 << 20  # largest manifest.json read [bytes]
@@ -75,7 +77,8 @@ def load_table(results_csv: str, factors: list[str] | None, metrics: list[str] |
     check_categorical(df, factors)
     is_campaign = "fail_reason" in df.columns or (campaign is not None and campaign.command == CAMPAIGN_COMMAND)
     if metrics is None and "fail_reason" in df.columns:  # a campaign's results.csv: the campaign report's metrics
-        metrics = [m for m in CAMPAIGN_METRICS if m in df.columns] or None
+        metrics = ([m for m in CAMPAIGN_METRICS if m in df.columns] or [m for m in TROT_METRICS if m in df.columns]
+                   or None)
     metrics = stats.infer_metrics(df, factors, metrics)
     return Table(raw, df, factors, metrics, order, campaign, is_campaign, warnings)
 
