@@ -98,30 +98,32 @@ def test_dip_moves_with_the_wall(tmp_path):
 
 
 def test_plans_come_back_from_disk_equal_and_only_for_their_inputs(tmp_path, monkeypatch):
-    """prepare_batch's plans (wbc_jax.rollout.batch._plan) are kept on disk: a second request with the same model,
-    start pose and arguments reads the stored plan, leaf for leaf equal to a fresh course_plan, without planning;
+    """prepare_batch's plans (the transport plug-in's make_plan) are kept on disk: a second request with the same
+    model, start pose and arguments reads the stored plan, leaf for leaf equal to a fresh course_plan, without planning;
     another object side is planned."""
     import jax
 
-    from wbc_jax.rollout import batch
+    from wbc_jax.rollout.controllers import transport as batch
+    from wbc_jax.rollout.controllers.transport import TransportController
 
+    controller = TransportController.default(0.001)
     monkeypatch.setenv("WBC_JAX_CACHE", str(tmp_path))
     robot = Robot("transport")
     q = robot.home_qpos(0.08)
     fresh = course_plan(robot, q, side=0.08)
-    first = batch._plan(robot, True, q, dict(side=0.08))
+    first = controller.make_plan(robot, True, q, dict(side=0.08))
     assert len(list((tmp_path / "exported").glob("plan-*.pkl"))) == 1
     planned = []
     real = batch.course_plan
     monkeypatch.setattr(batch, "course_plan", lambda *a, **k: planned.append(k["side"]) or real(*a, **k))
-    again = batch._plan(robot, True, q, dict(side=0.08))
+    again = controller.make_plan(robot, True, q, dict(side=0.08))
     assert planned == []
     leaves = jax.tree_util.tree_leaves
     assert len(leaves(fresh)) == len(leaves(again)) > 10
     for a, b, c in zip(leaves(fresh), leaves(first), leaves(again)):
         np.testing.assert_array_equal(np.asarray(a), b)
         np.testing.assert_array_equal(b, c)
-    other = batch._plan(robot, True, robot.home_qpos(0.10), dict(side=0.10))
+    other = controller.make_plan(robot, True, robot.home_qpos(0.10), dict(side=0.10))
     assert planned == [0.10]
     assert not np.array_equal(other.obj_path.coef, again.obj_path.coef)
 
