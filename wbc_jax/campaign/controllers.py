@@ -20,7 +20,8 @@ class ControllerInfo(NamedTuple):
     report: tuple  # the report's ANOVA responses
     means: tuple  # manifest.json metric_means
     regress: dict  # regress's metrics: name -> (rel, abs) default tolerance band
-    factors: tuple  # factors a spec may vary (besides gain.<leaf> for the transport)
+    factors: tuple | None  # factors a spec may vary; None: every factor of wbc_jax.campaign.factors (gain.<leaf>
+    #                        included) but those of CENTROIDAL_ONLY
 
 
 _COMMON = ("fell", "trunk_low", "body_contact", "nonfinite", "overflow", "qp_flagged", "qp_flag_fraction",
@@ -37,7 +38,7 @@ CONTROLLERS = {
                  "min_clearance_pair"),
         report=CAMPAIGN_METRICS, means=("R", "T", "S", "max_slip_mm"),
         regress={"R": (0.02, 1e-3), "T": (0.05, 2e-5), "S": (0.05, 1e-3), "max_slip_mm": (0.10, 0.05)},
-        factors=("m", "mu", "d", "ground_mu", "speed", "push_N", "qvel_noise_std", "observer", "variant")),
+        factors=None),
     "centroidal": ControllerInfo(
         columns=("speed_mps", "cp_err_x_rms_mm", "cp_err_y_rms_mm", "cp_err_x_max_mm", "roll_amp_deg",
                  "pitch_amp_deg", "yaw_amp_deg", "max_tau_ratio", "max_qp_tau_excess_Nm", "foot_slip_mm",
@@ -47,6 +48,15 @@ CONTROLLERS = {
                  "roll_amp_deg": (0.05, 0.02), "pitch_amp_deg": (0.05, 0.02)},
         factors=("m", "mu", "d", "ground_mu", "speed", "push_N", "qvel_noise_std", "mass_error")),
 }
+
+
+CENTROIDAL_ONLY = ("mass_error",)  # factors of the centroidal controller alone
+
+
+def may_vary(name: str, factor: str) -> bool:
+    """Controller ``name`` accepts the factor ``factor``."""
+    allowed = CONTROLLERS[name].factors
+    return factor not in CENTROIDAL_ONLY if allowed is None else factor in allowed
 
 
 def info(campaign: dict) -> ControllerInfo:

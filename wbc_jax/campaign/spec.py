@@ -319,9 +319,9 @@ def _check_controller(path, camp: dict, factors: dict) -> None:
     """The factors and keys of the spec's controller: a factor it cannot vary, or a key of the other one away
     from its default, is an error; the centroidal trot's four-foot support is shorter than its half-cycle."""
     name = camp["controller"]
-    allowed = controllers_mod.CONTROLLERS[name].factors
     for key in factors:
-        if key not in allowed and not (name == "transport" and key.startswith(factors_mod.GAIN_PREFIX)):
+        if not controllers_mod.may_vary(name, key):
+            allowed = [f for f in factors_mod.REGISTRY if controllers_mod.may_vary(name, f)]
             raise spec_error(path, f"factors.{key}", f"not a factor of controller {name!r}; expected one of "
                                                      f"{', '.join(allowed)}")
     own = (("mass_error", "walk_seconds", "step_time", "four_foot") if name == "transport"
