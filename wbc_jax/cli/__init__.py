@@ -15,7 +15,7 @@ from wbc_jax.cli import checks
 from wbc_jax.cli import parser as parser_module
 from wbc_jax.errors import UsageError, WbcJaxError
 from wbc_jax.io_utils import check_file_target, check_out_dir, claim_out_dir, release_out_dir
-from wbc_jax.studies import replay
+from wbc_jax.studies import replay, warmup
 
 CPU_BATCHES = {"rollout": (1, 4, 16), "profile": 16, "components": 16, "trace": 16}  # bench defaults on a CPU
 
@@ -57,9 +57,18 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
         backends = tuple(x for x in args.backend.split(",") if x)
         batches = sizes or ((1, 4) if args.quick else CPU_BATCHES["rollout"] if cpu else (1, 1024, 4096, 16384))
-        run_rollout_bench(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json, scene=args.scene,
-                          qp=args.qp, substeps=args.substeps, campaign=args.campaign, backends=backends,
-                          rounds=args.rounds or (3 if cpu else 5))
+        kw = dict(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json, scene=args.scene,
+                  qp=args.qp, substeps=args.substeps, campaign=args.campaign if args.cold_warm else None,
+                  backends=backends, rounds=args.rounds or (3 if cpu else 5))
+        if args.campaign is None:
+            run_rollout_bench(**kw)
+            return 0
+        from wbc_jax.bench.campaign_step import run_bench_with_campaign
+
+        breakdown = checks.bench_args(argparse.Namespace(**{**vars(args), "batches": args.breakdown}))
+        if args.snapshots < 1:
+            raise WbcJaxError(f"--snapshots {args.snapshots}: expected an integer >= 1")
+        run_bench_with_campaign(args.campaign, snapshots=args.snapshots, breakdown=breakdown, **kw)
         return 0
     if args.what == "profile":
         from wbc_jax.bench.rollout import run_profile
@@ -176,7 +185,8 @@ def _cmd_regress(args: argparse.Namespace) -> int:
 
 
 COMMANDS = {"report": _cmd_report, "bench": _cmd_bench, "demo": _cmd_demo, "campaign": _cmd_campaign,
-            "tune": _cmd_tune, "regress": _cmd_regress, "trot": _cmd_trot, "replay": replay.main}
+            "tune": _cmd_tune, "regress": _cmd_regress, "trot": _cmd_trot, "replay": replay.main,
+            "warmup": warmup.main}
 
 
 def main(argv: list[str] | None = None) -> int:

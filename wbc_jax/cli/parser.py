@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from wbc_jax.errors import UsageError
-from wbc_jax.studies import replay
+from wbc_jax.studies import replay, warmup
 
 DESCRIPTION = ("Batched whole-body control of a legged manipulator carrying an object, simulated in MuJoCo MJX: "
                "factorial campaigns as one batched rollout with their ANOVA report, gain tuning, a single-run demo, "
@@ -102,9 +102,18 @@ def _add_bench(sub) -> argparse.ArgumentParser:
     b.add_argument("--variants", default=None, help="profile: comma-separated variants (default wbc_1,wbc_n,"
                                                     "wbc_n_norefactor,wbc_n_chol,wbc_n_pallas; also wbc_n_inv, "
                                                     "wbc_n_pallas_norefactor, wbc_n_unroll, wbc_n_unroll_norefactor)")
-    b.add_argument("--campaign", default=None, help="rollout: also run this campaign spec end to end twice in fresh "
-                                                    "processes with a new compilation cache (wall time, compile "
-                                                    "cold and warm), e.g. sweeps/paper_campaign.toml (default: none)")
+    b.add_argument("--campaign", default=None, help="rollout: also time this campaign spec's own control step at "
+                                                    "each --batches size (its runs repeated; from --snapshots states "
+                                                    "along its horizon; monitors' share), e.g. "
+                                                    "sweeps/paper_campaign.toml (default: none)")
+    b.add_argument("--snapshots", type=int, default=3, help="rollout --campaign: states along the horizon each "
+                                                            "timed call starts from")
+    b.add_argument("--breakdown", default=None, help="rollout --campaign: comma-separated batch sizes at which the "
+                                                     "step is also timed without clearance and without monitors "
+                                                     "(default: every --batches size)")
+    b.add_argument("--cold-warm", action="store_true", help="rollout --campaign: also run the spec end to end twice "
+                                                            "in fresh processes with a new compilation cache (wall "
+                                                            "time, compile cold and warm)")
     b.add_argument("--warmup", type=float, default=0.0,
                    help="trace: simulated seconds run untraced first, so that the traced steps come from the walk "
                         "(default 0: the first standing steps)")
@@ -208,6 +217,7 @@ def build_parser() -> argparse.ArgumentParser:
     writers.append(_add_tune(sub))
     _add_regress(sub)
     replay.add_parser(sub)  # its own --force
+    warmup.add_parser(sub)
     writers.append(_add_trot(sub))
     for cmd in writers:
         cmd.add_argument("--force", action="store_true", help="replace --out when it holds an earlier run of this "

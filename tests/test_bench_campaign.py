@@ -1,0 +1,102 @@
+"""``bench rollout --campaign``: the campaign's own step timed beside the bench (``wbc_jax.bench.campaign_step``)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from wbc_jax import cli
+from wbc_jax.bench import campaign_step
+from wbc_jax.rollout import step as step_module
+
+TINY_SPEC = """[campaign]
+name = "tiny"
+reps = 1
+seed = 7
+scene = "flat"
+distance = 0.15
+speed = 0.13
+extra_seconds = 0.0
+qp_iters = 4
+chunk_seconds = 0.2
+
+[factors]
+m = [0.2, 0.3]
+mu = [0.7, 1.0]
+d = [0.08, 0.10]
+
+[perturbations]
+push_max_N = 20.0
+push_duration_s = 0.2
+push_window = [0.2, 0.7]
+qvel_noise_std = 0.02
+"""
+
+
+def test_ablations_replace_the_step_only_while_active():
+    monitors, fold = step_module.substep_monitors, step_module.fold_control_step
+    with campaign_step.ablated("no_monitors"):
+        assert step_module.substep_monitors is not monitors and step_module.fold_control_step is not fold
+    with campaign_step.ablated("no_clearance"):
+        assert step_module.substep_monitors is not monitors and step_module.fold_control_step is fold
+    with campaign_step.ablated("campaign"):
+        assert step_module.substep_monitors is monitors
+    assert step_module.substep_monitors is monitors and step_module.fold_control_step is fold
+    with pytest.raises(KeyError):
+        with campaign_step.ablated("nothing"):
+            pass
+
+
+def test_batch_figures_by_hand():
+    """Batch 10, 100 env-steps per call, two states: rates from the summed times; shares of the campaign's time."""
+    first = dict(campaign=5.0, no_clearance=4.0, no_monitors=4.0, physics=1.0)
+    times = dict(campaign=[1.0, 3.0], no_clearance=[0.9, 2.7], no_monitors=[0.8, 2.4], physics=[0.5, 0.5])
+    row = campaign_step.batch_figures(first, times, batch=10, n_env=100)
+    assert row["campaign_steps_per_s"] == pytest.approx(10 * 100 * 2 / 4.0)
+    assert row["campaign_steps_per_s_by_state"] == pytest.approx([1000.0, 1000.0 / 3.0])
+    assert row["campaign_compile_s"] == pytest.approx(5.0 - 2.0)
+    assert row["physics_share"] == pytest.approx(0.25)
+    assert row["clearance_share"] == pytest.approx(0.1)
+    assert row["monitors_share"] == pytest.approx(0.2)
+
+
+@pytest.mark.slow
+def test_campaign_step_bench_end_to_end(tmp_path):
+    """A tiny flat spec (8 runs, 0.2 s chunks) on the CPU: the walk, the step at batch 3 (runs repeated) with its
+    breakdown beside the bench's rows, and the JSON."""
+    spec = tmp_path / "tiny.toml"
+    spec.write_text(TINY_SPEC)
+    out = tmp_path / "bench.json"
+    assert cli.main(["bench", "rollout", "--campaign", str(spec), "--batches", "3", "--steps", "20", "--snapshots",
+                     "2", "--rounds", "1", "--json", str(out)]) == 0
+    got = json.loads(out.read_text())
+    step = got["campaign_step"]
+    assert step["n_runs"] == 8 and step["snapshots_s"][0] == 0.0 and len(step["snapshots_s"]) == 2
+    (row,) = step["batches"]
+    assert row["batch"] == 3 and row["campaign_steps_per_s"] > 0 and len(row["campaign_steps_per_s_by_state"]) == 2
+    assert {"clearance_share", "monitors_share", "physics_share"} <= set(row)
+    bench_wbc = got["batches"][0]["wbc_steps_per_s"]
+    assert row["ratio_to_bench_wbc"] == pytest.approx(row["campaign_steps_per_s"] / bench_wbc)
+    assert np.isfinite(row["no_monitors_steps_per_s"])
+
+
+def test_time_batch_compiles_once_and_times_every_state(monkeypatch):
+    """Every program compiled once (on state 0) and called once per state; batches made one at a time."""
+    from types import SimpleNamespace
+
+    calls, made = [], []
+    monkeypatch.setattr(campaign_step, "compiled_chunk", lambda sim, b, n_logs, name: (
+        lambda *args: calls.append((name, args[1].i))))
+    monkeypatch.setattr(campaign_step, "physics_only_fn", lambda b, n_env: (
+        lambda model, d: calls.append(("physics", d))))
+
+    def batch_at(i):
+        made.append(i)
+        state = SimpleNamespace(i=i, d=i)
+        return SimpleNamespace(model=None, state=state, plan=None, om=None, gains=None, push=None, mu_ground=None)
+
+    first, times = campaign_step._time_batch(None, batch_at, 3, 1, campaign_step.ABLATIONS, 20)
+    assert made == [0, 1, 2] and set(first) == {*campaign_step.ABLATIONS, "physics"}
+    assert all(len(t) == 3 for t in times.values())
+    timed = calls[len(first):]  # after each program's first call
+    assert timed == [(name, i) for i in range(3) for name in (*campaign_step.ABLATIONS, "physics")]

@@ -1,0 +1,249 @@
+"""``wbc-jax bench rollout --campaign SPEC``: the campaign's own control step, timed where the campaign runs it.
+
+The spec is built as a campaign builds it (:func:`wbc_jax.campaign.build.build`: its scene, backend, sensing,
+velocity noise, pushes, metric windows, variants and ADMM settings), and its runs walk the course with the
+campaign's own chunk program (chunks of ``chunk_seconds``, each timed: the spec's batch as the campaign steps it)
+up to ``snapshots`` states spread over the horizon. At every requested batch size the spec's runs are repeated
+(run i of the batch is the spec's run i mod n) from each state, and these programs are timed on the same states:
+
+* ``campaign``: the chunk program (:func:`wbc_jax.rollout.loop.make_chunk_fn`) as the campaign compiles it;
+* ``no_clearance``: the same with the physics-rate clearance replaced by +inf (its computation drops out);
+* ``no_monitors``: every physics-rate monitor but ``finite`` replaced by zeros and the control-rate metrics not
+  folded (their computations drop out);
+* ``physics``: plain ``mjx.step`` calls on the same batch (``wbc_jax.bench.rollout.physics_only_fn``).
+
+The ablations exist only here: they replace ``wbc_jax.rollout.step.substep_monitors`` and
+``fold_control_step`` while the program is traced, and the programs compiled then are timed. Shares are
+1 - (ablated program's time / the campaign program's time).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import time
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from wbc_jax.bench.rollout import physics_only_fn, run_bench
+from wbc_jax.campaign.build import LOG_EVERY, build, with_backend
+from wbc_jax.campaign.spec import load_spec
+from wbc_jax.rollout import make_chunk_fn, runs
+from wbc_jax.rollout import step as step_module
+from wbc_jax.rollout.batch import take_runs
+
+ABLATIONS = ("campaign", "no_clearance", "no_monitors")
+
+
+def _no_clearance(original):
+    def monitors(*args):
+        out = original(*args)
+        return out._replace(clear=jnp.full_like(out.clear, jnp.inf), clear_k=jnp.full_like(out.clear_k, -1))
+
+    return monitors
+
+
+def _finite_only(original):
+    def monitors(*args):
+        out = original(*args)
+        return type(out)(**{k: v if k in ("finite", "t") else jnp.zeros_like(v) for k, v in out._asdict().items()})
+
+    return monitors
+
+
+@contextlib.contextmanager
+def ablated(name: str):
+    """While active, ``wbc_jax.rollout.step`` traces the control step of ablation ``name`` (:data:`ABLATIONS`)."""
+    patches = {"campaign": {}, "no_clearance": {"substep_monitors": _no_clearance},
+               "no_monitors": {"substep_monitors": _finite_only,
+                               "fold_control_step": lambda original: (lambda acc, sample, dt: acc)}}[name]
+    saved = {attr: getattr(step_module, attr) for attr in patches}  # AttributeError: the step was renamed
+    try:
+        for attr, wrap in patches.items():
+            setattr(step_module, attr, wrap(saved[attr]))
+        yield
+    finally:
+        for attr, original in saved.items():
+            setattr(step_module, attr, original)
+
+
+def compiled_chunk(sim, b, n_logs: int, ablation: str = "campaign"):
+    """The chunk program of ``n_logs`` x LOG_EVERY control steps for batch ``b`` (ablation ``ablation``), compiled
+    now: a callable of the batch's arguments (:func:`chunk_args`)."""
+    fn = make_chunk_fn(sim, n_logs, b.in_axes)
+    with ablated(ablation):
+        return jax.jit(fn).lower(*chunk_args(b)).compile()
+
+
+def chunk_args(b):
+    """The chunk program's arguments from a Batch."""
+    return (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+
+
+def _timed(f, *args):
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(f(*args))
+    return out, time.perf_counter() - t0
+
+
+class Walk(NamedTuple):
+    """The spec's batch stepped by the campaign's chunk program up to the last snapshot."""
+
+    states: list  # RunState per snapshot
+    times_s: list  # simulated time of each snapshot [s]
+    chunk_wall_s: list  # wall time of each chunk call [s] (the first includes compilation)
+    chunk_steps: int  # control steps per chunk
+
+
+def walk(built, snapshots: int) -> Walk:
+    """Step the spec's runs (``built``: :func:`wbc_jax.campaign.build.build`) with its chunk program, keeping the
+    state after chunks spread evenly over the horizon (``snapshots`` of them; the first at the start)."""
+    sim, b = built.sim, built.batch
+    f = compiled_chunk(sim, b, built.logs_per_chunk)
+    picks = sorted({int(round(i * (built.n_chunks - 1) / max(snapshots, 1))) for i in range(max(snapshots, 1))})
+    chunk_steps = built.logs_per_chunk * LOG_EVERY
+    states, times, walls, state = [], [], [], b.state
+    for c in range(picks[-1] + 1):
+        if c in picks:
+            states.append(state)
+            times.append(c * chunk_steps * sim.dt_control)
+        if c == picks[-1]:
+            break
+        (state, _), wall = _timed(f, *chunk_args(b._replace(state=state)))
+        walls.append(wall)
+    return Walk(states, times, walls, chunk_steps)
+
+
+def repeated(b, state, fresh, batch: int):
+    """Batch ``b`` (n runs) repeated to ``batch`` runs (run i is run i mod n) from ``state``; the state's shared
+    leaves (Warp's contact list, sized by the batch) come from ``fresh``, a state built for ``batch`` runs."""
+    rows = np.arange(batch) % b.mu_ground.shape[0]
+    leaves, treedef, axes = runs.leaves_and_axes(state, b.state_axes)
+    shared = treedef.flatten_up_to(fresh)
+    tiled = treedef.unflatten([s if a is None else x[rows] for x, s, a in zip(leaves, shared, axes)])
+    return take_runs(b, rows, state=tiled)
+
+
+def fresh_state(spec, built, batch: int):
+    """A state whose shared leaves (Warp's contact list) are sized for ``batch`` runs: the spec's own when no leaf
+    is shared or the spec has ``batch`` runs, else that of the spec built with enough repetitions."""
+    axes = runs.leaves_and_axes(built.batch.state, built.batch.state_axes)[2]
+    if all(a is not None for a in axes) or batch == built.design.n:
+        return built.batch.state
+    cells = int(np.prod([len(v) for v in spec.factors.values()]))
+    bigger = dataclasses.replace(spec, campaign={**spec.campaign, "reps": -(-batch // cells)})
+    return build(bigger).batch.state
+
+
+def _time_batch(sim, batch_at, n_states: int, n_logs: int, ablations, n_env: int):
+    """Each ablation's program and physics alone: compiled with its first call (on state 0), then timed once per
+    state, alternated; ``batch_at(i)`` gives the batch from state i (made when needed: one at a time in memory).
+    Returns ({name: first call [s]}, {name: [s per state]})."""
+    b0 = batch_at(0)
+    first, programs = {}, {}
+    for name in ablations:
+        t0 = time.perf_counter()
+        programs[name] = compiled_chunk(sim, b0, n_logs, name)
+        jax.block_until_ready(programs[name](*chunk_args(b0)))
+        first[name] = time.perf_counter() - t0
+    phys = physics_only_fn(b0, n_env)
+    first["physics"] = _timed(phys, b0.model, b0.state.d)[1]
+    times = {name: [] for name in first}
+    for i in range(n_states):
+        b = b0 if i == 0 else batch_at(i)
+        for name, f in programs.items():
+            times[name].append(_timed(f, *chunk_args(b))[1])
+        times["physics"].append(_timed(phys, b.model, b.state.d)[1])
+        del b
+    return first, times
+
+
+def batch_figures(first: dict, times: dict, batch: int, n_env: int) -> dict:
+    """Figures of one batch size from :func:`_time_batch`'s timings: env-steps per second of each program over all
+    states (total env-steps / total time), per state, its compile time (first call less the median call), and the shares
+    of the campaign program's time: physics alone, clearance, monitors (1 - ablated / campaign)."""
+    row = dict(batch=batch)
+    total = {name: float(np.sum(t)) for name, t in times.items()}
+    for name, t in times.items():
+        row[f"{name}_steps_per_s"] = batch * n_env * len(t) / total[name]
+        row[f"{name}_steps_per_s_by_state"] = [batch * n_env / x for x in t]
+        row[f"{name}_compile_s"] = first[name] - float(np.median(t))
+    base = total["campaign"]
+    row["physics_share"] = total["physics"] / base
+    for name, label in (("no_clearance", "clearance_share"), ("no_monitors", "monitors_share")):
+        if name in total:
+            row[label] = 1.0 - total[name] / base
+    return row
+
+
+def run_campaign_step(spec, batches, steps: int = 200, snapshots: int = 3, breakdown=None) -> dict:
+    """The campaign's step at each batch size (module docstring).
+
+    Args:
+        spec: a loaded, validated Spec (``wbc_jax.campaign.spec.load_spec``; backend as the campaign resolves it).
+        batches: batch sizes; steps: control steps per timed call (rounded to whole logged intervals of LOG_EVERY);
+        snapshots: states spread over the horizon that each program is timed from; breakdown: batch sizes at which
+        the ablations are timed too (None: every one).
+
+    Returns:
+        dict: spec, backend, sensing, runs of the spec, the walk (the spec's batch in the campaign's chunks: wall
+        time per chunk and env-steps per second after the first) and one row per batch size (:func:`batch_figures`).
+    """
+    built = build(spec)
+    sim, n = built.sim, built.design.n
+    steps_walk = walk(built, snapshots)
+    chunk_env = n * steps_walk.chunk_steps * sim.n_substeps
+    later = steps_walk.chunk_wall_s[1:]
+    out = dict(spec=str(spec.path), backend=sim.robot.backend, sensing=sim.sensing, n_runs=n,
+               snapshots_s=steps_walk.times_s,
+               walk=dict(chunk_wall_s=steps_walk.chunk_wall_s, chunk_steps=steps_walk.chunk_steps,
+                         env_steps_per_s=chunk_env * len(later) / sum(later) if later else None), batches=[])
+    n_logs = max(1, int(round(steps / LOG_EVERY)))
+    n_env = n_logs * LOG_EVERY * sim.n_substeps
+    device = jax.devices()[0].device_kind
+    for B in batches:
+        fresh = fresh_state(spec, built, B)
+        names = ABLATIONS if breakdown is None or B in breakdown else ABLATIONS[:1]
+        first, times = _time_batch(sim, lambda i, fresh=fresh, B=B: repeated(built.batch, steps_walk.states[i],
+                                                                             fresh, B),
+                                   len(steps_walk.states), n_logs, names, n_env)
+        row = batch_figures(first, times, B, n_env)
+        out["batches"].append(row)
+        shares = "".join(f", {k.split('_')[0]} {row[k]:.1%}" for k in ("clearance_share", "monitors_share")
+                         if k in row)
+        print(f"{device} campaign step ({spec.campaign['name']}, {sim.robot.backend}:{sim.sensing}) batch {B:6d}: "
+              f"{row['campaign_steps_per_s']:12.0f} env-steps per s from t = "
+              f"{', '.join(f'{t:g}' for t in steps_walk.times_s)} s; physics alone {row['physics_steps_per_s']:12.0f}"
+              f" (share {row['physics_share']:.1%}){shares}; compile {row['campaign_compile_s']:.1f} s", flush=True)
+    return out
+
+
+def run_bench_with_campaign(spec_path: str, batches, steps: int = 200, snapshots: int = 3, breakdown=None,
+                            spec_backend: str | None = None, json_path: str | None = None, **bench) -> dict:
+    """``bench rollout --campaign SPEC``: the campaign's step (:func:`run_campaign_step`) next to the bench's
+    physics-only and physics + WBC rows at the same batch sizes (``wbc_jax.bench.rollout.run_bench`` with
+    ``bench``'s keyword arguments), in one process, with each batch's ratio campaign step / bench physics + WBC
+    where both ran the same backend.
+
+    Args:
+        spec_path: the campaign spec (validated before anything is timed); spec_backend: its ``campaign.backend``
+            replaced (None: the spec's); json_path: where the dict is written (None: not written).
+    """
+    spec = with_backend(load_spec(spec_path), spec_backend)  # a bad spec fails here, before any timing
+    out = run_bench(batches=batches, steps=steps, **bench)
+    out["campaign_step"] = step = run_campaign_step(spec, batches, steps, snapshots, breakdown)
+    bench_rows = {(r["batch"], r["backend"]): r for r in out["batches"]}
+    for row in step["batches"]:
+        ref = bench_rows.get((row["batch"], step["backend"]))
+        row["ratio_to_bench_wbc"] = row["campaign_steps_per_s"] / ref["wbc_steps_per_s"] if ref else None
+        if ref:
+            print(f"batch {row['batch']:6d}: campaign step / bench physics + WBC = {row['ratio_to_bench_wbc']:.3f}",
+                  flush=True)
+    if json_path and jax.process_index() == 0:
+        with open(json_path, "w") as fh:
+            json.dump(out, fh, indent=2)
+    return out

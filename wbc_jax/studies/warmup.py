@@ -1,0 +1,98 @@
+"""``wbc-jax warmup [--spec SPEC] [--backend warp|jax]``: compile once what a spec's first campaign compiles.
+
+A campaign's first run on a machine compiles MuJoCo Warp's kernels (Warp's kernel cache, ``~/.cache/warp`` or
+``WARP_CACHE_PATH``) and the JAX programs of its shapes (the persistent compilation cache,
+``wbc_jax.runtime.jaxcfg``), and computes the course plans (kept beside that cache). This command does all three for
+a spec's shapes and prints each stage's wall time, so a cluster image or a user runs it once and later campaigns of
+that spec start warm:
+
+1. setup: the spec built as the campaign builds it (plans, batched model, initial states; their small programs);
+2. on Warp, at the same time: MuJoCo Warp's kernel modules compiled on the GPU by a pool of threads
+   (:func:`wbc_jax.physics.warp_kernels.preload`) while the main thread traces and compiles the chunk program;
+3. the first chunk, run: it loads the compiled programs, compiles any Warp kernel that the preload did not cover,
+   and captures Warp's CUDA graph.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import threading
+import time
+
+DEFAULT_SPEC = "sweeps/paper_campaign.toml"
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Register the ``warmup`` subcommand on ``subparsers``."""
+    w = subparsers.add_parser("warmup", help="compile Warp's kernels and the JAX programs a spec's first campaign "
+                                             "needs (run once per machine or image)")
+    w.add_argument("--spec", default=DEFAULT_SPEC, help="the campaign spec whose shapes are compiled")
+    w.add_argument("--backend", default=None, choices=["auto", "jax", "warp"],
+                   help="physics backend instead of the spec's campaign.backend (default: the spec's)")
+    w.add_argument("--workers", type=int, default=None, help="threads compiling Warp's kernel modules (default: "
+                                                             "the CPU count; 0: none, kernels compile on first use)")
+    return w
+
+
+def _compile_chunk(built):
+    """The campaign's chunk program for ``built`` (``wbc_jax.campaign.build``'s, so the persistent cache holds what
+    the campaign looks up), compiled without running it where it is a plain jit (Warp); an exported program (JAX
+    physics) compiles on its first call."""
+    from wbc_jax.campaign.build import _chunk_fn
+
+    b = built.batch
+    fn = _chunk_fn(built.sim, b.in_axes, built.logs_per_chunk, state_axes=b.state_axes)
+    return fn.lower(*_args(b)).compile() if hasattr(fn, "lower") else fn
+
+
+def _args(b):
+    return (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+
+
+def warmup(spec_path: str, backend: str | None = None, workers: int | None = None) -> dict:
+    """Compile what the spec's first campaign compiles (module docstring). Returns each stage's wall time [s] (and
+    the number of Warp modules preloaded)."""
+    import jax
+
+    from wbc_jax.campaign.build import build, with_backend
+    from wbc_jax.campaign.progress import stage
+    from wbc_jax.campaign.spec import load_spec
+    from wbc_jax.physics import warp_kernels
+
+    t_start = time.perf_counter()
+    spec = with_backend(load_spec(spec_path), backend)
+    stage(f"building {spec_path}")
+    built = build(spec)
+    stages = dict(setup_s=time.perf_counter() - t_start)
+    workers = os.cpu_count() if workers is None else workers
+    preload, result = None, {}
+    if built.sim.robot.backend == "warp" and jax.default_backend() == "gpu" and workers > 0:
+        stage(f"compiling MuJoCo Warp's kernels ({workers} threads) and the chunk program")
+        preload = threading.Thread(target=lambda: result.update(zip(("modules", "s"), warp_kernels.preload(workers))))
+        preload.start()
+    else:
+        stage("compiling the chunk program")
+    t0 = time.perf_counter()
+    program = _compile_chunk(built)
+    stages["compile_chunk_s"] = time.perf_counter() - t0
+    if preload is not None:
+        preload.join()
+        stages.update(warp_modules=result.get("modules"), warp_preload_s=result.get("s"))
+    stage("running the first chunk")
+    t0 = time.perf_counter()
+    jax.block_until_ready(program(*_args(built.batch)))
+    stages.update(first_chunk_s=time.perf_counter() - t0, total_s=time.perf_counter() - t_start)
+    print("warmup: " + ", ".join(f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}" for k, v in stages.items()),
+          flush=True)
+    return stages
+
+
+def main(args: argparse.Namespace) -> int:
+    """The ``warmup`` subcommand."""
+    if args.workers is not None and args.workers < 0:
+        from wbc_jax.errors import InputError
+
+        raise InputError(f"--workers {args.workers}: expected an integer >= 0")
+    warmup(args.spec, args.backend, args.workers)
+    return 0
