@@ -160,3 +160,43 @@ def test_obj_accel_is_the_plans_peak_acceleration():
         t = jnp.linspace(0.0, float(plan.obj_path.t_knots[-1]), 8001)
         a = jax.vmap(eval_path, in_axes=(None, 0))(plan.obj_path, t)[2]
         assert abs(float(jnp.max(jnp.linalg.norm(a, axis=1))) - accel) < 0.02 * accel
+
+
+def test_report_of_an_envelope_table(tmp_path):
+    from wbc_jax.api import report
+
+    csv = tmp_path / "results.csv"
+    _table().to_csv(csv, index=False)
+    report(csv, tmp_path / "rep", factors=FACTORS, metrics=["R", "max_slip_mm"], figures=False)
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "## Envelope: where each controller variant succeeds" in md
+    assert "1 of 4 regions" in md
+    assert "## The paper's claims" in md
+
+
+@pytest.mark.slow
+def test_tiny_envelope_spec_builds():
+    """A tiny envelope (variant x obj_accel x speed, 8 runs on flat ground) builds: each run's plan has its speed's
+    duration and its obj_accel's ramps, and its variant and push."""
+    import dataclasses
+
+    from wbc_jax.planner.spline import path_end_time
+
+    s = spec.load_spec(spec.SWEEPS / "envelope.toml")
+    s = dataclasses.replace(s, campaign={**s.campaign, "reps": 1, "distance": 0.3},
+                            factors={"variant": ["full", "no_tray_cone"], "obj_accel": [0.5, 4.0],
+                                     "speed": [0.13, 0.25]})
+    built = build.build(s)
+    dz = built.design
+    ends = np.array([float(path_end_time(p)) for p in _plans(built.batch.plan, dz.n)])
+    ramps = build.speed_ramps(s, dz)
+    # rest-to-rest: start time + distance / speed + one ramp (half a ramp's distance on each side at cruise speed)
+    t_start = ends - 0.3 / dz.speed - ramps
+    np.testing.assert_allclose(t_start, t_start[0], atol=1e-4)
+    np.testing.assert_array_equal(np.asarray(built.batch.state.cs.variant.tray_cone), dz.variant[:, 0])
+
+
+def _plans(plan, n):
+    from wbc_jax.rollout import runs
+
+    return [runs.take(plan.obj_path, i) for i in range(n)]
