@@ -86,8 +86,6 @@ def decompose(rec, run: int, walk_start_s: float = 1.0) -> dict[str, Parts]:
     ids = resolve_ids(model)
     acc = object_acceleration(rec.qvel0[run], rec.qvel[run], ids.obj_dof_adr, rec.dt)
     vel, normal = tray_kinematics(model, rec.qpos[run], rec.qvel[run], ids.obj_body, ids.tray_body)
-    data = mujoco.MjData(model)
-    data.qpos[:], data.qvel[:] = rec.qpos0[run], rec.qvel0[run]
     vel0, _ = tray_kinematics(model, rec.qpos0[run][None], rec.qvel0[run][None], ids.obj_body, ids.tray_body)
     tray_acc = np.diff(np.concatenate([vel0, vel]), axis=0) / rec.dt
     standing = rec.t <= walk_start_s
