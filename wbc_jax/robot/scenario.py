@@ -9,6 +9,7 @@ inverse weights of the object's body and dofs from its mass and inertia.
 
 from __future__ import annotations
 
+import os
 import re
 import tempfile
 from pathlib import Path
@@ -202,7 +203,15 @@ def scene_variant(scene: str, options: dict | None = None, obj_solref: tuple | N
     folder = Path(out_dir or tempfile.mkdtemp(prefix="wbc_scene_"))
     folder.mkdir(parents=True, exist_ok=True)
     for name in re.findall(r'<include file="([^"]+)"', text):
-        (folder / name).write_text((mjcf_dir() / name).read_text())
+        _write_atomic(folder / name, (mjcf_dir() / name).read_text())
     out = folder / src.name
-    out.write_text(text)
+    _write_atomic(out, text)
     return str(out)
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file and a rename (processes writing the same scene at once
+    never read a partial file)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
