@@ -39,10 +39,10 @@ def _compile_chunk(built):
     """The campaign's chunk program for ``built`` (``wbc_jax.campaign.build``'s, so the persistent cache holds what
     the campaign looks up), compiled without running it where it is a plain jit (Warp); an exported program (JAX
     physics) compiles on its first call."""
-    from wbc_jax.campaign.build import _chunk_fn
+    from wbc_jax.campaign.build import chunk_fn
 
     b = built.batch
-    fn = _chunk_fn(built.sim, b.in_axes, built.logs_per_chunk, state_axes=b.state_axes)
+    fn = chunk_fn(built.sim, b.in_axes, built.logs_per_chunk, state_axes=b.state_axes)
     return fn.lower(*_args(b)).compile() if hasattr(fn, "lower") else fn
 
 
