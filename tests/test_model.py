@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from wbc_jax.errors import FactorError, SceneError
+from wbc_jax.physics import backend as physics
 from wbc_jax.physics.observe import point_jacobians
 from wbc_jax.robot import scenario
 from wbc_jax.robot.model import Robot, mjx, resolve_ids
@@ -56,8 +57,11 @@ def test_mjx_matches_mujoco_c_at_home(robot):
     mujoco.mj_fullM(m, d, M_c)
 
     mx = robot.mjx_model
-    dx = mjx.make_data(mx).replace(qpos=jnp.asarray(d.qpos), qvel=jnp.asarray(d.qvel))
-    dx = jax.jit(mjx.forward)(mx, dx)
+    dev = jax.local_devices()[0]
+    dx = mjx.make_data(mx, device=dev).replace(qpos=jax.device_put(d.qpos, dev), qvel=jax.device_put(d.qvel, dev))
+    # the backend's sensing pass (kinematics, mass matrix, bias forces): the program
+    # test_static_contact_layout_equals_the_compiled_one compiles for this scene (one compile for both tests)
+    dx = jax.jit(physics.sense)(mx, dx)
     np.testing.assert_allclose(np.asarray(mjx.full_m(mx, dx)), M_c, atol=DYN_ATOL, rtol=DYN_RTOL)
     np.testing.assert_allclose(np.asarray(dx.qfrc_bias), d.qfrc_bias, atol=DYN_ATOL, rtol=DYN_RTOL)
 
@@ -130,6 +134,7 @@ def _held_robot_model(robot: Robot, q0: np.ndarray) -> mujoco.MjModel:
     return spec.compile()
 
 
+@pytest.mark.slow  # 2 s of physics alone; tests/test_transport.py's loaded stand bounds the slip under QP control
 def test_object_rests_on_held_tray(robot):
     m_obj, mu, d = 0.4, 0.4, 0.10
     q0 = robot.home_qpos(d)
