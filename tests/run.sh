@@ -24,31 +24,31 @@ fi
 # single-threaded XLA compilation; one process of the whole suite also made XLA's CPU compiler abort). The groups
 # share the persistent compilation cache. A group's files run in one process so that the programs they share are
 # traced once (test_campaign's tiny campaign, reused by test_replay, test_window, test_sharding and test_tune; the
-# flat-scene chunk program of test_transport and test_backends' JAX walk); the longest groups come first and a
-# group reusing another's programs comes after it. A test file in no group runs in a last group of its own. Each
-# group prints a line when it ends; the outputs follow, in group order, at the end.
+# flat-scene chunk program of test_transport and test_backends' JAX walk); the longest groups come first, a group
+# reusing another's programs comes after it, and files that compile little (`light`) fill the end. A test file in
+# no group runs in a group of its own, before those. Each group prints a line when it ends; the outputs follow, in
+# group order, at the end.
 groups=(
-  "transport backends"
   "campaign replay window sharding tune"
-  "model metrics"
-  "qp"
+  "transport backends"
   "distributed"
+  "qp"
   "centroidal"
   "course clearance"
   "substeps factors freeze"
-  "reliability safety report stats planner zmp capture_point interaction kernel_trace snapshots spec_docs packed aot
-   api architecture cli_docs progress"
+  "model metrics"
 )
-named=" ${groups[*]} "
+light="reliability safety report stats planner zmp capture_point interaction kernel_trace snapshots spec_docs packed
+  aot api architecture cli_docs progress"
+named=" ${groups[*]} $light "
 rest=()
 for f in tests/test_*.py; do
   n=${f#tests/test_}
   n=${n%.py}
   [[ "$named" == *[[:space:]]"$n"[[:space:]]* ]] || rest+=("$n")
 done
-if [ "${#rest[@]}" -gt 0 ]; then
-  groups+=("${rest[*]}")
-fi
+for n in "${rest[@]}"; do groups+=("$n"); done
+groups+=("$light")
 logs=$(mktemp -d)
 run_group() {  # $1: the group's index
   local files=() n r=0 t0=$SECONDS
