@@ -1,12 +1,18 @@
 """``bench rollout --campaign``: the campaign's own step timed beside the bench (``wbc_jax.bench.campaign_step``)."""
 
+import dataclasses
 import json
 
+import jax
 import numpy as np
 import pytest
 
 from wbc_jax import cli
 from wbc_jax.bench import campaign_step
+from wbc_jax.campaign.build import build
+from wbc_jax.campaign.spec import load_spec
+from wbc_jax.physics.backend import NACON_PER_RUN, warp_available
+from wbc_jax.rollout import runs
 from wbc_jax.rollout import step as step_module
 
 TINY_SPEC = """[campaign]
@@ -31,6 +37,35 @@ push_duration_s = 0.2
 push_window = [0.2, 0.7]
 qvel_noise_std = 0.02
 """
+
+
+WARP_SPEC = TINY_SPEC.replace('scene = "flat"', 'scene = "flat"\nbackend = "warp"')
+needs_warp = pytest.mark.skipif(not warp_available(), reason="warp-lang not installed")
+
+
+@needs_warp
+def test_warp_state_repeated_to_a_larger_batch_is_that_batch_s(tmp_path):
+    """Warp: the spec's 8 runs repeated to 16 take the structure (static contact capacities) and shapes of the
+    state of a campaign batch of 16 runs; the per-run leaves are the spec's runs, tiled."""
+    path = tmp_path / "tiny.toml"
+    path.write_text(WARP_SPEC)
+    spec = load_spec(str(path))
+    built, bigger = build(spec), build(dataclasses.replace(spec, campaign={**spec.campaign, "reps": 2}))
+    assert built.design.n == 8 and bigger.design.n == 16
+    fresh = campaign_step.fresh_state(built.sim, built.batch, 16)
+    b = campaign_step.repeated(built.batch, built.batch.state, fresh, 16)
+    assert int(b.state.d._impl.naconmax) == 16 * NACON_PER_RUN
+    want = jax.tree_util.tree_structure(bigger.batch.state)
+    assert jax.tree_util.tree_structure(b.state) == want
+    assert [x.shape for x in jax.tree_util.tree_leaves(b.state)] == [
+        x.shape for x in jax.tree_util.tree_leaves(bigger.batch.state)]
+    assert jax.tree_util.tree_structure(b.state_axes) == jax.tree_util.tree_structure(bigger.batch.state_axes)
+    leaves, _, axes = runs.leaves_and_axes(b.state, b.state_axes)
+    source = jax.tree_util.tree_leaves(built.batch.state)
+    for x, y, a in zip(leaves, source, axes):
+        if a is not None:
+            np.testing.assert_array_equal(np.asarray(x), np.tile(np.asarray(y), (2,) + (1,) * (y.ndim - 1)))
+    assert campaign_step.fresh_state(built.sim, built.batch, 8) is built.batch.state
 
 
 def test_ablations_replace_the_step_only_while_active():
@@ -100,3 +135,18 @@ def test_time_batch_compiles_once_and_times_every_state(monkeypatch):
     assert all(len(t) == 3 for t in times.values())
     timed = calls[len(first):]  # after each program's first call
     assert timed == [(name, i) for i in range(3) for name in (*campaign_step.ABLATIONS, "physics")]
+
+
+@pytest.mark.slow
+@needs_warp
+def test_campaign_step_bench_warp_batch_larger_than_the_spec(tmp_path):
+    """Warp, the tiny spec's 8 runs timed at batch 12 (runs repeated into a larger batch with its own contact
+    list): the command completes and writes the row."""
+    spec = tmp_path / "tiny.toml"
+    spec.write_text(WARP_SPEC)
+    out = tmp_path / "bench.json"
+    assert cli.main(["bench", "rollout", "--backend", "warp", "--campaign", str(spec), "--batches", "12",
+                     "--breakdown", "8", "--steps", "2", "--snapshots", "1", "--rounds", "1", "--json",
+                     str(out)]) == 0
+    (row,) = json.loads(out.read_text())["campaign_step"]["batches"]
+    assert row["batch"] == 12 and row["campaign_steps_per_s"] > 0 and "monitors_share" not in row

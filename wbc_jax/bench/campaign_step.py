@@ -20,7 +20,7 @@ The ablations exist only here: they replace ``wbc_jax.rollout.step.substep_monit
 from __future__ import annotations
 
 import contextlib
-import dataclasses
+import functools
 import json
 import time
 from typing import NamedTuple
@@ -35,6 +35,7 @@ from wbc_jax.campaign.spec import load_spec
 from wbc_jax.rollout import make_chunk_fn, runs
 from wbc_jax.rollout import step as step_module
 from wbc_jax.rollout.batch import take_runs
+from wbc_jax.rollout.state import init_state
 
 ABLATIONS = ("campaign", "no_clearance", "no_monitors")
 
@@ -119,24 +120,30 @@ def walk(built, snapshots: int) -> Walk:
 
 
 def repeated(b, state, fresh, batch: int):
-    """Batch ``b`` (n runs) repeated to ``batch`` runs (run i is run i mod n) from ``state``; the state's shared
-    leaves (Warp's contact list, sized by the batch) come from ``fresh``, a state built for ``batch`` runs."""
+    """Batch ``b`` (n runs) repeated to ``batch`` runs (run i is run i mod n) from ``state``, a state of ``b``'s
+    runs. The result takes its structure and shared leaves from ``fresh``, a state of ``batch`` runs
+    (:func:`fresh_state`): on Warp both follow the batch size (the shared contact list, its static capacities)."""
     rows = np.arange(batch) % b.mu_ground.shape[0]
-    leaves, treedef, axes = runs.leaves_and_axes(state, b.state_axes)
-    shared = treedef.flatten_up_to(fresh)
+    leaves, _, axes = runs.leaves_and_axes(state, b.state_axes)
+    shared, treedef = jax.tree_util.tree_flatten(fresh)
+    if len(shared) != len(leaves):
+        raise ValueError(f"a state of {len(leaves)} leaves repeated into one of {len(shared)}")
     tiled = treedef.unflatten([s if a is None else x[rows] for x, s, a in zip(leaves, shared, axes)])
-    return take_runs(b, rows, state=tiled)
+    return take_runs(b, rows, state=tiled)._replace(state_axes=treedef.unflatten(axes))
 
 
-def fresh_state(spec, built, batch: int):
-    """A state whose shared leaves (Warp's contact list) are sized for ``batch`` runs: the spec's own when no leaf
-    is shared or the spec has ``batch`` runs, else that of the spec built with enough repetitions."""
-    axes = runs.leaves_and_axes(built.batch.state, built.batch.state_axes)[2]
-    if all(a is not None for a in axes) or batch == built.design.n:
-        return built.batch.state
-    cells = int(np.prod([len(v) for v in spec.factors.values()]))
-    bigger = dataclasses.replace(spec, campaign={**spec.campaign, "reps": -(-batch // cells)})
-    return build(bigger).batch.state
+def fresh_state(sim, b, batch: int):
+    """An initial state of ``batch`` runs (run i is ``b``'s run i mod n) made as a campaign batch of that size is
+    made (``wbc_jax.rollout.state.init_state`` vmapped over the runs; on Warp the shared contact list is sized for
+    ``batch`` runs, one device, no padding); ``b``'s own state when no leaf is shared (JAX) or ``b`` has ``batch``
+    runs."""
+    axes = runs.leaves_and_axes(b.state, b.state_axes)[2]
+    n = b.mu_ground.shape[0]
+    if all(a is not None for a in axes) or batch == n:
+        return b.state
+    rows = np.arange(batch) % n
+    init = jax.vmap(functools.partial(init_state, sim, n_runs=batch), in_axes=(b.in_axes, 0, 0))
+    return jax.jit(init)(runs.take(b.model, rows, b.in_axes), b.state.d.qpos[rows], b.state.d.qvel[rows])
 
 
 def _time_batch(sim, batch_at, n_states: int, n_logs: int, ablations, n_env: int):
@@ -206,7 +213,7 @@ def run_campaign_step(spec, batches, steps: int = 200, snapshots: int = 3, break
     n_env = n_logs * LOG_EVERY * sim.n_substeps
     device = jax.devices()[0].device_kind
     for B in batches:
-        fresh = fresh_state(spec, built, B)
+        fresh = fresh_state(sim, built.batch, B)
         names = ABLATIONS if breakdown is None or B in breakdown else ABLATIONS[:1]
         first, times = _time_batch(sim, lambda i, fresh=fresh, B=B: repeated(built.batch, steps_walk.states[i],
                                                                              fresh, B),
