@@ -176,6 +176,8 @@ rungs = 2
 #      confirmed; every call 4 runs (padded), 2 per device as in the campaign
 
 
+@pytest.mark.slow  # three fresh processes compile on 2 cores; tests/test_sharding.py checks the run axis over two
+#                   devices and tests/test_backends.py the Warp blocks, in one process each
 def test_two_processes_equal_one(tiny_spec, tmp_path, monkeypatch):
     """2 processes x 1 CPU device, the run axis over both, against one process over 2 CPU devices (the same
     per-device program, 2 runs each), the three launched once (ALL_IN_ONE): `wbc-jax campaign`'s results.csv equal

@@ -415,8 +415,8 @@ def test_best_gains_replayed_by_campaign(tiny_run, tmp_path):
     assert json.loads((camp / "manifest.json").read_text())["default_gains"] is False
 
 
-@pytest.mark.slow  # a fresh process compiles the one-run programs; the CEM run above and tests/test_distributed.py's
-#                   halving run (continued survivors, one compile) cover the search end to end
+@pytest.mark.slow  # a fresh process compiles the one-run programs; the CEM run above covers the search end to end
+#                   and test_halving_schedule_and_survivors the halving bookkeeping
 def test_tiny_successive_halving_end_to_end(tmp_path):
     """`wbc-jax tune` with method = "halving" through the command line, in a subprocess under a time limit (a
     hang fails here instead of stalling CI): 4 candidates per bracket, 2 brackets, rungs at 1 and 3 chunks; the
