@@ -45,7 +45,6 @@ def _check_outputs(out: Path, manifest: dict) -> pd.DataFrame:
     return df
 
 
-@pytest.mark.slow
 def test_trot_campaign_on_jax_equals_the_trot_study(jax_run):
     """results.csv, manifest and report; both runs walk; every metric equals wbc-jax trot's (run_study) exactly."""
     from wbc_jax.studies.trot import TrotSettings, run_study
@@ -74,7 +73,6 @@ def test_trot_campaign_on_warp(tmp_path):
     assert df.success.all(), df[["success", "fail_reason"]]
 
 
-@pytest.mark.slow
 def test_regress_passes_on_the_trot_baseline(jax_run, capsys):
     from wbc_jax.campaign.regress import run_regress
 
