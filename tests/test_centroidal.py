@@ -212,6 +212,7 @@ def test_qp_matches_osqp_and_obeys_the_model(robot):
     assert np.all(np.abs(np.asarray(A_tau, float) @ x + np.asarray(b_tau, float)) <= np.asarray(ids.tau_max))
 
 
+@pytest.mark.slow  # its own 1.5 s closed-loop compile; tests/test_trot_campaign.py's campaign walks this controller
 def test_short_trot_keeps_the_robot_up(robot, tmp_path):
     """Four steps at 0.4 m/s with the exact model and a 20 % too light one (one batch of the shared rollout with
     the centroidal plug-in); the Fig. 9 strip of its logged configurations (skipped part without an offscreen
