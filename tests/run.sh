@@ -32,11 +32,11 @@ groups=(
   "campaign replay window sharding tune"
   "transport backends"
   "distributed"
-  "qp"
-  "centroidal"
-  "course clearance"
   "substeps factors freeze"
+  "course clearance"
+  "qp"
   "model metrics"
+  "centroidal"
 )
 light="reliability safety report stats planner zmp capture_point interaction kernel_trace snapshots spec_docs packed
   aot api architecture cli_docs progress"
