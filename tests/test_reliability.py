@@ -132,7 +132,7 @@ BAD_INPUTS = [
      'campaign.backend: = \'bullet\': expected one of auto, jax, warp'),
     # factors beyond the paper (wbc_jax.campaign.factors): an unknown name, a bad level
     ("campaign_spec_unknown_factor", ["campaign", "--spec", "factor.toml", "--out", "new_f"],
-     "factor.toml: factors.wind: unknown factor; expected one of m, mu, d, ground_mu, speed, push_N"),
+     "factor.toml: factors.wind: unknown factor; expected one of m, mu, d, ground_mu, speed, obj_accel, push_N"),
     ("campaign_spec_bad_variant", ["campaign", "--spec", "variant.toml", "--out", "new_v"],
      "variant.toml: factors.variant: level 'no_arm': expected one of full, no_tray_cone, no_observer, no_posture"),
     ("bench_backend", ["bench", "rollout", "--backend", "bullet"], "--backend 'bullet'"),

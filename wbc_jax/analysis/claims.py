@@ -157,7 +157,8 @@ def _d_claim(df: pd.DataFrame, alpha: float) -> tuple[str, str]:
         y = _num(df, col)[ok]
         eta = eta_squared(y, d)
         samples = [y[(d == v) & np.isfinite(y)] for v in np.unique(d)]
-        testable = all(len(s) for s in samples) and np.ptp(y[np.isfinite(y)]) > 0
+        finite = y[np.isfinite(y)]
+        testable = all(len(s) for s in samples) and finite.size > 0 and np.ptp(finite) > 0
         p = float(sps.kruskal(*samples).pvalue) if testable else np.nan
         parts.append(f"{col}: eta^2 = {eta:.3g}, Kruskal-Wallis p = {p:.3g}")
         if eta >= NEGLIGIBLE_ETA2 and p < alpha:

@@ -355,7 +355,7 @@ def cp_walk_reference(plan: CPWalkPlan, t, com_xy, p_lift) -> WalkReference:
     ref = cp_reference(plan.P, plan.xi_eos, t, plan.gait.t_start, T, plan.w)
     gs = gait_phase(plan.gait, t)
     step = jnp.clip(gs.step_index, 0, n - 1)
-    land = jnp.concatenate([plan.feet[step + 1], jnp.full((4, 1), plan.foot_z)], axis=1)  # (4, 3)
+    land = jnp.concatenate([jnp.asarray(plan.feet)[step + 1], jnp.full((4, 1), plan.foot_z)], axis=1)  # (4, 3)
     p, v, a = jax.vmap(lambda pl, pd, ph: swing_reference(pl, pd, ph, plan.gait.t_swing, plan.swing_height,
                                                           kind="quintic"))(p_lift, land, gs.swing_phase)
     return WalkReference(cp=ref, v_xy=desired_com_velocity(com_xy, ref.xi, plan.w), swing=gs.swing,
