@@ -34,7 +34,7 @@ from wbc_jax.campaign.build import LOG_EVERY, build, with_backend
 from wbc_jax.campaign.spec import load_spec
 from wbc_jax.rollout import make_chunk_fn, runs
 from wbc_jax.rollout import step as step_module
-from wbc_jax.rollout.batch import take_runs
+from wbc_jax.rollout.batch import chunk_args, take_runs
 from wbc_jax.rollout.state import init_state
 
 ABLATIONS = ("campaign", "no_clearance", "no_monitors")
@@ -74,15 +74,10 @@ def ablated(name: str):
 
 def compiled_chunk(sim, b, n_logs: int, ablation: str = "campaign"):
     """The chunk program of ``n_logs`` x LOG_EVERY control steps for batch ``b`` (ablation ``ablation``), compiled
-    now: a callable of the batch's arguments (:func:`chunk_args`)."""
+    now: a callable of the batch's arguments (:func:`wbc_jax.rollout.batch.chunk_args`)."""
     fn = make_chunk_fn(sim, n_logs, b.in_axes)
     with ablated(ablation):
         return jax.jit(fn).lower(*chunk_args(b)).compile()
-
-
-def chunk_args(b):
-    """The chunk program's arguments from a Batch."""
-    return (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
 
 
 def _timed(f, *args):

@@ -39,6 +39,10 @@ class Batch(NamedTuple):
     state_axes: object = 0  # the state's run axes (wbc_jax.rollout.state.state_axes: Warp's contact list is shared)
 
 
+def chunk_args(b: Batch) -> tuple:
+    """The arguments of a chunk program (``wbc_jax.campaign.build.chunk_fn``) for batch ``b``, in its order."""
+    return (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+
 
 def take_runs(b: Batch, rows, state=None, gains=None) -> Batch:
     """The runs ``rows`` (indices into ``b``) of every per-run field of ``b`` (:func:`wbc_jax.rollout.runs.take`, the

@@ -40,14 +40,11 @@ def _compile_chunk(built):
     the campaign looks up), compiled without running it where it is a plain jit (Warp); an exported program (JAX
     physics) compiles on its first call."""
     from wbc_jax.campaign.build import chunk_fn
+    from wbc_jax.rollout.batch import chunk_args
 
     b = built.batch
     fn = chunk_fn(built.sim, b.in_axes, built.logs_per_chunk, state_axes=b.state_axes)
-    return fn.lower(*_args(b)).compile() if hasattr(fn, "lower") else fn
-
-
-def _args(b):
-    return (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+    return fn.lower(*chunk_args(b)).compile() if hasattr(fn, "lower") else fn
 
 
 def warmup(spec_path: str, backend: str | None = None, workers: int | None = None) -> dict:
@@ -59,6 +56,7 @@ def warmup(spec_path: str, backend: str | None = None, workers: int | None = Non
     from wbc_jax.campaign.progress import stage
     from wbc_jax.campaign.spec import load_spec
     from wbc_jax.physics import warp_kernels
+    from wbc_jax.rollout.batch import chunk_args
 
     t_start = time.perf_counter()
     spec = with_backend(load_spec(spec_path), backend)
@@ -81,7 +79,7 @@ def warmup(spec_path: str, backend: str | None = None, workers: int | None = Non
         stages.update(warp_modules=result.get("modules"), warp_preload_s=result.get("s"))
     stage("running the first chunk")
     t0 = time.perf_counter()
-    jax.block_until_ready(program(*_args(built.batch)))
+    jax.block_until_ready(program(*chunk_args(built.batch)))
     stages.update(first_chunk_s=time.perf_counter() - t0, total_s=time.perf_counter() - t_start)
     print("warmup: " + ", ".join(f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}" for k, v in stages.items()),
           flush=True)
