@@ -18,3 +18,13 @@ def test_warp_kernel_modules_are_mujoco_warps():
     assert any(n.endswith("mujoco_warp._src.solver") for n in names)
     assert any(n.endswith("mujoco_warp._src.collision_primitive") for n in names)
     assert not any(n.startswith("warp.") for n in names)
+
+
+def test_preload_only_where_warp_runs_on_a_gpu_and_its_error_reaches_the_caller(monkeypatch):
+    from wbc_jax.physics import warp_kernels
+
+    assert warp_kernels.start_preload("jax") is None
+    assert warp_kernels.start_preload("warp") is None  # JAX on the CPU: Warp's kernels compile on first use
+    monkeypatch.setattr(warp_kernels, "preload", lambda workers, device: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        warp_kernels.Preload(2).result()

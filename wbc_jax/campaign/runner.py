@@ -63,6 +63,7 @@ from wbc_jax.campaign.resume import Start, kept, start_point
 from wbc_jax.campaign.spec import default_spec_path, load_spec
 from wbc_jax.errors import OutputError, WbcJaxError
 from wbc_jax.io_utils import atomic_dir, release_out_dir, write_json_atomic
+from wbc_jax.physics import warp_kernels
 from wbc_jax.rollout import distributed
 from wbc_jax.rollout.spread import choose
 
@@ -191,6 +192,8 @@ def _write(job: Job, rollout: Rollout, clock: dict, report: bool, reporter, guar
     with guard.deferred(), atomic_dir(job.out) as tmp:  # the finished simulation first: a failing report keeps it
         df.to_csv(tmp / "results.csv", index=False)
         manifest["wall_s_total"] = time.perf_counter() - clock["import"] + wall_before
+        if "warp_preload_s" in clock:  # MuJoCo Warp's kernels compiled (or loaded from its cache) during setup
+            manifest["warp_preload_s"] = clock["warp_preload_s"]
         write_json_atomic(tmp / "manifest.json", manifest)
     shutil.rmtree(job.ckpt, ignore_errors=True)
     job.status.stage = "written"
@@ -274,10 +277,14 @@ def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guar
     status.saved, status.n_chunks = kept(ck)
     for line in preflight.notes(spec, physics_backend, r["allow_large"]) if status.writer else []:
         print(line, flush=True)
+    preload = warp_kernels.start_preload(physics_backend)  # Warp's kernels compile while the batch is built
     if status.writer:
-        stage(f"building {design(spec).n} runs on scene {spec.campaign['scene']} (initial states, plans, pushes)")
+        stage(f"building {design(spec).n} runs on scene {spec.campaign['scene']} (initial states, plans, pushes)"
+              + ("; MuJoCo Warp's kernels compiling meanwhile" if preload else ""))
     with guard.deferred():  # the batch's initial states compile
         built = build(spec, r["gains"])
+        if preload is not None:
+            clock["warp_preload_s"] = preload.result()[1]
     guard.check()
     check_horizon(spec, built)
     sp = choose(built.sim.robot.backend)  # several devices: each steps its own runs (wbc_jax.rollout.spread)

@@ -8,6 +8,8 @@ so the cost is that of the largest module; modules that a launch specializes fur
 
 from __future__ import annotations
 
+import os
+import threading
 import time
 
 
@@ -30,3 +32,37 @@ def preload(workers: int, device: str = "cuda:0") -> tuple[int, float]:
     modules = kernel_modules()
     wp.force_load(device=device, modules=modules, max_workers=workers)
     return len(modules), time.perf_counter() - t0
+
+
+class Preload:
+    """:func:`preload` running in a background thread, started at construction: the caller goes on (setup, tracing)
+    while Warp compiles. :meth:`result` waits for it and returns (modules, seconds), or raises what it raised."""
+
+    def __init__(self, workers: int, device: str = "cuda:0"):
+        self._out: dict = {}
+        self._thread = threading.Thread(target=self._run, args=(workers, device), name="warp-preload", daemon=True)
+        self._thread.start()
+
+    def _run(self, workers: int, device: str) -> None:
+        try:
+            self._out["result"] = preload(workers, device)
+        except BaseException as e:  # re-raised in the caller's thread by result()
+            self._out["error"] = e
+
+    def result(self) -> tuple[int, float]:
+        """(modules, seconds) once the preload has ended."""
+        self._thread.join()
+        if "error" in self._out:
+            raise self._out["error"]
+        return self._out["result"]
+
+
+def start_preload(backend: str, workers: int | None = None) -> Preload | None:
+    """A :class:`Preload` of MuJoCo Warp's modules with ``workers`` threads (None: the CPU count) when ``backend``
+    is ``"warp"`` and JAX runs on a GPU; None otherwise (on a CPU, Warp's kernels compile on first use)."""
+    import jax
+
+    workers = (os.cpu_count() or 1) if workers is None else workers
+    if backend != "warp" or jax.default_backend() != "gpu" or workers <= 0:
+        return None
+    return Preload(workers)

@@ -7,8 +7,9 @@ a spec's shapes and prints each stage's wall time, so a cluster image or a user 
 that spec start warm:
 
 1. setup: the spec built as the campaign builds it (plans, batched model, initial states; their small programs);
-2. on Warp, at the same time: MuJoCo Warp's kernel modules compiled on the GPU by a pool of threads
-   (:func:`wbc_jax.physics.warp_kernels.preload`) while the main thread traces and compiles the chunk program;
+2. on Warp, from the start: MuJoCo Warp's kernel modules compiled on the GPU by a pool of threads
+   (:func:`wbc_jax.physics.warp_kernels.preload`) while the main thread builds the spec and compiles the chunk
+   program;
 3. the first chunk, run: it loads the compiled programs, compiles any Warp kernel that the preload did not cover,
    and captures Warp's CUDA graph.
 """
@@ -16,8 +17,6 @@ that spec start warm:
 from __future__ import annotations
 
 import argparse
-import os
-import threading
 import time
 
 DEFAULT_SPEC = "sweeps/paper_campaign.toml"
@@ -52,7 +51,7 @@ def warmup(spec_path: str, backend: str | None = None, workers: int | None = Non
     the number of Warp modules preloaded)."""
     import jax
 
-    from wbc_jax.campaign.build import build, with_backend
+    from wbc_jax.campaign.build import backend_of, build, with_backend
     from wbc_jax.campaign.progress import stage
     from wbc_jax.campaign.spec import load_spec
     from wbc_jax.physics import warp_kernels
@@ -60,23 +59,16 @@ def warmup(spec_path: str, backend: str | None = None, workers: int | None = Non
 
     t_start = time.perf_counter()
     spec = with_backend(load_spec(spec_path), backend)
-    stage(f"building {spec_path}")
+    preload = warp_kernels.start_preload(backend_of(spec), workers)  # Warp compiles while the setup runs
+    stage(f"building {spec_path}" + (" (MuJoCo Warp's kernels compiling meanwhile)" if preload else ""))
     built = build(spec)
     stages = dict(setup_s=time.perf_counter() - t_start)
-    workers = os.cpu_count() if workers is None else workers
-    preload, result = None, {}
-    if built.sim.robot.backend == "warp" and jax.default_backend() == "gpu" and workers > 0:
-        stage(f"compiling MuJoCo Warp's kernels ({workers} threads) and the chunk program")
-        preload = threading.Thread(target=lambda: result.update(zip(("modules", "s"), warp_kernels.preload(workers))))
-        preload.start()
-    else:
-        stage("compiling the chunk program")
+    stage("compiling the chunk program")
     t0 = time.perf_counter()
     program = _compile_chunk(built)
     stages["compile_chunk_s"] = time.perf_counter() - t0
     if preload is not None:
-        preload.join()
-        stages.update(warp_modules=result.get("modules"), warp_preload_s=result.get("s"))
+        stages["warp_modules"], stages["warp_preload_s"] = preload.result()
     stage("running the first chunk")
     t0 = time.perf_counter()
     jax.block_until_ready(program(*chunk_args(built.batch)))
