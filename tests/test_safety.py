@@ -364,11 +364,11 @@ def test_huge_spec_with_allow_large_says_what_it_is_doing(tmp_path, monkeypatch,
     from wbc_jax.campaign import runner
 
     def stop(*a, **k):
-        raise WbcJaxError("stopped before the build")
+        raise WbcJaxError("stopped before the design")
 
     spec = tmp_path / "huge.toml"
     spec.write_text(HUGE_SPEC)
-    monkeypatch.setattr(runner, "build", stop)
+    monkeypatch.setattr(runner, "design", stop)  # the line comes first: nothing of the million runs is built
     assert cli.main(["campaign", "--spec", str(spec), "--out", str(tmp_path / "big"), "--allow-large"]) == 2
     out = capsys.readouterr().out
     assert "setting up 1,000,000 runs (--allow-large): design, plans and initial states first" in out, out
