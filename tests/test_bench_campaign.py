@@ -4,6 +4,7 @@ import dataclasses
 import json
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -74,19 +75,44 @@ def test_ablations_replace_the_step_only_while_active():
         assert step_module.substep_monitors is not monitors and step_module.fold_control_step is not fold
     with campaign_step.ablated("no_clearance"):
         assert step_module.substep_monitors is not monitors and step_module.fold_control_step is fold
-    with campaign_step.ablated("campaign"):
-        assert step_module.substep_monitors is monitors
+    for name in ("campaign", "no_noise"):  # no_noise changes the Sim, not the step
+        with campaign_step.ablated(name):
+            assert step_module.substep_monitors is monitors and step_module.fold_control_step is fold
     assert step_module.substep_monitors is monitors and step_module.fold_control_step is fold
     with pytest.raises(KeyError):
         with campaign_step.ablated("nothing"):
             pass
 
 
+def test_no_monitors_still_counts_the_step():
+    """The velocity noise's key and the metric window follow ``n_steps``: the ablation without the control-rate
+    metrics keeps counting, or the noise would repeat and the QP would see another problem sequence."""
+    from wbc_jax.metrics.accumulate import init_accum
+
+    acc = init_accum(jnp.float32(0.5))
+    with campaign_step.ablated("no_monitors"):
+        folded = step_module.fold_control_step(acc, None, 0.001)
+    assert int(folded.n_steps) == int(acc.n_steps) + 1
+    assert float(folded.max_slip) == float(acc.max_slip)
+
+
+def test_qp_iterations_per_step_by_hand():
+    from types import SimpleNamespace
+
+    def state(its):
+        return SimpleNamespace(acc=SimpleNamespace(sum_qp_iters=np.asarray(its, np.int32)))
+
+    assert campaign_step.qp_iterations(state([4, 8]), state([44, 128]), steps=10) == pytest.approx((4 + 12) / 2)
+
+
 def test_batch_figures_by_hand():
     """Batch 10, 100 env-steps per call, two states: rates from the summed times; shares of the campaign's time."""
-    first = dict(campaign=5.0, no_clearance=4.0, no_monitors=4.0, physics=1.0)
-    times = dict(campaign=[1.0, 3.0], no_clearance=[0.9, 2.7], no_monitors=[0.8, 2.4], physics=[0.5, 0.5])
-    row = campaign_step.batch_figures(first, times, batch=10, n_env=100)
+    first = dict(campaign=5.0, no_clearance=4.0, no_monitors=4.0, no_noise=3.0, physics=1.0)
+    times = dict(campaign=[1.0, 3.0], no_clearance=[0.9, 2.7], no_monitors=[0.8, 2.4], no_noise=[0.5, 1.5],
+                 physics=[0.5, 0.5])
+    row = campaign_step.batch_figures(first, times, batch=10, n_env=100, iters=dict(campaign=[6.0, 10.0]))
+    assert row["noise_share"] == pytest.approx(0.5)
+    assert row["campaign_qp_iters_per_step"] == pytest.approx(8.0)
     assert row["campaign_steps_per_s"] == pytest.approx(10 * 100 * 2 / 4.0)
     assert row["campaign_steps_per_s_by_state"] == pytest.approx([1000.0, 1000.0 / 3.0])
     assert row["campaign_compile_s"] == pytest.approx(5.0 - 2.0)
@@ -121,7 +147,8 @@ def test_time_batch_compiles_once_and_times_every_state(monkeypatch):
 
     calls, made = [], []
     monkeypatch.setattr(campaign_step, "compiled_chunk", lambda sim, b, n_logs, name: (
-        lambda *args: calls.append((name, args[1].i))))
+        lambda *args: (calls.append((name, args[1].i)), (args[1], None))[1]))
+    monkeypatch.setattr(campaign_step, "qp_iterations", lambda before, after, steps: 4.0)
     monkeypatch.setattr(campaign_step, "physics_only_fn", lambda b, n_env: (
         lambda model, d: calls.append(("physics", d))))
 
@@ -130,7 +157,8 @@ def test_time_batch_compiles_once_and_times_every_state(monkeypatch):
         state = SimpleNamespace(i=i, d=i)
         return SimpleNamespace(model=None, state=state, plan=None, om=None, gains=None, push=None, mu_ground=None)
 
-    first, times = campaign_step._time_batch(None, batch_at, 3, 1, campaign_step.ABLATIONS, 20)
+    first, times, iters = campaign_step._time_batch(None, batch_at, 3, 1, campaign_step.ABLATIONS, 20)
+    assert set(iters) == set(campaign_step.ABLATIONS) and all(v == [4.0] * 3 for v in iters.values())
     assert made == [0, 1, 2] and set(first) == {*campaign_step.ABLATIONS, "physics"}
     assert all(len(t) == 3 for t in times.values())
     timed = calls[len(first):]  # after each program's first call

@@ -9,17 +9,22 @@ up to ``snapshots`` states spread over the horizon. At every requested batch siz
 * ``campaign``: the chunk program (:func:`wbc_jax.rollout.loop.make_chunk_fn`) as the campaign compiles it;
 * ``no_clearance``: the same with the physics-rate clearance replaced by +inf (its computation drops out);
 * ``no_monitors``: every physics-rate monitor but ``finite`` replaced by zeros and the control-rate metrics not
-  folded (their computations drop out);
+  folded (their computations drop out; the step count still advances, so the velocity noise still changes every
+  step);
+* ``no_noise``: the campaign's Sim without the controller's velocity noise (``Sim.sensor_noise`` off): what the
+  noise costs, mostly the ADMM iterations it adds to the warm-started QP;
 * ``physics``: plain ``mjx.step`` calls on the same batch (``wbc_jax.bench.rollout.physics_only_fn``).
 
-The ablations exist only here: they replace ``wbc_jax.rollout.step.substep_monitors`` and
+The monitor ablations exist only here: they replace ``wbc_jax.rollout.step.substep_monitors`` and
 ``fold_control_step`` while the program is traced, and the programs compiled then are timed. Shares are
-1 - (ablated program's time / the campaign program's time).
+1 - (ablated program's time / the campaign program's time). Each timed call also gives the QP's mean ADMM
+iterations per control step (``Accum.sum_qp_iters``: runs that have failed, frozen, count none).
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import json
 import time
@@ -37,7 +42,7 @@ from wbc_jax.rollout import step as step_module
 from wbc_jax.rollout.batch import chunk_args, take_runs
 from wbc_jax.rollout.state import init_state
 
-ABLATIONS = ("campaign", "no_clearance", "no_monitors")
+ABLATIONS = ("campaign", "no_clearance", "no_monitors", "no_noise")
 
 
 def _no_clearance(original):
@@ -56,12 +61,18 @@ def _finite_only(original):
     return monitors
 
 
+def _count_only(original):
+    def fold(acc, sample, dt):  # the step still counted: it indexes the velocity noise and the metric window
+        return acc._replace(n_steps=acc.n_steps + 1)
+
+    return fold
+
+
 @contextlib.contextmanager
 def ablated(name: str):
     """While active, ``wbc_jax.rollout.step`` traces the control step of ablation ``name`` (:data:`ABLATIONS`)."""
-    patches = {"campaign": {}, "no_clearance": {"substep_monitors": _no_clearance},
-               "no_monitors": {"substep_monitors": _finite_only,
-                               "fold_control_step": lambda original: (lambda acc, sample, dt: acc)}}[name]
+    patches = {"campaign": {}, "no_noise": {}, "no_clearance": {"substep_monitors": _no_clearance},
+               "no_monitors": {"substep_monitors": _finite_only, "fold_control_step": _count_only}}[name]
     saved = {attr: getattr(step_module, attr) for attr in patches}  # AttributeError: the step was renamed
     try:
         for attr, wrap in patches.items():
@@ -75,6 +86,8 @@ def ablated(name: str):
 def compiled_chunk(sim, b, n_logs: int, ablation: str = "campaign"):
     """The chunk program of ``n_logs`` x LOG_EVERY control steps for batch ``b`` (ablation ``ablation``), compiled
     now: a callable of the batch's arguments (:func:`wbc_jax.rollout.batch.chunk_args`)."""
+    if ablation == "no_noise":
+        sim = dataclasses.replace(sim, sensor_noise=False)
     fn = make_chunk_fn(sim, n_logs, b.in_axes)
     with ablated(ablation):
         return jax.jit(fn).lower(*chunk_args(b)).compile()
@@ -144,7 +157,8 @@ def fresh_state(sim, b, batch: int):
 def _time_batch(sim, batch_at, n_states: int, n_logs: int, ablations, n_env: int):
     """Each ablation's program and physics alone: compiled with its first call (on state 0), then timed once per
     state, alternated; ``batch_at(i)`` gives the batch from state i (made when needed: one at a time in memory).
-    Returns ({name: first call [s]}, {name: [s per state]})."""
+    Returns ({name: first call [s]}, {name: [s per state]}, {program name: [mean QP iterations per step, per
+    state]})."""
     b0 = batch_at(0)
     first, programs = {}, {}
     for name in ablations:
@@ -155,20 +169,32 @@ def _time_batch(sim, batch_at, n_states: int, n_logs: int, ablations, n_env: int
     phys = physics_only_fn(b0, n_env)
     first["physics"] = _timed(phys, b0.model, b0.state.d)[1]
     times = {name: [] for name in first}
+    iters = {name: [] for name in programs}
     for i in range(n_states):
         b = b0 if i == 0 else batch_at(i)
         for name, f in programs.items():
-            times[name].append(_timed(f, *chunk_args(b))[1])
+            (state, _), wall = _timed(f, *chunk_args(b))
+            times[name].append(wall)
+            iters[name].append(qp_iterations(b.state, state, n_logs * LOG_EVERY))
         times["physics"].append(_timed(phys, b.model, b.state.d)[1])
         del b
-    return first, times
+    return first, times, iters
 
 
-def batch_figures(first: dict, times: dict, batch: int, n_env: int) -> dict:
+def qp_iterations(before, after, steps: int) -> float:
+    """Mean ADMM iterations per control step over the runs between RunStates ``before`` and ``after``, ``steps``
+    control steps apart."""
+    done = np.asarray(after.acc.sum_qp_iters, np.float64) - np.asarray(before.acc.sum_qp_iters, np.float64)
+    return float(np.mean(done)) / steps
+
+
+def batch_figures(first: dict, times: dict, batch: int, n_env: int, iters: dict | None = None) -> dict:
     """Figures of one batch size from :func:`_time_batch`'s timings: env-steps per second of each program over all
     states (total env-steps / total time), per state, its compile time (first call less the median call), and the shares
     of the campaign program's time: physics alone, clearance, monitors (1 - ablated / campaign)."""
     row = dict(batch=batch)
+    for name, per_state in (iters or {}).items():
+        row[f"{name}_qp_iters_per_step"] = float(np.mean(per_state))
     total = {name: float(np.sum(t)) for name, t in times.items()}
     for name, t in times.items():
         row[f"{name}_steps_per_s"] = batch * n_env * len(t) / total[name]
@@ -176,7 +202,8 @@ def batch_figures(first: dict, times: dict, batch: int, n_env: int) -> dict:
         row[f"{name}_compile_s"] = first[name] - float(np.median(t))
     base = total["campaign"]
     row["physics_share"] = total["physics"] / base
-    for name, label in (("no_clearance", "clearance_share"), ("no_monitors", "monitors_share")):
+    for name, label in (("no_clearance", "clearance_share"), ("no_monitors", "monitors_share"),
+                        ("no_noise", "noise_share")):
         if name in total:
             row[label] = 1.0 - total[name] / base
     return row
@@ -210,13 +237,15 @@ def run_campaign_step(spec, batches, steps: int = 200, snapshots: int = 3, break
     for B in batches:
         fresh = fresh_state(sim, built.batch, B)
         names = ABLATIONS if breakdown is None or B in breakdown else ABLATIONS[:1]
-        first, times = _time_batch(sim, lambda i, fresh=fresh, B=B: repeated(built.batch, steps_walk.states[i],
+        first, times, iters = _time_batch(sim, lambda i, fresh=fresh, B=B: repeated(built.batch, steps_walk.states[i],
                                                                              fresh, B),
                                    len(steps_walk.states), n_logs, names, n_env)
-        row = batch_figures(first, times, B, n_env)
+        row = batch_figures(first, times, B, n_env, iters)
         out["batches"].append(row)
-        shares = "".join(f", {k.split('_')[0]} {row[k]:.1%}" for k in ("clearance_share", "monitors_share")
-                         if k in row)
+        shares = "".join(f", {k.split('_')[0]} {row[k]:.1%}" for k in ("clearance_share", "monitors_share",
+                                                                       "noise_share") if k in row)
+        shares += "; QP iterations per step " + ", ".join(
+            f"{k.rsplit('_qp_iters_per_step')[0]} {v:.1f}" for k, v in row.items() if k.endswith("_qp_iters_per_step"))
         print(f"{device} campaign step ({spec.campaign['name']}, {sim.robot.backend}:{sim.sensing}) batch {B:6d}: "
               f"{row['campaign_steps_per_s']:12.0f} env-steps per s from t = "
               f"{', '.join(f'{t:g}' for t in steps_walk.times_s)} s; physics alone {row['physics_steps_per_s']:12.0f}"
