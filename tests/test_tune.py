@@ -461,3 +461,12 @@ def test_tiny_successive_halving_end_to_end(tmp_path):
     report = (out / "report.md").read_text()
     assert "Wilcoxon signed-rank" in report and "McNemar" in report and "| J |" in report
     assert len(man["comparison"]) == 5 and man["confirmation"]["runs"] == 8
+
+
+def test_tune_refuses_a_campaign_of_another_controller(tmp_path):
+    """The search space is the transport controller's gains: a centroidal campaign spec is a one-line SpecError."""
+    p = _write(tmp_path, TINY.replace(str(BASELINE_SPEC), str(SWEEPS / "trot_quick.toml")))
+    with pytest.raises(SpecError) as e:
+        load_tune_spec(p)
+    msg = str(e.value)
+    assert str(p) in msg and "campaign.controller 'centroidal'" in msg and "\n" not in msg

@@ -107,6 +107,9 @@ def _spec(folder: Path, manifest: dict, spec_path) -> Spec:
     else:
         where = "--spec" if spec_path is not None else f"{folder}/manifest.json spec_path"
         raise SpecError(f"{path} ({where}): no such file; pass --spec with the spec the campaign ran")
+    if spec.campaign["controller"] != "transport":  # the log, plots and checks read the transport's log fields
+        raise SpecError(f"{spec.path}: campaign.controller {spec.campaign['controller']!r}: replay re-simulates "
+                        "transport campaigns only (controller = \"transport\")")
     spec = with_backend(spec, manifest["physics_backend"])
     if backend_of(spec) != manifest["physics_backend"]:
         raise SpecError(f"{folder}/manifest.json physics_backend {manifest['physics_backend']!r}: resolves to "

@@ -216,7 +216,7 @@ def _simulate_batch(built: Built, rows: np.ndarray, spread: Spread, slots: dict,
                 bar.chunk_done(time.perf_counter() - t0, fresh=first)
             first = False
         final = spread.gather(state, n, batch.state_axes)
-    res = final_results(built.sim, final, np.asarray(host.p_obj_ref)[:, -1], built.design.mu[rows])
+    res = final_results(built.sim, final, np.asarray(built.sim.controller.final_input(host)), built.design.mu[rows])
     logs = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, axis=1), *kept)
     return ({r: jax.tree_util.tree_map(lambda x, i=i: x[i], logs) for i, r in enumerate(wanted)},
             {r: {k: v[slots[r]] for k, v in res.items()} for r in wanted})

@@ -108,7 +108,7 @@ class Evaluator:
                 self.calls += 1
                 if bar is not None:
                     bar.update(real * self.chunk_s)
-            p_goal = logs.p_obj_ref[:, -1]
+            p_goal = self.sim.controller.final_input(logs)
             if self.spread.mode != "one":  # every process: the whole sub-batch on the host (one collective)
                 state, p_goal = self.spread.gather((state, p_goal), self.size, (b.state_axes, 0))
             finals.append(final_results(self.sim, state, p_goal, np.tile(self.mu, C)[idx], n=real))

@@ -164,6 +164,9 @@ def _campaign(path, rel: str, reps: int = 0, max_seconds: float = 0.0, qp_iters:
         raise SpecError(f"{path}: campaign spec {rel!r}: no file {cpath} (a relative path is read from the tuning "
                         f"spec's folder; the shipped campaign specs are in {SWEEPS})")
     camp = load_spec(cpath)
+    if camp.campaign["controller"] != "transport":  # the search space is the transport controller's gains
+        raise SpecError(f"{path}: campaign spec {rel!r}: campaign.controller {camp.campaign['controller']!r}; "
+                        "tune searches the transport controller's gains (controller = \"transport\")")
     c = dict(camp.campaign)
     for key, v in (("reps", reps), ("max_seconds", max_seconds), ("qp_iters", qp_iters)):
         if v > 0:
