@@ -58,11 +58,13 @@ class Preload:
 
 
 def start_preload(backend: str, workers: int | None = None) -> Preload | None:
-    """A :class:`Preload` of MuJoCo Warp's modules with ``workers`` threads (None: the CPU count) when ``backend``
-    is ``"warp"`` and JAX runs on a GPU; None otherwise (on a CPU, Warp's kernels compile on first use)."""
+    """A :class:`Preload` of MuJoCo Warp's modules on this process's first local GPU with ``workers`` threads
+    (None: the CPU count) when ``backend`` is ``"warp"`` and JAX runs on a GPU; None otherwise (on a CPU, Warp's
+    kernels compile on first use)."""
     import jax
 
     workers = (os.cpu_count() or 1) if workers is None else workers
     if backend != "warp" or jax.default_backend() != "gpu" or workers <= 0:
         return None
-    return Preload(workers)
+    # this process's GPU (one process per GPU: --local-device-ids), as Warp numbers the visible devices
+    return Preload(workers, f"cuda:{jax.local_devices()[0].local_hardware_id or 0}")
