@@ -24,19 +24,19 @@ fi
 # single-threaded XLA compilation; one process of the whole suite also made XLA's CPU compiler abort). The groups
 # share the persistent compilation cache. A group's files run in one process so that the programs they share are
 # traced once (test_campaign's tiny campaign, reused by test_replay, test_window, test_sharding and test_tune; the
-# flat-scene chunk program of test_transport and test_backends' JAX walk); the longest groups come first, a group
-# reusing another's programs comes after it, and files that compile little (`light`) fill the end. A test file in
-# no group runs in a group of its own, before those. Each group prints a line when it ends; the outputs follow, in
-# group order, at the end.
+# flat-scene chunk program of test_transport and test_backends' JAX walk; the transport scene's sensing pass of
+# test_clearance and test_model; test_factors' tiny campaign, reused by test_freeze); the longest groups come first,
+# test_backends' group first of all (it compiles MuJoCo Warp's CPU kernels, which the later Warp tests load from
+# the kernel cache), and files that compile little (`light`) fill the end. A test file in no group runs in a group
+# of its own, before those. Each group prints a line when it ends; the outputs follow, in group order, at the end.
 groups=(
-  "campaign replay window sharding tune"
   "transport backends"
-  "distributed"
+  "campaign replay window sharding tune"
+  "course clearance model metrics"
   "substeps factors freeze"
-  "course clearance"
   "qp"
-  "model metrics"
-  "centroidal"
+  "trot_campaign"
+  "centroidal bench_campaign distributed envelope s_cause warmup"
 )
 light="reliability safety report stats planner zmp capture_point interaction kernel_trace snapshots spec_docs packed
   aot api architecture cli_docs progress"

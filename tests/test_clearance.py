@@ -28,10 +28,8 @@ RECOMPUTE_TOL = 1e-7  # [m] a broad-phase candidate's distance against the all-p
 #                       the two programs differently; measured <= 3.1e-8)
 
 
-@pytest.fixture(scope="module")
-def course():
-    """The transport scene, its pairs, the poses by name and every pair's distance (JAX) at each pose."""
-    robot = Robot("transport")
+def _named_poses(robot) -> dict:
+    """The module docstring's poses of the transport scene by name: qpos (nq,) each."""
     m = robot.mj_model
     jq = lambda n: m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)]  # noqa: E731
     q = robot.home_qpos(0.08)
@@ -63,17 +61,59 @@ def course():
         p[3:7] = np.r_[np.cos(ang / 2), np.sin(ang / 2) * ax / np.linalg.norm(ax)]
         p[7:25] += rng.uniform(-0.6, 0.6, 18)
         poses[f"random{i}"] = p
-    names = list(poses)
-    Q = np.stack([poses[n] for n in names])
+    return poses
+
+
+N_BROAD = 1500
+
+
+def _broad_poses(robot):
+    """N_BROAD random course poses (base anywhere along the course, tilted, lowered up to 0.3 m, joints +-0.8 rad:
+    legs over and into the blocks, arm and trunk at the wall)."""
+    rng = np.random.default_rng(1)
+    Q = np.repeat(robot.home_qpos(0.08)[None], N_BROAD, 0)
+    Q[:, 0] += rng.uniform(-0.4, 0.4, N_BROAD)
+    Q[:, 1] = rng.uniform(-3.7, -0.3, N_BROAD)
+    Q[:, 2] += rng.uniform(-0.3, 0.15, N_BROAD)
+    ax = rng.normal(size=(N_BROAD, 3))
+    ang = rng.uniform(0.0, 0.6, N_BROAD)
+    Q[:, 3:7] = np.c_[np.cos(ang / 2), np.sin(ang / 2)[:, None] * ax / np.linalg.norm(ax, axis=1, keepdims=True)]
+    Q[:, 7:25] += rng.uniform(-0.8, 0.8, (N_BROAD, 18))
+    return Q
+
+
+@pytest.fixture(scope="module")
+def at_poses():
+    """The transport scene, its pairs, the named poses, and one compiled pass at the named poses, the broad poses
+    and a pose with a NaN joint angle: every pair's exact distance, the rollout's clearance and its pair, the broad
+    phase's result and every bounded pair's lower bound (a dict by pair kind)."""
+    robot = Robot("transport")
     pairs = CL.clearance_pairs(robot)
     sim = make_sim(robot)
+    poses = _named_poses(robot)
+    knee = mujoco.mj_name2id(robot.mj_model, mujoco.mjtObj.mjOBJ_JOINT, "FR_knee")
+    nan_pose = robot.home_qpos(0.08)  # last: the front-right knee's angle NaN (that leg's geoms NaN, the others not)
+    nan_pose[robot.mj_model.jnt_qposadr[knee]] = np.nan
+    Q = np.concatenate([np.stack(list(poses.values())), _broad_poses(robot), nan_pose[None]])
+    bounded = [k for k, name in enumerate(CL.KINDS) if name in CL.CANDIDATES]
 
     def one(qp):
         d = mjx.kinematics(robot.mjx_model, mjx.make_data(robot.mjx_model).replace(qpos=qp))
-        return CL.pair_distances(pairs, d), clearance(sim, d)
+        lower = {k: jax.vmap(CL._BOUNDS[CL.KINDS[k]])(*CL._kind_inputs(pairs, d, np.where(pairs.kind == k)[0]))
+                 for k in bounded}
+        return CL.pair_distances(pairs, d), clearance(sim, d), CL.bounded_min_clearance(pairs, d), lower
 
-    got, (c, k) = jax.device_get(jax.jit(jax.vmap(one))(jnp.asarray(Q)))
-    return robot, sim, pairs, names, Q, np.asarray(got, float), np.asarray(c, float), np.asarray(k)
+    out = jax.device_get(jax.jit(jax.vmap(one))(jnp.asarray(Q)))
+    return robot, sim, pairs, poses, Q, out
+
+
+@pytest.fixture(scope="module")
+def course(at_poses):
+    """The transport scene, its pairs, the poses by name and every pair's distance (JAX) at each pose."""
+    robot, sim, pairs, poses, Q, (exact, (c, k), _, _) = at_poses
+    n = len(poses)
+    return (robot, sim, pairs, list(poses), Q[:n], np.asarray(exact, float)[:n], np.asarray(c, float)[:n],
+            np.asarray(k)[:n])
 
 
 def _mj(robot, qpos, g1, g2):
@@ -239,10 +279,11 @@ def test_same_on_the_warp_backend():
         q[1] += dy
         q[2] += dz
         q[jq("FR_pitch")], q[jq("FR_knee")] = pitch, knee
-        d = physics.make_data(robot, 1).replace(qpos=jnp.asarray(q))
-        pairs = CL.clearance_pairs(robot)
-        distances = jax.jit(lambda d, pairs=pairs, m=robot.mjx_model: CL.pair_distances(pairs, physics.sense(m, d)))
-        out[backend] = np.asarray(distances(d))
+        # placed as in test_mjx_slot_distance_overstates_edge_clearance: the JAX backend's sensing pass is that
+        # test's compiled program (and tests/test_model.py's for this scene)
+        d = physics.make_data(robot, 1).replace(qpos=jax.device_put(jnp.asarray(q), jax.local_devices()[0]))
+        d = jax.jit(physics.sense)(robot.mjx_model, d)
+        out[backend] = np.asarray(CL.pair_distances(CL.clearance_pairs(robot), d))
     np.testing.assert_allclose(out["warp"], out["jax"], atol=1e-6)
     assert np.sum(out["warp"] > 0.0) > 40
 
@@ -283,35 +324,15 @@ def test_box_box_equals_mujoco_at_close_random_poses():
     assert np.all(got[ref < 0.0] < 0.0)  # overlapping: the separating-axis depth, negative as MuJoCo's
 
 
-N_BROAD = 1500
-
-
 @pytest.fixture(scope="module")
-def broad():
-    """N_BROAD random course poses (base anywhere along the course, tilted, lowered up to 0.3 m, joints +-0.8 rad:
-    legs over and into the blocks, arm and trunk at the wall): every pair's exact distance, the broad phase's
-    result and every bounded pair's lower bound."""
-    robot = Robot("transport")
-    pairs = CL.clearance_pairs(robot)
-    rng = np.random.default_rng(1)
-    Q = np.repeat(robot.home_qpos(0.08)[None], N_BROAD, 0)
-    Q[:, 0] += rng.uniform(-0.4, 0.4, N_BROAD)
-    Q[:, 1] = rng.uniform(-3.7, -0.3, N_BROAD)
-    Q[:, 2] += rng.uniform(-0.3, 0.15, N_BROAD)
-    ax = rng.normal(size=(N_BROAD, 3))
-    ang = rng.uniform(0.0, 0.6, N_BROAD)
-    Q[:, 3:7] = np.c_[np.cos(ang / 2), np.sin(ang / 2)[:, None] * ax / np.linalg.norm(ax, axis=1, keepdims=True)]
-    Q[:, 7:25] += rng.uniform(-0.8, 0.8, (N_BROAD, 18))
-    bounded = [k for k, name in enumerate(CL.KINDS) if name in CL.CANDIDATES]
-
-    def one(qp):
-        d = mjx.kinematics(robot.mjx_model, mjx.make_data(robot.mjx_model).replace(qpos=qp))
-        lower = {k: jax.vmap(CL._BOUNDS[CL.KINDS[k]])(*CL._kind_inputs(pairs, d, np.where(pairs.kind == k)[0]))
-                 for k in bounded}
-        return CL.pair_distances(pairs, d), CL.bounded_min_clearance(pairs, d), lower
-
-    exact, got, lower = jax.device_get(jax.jit(jax.vmap(one))(jnp.asarray(Q)))
-    return pairs, np.asarray(exact), got, lower
+def broad(at_poses):
+    """At the N_BROAD random course poses: every pair's exact distance, the broad phase's result and every bounded
+    pair's lower bound."""
+    _, _, pairs, poses, _, (exact, _, got, lower) = at_poses
+    n = len(poses)
+    rows = slice(n, n + N_BROAD)
+    return (pairs, np.asarray(exact)[rows], jax.tree_util.tree_map(lambda x: x[rows], got),
+            {k: v[rows] for k, v in lower.items()})
 
 
 def test_broad_phase_bounds_are_lower_bounds(broad):
@@ -341,15 +362,13 @@ def test_broad_phase_equals_the_exact_minimum_below_its_bound(broad):
     np.testing.assert_allclose(got.distance, exact[np.arange(len(low)), got.pair], rtol=0, atol=RECOMPUTE_TOL)
 
 
-def test_broad_phase_non_finite_pose_and_empty_scene():
-    """A NaN pose gives NaN and pair -1 (as the exact minimum does); a scene without pairs +inf and -1."""
-    robot = Robot("transport")
-    pairs = CL.clearance_pairs(robot)
-    d = mjx.kinematics(robot.mjx_model, mjx.make_data(robot.mjx_model).replace(qpos=jnp.asarray(robot.home_qpos(0.08))))
-    d = d.replace(geom_xpos=d.geom_xpos.at[pairs.robot[-1]].set(jnp.nan))
-    got = CL.bounded_min_clearance(pairs, d)
-    assert np.isnan(float(got.distance)) and int(got.pair) == -1
+def test_broad_phase_non_finite_pose_and_empty_scene(at_poses):
+    """A NaN pose (one leg's geoms NaN, the others finite) gives NaN and pair -1 (as the exact minimum does); a scene
+    without pairs +inf and -1."""
+    robot, _, pairs, _, _, (exact, _, got, _) = at_poses
+    assert np.isnan(exact[-1]).any() and np.isfinite(exact[-1]).any()
+    assert np.isnan(float(got.distance[-1])) and int(got.pair[-1]) == -1
     empty = CL.ClearancePairs(*(np.zeros((0,) + s, t) for s, t in [((), int), ((), int), ((), int), ((3,), float),
                                                                      ((3,), float)]))
-    none = CL.bounded_min_clearance(empty, d)
+    none = CL.bounded_min_clearance(empty, mjx.make_data(robot.mjx_model))
     assert float(none.distance) == np.inf and int(none.pair) == -1 and float(none.bound) == np.inf
