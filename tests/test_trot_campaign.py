@@ -21,7 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SPEC = ROOT / "sweeps" / "trot_quick.toml"
 BASELINE = ROOT / "reports" / "baseline_trot"  # its spec.toml is SPEC
 # trot_quick.toml as wbc-jax trot's settings: stride = speed x step_time, 2 half-cycles, the campaign's log interval
-# and chunk length (the same compiled chunk program)
+# and chunk length (the same chunk program; the study compiles it through wbc_jax.rollout.simulate, the campaign
+# through its exported chunk function)
 TROT = dict(stride=0.4 * 0.25, step_time=0.25, t_four=0.08, n_steps=2, mass_errors=(-0.1, 0.1), iters=40,
             log_every=20, t_start=0.5, t_settle=0.2)
 CHUNK_SECONDS = 0.6
