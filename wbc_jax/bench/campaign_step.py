@@ -18,7 +18,8 @@ up to ``snapshots`` states spread over the horizon. At every requested batch siz
 The monitor ablations exist only here: they replace ``wbc_jax.rollout.step.substep_monitors`` and
 ``fold_control_step`` while the program is traced, and the programs compiled then are timed. Shares are
 1 - (ablated program's time / the campaign program's time). Each timed call also gives the QP's mean ADMM
-iterations per control step (``Accum.sum_qp_iters``: runs that have failed, frozen, count none).
+iterations per control step (``Accum.sum_qp_iters``: runs that have failed, frozen, count none; not for
+``no_monitors``, which does not fold them).
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.bench.rollout import physics_only_fn, run_bench
+from wbc_jax.bench.rollout import physics_only_fn, qp_iterations, run_bench
 from wbc_jax.campaign.build import LOG_EVERY, build, with_backend
 from wbc_jax.campaign.spec import load_spec
 from wbc_jax.rollout import make_chunk_fn, runs
@@ -158,7 +159,7 @@ def _time_batch(sim, batch_at, n_states: int, n_logs: int, ablations, n_env: int
     """Each ablation's program and physics alone: compiled with its first call (on state 0), then timed once per
     state, alternated; ``batch_at(i)`` gives the batch from state i (made when needed: one at a time in memory).
     Returns ({name: first call [s]}, {name: [s per state]}, {program name: [mean QP iterations per step, per
-    state]})."""
+    state]}; no_monitors, which does not count them, left out)."""
     b0 = batch_at(0)
     first, programs = {}, {}
     for name in ablations:
@@ -169,23 +170,18 @@ def _time_batch(sim, batch_at, n_states: int, n_logs: int, ablations, n_env: int
     phys = physics_only_fn(b0, n_env)
     first["physics"] = _timed(phys, b0.model, b0.state.d)[1]
     times = {name: [] for name in first}
-    iters = {name: [] for name in programs}
+    iters = {name: [] for name in programs if name != "no_monitors"}
     for i in range(n_states):
         b = b0 if i == 0 else batch_at(i)
         for name, f in programs.items():
             (state, _), wall = _timed(f, *chunk_args(b))
             times[name].append(wall)
-            iters[name].append(qp_iterations(b.state, state, n_logs * LOG_EVERY))
+            if name != "no_monitors":  # its control-rate fold, sum_qp_iters included, is left out
+                iters[name].append(qp_iterations(b.state, state, n_logs * LOG_EVERY))
         times["physics"].append(_timed(phys, b.model, b.state.d)[1])
         del b
     return first, times, iters
 
-
-def qp_iterations(before, after, steps: int) -> float:
-    """Mean ADMM iterations per control step over the runs between RunStates ``before`` and ``after``, ``steps``
-    control steps apart."""
-    done = np.asarray(after.acc.sum_qp_iters, np.float64) - np.asarray(before.acc.sum_qp_iters, np.float64)
-    return float(np.mean(done)) / steps
 
 
 def batch_figures(first: dict, times: dict, batch: int, n_env: int, iters: dict | None = None) -> dict:
