@@ -27,20 +27,21 @@ fi
 # flat-scene chunk program of test_transport and test_backends' JAX walk; the transport scene's sensing pass of
 # test_clearance and test_model; test_factors' tiny campaign, reused by test_freeze); the longest groups come first,
 # test_backends' group first of all (it compiles MuJoCo Warp's CPU kernels, which the later Warp tests load from
-# the kernel cache), and files that compile little (`light`) fill the end. A test file in no group runs in a group
-# of its own, before those. Each group prints a line when it ends; the outputs follow, in group order, at the end.
+# the kernel cache), and files that compile little (`light`, `light2`, the shortest last) fill the end. A test file
+# in no group runs in a group of its own, before those. Each group prints a line when it ends; the outputs follow,
+# in group order, at the end.
 groups=(
   "transport backends"
   "campaign replay window sharding tune"
-  "course clearance model metrics"
   "substeps factors freeze"
+  "course clearance model metrics"
   "qp"
   "trot_campaign"
-  "centroidal bench_campaign distributed envelope s_cause warmup"
 )
 light="reliability safety report stats planner zmp capture_point interaction kernel_trace snapshots spec_docs packed
   aot api architecture cli_docs progress"
-named=" ${groups[*]} $light "
+light2="centroidal bench_campaign distributed envelope s_cause warmup"
+named=" ${groups[*]} $light $light2 "
 rest=()
 for f in tests/test_*.py; do
   n=${f#tests/test_}
@@ -48,7 +49,7 @@ for f in tests/test_*.py; do
   [[ "$named" == *[[:space:]]"$n"[[:space:]]* ]] || rest+=("$n")
 done
 for n in "${rest[@]}"; do groups+=("$n"); done
-groups+=("$light")
+groups+=("$light" "$light2")
 logs=$(mktemp -d)
 run_group() {  # $1: the group's index
   local files=() n r=0 t0=$SECONDS
