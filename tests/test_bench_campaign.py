@@ -69,29 +69,34 @@ def test_warp_state_repeated_to_a_larger_batch_is_that_batch_s(tmp_path):
     assert campaign_step.fresh_state(built.sim, built.batch, 8) is built.batch.state
 
 
-def test_ablations_replace_the_step_only_while_active():
-    monitors, fold = step_module.substep_monitors, step_module.fold_control_step
-    with campaign_step.ablated("no_monitors"):
-        assert step_module.substep_monitors is not monitors and step_module.fold_control_step is not fold
-    with campaign_step.ablated("no_clearance"):
-        assert step_module.substep_monitors is not monitors and step_module.fold_control_step is fold
-    for name in ("campaign", "no_noise"):  # no_noise changes the Sim, not the step
-        with campaign_step.ablated(name):
-            assert step_module.substep_monitors is monitors and step_module.fold_control_step is fold
-    assert step_module.substep_monitors is monitors and step_module.fold_control_step is fold
+def test_ablations_are_sims():
+    """Each ablation is the campaign's Sim with its monitors or its velocity noise changed, nothing else."""
+    from types import SimpleNamespace
+
+    from wbc_jax.rollout.config import MONITORS, Sim
+
+    fields = {f.name: object() for f in dataclasses.fields(Sim)}
+    sim = Sim(**{**fields, "monitors": "all", "sensor_noise": True})
+    assert campaign_step.ablation_sim(sim, "campaign") is sim
+    changed = {name: campaign_step.ablation_sim(sim, name) for name in campaign_step.ABLATIONS[1:]}
+    assert (changed["no_clearance"].monitors, changed["no_monitors"].monitors) == ("no_clearance", "finite_only")
+    assert changed["no_noise"].sensor_noise is False and changed["no_noise"].monitors == "all"
+    assert {s.monitors for s in changed.values()} <= set(MONITORS)
+    for s in changed.values():
+        assert all(getattr(s, k) is v for k, v in fields.items() if k not in ("monitors", "sensor_noise"))
     with pytest.raises(KeyError):
-        with campaign_step.ablated("nothing"):
-            pass
+        campaign_step.ablation_sim(SimpleNamespace(), "nothing")
 
 
-def test_no_monitors_still_counts_the_step():
+def test_finite_only_still_counts_the_step():
     """The velocity noise's key and the metric window follow ``n_steps``: the ablation without the control-rate
     metrics keeps counting, or the noise would repeat and the QP would see another problem sequence."""
+    from types import SimpleNamespace
+
     from wbc_jax.metrics.accumulate import init_accum
 
     acc = init_accum(jnp.float32(0.5))
-    with campaign_step.ablated("no_monitors"):
-        folded = step_module.fold_control_step(acc, None, 0.001)
+    folded = step_module.fold_control(SimpleNamespace(monitors="finite_only"), acc, None, 0.001)
     assert int(folded.n_steps) == int(acc.n_steps) + 1
     assert float(folded.max_slip) == float(acc.max_slip)
 

@@ -15,8 +15,8 @@ up to ``snapshots`` states spread over the horizon. At every requested batch siz
   noise costs, mostly the ADMM iterations it adds to the warm-started QP;
 * ``physics``: plain ``mjx.step`` calls on the same batch (``wbc_jax.bench.rollout.physics_only_fn``).
 
-The monitor ablations exist only here: they replace ``wbc_jax.rollout.step.substep_monitors`` and
-``fold_control_step`` while the program is traced, and the programs compiled then are timed. Shares are
+Each ablation is the campaign's Sim with ``monitors`` or ``sensor_noise`` changed (:func:`ablation_sim`), its
+chunk program compiled and timed like the campaign's. Shares are
 1 - (ablated program's time / the campaign program's time). Each timed call also gives the QP's mean ADMM
 iterations per control step (``Accum.sum_qp_iters``: runs that have failed, frozen, count none; not for
 ``no_monitors``, which does not fold them).
@@ -24,7 +24,6 @@ iterations per control step (``Accum.sum_qp_iters``: runs that have failed, froz
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import json
@@ -32,66 +31,31 @@ import time
 from typing import NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.bench.rollout import physics_only_fn, qp_iterations, run_bench
 from wbc_jax.campaign.build import LOG_EVERY, build, with_backend
 from wbc_jax.campaign.spec import load_spec
 from wbc_jax.rollout import make_chunk_fn, runs
-from wbc_jax.rollout import step as step_module
 from wbc_jax.rollout.batch import chunk_args, take_runs
 from wbc_jax.rollout.state import init_state
 
 ABLATIONS = ("campaign", "no_clearance", "no_monitors", "no_noise")
 
 
-def _no_clearance(original):
-    def monitors(*args):
-        out = original(*args)
-        return out._replace(clear=jnp.full_like(out.clear, jnp.inf), clear_k=jnp.full_like(out.clear_k, -1))
-
-    return monitors
-
-
-def _finite_only(original):
-    def monitors(*args):
-        out = original(*args)
-        return type(out)(**{k: v if k in ("finite", "t") else jnp.zeros_like(v) for k, v in out._asdict().items()})
-
-    return monitors
-
-
-def _count_only(original):
-    def fold(acc, sample, dt):  # the step still counted: it indexes the velocity noise and the metric window
-        return acc._replace(n_steps=acc.n_steps + 1)
-
-    return fold
-
-
-@contextlib.contextmanager
-def ablated(name: str):
-    """While active, ``wbc_jax.rollout.step`` traces the control step of ablation ``name`` (:data:`ABLATIONS`)."""
-    patches = {"campaign": {}, "no_noise": {}, "no_clearance": {"substep_monitors": _no_clearance},
-               "no_monitors": {"substep_monitors": _finite_only, "fold_control_step": _count_only}}[name]
-    saved = {attr: getattr(step_module, attr) for attr in patches}  # AttributeError: the step was renamed
-    try:
-        for attr, wrap in patches.items():
-            setattr(step_module, attr, wrap(saved[attr]))
-        yield
-    finally:
-        for attr, original in saved.items():
-            setattr(step_module, attr, original)
+def ablation_sim(sim, name: str):
+    """The Sim whose chunk program is ablation ``name`` (:data:`ABLATIONS`) of ``sim``'s: ``Sim.monitors`` or
+    ``Sim.sensor_noise`` changed. KeyError for an unknown name."""
+    change = {"campaign": {}, "no_clearance": dict(monitors="no_clearance"),
+              "no_monitors": dict(monitors="finite_only"), "no_noise": dict(sensor_noise=False)}[name]
+    return dataclasses.replace(sim, **change) if change else sim
 
 
 def compiled_chunk(sim, b, n_logs: int, ablation: str = "campaign"):
     """The chunk program of ``n_logs`` x LOG_EVERY control steps for batch ``b`` (ablation ``ablation``), compiled
     now: a callable of the batch's arguments (:func:`wbc_jax.rollout.batch.chunk_args`)."""
-    if ablation == "no_noise":
-        sim = dataclasses.replace(sim, sensor_noise=False)
-    fn = make_chunk_fn(sim, n_logs, b.in_axes)
-    with ablated(ablation):
-        return jax.jit(fn).lower(*chunk_args(b)).compile()
+    fn = make_chunk_fn(ablation_sim(sim, ablation), n_logs, b.in_axes)
+    return jax.jit(fn).lower(*chunk_args(b)).compile()
 
 
 def _timed(f, *args):

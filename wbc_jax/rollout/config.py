@@ -12,6 +12,7 @@ from wbc_jax.rollout.controllers import controller_class
 from wbc_jax.runtime.static import ByValue
 
 SENSING = ("auto", "exact", "delayed")
+MONITORS = ("all", "no_clearance", "finite_only")  # Sim.monitors: what the rollout measures besides the physics
 """What the controller reads on the Warp backend (:func:`resolve_sensing`; "auto": "delayed" on Warp with one
 physics step per control step, else "exact"). "exact": a ``forward`` call (Warp) computes the kinematics, mass
 matrix, bias forces, contacts and sensors of the current state before the controller acts (two Warp calls per
@@ -61,6 +62,9 @@ class Sim(ByValue):
     obj_slots: np.ndarray
     sensor_noise: bool = False  # the controller sees qvel + noise (Push.qvel_noise_std); costs a velocity pass
     sensing: str = "exact"  # "exact" (Warp: a forward call for the controller) or "delayed" (:data:`SENSING`)
+    monitors: str = "all"  # :data:`MONITORS`: "all" (every run); "no_clearance" (clearance +inf) and "finite_only"
+    #                        (physics-rate monitors zero but `finite`, control-rate metrics only counted) exist for
+    #                        `bench rollout --campaign`, which times what the monitors cost
 
     @property
     def cfg(self):

@@ -132,9 +132,23 @@ def substep_monitors(sim: Sim, m, obj_model: ObjectModel, tau, d, d_after) -> Su
     else:
         nonfoot, nonfoot_k = jnp.bool_(False), jnp.full((), -1, jnp.int32)
     clear, clear_k = clearance(sim, d_after)
-    return SubstepMonitors(inv_h=inv_h, cone=cone, acc=acc_norm, nonfoot_floor=nonfoot, nonfoot_k=nonfoot_k, t=d.time,
-                           wall=wall, off=off, finite=finite, overflow=physics.overflow(d_after),
-                           solver_cap=physics.solver_capped(m, d_after), clear=clear, clear_k=clear_k)
+    if sim.monitors == "no_clearance":  # (Sim.monitors) the computation drops out of the program
+        clear, clear_k = jnp.full_like(clear, jnp.inf), jnp.full_like(clear_k, -1)
+    out = SubstepMonitors(inv_h=inv_h, cone=cone, acc=acc_norm, nonfoot_floor=nonfoot, nonfoot_k=nonfoot_k, t=d.time,
+                          wall=wall, off=off, finite=finite, overflow=physics.overflow(d_after),
+                          solver_cap=physics.solver_capped(m, d_after), clear=clear, clear_k=clear_k)
+    if sim.monitors == "finite_only":
+        out = SubstepMonitors(**{k: v if k in ("finite", "t") else jnp.zeros_like(v) for k, v in out._asdict().items()})
+    return out
+
+
+def fold_control(sim: Sim, acc: Accum, sample, dt_control: float) -> Accum:
+    """``acc`` with the control step's ``sample`` folded (:func:`wbc_jax.metrics.accumulate.fold_control_step`);
+    with ``sim.monitors == "finite_only"`` only the step counted (it indexes the velocity noise and the metric
+    window)."""
+    if sim.monitors == "finite_only":
+        return acc._replace(n_steps=acc.n_steps + 1)
+    return fold_control_step(acc, sample, dt_control)
 
 
 def physics_substep(sim: Sim, m, obj_model: ObjectModel, tau, d):
@@ -196,7 +210,7 @@ def control_step(sim: Sim, m, run_state: RunState, plan, obj_model: ObjectModel,
 
     # control-rate metrics (from the sensed state d at time t)
     record = controller.record(sim, d, obs, ref, tau, diag, run_state.rel0, obj_model, run_state.metrics, plan)
-    acc = fold_control_step(acc, record.sample, sim.dt_control)
+    acc = fold_control(sim, acc, record.sample, sim.dt_control)
     acc = mark_failure(acc, controller.failed(acc, scene_geometry(sim.robot).is_course), d.time)
     # a failed run (by an earlier step) is frozen: nothing of this step is kept, so its state, its metrics and its
     # failure stay as they were at its failure; a step that went non-finite keeps its last finite state
