@@ -62,13 +62,16 @@ def chunk_fn(sim: Sim, n_logs: int, model_axes):
 
 
 def simulate(sim: Sim, bmodel, in_axes, state: RunState, plan, obj_model, gains, push, mu_ground, seconds: float,
-             chunk_seconds: float = 2.0, progress=None):
+             chunk_seconds: float = 2.0, progress=None, program=None):
     """Run ``seconds`` of simulated time in chunks of about ``chunk_seconds`` [s].
 
     Args:
         sim: static structure; bmodel, in_axes: the batched model and its run axes (``Batch.model``,
             ``Batch.in_axes``); state, plan, obj_model, gains, push, mu_ground: per run, runs on axis 0.
         progress: None or a callable taking the simulated time done [s] after each chunk.
+        program: None (:func:`chunk_fn`) or a callable (sim, n_logs, in_axes) -> the chunk function to call, e.g.
+            a campaign's (``wbc_jax.campaign.build.chunk_fn``), so a study and a campaign of the same shapes share
+            one compiled program.
 
     Returns:
         (final RunState, Log with axes (run, log row)).
@@ -81,7 +84,7 @@ def simulate(sim: Sim, bmodel, in_axes, state: RunState, plan, obj_model, gains,
     done = 0
     while done < n_logs_total:
         n = min(logs_per_chunk, n_logs_total - done)
-        state, logs = chunk_fn(sim, n, in_axes)(bmodel, state, plan, obj_model, gains, push, mu_ground)
+        state, logs = (program or chunk_fn)(sim, n, in_axes)(bmodel, state, plan, obj_model, gains, push, mu_ground)
         out_logs.append(jax.device_get(logs))
         done += n
         if progress is not None:

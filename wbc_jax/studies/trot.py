@@ -26,6 +26,7 @@ import jax
 import mujoco
 import numpy as np
 
+from wbc_jax.campaign.build import chunk_fn
 from wbc_jax.campaign.manifest import study_manifest
 from wbc_jax.campaign.spec import CAMPAIGN
 from wbc_jax.control.centroidal import CentroidalConfig, CentroidalGains, centroidal_qp_settings, default_gains
@@ -111,8 +112,11 @@ def run_study(settings: TrotSettings, gains: CentroidalGains | None = None, chun
         if verbose:
             print(f"  simulated {done:6.2f} / {total:.2f} s   wall {marks[-1][1]:7.1f} s", flush=True)
 
+    def program(sim, n_logs, in_axes):  # the campaign's chunk function: a trot campaign of these shapes shares it
+        return chunk_fn(sim, in_axes, n_logs, state_axes=b.state_axes)
+
     state, logs = simulate(sim, b.model, b.in_axes, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground, total,
-                           chunk_seconds=chunk_seconds, progress=progress)
+                           chunk_seconds=chunk_seconds, progress=progress, program=program)
     res = final_results(sim, state, sim.controller.final_input(logs), np.asarray(b.om.mu))
     return StudyRun(sim, b, state, logs, res, marks, t_end)
 
