@@ -33,7 +33,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from wbc_jax.bench.rollout import physics_only_fn, qp_iterations, run_bench
+from wbc_jax.bench.rollout import physics_only_fn, qp_iterations, run_bench, timed
 from wbc_jax.campaign.build import LOG_EVERY, build, with_backend
 from wbc_jax.campaign.spec import load_spec
 from wbc_jax.rollout import make_chunk_fn, runs
@@ -56,12 +56,6 @@ def compiled_chunk(sim, b, n_logs: int, ablation: str = "campaign"):
     now: a callable of the batch's arguments (:func:`wbc_jax.rollout.batch.chunk_args`)."""
     fn = make_chunk_fn(ablation_sim(sim, ablation), n_logs, b.in_axes)
     return jax.jit(fn).lower(*chunk_args(b)).compile()
-
-
-def _timed(f, *args):
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(f(*args))
-    return out, time.perf_counter() - t0
 
 
 class Walk(NamedTuple):
@@ -87,7 +81,7 @@ def walk(built, snapshots: int) -> Walk:
             times.append(c * chunk_steps * sim.dt_control)
         if c == picks[-1]:
             break
-        (state, _), wall = _timed(f, *chunk_args(b._replace(state=state)))
+        (state, _), wall = timed(f, *chunk_args(b._replace(state=state)))
         walls.append(wall)
     return Walk(states, times, walls, chunk_steps)
 
@@ -132,20 +126,19 @@ def _time_batch(sim, batch_at, n_states: int, n_logs: int, ablations, n_env: int
         jax.block_until_ready(programs[name](*chunk_args(b0)))
         first[name] = time.perf_counter() - t0
     phys = physics_only_fn(b0, n_env)
-    first["physics"] = _timed(phys, b0.model, b0.state.d)[1]
+    first["physics"] = timed(phys, b0.model, b0.state.d)[1]
     times = {name: [] for name in first}
-    iters = {name: [] for name in programs if name != "no_monitors"}
+    iters = {name: [] for name in programs if name != "no_monitors"}  # its control-rate fold (sum_qp_iters) is off
     for i in range(n_states):
         b = b0 if i == 0 else batch_at(i)
         for name, f in programs.items():
-            (state, _), wall = _timed(f, *chunk_args(b))
+            (state, _), wall = timed(f, *chunk_args(b))
             times[name].append(wall)
-            if name != "no_monitors":  # its control-rate fold, sum_qp_iters included, is left out
+            if name in iters:
                 iters[name].append(qp_iterations(b.state, state, n_logs * LOG_EVERY))
-        times["physics"].append(_timed(phys, b.model, b.state.d)[1])
+        times["physics"].append(timed(phys, b.model, b.state.d)[1])
         del b
     return first, times, iters
-
 
 
 def batch_figures(first: dict, times: dict, batch: int, n_env: int, iters: dict | None = None) -> dict:
@@ -197,9 +190,10 @@ def run_campaign_step(spec, batches, steps: int = 200, snapshots: int = 3, break
     for B in batches:
         fresh = fresh_state(sim, built.batch, B)
         names = ABLATIONS if breakdown is None or B in breakdown else ABLATIONS[:1]
-        first, times, iters = _time_batch(sim, lambda i, fresh=fresh, B=B: repeated(built.batch, steps_walk.states[i],
-                                                                             fresh, B),
-                                   len(steps_walk.states), n_logs, names, n_env)
+        def batch_at(i, fresh=fresh, B=B):
+            return repeated(built.batch, steps_walk.states[i], fresh, B)
+
+        first, times, iters = _time_batch(sim, batch_at, len(steps_walk.states), n_logs, names, n_env)
         row = batch_figures(first, times, B, n_env, iters)
         out["batches"].append(row)
         shares = "".join(f", {k.split('_')[0]} {row[k]:.1%}" for k in ("clearance_share", "monitors_share",

@@ -37,7 +37,7 @@ from wbc_jax.control.transport import TransportConfig, control_qp_settings
 from wbc_jax.physics.backend import resolve_backend
 from wbc_jax.robot.model import Robot, mjx
 from wbc_jax.rollout import distributed, make_chunk_fn, make_sim, resolve_sensing
-from wbc_jax.rollout.batch import prepare_batch
+from wbc_jax.rollout.batch import chunk_args, prepare_batch
 from wbc_jax.rollout.sharding import over_runs, run_mesh, shard_batch
 
 
@@ -68,7 +68,7 @@ def physics_only_fn(b, n_steps: int):
 
 def wbc_chunk_fn(sim, b):
     """(f, args): jit(vmap) of one chunk of ``sim.log_every`` control steps per run, and its arguments from ``b``."""
-    return jax.jit(make_chunk_fn(sim, 1, b.in_axes)), (b.model, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground)
+    return jax.jit(make_chunk_fn(sim, 1, b.in_axes)), chunk_args(b)
 
 
 def sharded_chunk_fn(sim, b):
@@ -77,7 +77,7 @@ def sharded_chunk_fn(sim, b):
     f = over_runs(make_chunk_fn(sim, 1, b.in_axes), run_mesh(), (b.in_axes, b.state_axes, 0, 0, 0, 0, 0),
                   (b.state_axes, 0))
     bs, _ = shard_batch(b)
-    return f, (bs.model, bs.state, bs.plan, bs.om, bs.gains, bs.push, bs.mu_ground)
+    return f, chunk_args(bs)
 
 
 def _timed_together(f, *args):

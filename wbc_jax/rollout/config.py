@@ -12,7 +12,6 @@ from wbc_jax.rollout.controllers import controller_class
 from wbc_jax.runtime.static import ByValue
 
 SENSING = ("auto", "exact", "delayed")
-MONITORS = ("all", "no_clearance", "finite_only")  # Sim.monitors: what the rollout measures besides the physics
 """What the controller reads on the Warp backend (:func:`resolve_sensing`; "auto": "delayed" on Warp with one
 physics step per control step, else "exact"). "exact": a ``forward`` call (Warp) computes the kinematics, mass
 matrix, bias forces, contacts and sensors of the current state before the controller acts (two Warp calls per
@@ -21,6 +20,7 @@ state at the start of that step, so the controller sees the state one physics st
 on the current one; control-rate metrics and the log are taken at that (consistent) older state; with sensor noise,
 the noise reaches the velocities the controller reads but not its bias forces (computed by the step with the true
 velocities)."""
+MONITORS = ("all", "no_clearance", "finite_only")  # Sim.monitors: what the rollout measures besides the physics
 
 
 def resolve_sensing(sensing: str, backend: str, n_substeps: int = 1) -> str:
