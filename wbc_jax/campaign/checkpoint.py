@@ -3,10 +3,11 @@
 ``.<DIR name>.campaign-ckpt/`` holds ``state_K.npz`` (every leaf of the batched RunState after chunk K) and
 ``meta.json`` (chunks done, wall time so far, the run's identity (``wbc_jax.campaign.manifest.run_identity``: spec,
 gains, backend, numerics versions, run count) and the state file's SHA-256). :func:`save_state` writes the state
-first and then the meta that names it, so an interruption at any point leaves a consistent pair;
-:func:`read_meta` checks the meta against this run's identity before anything is built or compiled, and
-:func:`load_state` the state against the fresh state's structure. Damage or a mismatch is a one-line
-``CheckpointError`` that says how to restart; a checkpoint is never trusted silently.
+first and then the meta that names it, so an interruption at any point leaves a consistent pair; :class:`Writer`
+runs those writes in a background thread, one at a time. :func:`read_meta` checks the meta against this run's
+identity before anything is built or compiled, and :func:`load_state` the state against the fresh state's
+structure. Damage or a mismatch is a one-line ``CheckpointError`` that says how to restart; a checkpoint is never
+trusted silently.
 """
 
 from __future__ import annotations
@@ -15,7 +16,9 @@ import hashlib
 import json
 import os
 import tempfile
+import threading
 from pathlib import Path
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -56,6 +59,45 @@ def save_state(ck: Path, state, meta: dict) -> None:
     for old in ck.glob("state_*.npz"):
         if old.name != name:
             old.unlink(missing_ok=True)
+
+
+class Writer:
+    """:func:`save_state` in a background thread, one write at a time, so that the caller's next chunk runs meanwhile.
+
+    :meth:`save` first waits for the previous write; :meth:`join` waits for the write in progress and raises, in the
+    caller's thread, the exception the write raised (once). The thread is not a daemon: an exiting interpreter
+    waits for the write in progress.
+    """
+
+    def __init__(self):
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def save(self, ck: Path, state, meta: dict, on_saved: Callable[[], None] | None = None) -> None:
+        """Start writing ``state`` (host arrays the caller leaves unchanged) and ``meta`` to ``ck`` once the previous
+        write ended (:meth:`join`: its error is raised here); ``on_saved`` runs in the writer thread after both files
+        are written."""
+        self.join()
+
+        def write():
+            try:
+                save_state(ck, state, meta)
+                if on_saved is not None:
+                    on_saved()
+            except BaseException as e:  # handed to the caller's thread by join
+                self._error = e
+
+        self._thread = threading.Thread(target=write, name="wbc-jax-checkpoint")
+        self._thread.start()
+
+    def join(self) -> None:
+        """Wait for the write in progress (none: return at once); raise the exception it raised, once."""
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
 
 
 def read_meta(ck: Path, identity: dict, n_chunks: int) -> dict | None:

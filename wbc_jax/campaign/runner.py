@@ -37,7 +37,6 @@ from pathlib import Path
 from typing import NamedTuple
 
 import jax
-import numpy as np
 
 from wbc_jax.campaign import checkpoint, interrupts, preflight
 from wbc_jax.campaign import gains as gains_mod
@@ -69,8 +68,9 @@ from wbc_jax.rollout.spread import choose
 
 
 def after_chunk(done: int, n_chunks: int) -> None:
-    """Called in every process after each finished chunk (``done`` of ``n_chunks``), once its checkpoint is
-    written; does nothing. A test replaces it (e.g. to raise KeyboardInterrupt after the first chunk)."""
+    """Called in every process after each finished chunk (``done`` of ``n_chunks``), once process 0 has begun
+    its checkpoint (written in the background; complete before the next one begins and before the command ends,
+    however it ends); does nothing. A test replaces it (e.g. to raise KeyboardInterrupt after the first chunk)."""
 
 
 class Rollout(NamedTuple):
@@ -100,16 +100,29 @@ def _announce(job: Job) -> None:
           f"{jax.devices()[0].device_kind}{sp.describe()}", flush=True)
 
 
-def _run_chunks(job: Job, start: Start, progress: bool, report: bool,
-                guard: interrupts.Guard) -> tuple[Rollout, object]:
-    """Step every chunk from ``start``, checkpointing after each (process 0); returns the finished rollout and
-    the report worker started during it (None without ``report``). A signal stops the run once the compile or
-    the chunk in progress ends (``guard``); the finished chunks' checkpoint is kept."""
+def _save(job: Job, start: Start, saver: checkpoint.Writer, gathering, done: int, marks: list, t_run: float):
+    """Process 0: chunk ``done``'s gathered (object goal, state) on the host (``gathering``:
+    :meth:`wbc_jax.rollout.spread.Gathering.finish`) and its checkpoint begun in the background (``saver``, once
+    the previous write ended: one host copy of the state at a time); returns them."""
+    saver.join()
+    p_goal, state = gathering.finish()
+    meta = dict(identity=job.identity, chunks_done=done, n_chunks=job.built.n_chunks, marks=list(marks),
+                p_goal=p_goal.tolist(), wall_s=start.wall_before + time.perf_counter() - t_run,
+                sessions=list(start.sessions))
+    saver.save(job.ckpt, state, meta, on_saved=lambda: setattr(job.status, "saved", done))
+    return p_goal, state
+
+
+def _run_chunks(job: Job, start: Start, progress: bool, report: bool, guard: interrupts.Guard,
+                saver: checkpoint.Writer) -> tuple[Rollout, object]:
+    """Step every chunk from ``start``, checkpointing after each (process 0, in the background: ``saver``); returns
+    the finished rollout and the report worker started during it (None without ``report``). A signal stops the run
+    once the compile or the chunk in progress ends (``guard``); the finished chunks' checkpoint is kept."""
     b, sp, n_chunks, dz = job.batch, job.spread, job.built.n_chunks, job.built.design
     fn = chunk_fn(job.built.sim, b.in_axes, job.built.logs_per_chunk, sp.mesh, b.state_axes)
     bar = (ProgressBar(n_chunks, start.done, job.chunk_s, dz.n, job.built.sim.dt_physics)
            if progress and job.writer else None)
-    state, done, marks, p_goal = start.state, start.done, start.marks, start.p_goal
+    state, done, marks, p_goal, gathered = start.state, start.done, start.marks, start.p_goal, None
     t_run = time.perf_counter()
     first_in_process = True  # that chunk's wall time includes compilation
     step = lambda st: fn(b.model, st, b.plan, b.om, b.gains, b.push, b.mu_ground)  # noqa: E731  (dispatch only)
@@ -137,42 +150,37 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool,
                 done += 1
                 if bar is not None:  # shown before the next chunk's dispatch, which on a CPU runs it
                     bar.chunk_done(dt_wall, fresh=first_in_process)
-                # the next chunk runs on the device while this one's checkpoint is written (nothing is donated: the
-                # state saved below stays valid)
+                # this chunk's gather goes to the devices ahead of the next chunk, its copy to the host and its
+                # checkpoint run beside that chunk (nothing is donated: the state gathered stays valid)
+                gathering = sp.gather_start((final_input(logs), state), dz.n, (0, b.state_axes))
                 nxt = step(state) if done < n_chunks else None
             marks.append(dict(chunk=done, wall_s=dt_wall, fresh_process=first_in_process))
             first_in_process = False
-            if sp.mode == "one":
-                p_goal, saved = np.asarray(final_input(logs)), state
-            else:  # every process takes part in the gathers; process 0 writes
-                p_goal, saved = sp.gather((final_input(logs), state), dz.n, (0, b.state_axes))  # one collective
-            if job.writer:
-                with guard.deferred():
-                    checkpoint.save_state(job.ckpt, saved, dict(
-                        identity=job.identity, chunks_done=done, n_chunks=n_chunks, marks=marks,
-                        p_goal=p_goal.tolist(), wall_s=start.wall_before + time.perf_counter() - t_run,
-                        sessions=start.sessions))
-                job.status.saved = done
+            if job.writer:  # the other processes take part in the gather's collective only
+                p_goal, gathered = _save(job, start, saver, gathering, done, marks, t_run)
             if done < n_chunks:
                 after_chunk(done, n_chunks)
                 guard.check()
-    except KeyboardInterrupt:
+    except BaseException:  # a signal, or the checkpoint's write failed
         if bar is not None:
             bar.close()
         if reporter is not None:
             reporter.close()
+        with guard.deferred():
+            saver.join()  # a finished chunk's checkpoint is complete before the run stops
         raise
     if bar is not None:
         bar.close()
     wall = start.wall_before + time.perf_counter() - t_run
-    if sp.mode != "one":
-        state = sp.gather(state, dz.n, b.state_axes)
+    if sp.mode != "one":  # the last chunk's gathered state (process 0), or a collective when this session ran none
+        state = gathered if start.done < n_chunks else sp.gather(state, dz.n, b.state_axes)
     return Rollout(state, p_goal, marks, wall, start.wall_before, t_run, start.sessions), reporter
 
 
-def _write(job: Job, rollout: Rollout, clock: dict, report: bool, reporter, guard: interrupts.Guard) -> dict:
-    """results.csv and manifest.json into DIR (atomically; a signal waits for them), the checkpoint deleted, then
-    the report; the summary lines. Returns the manifest."""
+def _write(job: Job, rollout: Rollout, clock: dict, report: bool, reporter, guard: interrupts.Guard,
+           saver: checkpoint.Writer) -> dict:
+    """results.csv and manifest.json into DIR (atomically, once the last checkpoint is written: ``saver``; a signal
+    waits for them), the checkpoint deleted, then the report; the summary lines. Returns the manifest."""
     from wbc_jax.rollout import final_results
 
     sim, dz = job.built.sim, job.built.design
@@ -189,6 +197,8 @@ def _write(job: Job, rollout: Rollout, clock: dict, report: bool, reporter, guar
     manifest = campaign_manifest(job.spec, job.built, df, summary, timing, identity=job.identity, gains=job.gains,
                                  sensing=sensing_of(job.spec), spread_mode=job.spread.mode, chunk_s=job.chunk_s,
                                  sessions=rollout.sessions, files=files)
+    with guard.deferred():
+        saver.join()  # the last chunk's checkpoint, written while the results above were computed
     with guard.deferred(), atomic_dir(job.out) as tmp:  # the finished simulation first: a failing report keeps it
         df.to_csv(tmp / "results.csv", index=False)
         manifest["wall_s_total"] = time.perf_counter() - clock["import"] + wall_before
@@ -292,11 +302,16 @@ def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guar
     start = start_point(job, built.batch.state, r["resume"])
     status.stage, status.n_chunks = "chunks", built.n_chunks
     _announce(job)
-    rollout, reporter = _run_chunks(job, start, r["progress"], r["report"], guard)
-    if not job.writer:
-        print(f"process {jax.process_index()}: done; process 0 writes {r['out']}", flush=True)
-        return None
-    return _write(job, rollout, clock, r["report"], reporter, guard)
+    saver = checkpoint.Writer()
+    try:
+        rollout, reporter = _run_chunks(job, start, r["progress"], r["report"], guard, saver)
+        if not job.writer:
+            print(f"process {jax.process_index()}: done; process 0 writes {r['out']}", flush=True)
+            return None
+        return _write(job, rollout, clock, r["report"], reporter, guard, saver)
+    finally:  # however the command ends, a finished chunk's checkpoint is complete first
+        with guard.deferred():
+            saver.join()
 
 
 def run_in_fresh_process(spec_path, out: Path, **env) -> Path:

@@ -202,14 +202,3 @@ def agree(error: WbcJaxError | None) -> None:
     if got[0]:
         raise WbcJaxError(bytes(got[1:]).rstrip(b"\0").decode(errors="replace"))
 
-
-def gather(tree):
-    """A pytree of global arrays (sharded over every process's devices) as host numpy arrays, whole, in every
-    process (a collective); single process: ``jax.device_get``."""
-    import jax
-
-    if _ACTIVE is None:
-        return jax.device_get(tree)
-    from jax.experimental import multihost_utils
-
-    return multihost_utils.process_allgather(tree, tiled=True)

@@ -14,17 +14,45 @@
   says so): start one process per GPU (docs/cluster.md).
 
 Every process builds the same whole batch (the design is deterministic); :meth:`Spread.place` keeps this
-process's part, :meth:`Spread.gather` brings every run's results back to every process's host.
+process's part, :meth:`Spread.gather` brings every run's results back to every process's host. Between chunks,
+:meth:`Spread.gather_start` puts the gather on the devices ahead of the next chunk and :meth:`Gathering.finish`
+collects it on the host while that chunk runs: with several processes the runs meet in one on-device all-gather
+(each device's queue runs in order, so a gather dispatched after the next chunk would wait for it).
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import numpy as np
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
-from wbc_jax.rollout import distributed, runs
+from wbc_jax.rollout import runs
+
+
+class Gathering(NamedTuple):
+    """A gather in flight (:meth:`Spread.gather_start`): each leaf whole on this process's device or host (run axes
+    still padded), its copy to the host started."""
+
+    leaves: list
+    treedef: object
+    n: int
+    axes: object
+
+    def finish(self):
+        """The first ``n`` runs of the gathered tree as host numpy arrays (waits for the copies)."""
+        return runs.first(jax.tree_util.tree_unflatten(self.treedef, [np.asarray(x) for x in self.leaves]),
+                          self.n, self.axes)
+
+
+@functools.lru_cache(maxsize=None)
+def _replicate(sharding: NamedSharding):
+    """A jitted identity whose outputs are placed whole on every device of ``sharding``'s mesh (an all-gather)."""
+    return jax.jit(lambda leaves: leaves, out_shardings=sharding)
 
 
 @dataclass(frozen=True)
@@ -82,20 +110,40 @@ class Spread:
             return jax.device_put(runs.take(state, self.block(n), axes))
         return state
 
+    def gather_start(self, tree, n: int, axes=0) -> Gathering:
+        """Start :meth:`gather` of ``tree``: the collective is dispatched now, ahead of whatever this process
+        dispatches next to its devices, and the copies to the host begin; :meth:`Gathering.finish` returns the
+        host arrays. Every process calls it at the same point (a collective with several processes), while only
+        those that need the result call ``finish``."""
+        leaves, treedef, ax = runs.leaves_and_axes(tree, axes)
+        if self.mode == "blocks":
+            leaves = self._blocks_whole(leaves, ax)
+        elif self.mode == "mesh" and jax.process_count() > 1:
+            whole = _replicate(NamedSharding(self.mesh, P()))(leaves)
+            leaves = [x.addressable_data(0) for x in whole]
+        for x in leaves:
+            if isinstance(x, jax.Array):
+                x.copy_to_host_async()
+        return Gathering(leaves, treedef, n, axes)
+
+    def _blocks_whole(self, leaves: list, axes: list) -> list:
+        """("blocks") Each leaf with a run axis as the whole batch (every process's block, in process order) on this
+        process's device; the others (axes None) as they are, this process's own."""
+        devices = [jax.local_devices(process_index=p)[0] for p in range(self.processes)]
+        mesh = Mesh(np.asarray(devices), ("process",))
+        mine = [i for i, a in enumerate(axes) if a is not None]
+        blocks = [jax.make_array_from_single_device_arrays(
+            (self.processes * np.shape(leaves[i])[0], *np.shape(leaves[i])[1:]), NamedSharding(mesh, P("process")),
+            [jax.device_put(leaves[i], devices[self.process])]) for i in mine]
+        out = list(leaves)
+        for i, x in zip(mine, _replicate(NamedSharding(mesh, P()))(blocks)):
+            out[i] = x.addressable_data(0)
+        return out
+
     def gather(self, tree, n: int, axes=0):
         """The first ``n`` runs of ``tree`` (placed as :meth:`place` places them; run axes ``axes``) as host
         numpy arrays, whole, in every process (a collective with several processes)."""
-        if self.mode == "blocks":
-            from jax.experimental import multihost_utils
-
-            leaves, treedef, ax = runs.leaves_and_axes(tree, axes)
-            host = [np.asarray(x) for x in jax.device_get(leaves)]
-            mine = [x for x, a in zip(host, ax) if a is not None]
-            every = iter(multihost_utils.process_allgather(mine, tiled=True))  # blocks in process order
-            host = [x if a is None else next(every) for x, a in zip(host, ax)]
-            return runs.first(jax.tree_util.tree_unflatten(treedef, host), n, axes)
-        return runs.first(distributed.gather(tree) if self.mode == "mesh" else jax.device_get(tree), n, axes)
-
+        return self.gather_start(tree, n, axes).finish()
 
 def choose(backend: str) -> Spread:
     """The layout for a batch of ``backend`` ("jax" or "warp") physics on this process's devices."""
