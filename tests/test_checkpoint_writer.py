@@ -181,7 +181,7 @@ GATHER = textwrap.dedent("""
     got = {}
     for sp in (Spread("blocks", process=pid, processes=2), Spread("mesh", run_mesh())):
         placed = sp.place_state(tree, n, axes)
-        gathering = sp.gather_start(placed, n, axes)
+        gathering = sp.gather_start(placed, n, axes, fetch=pid == 0)  # process 1: no early copy to the host
         later = jax.tree_util.tree_map(lambda x: x + 1 if x.dtype != bool else x, placed)  # dispatched after
         host = gathering.finish()
         jax.block_until_ready(later)

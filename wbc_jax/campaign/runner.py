@@ -152,7 +152,7 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool, guard: int
                     bar.chunk_done(dt_wall, fresh=first_in_process)
                 # this chunk's gather goes to the devices ahead of the next chunk, its copy to the host and its
                 # checkpoint run beside that chunk (nothing is donated: the state gathered stays valid)
-                gathering = sp.gather_start((final_input(logs), state), dz.n, (0, b.state_axes))
+                gathering = sp.gather_start((final_input(logs), state), dz.n, (0, b.state_axes), fetch=job.writer)
                 nxt = step(state) if done < n_chunks else None
             marks.append(dict(chunk=done, wall_s=dt_wall, fresh_process=first_in_process))
             first_in_process = False

@@ -7,11 +7,11 @@
   one SPMD program in which each device steps its own runs (:mod:`wbc_jax.rollout.sharding`).
 * ``blocks`` (Warp physics, several processes): the runs padded to a multiple of the process count and cut into
   contiguous blocks; process i steps block i on its first local device with the single-device program, and the
-  processes meet only to gather results (host collectives). XLA cannot put MuJoCo Warp's kernels into one program
-  over several devices with mujoco-mjx 3.17 and warp-lang 1.18 (``shard_map`` and ``pmap`` crash XLA's compiler, a
-  GSPMD program runs slower than one GPU), while one process per GPU keeps each GPU's speed. For the same
-  reason one process that sees several GPUs runs Warp on its first GPU only (``one``; :attr:`Spread.note`
-  says so): start one process per GPU (docs/cluster.md).
+  processes meet only to gather results (an all-gather over one device per process). XLA cannot put MuJoCo Warp's
+  kernels into one program over several devices with mujoco-mjx 3.17 and warp-lang 1.18 (``shard_map`` and
+  ``pmap`` crash XLA's compiler, a GSPMD program runs slower than one GPU), while one process per GPU keeps each
+  GPU's speed. For the same reason one process that sees several GPUs runs Warp on its first GPU only (``one``;
+  :attr:`Spread.note` says so): start one process per GPU (docs/cluster.md).
 
 Every process builds the same whole batch (the design is deterministic); :meth:`Spread.place` keeps this
 process's part, :meth:`Spread.gather` brings every run's results back to every process's host. Between chunks,
@@ -36,7 +36,7 @@ from wbc_jax.rollout import runs
 
 class Gathering(NamedTuple):
     """A gather in flight (:meth:`Spread.gather_start`): each leaf whole on this process's device or host (run axes
-    still padded), its copy to the host started."""
+    still padded), its copy to the host started when fetched early."""
 
     leaves: list
     treedef: object
@@ -110,18 +110,18 @@ class Spread:
             return jax.device_put(runs.take(state, self.block(n), axes))
         return state
 
-    def gather_start(self, tree, n: int, axes=0) -> Gathering:
+    def gather_start(self, tree, n: int, axes=0, fetch: bool = True) -> Gathering:
         """Start :meth:`gather` of ``tree``: the collective is dispatched now, ahead of whatever this process
-        dispatches next to its devices, and the copies to the host begin; :meth:`Gathering.finish` returns the
-        host arrays. Every process calls it at the same point (a collective with several processes), while only
-        those that need the result call ``finish``."""
+        dispatches next to its devices, and (``fetch``) the copies to the host begin; :meth:`Gathering.finish`
+        returns the host arrays. Every process calls it at the same point (a collective with several processes),
+        while only those that need the result call ``finish`` (the others pass ``fetch=False``)."""
         leaves, treedef, ax = runs.leaves_and_axes(tree, axes)
         if self.mode == "blocks":
             leaves = self._blocks_whole(leaves, ax)
         elif self.mode == "mesh" and jax.process_count() > 1:
             whole = _replicate(NamedSharding(self.mesh, P()))(leaves)
             leaves = [x.addressable_data(0) for x in whole]
-        for x in leaves:
+        for x in leaves if fetch else ():
             if isinstance(x, jax.Array):
                 x.copy_to_host_async()
         return Gathering(leaves, treedef, n, axes)
