@@ -13,7 +13,8 @@ checked, with the spec's size against the machine's memory (``wbc_jax.campaign.b
 is compiled.
 
 Checkpoint (``wbc_jax.campaign.checkpoint``): ``.<DIR name>.campaign-ckpt/`` next to DIR holds the state after the
-last finished chunk and the run's identity (``wbc_jax.campaign.manifest.run_identity``). Ctrl-C keeps it;
+last finished chunk and the run's identity (``wbc_jax.campaign.manifest.run_identity``), written in the background
+while the next chunk runs and complete before the command ends. Ctrl-C keeps it;
 ``--resume`` continues from it (the chunks are the same, so the results equal an uninterrupted run's) after checking
 the identity and the checksum: a mismatch or damage is a one-line error; it is deleted once the results are
 written. A run that goes non-finite is frozen by the rollout and reported failed; the others continue.
