@@ -27,20 +27,22 @@ fi
 # flat-scene chunk program of test_transport and test_backends' JAX walk; the transport scene's sensing pass of
 # test_clearance and test_model; test_factors' tiny campaign, reused by test_freeze); the longest groups come first,
 # test_backends' group first of all (it compiles MuJoCo Warp's CPU kernels, which the later Warp tests load from
-# the kernel cache), and files that compile little (`light`, `light2`, the shortest last) fill the end. A test file
-# in no group runs in a group of its own, before those. Each group prints a line when it ends; the outputs follow,
-# in group order, at the end.
+# the kernel cache), then the files that compile little, longest first (the report's figures and subprocesses, then
+# `light2`, then `light`, the shortest), so the two workers end close together. A test file in no group runs in a
+# group of its own, before `light2` and `light`. Each group prints a line when it ends; the outputs follow, in group
+# order, at the end.
 groups=(
   "transport backends"
   "campaign replay window sharding tune"
   "substeps factors freeze"
   "course clearance model metrics"
   "qp"
+  "report cli_docs stats safety"
   "trot_campaign"
 )
-light="reliability safety report stats planner zmp capture_point interaction kernel_trace snapshots spec_docs packed
-  aot api architecture cli_docs progress"
-light2="centroidal bench_campaign distributed envelope s_cause warmup"
+light="reliability planner zmp capture_point interaction kernel_trace snapshots spec_docs packed aot api architecture
+  progress"
+light2="centroidal bench_campaign distributed envelope s_cause warmup checkpoint_writer"
 named=" ${groups[*]} $light $light2 "
 rest=()
 for f in tests/test_*.py; do
@@ -49,7 +51,7 @@ for f in tests/test_*.py; do
   [[ "$named" == *[[:space:]]"$n"[[:space:]]* ]] || rest+=("$n")
 done
 for n in "${rest[@]}"; do groups+=("$n"); done
-groups+=("$light" "$light2")
+groups+=("$light2" "$light")
 logs=$(mktemp -d)
 run_group() {  # $1: the group's index
   local files=() n r=0 t0=$SECONDS
