@@ -43,6 +43,7 @@ class Timing(NamedTuple):
         compile_estimate: the first chunk's wall time less a steady chunk's (None with no steady chunk).
         first_chunk: the first chunk of this process (None when none ran).
         env_steps_per_s: physics steps of all runs per second of steady chunks.
+        chunk_walls: each chunk's wall time in order, every session's (a session's first includes compilation).
     """
 
     total: float
@@ -52,6 +53,7 @@ class Timing(NamedTuple):
     compile_estimate: float | None
     first_chunk: float | None
     env_steps_per_s: float
+    chunk_walls: tuple = ()
 
 
 def versions() -> dict:
@@ -210,6 +212,7 @@ def campaign_manifest(spec: Spec, built, df, summary: Summary, timing: Timing, *
         control_dt_s=sim.dt_control, wall_s_total=timing.total, wall_s_rollout=timing.rollout,
         import_s=timing.imports, setup_s=timing.setup, compile_s_estimate=timing.compile_estimate,
         first_chunk_s=timing.first_chunk, env_steps_per_s=timing.env_steps_per_s,
+        chunk_wall_s=[round(w, 3) for w in timing.chunk_walls],
         resumed=len(sessions) > 1, n_success=int(ok.sum()), failures_per_cell=summary.failures_per_cell,
         failed_runs=summary.failed_runs, qp_flagged_runs=summary.qp_flagged_runs,
         qp_flag_fraction_max=nan_none(df.qp_flag_fraction.max()), warnings=summary.warnings,

@@ -193,7 +193,8 @@ def _write(job: Job, rollout: Rollout, clock: dict, report: bool, reporter, guar
     timing = Timing(total=time.perf_counter() - clock["import"] + wall_before, rollout=rollout.wall_s,
                     imports=clock["start"] - clock["import"], setup=rollout.t_run - clock["start"],
                     compile_estimate=rates.compile_estimate, first_chunk=rates.first_chunk,
-                    env_steps_per_s=rates.env_steps_per_s)
+                    env_steps_per_s=rates.env_steps_per_s,
+                    chunk_walls=tuple(mk["wall_s"] for mk in rollout.marks))
     files = ["manifest.json", "results.csv", *(["report"] if report else [])]
     manifest = campaign_manifest(job.spec, job.built, df, summary, timing, identity=job.identity, gains=job.gains,
                                  sensing=sensing_of(job.spec), spread_mode=job.spread.mode, chunk_s=job.chunk_s,
