@@ -1,0 +1,165 @@
+"""ADMM iterations of the transport controller's QP under the campaign's velocity noise, per solver setting.
+
+    python examples/qp_settings_study.py [VARIANT ...]      e.g.  check_every=1  rho=1,check_every=1  reuse=10
+
+The paper campaign's first 1.5 s (8 runs: m 0.2 / 0.4, mu 0.4 / 1.0, d 0.06 / 0.10, one repetition, its noise and
+pushes) is run once with the campaign's own settings while every control step's QP and warm start are recorded;
+then each recorded problem is solved again from its recorded warm start under each variant (``field=value`` of
+:class:`wbc_jax.qp.QPSettings`, comma-separated; ``rho`` replaces the warm start's rho), and the ADMM iterations
+are printed (mean, percentiles, max, flagged solves). ``reuse=LAG`` (``reuse_all=LAG``) solves each problem with the
+x-update's factor of ``K`` and the Ruiz scaling of the same run's problem LAG control steps earlier (runs chained
+through their warm starts) and the exact rows' Schur parts recomputed (also reused); the residuals are always the
+current problem's, so the fixed point is unchanged; steps where a row changed kind (a foot touching down or
+lifting off) are counted apart. On a CPU: a few minutes of compilation, then 1-3 min per
+variant.
+"""
+
+import sys
+import tempfile
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import wbc_jax.control.transport as transport
+from wbc_jax.campaign.build import build
+from wbc_jax.campaign.spec import load_spec
+from wbc_jax.qp import QPResult, admm, rules, solve_qp
+from wbc_jax.qp.scaling import Scaled, equilibrate, factor, mv, regularize_schur, solve
+from wbc_jax.qp.settings import BIG
+from wbc_jax.rollout import make_chunk_fn
+from wbc_jax.rollout.batch import chunk_args
+
+FIELDS = ("P", "q", "A", "l", "u", "wx", "wz", "wy", "wrho", "x")
+
+
+def small_spec() -> Path:
+    """The paper spec cut to 8 runs and 1.5 s (chunks of 0.5 s)."""
+    text = Path("sweeps/paper_campaign.toml").read_text()
+    for a, b in (("reps = 10", "reps = 1"), ("chunk_seconds = 2.0", "chunk_seconds = 0.5\nmax_seconds = 1.5"),
+                 ("m = [0.2, 0.3, 0.4]", "m = [0.2, 0.4]"), ("mu = [0.4, 0.7, 1.0]", "mu = [0.4, 1.0]"),
+                 ("d = [0.06, 0.08, 0.10]", "d = [0.06, 0.10]")):
+        text = text.replace(a, b)
+    path = Path(tempfile.mkdtemp()) / "qp_study.toml"
+    path.write_text(text)
+    return path
+
+
+def record(spec_path: Path):
+    """Every control step's QP (P, q, A, l, u) and warm start (x, z, y, rho) of the campaign's rollout, as host
+    arrays with a leading axis over the solves, and the campaign's QP settings."""
+    built = build(load_spec(spec_path))
+    rows, solve = [], transport.solve_qp
+
+    def recording_solve(P, q, A, l, u, warm=None, settings=None):
+        res = solve(P, q, A, l, u, warm=warm, settings=settings)
+        jax.debug.callback(lambda *a: rows.append([np.array(v) for v in a]), P, q, A, l, u, warm.x, warm.z,
+                           warm.y, warm.rho, res.x)
+        return res
+
+    transport.solve_qp = recording_solve
+    try:
+        fn = jax.jit(make_chunk_fn(built.sim, built.logs_per_chunk, built.batch.in_axes))
+        args, state = list(chunk_args(built.batch)), built.batch.state
+        for _ in range(built.n_chunks):
+            args[1] = state
+            state, _ = jax.block_until_ready(fn(*args))
+    finally:
+        transport.solve_qp = solve
+    qp = built.sim.cfg.qp._replace(box_rows=built.sim.cfg.k * (transport.N_FEET + transport.N_OBJ))
+    skip = 10 * built.design.n  # the standing start's first steps
+    return {k: np.stack([r[i] for r in rows[skip:]]) for i, k in enumerate(FIELDS)}, qp
+
+
+def iterations(problems: dict, settings, rho=None):
+    """(iterations (N,), flags (N,)) of every recorded problem solved from its warm start under ``settings``."""
+    def one(P, q, A, l, u, wx, wz, wy, wrho):
+        warm_rho = wrho if rho is None else jnp.asarray(rho, wrho.dtype)
+        res = solve_qp(P, q, A, l, u, warm=QPResult(wx, wy, wz, 0.0, 0.0, 0, 0, warm_rho), settings=settings)
+        return res.iters, res.flag
+
+    it, flag = jax.jit(jax.vmap(one))(*(jnp.asarray(problems[k], jnp.float32) for k in FIELDS[:-1]))
+    return np.asarray(it), np.asarray(flag)
+
+
+def _row_kinds(sp, l, u, s):
+    """(free, eq, exact) bool (m,) of the rows of the scaled problem ``sp`` (as :func:`wbc_jax.qp.admm.solve_xla`)."""
+    free = (l <= -BIG) & (u >= BIG)
+    eq = jnp.abs(sp.u - sp.l) < rules.EQ_TOL
+    return free, eq, (jnp.arange(l.shape[0]) < s.eq_rows) & eq & ~free
+
+
+def _reused_solve(s, schur_fresh, cur, old):
+    """ADMM iterations of problem ``cur`` (P, q, A, l, u, wx, wz, wy, wrho) with the scaling, row weights and
+    factor of ``old`` (P, q, A, l, u, wy): (iterations, converged, same row kinds)."""
+    P, q, A, l, u, wx, wz, wy, wrho = cur
+    Po, qo, Ao, lo, uo, wyo = old
+    l, u, lo, uo = (jnp.clip(v, -BIG, BIG) for v in (l, u, lo, uo))
+    P, Po = 0.5 * (P + P.T), 0.5 * (Po + Po.T)
+    spo = equilibrate(Po, qo, Ao, lo, uo, s.ruiz_iters)
+    D, E, c = spo.D, spo.E, spo.c
+    sp = Scaled(c * D[:, None] * P * D[None, :], c * D * q, E[:, None] * A * D[None, :], E * l, E * u, D, E, c)
+    kinds, kinds_old = _row_kinds(sp, l, u, s), _row_kinds(spo, lo, uo, s)
+    same = jnp.all(jnp.stack([jnp.all(a == b) for a, b in zip(kinds, kinds_old)]))
+    free, eq, ex = kinds
+    ne, rho = s.eq_rows, rules.warm_rho(wrho, s, P.dtype)
+    _, w_old = admm._start(spo, (wx, wz, wyo, None), kinds_old[1], kinds_old[0], kinds_old[2], s, P.dtype)
+    st, _ = admm._start(sp, (wx, wz, wy, None), eq, free, ex, s, P.dtype)
+    K0, G, Ae = admm._factor_parts(spo, w_old, kinds_old[0], kinds_old[2], s, ne)
+    fac = factor(K0 + rho * G, s.linsolve)
+    Ae, held = (sp.A[:ne] * ex[:ne, None], ex[:ne]) if schur_fresh else (Ae, kinds_old[2][:ne])
+    W = solve(fac, Ae.T, s.linsolve)
+    kkt = admm.KKT(fac, Ae, W, factor(regularize_schur(mv(Ae, W), held), s.linsolve))
+    rho_v = rules.rho_vec(rho, w_old, free, s)
+    body = lambda _, st: admm._step(sp, kkt, rho_v, ex, free, s, st)  # noqa: E731
+    block = lambda st, n: jax.lax.fori_loop(0, n, body, admm._project(sp, kkt, ex, st, s.linsolve))  # noqa: E731
+    done = lambda st: admm._unscaled(P, q, A, sp, st, s).converged  # noqa: E731
+    st, k = jax.lax.while_loop(lambda c: (c[1] < s.max_iters) & ~done(c[0]) & ~c[0].bad,
+                               lambda c: (block(c[0], s.check_every), c[1] + s.check_every),
+                               (block(st, s.iters), jnp.int32(s.iters)))
+    return k, done(st), same
+
+
+def reused_iterations(problems: dict, settings, lag: int, schur_fresh: bool):
+    """(iterations, converged, same row kinds) of every problem with a predecessor ``lag`` steps back in its run,
+    solved with that predecessor's scaling and factor (:func:`_reused_solve`)."""
+    index = {problems["x"][i].tobytes(): i for i in range(len(problems["x"]))}
+    prev = np.array([index.get(w.tobytes(), -1) for w in problems["wx"]])  # the run's previous step
+    old = np.arange(len(prev))
+    for _ in range(lag):
+        old = np.where(old >= 0, prev[np.maximum(old, 0)], -1)
+    cur = np.nonzero(old >= 0)[0]
+    s = settings._replace(linsolve="chol")
+    fn = jax.jit(jax.vmap(lambda c, o: _reused_solve(s, schur_fresh, c, o)))
+    out = fn(tuple(jnp.asarray(problems[k][cur], jnp.float32) for k in FIELDS[:-1]),
+             tuple(jnp.asarray(problems[k][old[cur]], jnp.float32) for k in ("P", "q", "A", "l", "u", "wy")))
+    return tuple(np.asarray(a) for a in out)
+
+
+def parse(variant: str, settings) -> tuple:
+    """``"field=value,field=value"`` as (changed settings, rho or None)."""
+    change = {}
+    for item in filter(None, variant.split(",")):
+        key, value = item.split("=")
+        current = getattr(settings, key)
+        change[key] = value if isinstance(current, str) else type(current)(float(value))
+    return settings._replace(**change), change.get("rho")
+
+
+if __name__ == "__main__":
+    problems, base = record(small_spec())
+    print(f"{len(problems['P'])} recorded solves")
+    for variant in ["", *sys.argv[1:]]:
+        if variant.startswith("reuse"):
+            lag = int(variant.split("=")[1])
+            it, conv, same = reused_iterations(problems, base, lag, schur_fresh=variant.startswith("reuse="))
+            print(f"{variant:32s} iterations mean {it.mean():6.2f} (row kinds unchanged: {it[same].mean():6.2f}, "
+                  f"{same.mean():.1%} of solves)  p99 {np.percentile(it, 99):3.0f}  unconverged "
+                  f"{int((~conv).sum())} ({int((~conv & same).sum())} with unchanged kinds)", flush=True)
+            continue
+        settings, rho = parse(variant, base)
+        it, flag = iterations(problems, settings, rho)
+        print(f"{variant or 'campaign settings':32s} iterations mean {it.mean():6.2f}  p50 {np.median(it):3.0f}  "
+              f"p90 {np.percentile(it, 90):3.0f}  p99 {np.percentile(it, 99):3.0f}  max {it.max():3d}  "
+              f"flagged {int((flag != 0).sum())}", flush=True)
