@@ -28,16 +28,17 @@ from wbc_jax.campaign.spec import load_spec
 from wbc_jax.qp import QPResult, admm, rules, solve_qp
 from wbc_jax.qp.scaling import Scaled, equilibrate, factor, mv, regularize_schur, solve
 from wbc_jax.qp.settings import BIG
-from wbc_jax.rollout import make_chunk_fn
-from wbc_jax.rollout.batch import chunk_args
+from wbc_jax.rollout import simulate
 
 FIELDS = ("P", "q", "A", "l", "u", "wx", "wz", "wy", "wrho", "x")
+SECONDS, CHUNK_S = 1.5, 0.5  # [s] simulated, and per chunk
 
 
 def small_spec() -> Path:
-    """The paper spec cut to 8 runs and 1.5 s (chunks of 0.5 s)."""
+    """The paper spec cut to 8 runs and SECONDS (chunks of CHUNK_S)."""
     text = Path("sweeps/paper_campaign.toml").read_text()
-    for a, b in (("reps = 10", "reps = 1"), ("chunk_seconds = 2.0", "chunk_seconds = 0.5\nmax_seconds = 1.5"),
+    for a, b in (("reps = 10", "reps = 1"),
+                 ("chunk_seconds = 2.0", f"chunk_seconds = {CHUNK_S}\nmax_seconds = {SECONDS}"),
                  ("m = [0.2, 0.3, 0.4]", "m = [0.2, 0.4]"), ("mu = [0.4, 0.7, 1.0]", "mu = [0.4, 1.0]"),
                  ("d = [0.06, 0.08, 0.10]", "d = [0.06, 0.10]")):
         text = text.replace(a, b)
@@ -60,11 +61,9 @@ def record(spec_path: Path):
 
     transport.solve_qp = recording_solve
     try:
-        fn = jax.jit(make_chunk_fn(built.sim, built.logs_per_chunk, built.batch.in_axes))
-        args, state = list(chunk_args(built.batch)), built.batch.state
-        for _ in range(built.n_chunks):
-            args[1] = state
-            state, _ = jax.block_until_ready(fn(*args))
+        b = built.batch
+        simulate(built.sim, b.model, b.in_axes, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground, SECONDS,
+                 CHUNK_S)
     finally:
         transport.solve_qp = solve
     qp = built.sim.cfg.qp._replace(box_rows=built.sim.cfg.k * (transport.N_FEET + transport.N_OBJ))
@@ -83,13 +82,6 @@ def iterations(problems: dict, settings, rho=None):
     return np.asarray(it), np.asarray(flag)
 
 
-def _row_kinds(sp, l, u, s):
-    """(free, eq, exact) bool (m,) of the rows of the scaled problem ``sp`` (as :func:`wbc_jax.qp.admm.solve_xla`)."""
-    free = (l <= -BIG) & (u >= BIG)
-    eq = jnp.abs(sp.u - sp.l) < rules.EQ_TOL
-    return free, eq, (jnp.arange(l.shape[0]) < s.eq_rows) & eq & ~free
-
-
 def _reused_solve(s, schur_fresh, cur, old):
     """ADMM iterations of problem ``cur`` (P, q, A, l, u, wx, wz, wy, wrho) with the scaling, row weights and
     factor of ``old`` (P, q, A, l, u, wy): (iterations, converged, same row kinds)."""
@@ -100,7 +92,7 @@ def _reused_solve(s, schur_fresh, cur, old):
     spo = equilibrate(Po, qo, Ao, lo, uo, s.ruiz_iters)
     D, E, c = spo.D, spo.E, spo.c
     sp = Scaled(c * D[:, None] * P * D[None, :], c * D * q, E[:, None] * A * D[None, :], E * l, E * u, D, E, c)
-    kinds, kinds_old = _row_kinds(sp, l, u, s), _row_kinds(spo, lo, uo, s)
+    kinds, kinds_old = admm.row_kinds(sp, l, u, s), admm.row_kinds(spo, lo, uo, s)
     same = jnp.all(jnp.stack([jnp.all(a == b) for a, b in zip(kinds, kinds_old)]))
     free, eq, ex = kinds
     ne, rho = s.eq_rows, rules.warm_rho(wrho, s, P.dtype)

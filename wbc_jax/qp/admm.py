@@ -277,6 +277,15 @@ def _result(P, q, A, l, u, sp: Scaled, st: State, rho, empty, n_it, s: QPSetting
         rho=jnp.nan_to_num(rho, nan=s.rho).astype(dt))
 
 
+def row_kinds(sp: Scaled, l, u, s: QPSettings):
+    """``(free, eq, ex)``, bool (m,) each: the rows without bounds (``l``, ``u`` the user's, ``+-BIG`` for none),
+    the equality rows of the scaled problem ``sp``, and those among the first ``eq_rows`` held exactly in the
+    x-update."""
+    free = (l <= -BIG) & (u >= BIG)
+    eq = jnp.abs(sp.u - sp.l) < rules.EQ_TOL
+    return free, eq, (jnp.arange(l.shape[0]) < s.eq_rows) & eq & ~free
+
+
 def solve_xla(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     """One problem (in one floating dtype, bounds finite: ``+-BIG`` for none) by the XLA path (module docstring).
 
@@ -287,13 +296,10 @@ def solve_xla(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     """
     dt = P.dtype
     P = 0.5 * (P + P.T)  # the problem solved and tested (an asymmetric P's dual residual has a floor)
-    m = A.shape[0]
     empty = jnp.any(l > u)
     with jax.named_scope("qp_equilibrate"):
         sp = equilibrate(P, q, A, l, u, s.ruiz_iters, s.unroll)
-    free = (l <= -BIG) & (u >= BIG)
-    eq = jnp.abs(sp.u - sp.l) < rules.EQ_TOL
-    ex = (jnp.arange(m) < s.eq_rows) & eq & ~free  # held exactly in the x-update
+    free, eq, ex = row_kinds(sp, l, u, s)
     rho = rules.warm_rho(None if warm is None else warm[3], s, dt)
     st, w = _start(sp, warm, eq, free, ex, s, dt)
     st, rho, cont = _run(sp, st, rho, w, free, ex, s, iters)
