@@ -20,6 +20,7 @@ from test_transport import CHUNK_SECONDS, TROT_PLAN  # noqa: E402  (the walks sh
 from wbc_jax.physics import backend as physics
 from wbc_jax.physics import contacts
 from wbc_jax.physics.observe import mass_matrix  # noqa: E402
+from wbc_jax.planner.gait import GaitParams
 from wbc_jax.robot import scenario  # noqa: E402
 from wbc_jax.robot.model import Robot  # noqa: E402
 from wbc_jax.rollout import final_results, make_sim, simulate  # noqa: E402
@@ -30,27 +31,31 @@ DIST_TOL = 1e-5  # [m] geometric sphere distances vs MJX's collision functions (
 FORCE_RTOL, FORCE_ATOL = 0.05, 0.02  # [-], [N] object contact forces, float32 backends vs MuJoCo C float64
 POS_TOL = 1e-3  # [m] trunk and object positions after the walk, Warp vs JAX
 METRIC_RTOL = 0.05  # R and T, Warp vs JAX (the constraint solvers split the object's four forces differently)
-SECONDS = 0.6
-# the walks' Sim and plan shapes and chunk length are tests/test_transport.py's (log_every 50, its trot plan and
-# chunk length), so the JAX walk runs the compiled chunk program of that file's stand and trot (one compile for both
-# files; the logs are not read here)
-LOG_EVERY, PLAN = 50, TROT_PLAN
+SECONDS = 0.3  # the walks: 0.1 s standing loaded, then the first diagonal swing (the gait starts at 0.1 s)
+NAN_SECONDS = 0.1  # the NaN walk: one chunk, against the clean walk's state after its first chunk
+# the walks' Sim and plan shapes and chunk length are tests/test_transport.py's (log_every 50, its trot segment's
+# plan and chunk length), so the JAX walk runs the compiled chunk program of that file's stand and trot (one compile
+# for both files; the logs are not read here)
+LOG_EVERY, PLAN = 50, dict(TROT_PLAN, gait=GaitParams(t_start=0.1))
 FACTORS = (np.array([0.3, 0.4]), np.array([0.7, 0.4]), np.array([0.08, 0.06]))  # m [kg], mu, d [m]
 
 
 @pytest.fixture(scope="module")
 def walks():
     """Both backends' batch-2 closed loops over SECONDS on the flat scene, and Warp's with delayed sensing
-    ("warp:delayed"): (sim, batch, final state, results)."""
+    ("warp:delayed"): (sim, batch, final state, results); under "<key>@nan" the same after NAN_SECONDS (the walk
+    runs on from that state: the same chunks as one call)."""
     out = {}
     for key in ("jax", "warp", "warp:delayed"):
         backend, _, sensing = key.partition(":")
         sim = make_sim(Robot("flat", backend=backend), log_every=LOG_EVERY, sensing=sensing or "exact")
         b = prepare_batch(sim, *FACTORS, plan_kwargs=PLAN)
-        st, _ = simulate(sim, b.model, b.in_axes, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground,
-                         seconds=SECONDS, chunk_seconds=CHUNK_SECONDS)
-        res = final_results(sim, st, np.zeros((2, 3)), FACTORS[1])
-        out[key] = (sim, b, jax.device_get(st), res)
+        st = b.state
+        for at, seconds in (("@nan", NAN_SECONDS), ("", SECONDS - NAN_SECONDS)):
+            st, _ = simulate(sim, b.model, b.in_axes, st, b.plan, b.om, b.gains, b.push, b.mu_ground,
+                             seconds=seconds, chunk_seconds=CHUNK_SECONDS)
+            res = final_results(sim, st, np.zeros((2, 3)), FACTORS[1])
+            out[key + at] = (sim, b, jax.device_get(st), res)
     return out
 
 
@@ -163,19 +168,21 @@ def test_delayed_sensing_reads_the_last_steps_start(walks):
 def test_nan_run_is_frozen_and_others_unchanged_on_warp(walks):
     """Warp (one shared contact list for the batch): a run started with NaN velocities keeps its last finite state
     (``physics.freeze``: its positions stay the start's) and is marked non-finite, while the other run's walk equals
-    the clean batch's (the same compiled chunk, so the same arithmetic)."""
-    sim, b, st, res = walks["warp:delayed"]
+    the clean batch's over the same NAN_SECONDS (the same compiled chunk, so the same arithmetic)."""
+    sim, b, st, res = walks["warp:delayed@nan"]
     d = b.state.d
     state = b.state._replace(d=d.replace(qvel=d.qvel.at[1].set(np.nan)))
     bad, _ = simulate(sim, b.model, b.in_axes, state, b.plan, b.om, b.gains, b.push, b.mu_ground,
-                      seconds=SECONDS, chunk_seconds=CHUNK_SECONDS)
+                      seconds=NAN_SECONDS, chunk_seconds=CHUNK_SECONDS)
     bad = jax.device_get(bad)
     got = final_results(sim, bad, np.zeros((2, 3)), FACTORS[1])
     assert got["nonfinite"][1] and not got["success"][1] and not got["nonfinite"][0]
     np.testing.assert_array_equal(np.asarray(bad.d.qpos[1]), np.asarray(d.qpos[1]))  # frozen at the start
     np.testing.assert_array_equal(np.asarray(bad.prev[0][1]), np.asarray(d.qpos[1]))  # its view: that state
     np.testing.assert_allclose(np.asarray(bad.d.qpos[0]), np.asarray(st.d.qpos[0]), atol=1e-6)
+    assert np.abs(np.asarray(st.d.qpos[0]) - np.asarray(d.qpos[0])).max() > 1e-4  # the clean run moved meanwhile
     for k in ("R", "T", "S"):
+        assert np.isfinite(res[k][0]), k
         np.testing.assert_allclose(got[k][0], res[k][0], rtol=1e-5, err_msg=k)
     assert not np.any(np.asarray(bad.acc.overflow))
 
