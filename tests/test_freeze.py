@@ -16,9 +16,9 @@ from test_factors import SAME_SHAPE, TINY
 
 from wbc_jax.campaign.runner import run_campaign
 
-SECONDS = 0.8  # [s] simulated: the push starts at 0.1 x the plan's duration and lasts 0.2 s; the pushed runs
-#                fail at about 0.6 s and stay frozen to the end
-PERTURBATIONS = "push_duration_s = 0.2\npush_window = [0.1, 0.1]\npush_dir_deg = 0.0"
+SECONDS = 0.5  # [s] simulated: the push starts at once and lasts 0.2 s; the pushed runs fail at about 0.3 s and
+#                stay frozen to the end (about 0.2 s)
+PERTURBATIONS = "push_duration_s = 0.2\npush_window = [0.0, 0.0]\npush_dir_deg = 0.0"
 METRICS = ("R", "T", "S", "R_plan", "max_slip_mm", "qp_flag_fraction", "qp_iters_mean", "window_s",
            "min_clearance_mm", "final_err_mm")
 SLIP_BOUND_MM = 1000.0  # [mm] a frozen run's slip stays at its failure's; a run simulated on after dropping the
