@@ -206,6 +206,8 @@ def _write(job: Job, rollout: Rollout, clock: dict, report: bool, reporter, guar
         manifest["wall_s_total"] = time.perf_counter() - clock["import"] + wall_before
         if "warp_preload_s" in clock:  # MuJoCo Warp's kernels compiled (or loaded from its cache) during setup
             manifest["warp_preload_s"] = clock["warp_preload_s"]
+        if "warp_ahead" in clock:  # the model's own kernels, compiled in parallel at each Warp callable's first call
+            manifest["warp_compile_ahead"] = clock["warp_ahead"].summary()
         write_json_atomic(tmp / "manifest.json", manifest)
     shutil.rmtree(job.ckpt, ignore_errors=True)
     job.status.stage = "written"
@@ -297,6 +299,7 @@ def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guar
         built = build(spec, r["gains"])
         if preload is not None:
             clock["warp_preload_s"] = preload.result()[1]
+            clock["warp_ahead"] = preload.ahead
     guard.check()
     check_horizon(spec, built)
     sp = choose(built.sim.robot.backend)  # several devices: each steps its own runs (wbc_jax.rollout.spread)

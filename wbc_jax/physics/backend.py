@@ -40,6 +40,12 @@ NACON_PER_RUN = 32  # Warp: contacts listed per run on average (the list is shar
 #                     standing or walking robot with the object lists 8-12 (feet, object spheres)
 NJMAX_PER_CONTACT = 4  # constraint rows of one pyramidal condim-3 contact
 
+# MuJoCo Warp's import-time kernel modules that a forward step of a rigid-body model with contacts launches
+# (kinematics, passive forces, sensors, constraints, the solver, and MJX's FFI glue): what
+# wbc_jax.physics.warp_kernels compiles ahead, while a campaign's setup runs
+WARP_STEP_MODULES = tuple(f"mujoco.mjx.third_party.mujoco_warp._src.{name}" for name in (
+    "forward", "smooth", "passive", "sensor", "constraint", "solver", "support")) + ("mujoco.mjx.warp.ffi",)
+
 
 def warp_available() -> bool:
     """warp-lang importable (MJX's Warp implementation can run)."""

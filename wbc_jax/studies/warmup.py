@@ -7,11 +7,15 @@ a spec's shapes and prints each stage's wall time, so a cluster image or a user 
 that spec start warm:
 
 1. setup: the spec built as the campaign builds it (plans, batched model, initial states; their small programs);
-2. on Warp, from the start: MuJoCo Warp's kernel modules compiled on the GPU by a pool of threads
+2. on Warp, from the start: MuJoCo Warp's step modules compiled on the GPU by a pool of threads
    (:func:`wbc_jax.physics.warp_kernels.preload`) while the main thread builds the spec and compiles the chunk
-   program;
-3. the first chunk, run: it loads the compiled programs, compiles any Warp kernel that the preload did not cover,
-   and captures Warp's CUDA graph.
+   program; at the first call of each MJX Warp function, the kernels MuJoCo Warp builds for the model, compiled by
+   the pool before the call runs (:class:`wbc_jax.physics.warp_kernels.CompileAhead`);
+3. the first chunk, run: it loads the compiled programs and captures Warp's CUDA graph.
+
+Warp's cache holds the compiled modules; where the CUDA driver is older than Warp's CUDA toolkit, the driver
+also translates them on load and keeps that in its own cache (``~/.nv/ComputeCache``, ``CUDA_CACHE_PATH``), which
+an image should keep too.
 """
 
 from __future__ import annotations
@@ -73,6 +77,8 @@ def warmup(spec_path: str, backend: str | None = None, workers: int | None = Non
     t0 = time.perf_counter()
     jax.block_until_ready(program(*chunk_args(built.batch)))
     stages.update(first_chunk_s=time.perf_counter() - t0, total_s=time.perf_counter() - t_start)
+    if preload is not None and preload.ahead is not None:  # the model's own kernels, compiled at first calls
+        stages["warp_ahead_modules"] = preload.ahead.summary()["modules"]
     print("warmup: " + ", ".join(f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}" for k, v in stages.items()),
           flush=True)
     return stages

@@ -1,0 +1,99 @@
+"""Compiling Warp kernels ahead of their first launch (wbc_jax.physics.warp_kernels): the skipped pass finds the
+modules a function launches without running anything, the pool compiles them, and the call then runs as without."""
+
+import numpy as np
+import pytest
+
+wp = pytest.importorskip("warp")
+
+from wbc_jax.physics import warp_kernels  # noqa: E402
+
+
+@wp.kernel
+def _add_one(a: wp.array(dtype=wp.float32)):
+    i = wp.tid()
+    a[i] = a[i] + 1.0
+
+
+def _scale_kernel(factor: float):
+    """A kernel built at call time, in a module of its own (as MuJoCo Warp builds a model's kernels)."""
+    @wp.kernel(module="unique")
+    def scale(a: wp.array(dtype=wp.float32)):
+        i = wp.tid()
+        a[i] = a[i] * factor
+
+    return scale
+
+
+def _step(a, b, factor=3.0):
+    """a += 1; b *= factor (a kernel module of its own per factor); then a copy of b into a."""
+    wp.launch(_add_one, dim=a.shape[0], inputs=[a])
+    wp.launch(_scale_kernel(factor), dim=b.shape[0], inputs=[b])
+    wp.copy(a, b)
+
+
+def _arrays():
+    return (wp.array(np.arange(4, dtype=np.float32), device="cpu"),
+            wp.array(np.full(4, 2.0, dtype=np.float32), device="cpu"))
+
+
+def test_the_skipped_pass_finds_the_launched_modules_and_changes_nothing():
+    a, b = _arrays()
+    found = warp_kernels.launched_modules(_step, (a, b), "cpu")
+    names = sorted(m.name for m in found)
+    assert len(found) == 2 and _add_one.module in found, names
+    assert all(len(dims) == 1 for dims in found.values())  # one block size each, as launched
+    np.testing.assert_array_equal(a.numpy(), np.arange(4))  # no launch ran, no copy either
+    np.testing.assert_array_equal(b.numpy(), np.full(4, 2.0))
+
+    warp_kernels.load_modules(found, wp.get_device("cpu"), workers=2)
+    assert all(m.execs for m in found)
+    _step(a, b)
+    np.testing.assert_array_equal(b.numpy(), np.full(4, 6.0))
+    np.testing.assert_array_equal(a.numpy(), np.full(4, 6.0))
+
+
+def test_a_first_call_compiles_ahead_then_runs_and_a_failing_pass_leaves_the_call_as_it_was(capsys):
+    ahead = warp_kernels.CompileAhead(workers=2, preloaded=())
+    first = warp_kernels._FirstCall(_step, ahead)
+    a, b = _arrays()
+    with wp.ScopedDevice("cpu"):
+        first(a, b, 5.0)  # the factor-5 kernel's module is new: compiled ahead
+        first(a, b, 5.0)  # later calls run the function only
+    np.testing.assert_array_equal(b.numpy(), np.full(4, 50.0))
+    assert len(ahead.calls) == 1 and ahead.calls[0][0] >= 1 and not ahead.failed
+
+    def broken(*args):
+        raise ValueError("no such field")
+
+    with pytest.raises(ValueError):
+        warp_kernels._FirstCall(broken, ahead)()
+    assert len(ahead.failed) == 1 and ahead.failed[0].startswith("ValueError: no such field (")
+    assert ahead.summary()["failed"] == 1 and "compiling the model's kernels ahead failed" in capsys.readouterr().err
+
+
+def test_install_wraps_only_callables_that_capture_warp_graphs(monkeypatch):
+    pytest.importorskip("jax")
+    monkeypatch.setattr(wp, "jax_callable", wp.jax_callable)  # restored after the test
+
+    def f(a: wp.array(dtype=wp.float32), out: wp.array(dtype=wp.float32)):
+        wp.copy(out, a)
+
+    warp_kernels.CompileAhead(workers=1).install()
+    warp_kernels.CompileAhead(workers=1).install()  # installing again wraps Warp's function, not the wrapper
+    assert isinstance(wp.jax_callable(f, graph_mode=wp.JaxCallableGraphMode.WARP).func, warp_kernels._FirstCall)
+    assert not isinstance(wp.jax_callable(f, graph_mode=wp.JaxCallableGraphMode.JAX).func, warp_kernels._FirstCall)
+    assert wp.jax_callable.warp_original.__module__.startswith("warp")
+
+
+def test_a_module_used_outside_a_launch_loads_in_the_skipped_pass():
+    kernel = _scale_kernel(7.0)
+
+    def query_then_launch(b):
+        assert kernel.module.load(wp.get_device("cpu"), 1) is not None  # as Warp's occupancy query on a GPU does
+        wp.launch(kernel, dim=b.shape[0], inputs=[b])
+
+    b = _arrays()[1]
+    found = warp_kernels.launched_modules(query_then_launch, (b,), "cpu")
+    assert kernel.module.execs and kernel.module not in found  # loaded by the query, so nothing left to compile
+    np.testing.assert_array_equal(b.numpy(), np.full(4, 2.0))
