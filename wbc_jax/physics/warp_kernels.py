@@ -9,9 +9,10 @@ that compilation parallel on a GPU:
 2. :class:`CompileAhead` covers the kernels MuJoCo Warp builds for a model (one per collision pair type, solver sizes):
    they are created while a step's Python runs, so nothing can list them before it. At the first call of each of
    MJX's Warp callables, the callable's Python runs once more beforehand, inside a CUDA graph capture on a side stream
-   whose graph is never launched, with every kernel launch skipped (:func:`launched_modules`); the modules it would
-   have launched are compiled by the pool (:func:`load_modules`); then the call runs as it would have. Nothing of the
-   skipped pass reaches the device, and the call itself is unchanged, so results equal those without it.
+   whose graph is never launched, with the launches of kernels not yet compiled skipped (:func:`launched_modules`);
+   the modules it would have launched are compiled by the pool (:func:`load_modules`); then the call runs as it would
+   have. Nothing of the skipped pass reaches the device, and the call itself is unchanged (the same kernels, launched
+   the same way), so results are those without it.
 """
 
 from __future__ import annotations
