@@ -194,8 +194,9 @@ def test_two_processes_equal_one(tiny_spec, tmp_path, monkeypatch):
     spec.write_text("\n".join(x for x in tiny_spec.read_text().splitlines() if not x.startswith("d = ")))
     tune = tmp_path / "tune.toml"
     tune.write_text(TUNE.format(campaign=spec))
-    one = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=1", JAX_PLATFORMS="cpu")
-    two = dict(one, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    flags = os.environ.get("XLA_FLAGS", "")  # the tests' compile settings (conftest.py): the reference's here
+    one = dict(os.environ, XLA_FLAGS=f"{flags} --xla_force_host_platform_device_count=1", JAX_PLATFORMS="cpu")
+    two = dict(one, XLA_FLAGS=f"{flags} --xla_force_host_platform_device_count=2")
     dirs = [tmp_path / n for n in ("p0", "p1", "ref")]
     for d in dirs:
         d.mkdir()

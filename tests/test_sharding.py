@@ -28,7 +28,7 @@ SLIP_TOL = 1e-5  # [m] (measured 4.2e-6)
 
 SCRIPT = textwrap.dedent("""
     import os, sys, pickle
-    os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
+    os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
     import numpy as np, jax
     from wbc_jax.runtime import jaxcfg; jaxcfg.configure
     from wbc_jax.campaign import runner as C
