@@ -10,16 +10,38 @@ from wbc_jax.campaign.spec import SWEEPS
 from wbc_jax.runtime import jaxcfg
 
 # Where no CUDA backend can start, the tests' programs are compiled with XLA's elemental fusion emitters instead of
-# its newer MLIR ones: a CPU test run is mostly XLA compiling MJX programs, which the elemental emitters do in a
-# fraction of the time, while the short horizons simulated here hardly feel the difference in run time. Set before
-# JAX starts (XLA reads XLA_FLAGS then); subprocesses inherit it; a flag already in XLA_FLAGS is kept as given.
+# its newer MLIR ones and, unless a selected test is marked `llvm_default`, with LLVM at -O0: a CPU test run is
+# mostly XLA compiling MJX programs, which these settings do in a fraction of the time, while the short horizons
+# simulated here hardly feel the slower code. -O0 forms no fused multiply-adds; a test whose float32 result depends
+# on them is marked `llvm_default`, and a session that selects one compiles at LLVM's default level. Set before JAX
+# starts (XLA reads XLA_FLAGS then); subprocesses inherit them; a flag already in XLA_FLAGS is kept as given.
+CPU_TEST = not jaxcfg._cuda_plugin_installed()
 TEST_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
-if not jaxcfg._cuda_plugin_installed():
-    _given = os.environ.get("XLA_FLAGS", "")
-    _added = [f for f in TEST_XLA_FLAGS if f.partition("=")[0] not in _given]
-    os.environ["XLA_FLAGS"] = " ".join([*_added, _given]).strip()
+TEST_XLA_FLAGS_NO_FMA = ("--xla_backend_optimization_level=0",)
 
+
+def _add_xla_flags(flags) -> None:
+    given = os.environ.get("XLA_FLAGS", "")
+    added = [f for f in flags if f.partition("=")[0] not in given]
+    os.environ["XLA_FLAGS"] = " ".join([*added, given]).strip()
+
+
+if CPU_TEST:
+    _add_xla_flags(TEST_XLA_FLAGS)
 jaxcfg.configure()
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "llvm_default: its float32 result depends on LLVM's fused multiply-adds: the "
+                                       "session compiles at LLVM's default optimization level (conftest.py)")
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config, items):
+    """LLVM at -O0 for the session's programs unless a selected test is marked ``llvm_default`` (the selection is
+    final here: ``-m``/``-k`` have deselected; JAX has not started, so XLA reads the flag)."""
+    if CPU_TEST and not jaxcfg.backends_started() and not any(i.get_closest_marker("llvm_default") for i in items):
+        _add_xla_flags(TEST_XLA_FLAGS_NO_FMA)
 
 
 @pytest.fixture(scope="session")

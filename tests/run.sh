@@ -28,8 +28,9 @@ fi
 # test_backends' group first of all (it compiles MuJoCo Warp's CPU kernels, which the later Warp tests load from
 # the kernel cache), then the files that compile little, longest first (the report's figures and subprocesses, then
 # `light2`, then `light`, the shortest), so the two workers end close together. A test file in no group runs in a
-# group of its own, before `light2` and `light`. Each group prints a line when it ends; the outputs follow, in group
-# order, at the end.
+# group of its own, before `light2` and `light`. The one file with a test marked `llvm_default` (qp_fma) is in
+# `light`: that group's programs compile at LLVM's default level, every other group's at -O0 (tests/conftest.py).
+# Each group prints a line when it ends; the outputs follow, in group order, at the end.
 groups=(
   "transport backends"
   "campaign replay window sharding tune"
@@ -40,7 +41,7 @@ groups=(
   "trot_campaign"
 )
 light="reliability planner zmp capture_point interaction kernel_trace snapshots spec_docs packed aot api architecture
-  progress"
+  progress qp_fma"
 light2="centroidal bench_campaign distributed envelope s_cause warmup checkpoint_writer"
 named=" ${groups[*]} $light $light2 "
 rest=()
