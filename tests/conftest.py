@@ -11,10 +11,11 @@ from wbc_jax.runtime import jaxcfg
 
 # Where no CUDA backend can start, the tests' programs are compiled with XLA's elemental fusion emitters instead of
 # its newer MLIR ones and, unless a selected test is marked `llvm_default`, with LLVM at -O0: a CPU test run is
-# mostly XLA compiling MJX programs, which these settings do in a fraction of the time, while the short horizons
-# simulated here hardly feel the slower code. -O0 forms no fused multiply-adds; a test whose float32 result depends
-# on them is marked `llvm_default`, and a session that selects one compiles at LLVM's default level. Set before JAX
-# starts (XLA reads XLA_FLAGS then); subprocesses inherit them; a flag already in XLA_FLAGS is kept as given.
+# mostly XLA compiling MJX programs, which these settings do in a fraction of the time; the short horizons simulated
+# here lose less to the slower code than the compile saves. A test whose result depends on LLVM's optimized code
+# (-O0 forms no fused multiply-adds) is marked `llvm_default`: a session that selects one compiles at LLVM's default
+# level. Set before JAX starts (XLA reads XLA_FLAGS then); subprocesses inherit them; a flag already in XLA_FLAGS is
+# kept as given.
 CPU_TEST = not jaxcfg._cuda_plugin_installed()
 TEST_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
 TEST_XLA_FLAGS_NO_FMA = ("--xla_backend_optimization_level=0",)
@@ -32,8 +33,8 @@ jaxcfg.configure()
 
 
 def pytest_configure(config):
-    config.addinivalue_line("markers", "llvm_default: its float32 result depends on LLVM's fused multiply-adds: the "
-                                       "session compiles at LLVM's default optimization level (conftest.py)")
+    config.addinivalue_line("markers", "llvm_default: its result depends on LLVM's optimized code (e.g. fused "
+                                       "multiply-adds): the session compiles at LLVM's default level (conftest.py)")
 
 
 @pytest.hookimpl(trylast=True)

@@ -28,8 +28,8 @@ fi
 # test_backends' group first of all (it compiles MuJoCo Warp's CPU kernels, which the later Warp tests load from
 # the kernel cache), then the files that compile little, longest first (the report's figures and subprocesses, then
 # `light2`, then `light`, the shortest), so the two workers end close together. A test file in no group runs in a
-# group of its own, before `light2` and `light`. The one file with a test marked `llvm_default` (qp_fma) is in
-# `light`: that group's programs compile at LLVM's default level, every other group's at -O0 (tests/conftest.py).
+# group of its own, before `light2` and `light`. A group that selects a test marked `llvm_default` compiles at LLVM's
+# default level, the others at -O0 (tests/conftest.py); by default that is `light` alone (test_qp_fma).
 # Each group prints a line when it ends; the outputs follow, in group order, at the end.
 groups=(
   "transport backends"

@@ -169,6 +169,7 @@ def test_replay_is_bit_for_bit_with_the_campaigns_program(full_run, tmp_path, ca
 
 
 @pytest.mark.slow
+@pytest.mark.llvm_default  # the bit-for-bit match across batch sizes holds for LLVM's optimized code, not for -O0's
 def test_replay_part_by_part_where_the_layout_differs(full_run, tmp_path, capsys):
     """The tiny campaign's manifest made to say it ran over 2 devices of 4 runs (this process has one device): runs 1
     and RUN (one in each part) are replayed in two batches of 4 runs on one device, each in its slot of its part; the
