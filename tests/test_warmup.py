@@ -25,6 +25,6 @@ def test_preload_only_where_warp_runs_on_a_gpu_and_its_error_reaches_the_caller(
 
     assert warp_kernels.start_preload("jax") is None
     assert warp_kernels.start_preload("warp") is None  # JAX on the CPU: Warp's kernels compile on first use
-    monkeypatch.setattr(warp_kernels, "preload", lambda workers, device: 1 / 0)
+    monkeypatch.setattr(warp_kernels, "preload", lambda workers, device, names: 1 / 0)
     with pytest.raises(ZeroDivisionError):
         warp_kernels.Preload(2).result()

@@ -54,7 +54,7 @@ def test_the_skipped_pass_finds_the_launched_modules_and_changes_nothing():
 
 
 def test_a_first_call_compiles_ahead_then_runs_and_a_failing_pass_leaves_the_call_as_it_was(capsys):
-    ahead = warp_kernels.CompileAhead(workers=2, preloaded=())
+    ahead = warp_kernels.CompileAhead(workers=2)
     first = warp_kernels._FirstCall(_step, ahead)
     a, b = _arrays()
     with wp.ScopedDevice("cpu"):

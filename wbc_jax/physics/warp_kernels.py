@@ -55,17 +55,18 @@ def preload(workers: int, device: str = "cuda:0", names: tuple[str, ...] | None 
 class Preload:
     """:func:`preload` running in a background thread, started at construction: the caller goes on (setup, tracing)
     while Warp compiles. :meth:`result` waits for it and returns (modules, seconds), or raises what it raised.
-    :attr:`ahead` is the :class:`CompileAhead` that :func:`start_preload` installs beside it (None otherwise)."""
+    :attr:`names`: the modules it compiles; :attr:`ahead`: the :class:`CompileAhead` that :func:`start_preload`
+    installs beside it (None otherwise)."""
 
-    def __init__(self, workers: int, device: str = "cuda:0"):
+    def __init__(self, workers: int, device: str = "cuda:0", names: tuple[str, ...] = STEP_MODULES):
         self._out: dict = {}
-        self.ahead: CompileAhead | None = None
+        self.names, self.ahead = names, None
         self._thread = threading.Thread(target=self._run, args=(workers, device), name="warp-preload", daemon=True)
         self._thread.start()
 
     def _run(self, workers: int, device: str) -> None:
         try:
-            self._out["result"] = preload(workers, device)
+            self._out["result"] = preload(workers, device, self.names)
         except BaseException as e:  # re-raised in the caller's thread by result()
             self._out["error"] = e
 
@@ -133,12 +134,12 @@ def load_modules(found: dict, device, workers: int) -> None:
 class CompileAhead:
     """Installed by :meth:`install`: each MJX Warp callable created afterwards (``warp.jax_callable`` in its CUDA
     graph mode) compiles, at its first call, the modules that call launches in parallel before running it (module
-    docstring). Modules of ``preload`` are left to it and waited for. A failure of the skipped pass leaves the call
-    to compile at first launch as it would have, and is counted in :attr:`failed`. :attr:`calls` holds (modules,
-    seconds) per first call."""
+    docstring). Modules of ``preload`` (its :attr:`Preload.names`) are left to it and waited for. A failure of the
+    skipped pass leaves the call to compile at first launch as it would have, and is counted in :attr:`failed`.
+    :attr:`calls` holds (modules, seconds) per first call."""
 
-    def __init__(self, workers: int, preload: Preload | None = None, preloaded: tuple[str, ...] = STEP_MODULES):
-        self.workers, self.preload, self.preloaded = workers, preload, preloaded
+    def __init__(self, workers: int, preload: Preload | None = None):
+        self.workers, self.preload = workers, preload
         self.calls: list[tuple[int, float]] = []
         self.failed: list[str] = []
 
@@ -166,8 +167,8 @@ class CompileAhead:
         t0 = time.perf_counter()
         try:
             device = wp.get_device()
-            found = {m: dims for m, dims in launched_modules(func, args, device).items()
-                     if m.name not in self.preloaded}
+            preloaded = () if self.preload is None else self.preload.names
+            found = {m: dims for m, dims in launched_modules(func, args, device).items() if m.name not in preloaded}
             if self.preload is not None:
                 self.preload.result()
             load_modules(found, device, self.workers)
