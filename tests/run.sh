@@ -42,7 +42,7 @@ groups=(
 )
 light="reliability planner zmp capture_point interaction kernel_trace snapshots spec_docs packed aot api architecture
   progress qp_fma"
-light2="centroidal bench_campaign distributed envelope s_cause warmup checkpoint_writer"
+light2="centroidal bench_campaign distributed envelope s_cause warmup checkpoint_writer blocks"
 named=" ${groups[*]} $light $light2 "
 rest=()
 for f in tests/test_*.py; do

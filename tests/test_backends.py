@@ -231,14 +231,17 @@ def test_backend_choice(monkeypatch):
 def test_warp_state_run_axes_and_blocks(walks):
     """The run axes of a batched state (``rollout.state_axes``, from ``physics.data_axes``): on Warp every leaf
     with the run axis first is 0 and the shared contact list and its counters are None; on JAX every leaf is 0. A
-    block of the batch (``Spread`` "blocks", one per process) takes its rows of the first and keeps the second
-    whole, and the blocks joined back (``runs.concat``, ``runs.first``) are the batch's state."""
+    block of the batch (``Spread`` "blocks", one per process) takes its rows of the first and keeps the second, its
+    contact list cut to the block's slots (``physics.cut_contact_list``); the blocks joined back (``runs.concat``,
+    ``runs.first``) are the batch's per-run state. A run stepped in its block with the cut list ends bit for bit
+    where it ends with the whole batch's list."""
     from wbc_jax.rollout import runs
+    from wbc_jax.rollout.batch import take_runs
     from wbc_jax.rollout.spread import Spread
 
     _, bj, _, _ = walks["jax"]
     assert set(jax.tree_util.tree_leaves(bj.state_axes)) == {0}
-    _, b, _, _ = walks["warp:delayed"]
+    sim, b, _, _ = walks["warp:delayed"]
     leaves, treedef = jax.tree_util.tree_flatten_with_path(b.state)
     axes = treedef.flatten_up_to(b.state_axes)
     shared = [jax.tree_util.keystr(p) for (p, _), a in zip(leaves, axes) if a is None]
@@ -246,10 +249,28 @@ def test_warp_state_run_axes_and_blocks(walks):
     assert all(k.startswith(".d._impl.") and ("contact" in k or k.endswith(("nacon", "ncollision", "cdof_tri_col",
                                                                              "cdof_tri_row"))) for k in shared)
     assert all(np.shape(x)[0] == 2 for (_, x), a in zip(leaves, axes) if a == 0)
-    blocks = [Spread("blocks", process=i, processes=2).place(b) for i in range(2)]
+    slots = physics.NACON_PER_RUN
+    assert b.state.d._impl.naconmax == 2 * slots
+    assert Spread("blocks", process=0, processes=2).place(b).state.d._impl.naconmax == 2 * slots  # a tune's
+    blocks = [Spread("blocks", process=i, processes=2).place(b, own_contacts=True) for i in range(2)]  # a campaign's
     for i, blk in enumerate(blocks):
-        for (_, x), (_, y), a in zip(leaves, jax.tree_util.tree_flatten_with_path(blk.state)[0], axes):
-            np.testing.assert_array_equal(np.asarray(y), np.asarray(x) if a is None else np.asarray(x)[i:i + 1])
-    back = runs.first(runs.concat([jax.device_get(blk.state) for blk in blocks], b.state_axes), 2, b.state_axes)
-    for x, y in zip(jax.tree_util.tree_leaves(jax.device_get(b.state)), jax.tree_util.tree_leaves(back)):
-        np.testing.assert_array_equal(x, y)
+        assert blk.state.d._impl.naconmax == slots and blk.state.d._impl.naccdmax == slots
+        for (p, x), (_, y), a in zip(leaves, jax.tree_util.tree_flatten_with_path(blk.state)[0], axes):
+            x, y = np.asarray(x), np.asarray(y)
+            cut = a is None and "contact__" in jax.tree_util.keystr(p)
+            np.testing.assert_array_equal(y, x[i:i + 1] if a == 0 else x[:slots] if cut else x)
+    back = runs.first(runs.concat([jax.device_get(blk.state) for blk in blocks], blocks[0].state_axes), 2,
+                      blocks[0].state_axes)
+    for x, y, a in zip(jax.tree_util.tree_leaves(jax.device_get(b.state)), jax.tree_util.tree_leaves(back), axes):
+        if a == 0:
+            np.testing.assert_array_equal(x, y)
+    ends = []
+    for blk in (take_runs(b, np.array([1])), blocks[1]):  # run 1 with the whole batch's list, then its block's
+        st, _ = simulate(sim, blk.model, blk.in_axes, blk.state, blk.plan, blk.om, blk.gains, blk.push, blk.mu_ground,
+                         seconds=0.2, chunk_seconds=CHUNK_SECONDS)
+        ends.append(runs.leaves_and_axes(jax.device_get(st), blk.state_axes))
+    (whole, _, ax), (cut, _, _) = ends
+    assert sum(a == 0 for a in ax) > 100
+    for x, y, a in zip(whole, cut, ax):
+        if a == 0:
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

@@ -184,12 +184,14 @@ GATHER = textwrap.dedent("""
     from wbc_jax.rollout.sharding import run_mesh
     from wbc_jax.rollout.spread import Spread
 
-    def host_gather(sp, tree, n, axes):  # every process's block through the hosts
+    def host_gather(sp, tree, n, axes):  # every process's block through the hosts, then each run's row
         leaves, treedef, ax = runs.leaves_and_axes(tree, axes)
         host = [np.asarray(x) for x in jax.device_get(leaves)]
         every = iter(multihost_utils.process_allgather([x for x, a in zip(host, ax) if a is not None], tiled=True))
         host = [x if a is None else next(every) for x, a in zip(host, ax)]
-        return runs.first(jax.tree_util.tree_unflatten(treedef, host), n, axes)
+        k = -(-n // 2)  # block p holds runs p, p + 2, ...: run r is row (r % 2) * k + r // 2 of the joined blocks
+        order = [(r % 2) * k + r // 2 for r in range(n)]
+        return runs.take(jax.tree_util.tree_unflatten(treedef, host), np.asarray(order), axes)
 
     n = 3  # 2 runs per process, the last padded
     rng = np.random.default_rng(0)
@@ -223,14 +225,15 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_split_gather_in_two_processes(tmp_path):
+def run_two(script: str, args: list[list[str]]) -> list[str]:
+    """``python -c script PORT I *args[I]`` as two processes at once (I = 0, 1; a free localhost port; one CPU
+    device each); both must exit 0 within ``TIMEOUT_S``. Returns their outputs."""
     import os
 
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=1", JAX_PLATFORMS="cpu")
     port = _free_port()
-    procs = [subprocess.Popen([sys.executable, "-c", GATHER, str(port), str(i), str(tmp_path / f"p{i}.npz")],
-                              env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-             for i in range(2)]
+    procs = [subprocess.Popen([sys.executable, "-c", script, str(port), str(i), *args[i]], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for i in range(2)]
     try:
         logs = [p.communicate(timeout=TIMEOUT_S)[0] for p in procs]
     finally:
@@ -238,6 +241,11 @@ def test_split_gather_in_two_processes(tmp_path):
             if p.poll() is None:
                 p.kill()
     assert [p.returncode for p in procs] == [0, 0], "\n---\n".join(x[-3000:] for x in logs)
+    return logs
+
+
+def test_split_gather_in_two_processes(tmp_path):
+    run_two(GATHER, [[str(tmp_path / f"p{i}.npz")] for i in range(2)])
     rng = np.random.default_rng(0)
     q, ok = rng.normal(size=(3, 4)).astype(np.float32), rng.random(3) > 0.5
     for i in range(2):

@@ -122,9 +122,24 @@ ALL_IN_ONE = textwrap.dedent("""
     if kept != want:
         sys.exit(f"after the interrupt: {kept}, expected {want}")
     # ... resumed (the compiled chunk function reused), then the tune
-    sys.exit(cli.main(["campaign", "--spec", spec, "--out", "cut", "--no-report", "--resume", *mp]) or cli.main(tune)
-             or (cli.main(["campaign", "--spec", spec, "--backend", "warp", "--out", "warp", "--no-report", *mp])
-                 if mp else 0))  # Warp: the reference is computed in the test (_warp_blocks)
+    code = cli.main(["campaign", "--spec", spec, "--out", "cut", "--no-report", "--resume", *mp]) or cli.main(tune)
+    if code or not mp:
+        sys.exit(code)
+    # Warp (the reference is computed in the test: _warp_blocks), into process 0's folder from both processes (a
+    # shared filesystem: the checkpoint's blocks are every process's); then interrupted after its first chunk in
+    # both processes and resumed
+    shared = os.environ["SHARED_OUT"]
+    warp = ["campaign", "--spec", spec, "--backend", "warp", "--no-report", *mp]
+    if cli.main(warp + ["--out", os.path.join(shared, "warp")]):
+        sys.exit(1)
+    runner.after_chunk = _cut
+    try:
+        runner.run_campaign(spec, os.path.join(shared, "warpcut"), report=False, progress=False, backend="warp")
+        sys.exit("not interrupted")
+    except KeyboardInterrupt as stop:
+        print(stop, file=sys.stderr, flush=True)
+        runner.after_chunk = keep
+    sys.exit(cli.main(warp + ["--out", os.path.join(shared, "warpcut"), "--resume"]))
 """)  # one launch for all three: every fresh process compiles the rollout again
 # SHARE_COMPILED: the two processes' programs over both processes (the campaign's and the tune's chunk programs,
 # the gathers) are the same program; with jax_share_binary_between_hosts process 0 compiles each and hands the
@@ -186,8 +201,10 @@ def test_two_processes_equal_one(tiny_spec, tmp_path, monkeypatch):
     checkpoint, process 1 writes nothing: checked in the processes) and resumed with --resume: the same results.csv
     again. Then `wbc-jax tune` (successive halving: survivors continue from their gathered states) writes the same
     leaderboard, per-run tables and best gains as the reference, from process 0 only. Then the campaign on Warp
-    physics (a block of runs per process, ``wbc_jax.rollout.spread``) against its two blocks stepped in this process
-    one after the other, bit for bit. The spec is the CI baseline's
+    physics (a block of runs per process, ``wbc_jax.rollout.spread``; both processes given process 0's folder, as on
+    a shared filesystem) against its two blocks stepped in this process one after the other, bit for bit; and the
+    Warp campaign interrupted after its first chunk in both processes (each keeps its checkpoint block,
+    ``wbc_jax.campaign.blocks``) and resumed: the same results.csv. The spec is the CI baseline's
     with d fixed (4 runs): with 3 or more runs per device the one-process reference deadlocks on 2 cores (module
     docstring)."""
     spec = tmp_path / "four.toml"
@@ -208,16 +225,17 @@ def test_two_processes_equal_one(tiny_spec, tmp_path, monkeypatch):
     # then persistent-cache hits for both processes' Warp campaign instead of two more compiles
     monkeypatch.setattr(cache_key, "_hash_accelerator_config", cache_key._hash_devices)
     warp_ref = _warp_blocks(spec, 2)
-    codes, logs = _run_all([camp + mp[0] + tn + mp[0], camp + mp[1] + tn + mp[1], camp + tn], [one, one, two],
+    shared = dict(one, SHARED_OUT=str(dirs[0]))
+    codes, logs = _run_all([camp + mp[0] + tn + mp[0], camp + mp[1] + tn + mp[1], camp + tn], [shared, shared, two],
                            dirs)
     assert codes == [0, 0, 0], "\n---\n".join(x[-3000:] for x in logs)
-    assert logs[1].count("process 1: done; process 0 writes") == 4  # campaign, resumed campaign, tune, Warp campaign
-    assert "interrupted (SIGINT) after 1 of" in logs[0] and "resuming from" in logs[0]
+    assert logs[1].count("process 1: done; process 0 writes") == 5  # campaign, resumed, tune, Warp, Warp resumed
+    assert logs[0].count("interrupted (SIGINT) after 1 of") == 2 and logs[0].count("resuming from") == 2
     assert list(dirs[1].iterdir()) == []  # process 1: no --out, no checkpoint, no stray file
 
     # the campaign: process 0's results.csv equals the one-process reference's, bit for bit
     out = dirs[0] / "out"
-    assert sorted(x.name for x in dirs[0].iterdir()) == ["cut", "out", "tune", "warp"]  # checkpoints removed
+    assert sorted(x.name for x in dirs[0].iterdir()) == ["cut", "out", "tune", "warp", "warpcut"]  # no checkpoint
     got = pd.read_csv(out / "results.csv")
     ref = pd.read_csv(dirs[2] / "out" / "results.csv")
     assert got["run"].tolist() == list(range(4))  # every run once
@@ -253,11 +271,15 @@ def test_two_processes_equal_one(tiny_spec, tmp_path, monkeypatch):
     wman = json.loads((dirs[0] / "warp" / "manifest.json").read_text())
     assert wman["physics_backend"] == "warp" and wman["layout"]["processes"] == 2
     assert wman["layout"]["spread"] == "blocks" and lay["spread"] == "mesh" and ref_lay["spread"] == "mesh"
+    # interrupted after its first chunk (both processes keep their blocks of it) and resumed: the same results.csv
+    assert json.loads((dirs[0] / "warpcut" / "manifest.json").read_text())["resumed"]
+    pd.testing.assert_frame_equal(pd.read_csv(dirs[0] / "warpcut" / "results.csv"), warp, check_exact=True)
 
 
 def _warp_blocks(spec_path, n_blocks: int) -> pd.DataFrame:
     """results.csv of ``spec_path`` on Warp physics computed as ``n_blocks`` processes compute it, in this one
-    process: each block (``Spread.place``) stepped alone by the campaign's single-device chunk function."""
+    process: each block (``Spread.place``: the runs dealt out in turn) stepped alone by the campaign's single-device
+    chunk function, the runs then put back in order."""
     import jax
 
     from wbc_jax.campaign import runner as C
@@ -270,11 +292,12 @@ def _warp_blocks(spec_path, n_blocks: int) -> pd.DataFrame:
     fn = C.chunk_fn(sim, b.in_axes, logs_per_chunk, None, b.state_axes)
     states, goals = [], []
     for i in range(n_blocks):
-        sub = Spread("blocks", process=i, processes=n_blocks).place(b)
+        sub = Spread("blocks", process=i, processes=n_blocks).place(b, own_contacts=True)
         st = sub.state
         for _ in range(n_chunks):
             st, logs = fn(sub.model, st, sub.plan, sub.om, sub.gains, sub.push, sub.mu_ground)
         states.append(jax.device_get(st))
         goals.append(np.asarray(logs.p_obj_ref[:, -1]))
-    state = runs.first(runs.concat(states, b.state_axes), design.n, b.state_axes)
-    return C.results_table(spec, design, final_results(sim, state, np.concatenate(goals)[:design.n], design.mu))
+    order = Spread("blocks", processes=n_blocks).run_order(design.n)  # each run's row of the joined blocks
+    state = runs.take(runs.concat(states, sub.state_axes), order, sub.state_axes)
+    return C.results_table(spec, design, final_results(sim, state, np.concatenate(goals)[order], design.mu))

@@ -46,10 +46,24 @@ def test_fill_slots_keeps_each_run_in_its_own_slot():
 def test_part_rows_keep_each_run_in_its_slot_of_its_part():
     """A campaign of 7 runs over 2 devices (4 per device, the last padded with run 6): run 5 sits in slot 1 of part
     1, run 2 in slot 2 of part 0; each part is replayed as a batch of the part's size."""
-    assert [r.tolist() for r in part_rows([5, 2], 7, 4)] == [[2, 2, 2, 2], [5, 5, 5, 5]]
-    assert [r.tolist() for r in part_rows([4, 6], 7, 4)] == [[4, 6, 6, 6]]
-    assert [r.tolist() for r in part_rows([5], 7, 4, whole_batch=True)] == [[4, 5, 6, 6]]
-    assert [r.tolist() for r in part_rows([3], 8, 8)] == [fill_slots([3], 8).tolist()]
+    mesh = Program("mesh", 2, 4)
+    assert [r.tolist() for r in part_rows([5, 2], 7, mesh)] == [[2, 2, 2, 2], [5, 5, 5, 5]]
+    assert [r.tolist() for r in part_rows([4, 6], 7, mesh)] == [[4, 6, 6, 6]]
+    assert [r.tolist() for r in part_rows([5], 7, mesh, whole_batch=True)] == [[4, 5, 6, 6]]
+    assert [r.tolist() for r in part_rows([3], 8, Program("one", 1, 8))] == [fill_slots([3], 8).tolist()]
+
+
+def test_part_rows_of_dealt_blocks():
+    """Warp's blocks: 7 runs dealt to 2 processes (process 0: runs 0, 2, 4, 6; process 1: 1, 3, 5 and run 6
+    again as padding), as ``Spread.block`` deals them; run 5 sits in slot 2 of part 1, run 2 in slot 1 of part 0."""
+    from wbc_jax.rollout.spread import Spread
+
+    blocks = Program("blocks", 2, 4, dealt=True)
+    assert [Spread("blocks", process=i, processes=2).block(7).tolist() for i in range(2)] == [[0, 2, 4, 6],
+                                                                                               [1, 3, 5, 6]]
+    assert [r.tolist() for r in part_rows([5], 7, blocks, whole_batch=True)] == [[1, 3, 5, 6]]
+    assert [r.tolist() for r in part_rows([5, 2], 7, blocks)] == [[2, 2, 2, 2], [5, 5, 5, 5]]
+    assert [r.tolist() for r in part_rows([1, 5], 7, blocks)] == [[1, 5, 5, 5]]
 
 
 def test_campaign_program_from_the_manifest_or_its_layout():
@@ -58,6 +72,8 @@ def test_campaign_program_from_the_manifest_or_its_layout():
     older = {"layout": {"spread": "mesh", "processes": 1, "devices": [{}, {}, {}]}}
     assert campaign_program(older, 7) == Program("mesh", 3, 3)
     assert campaign_program({"layout": {"spread": "blocks", "processes": 2}}, 7) == Program("blocks", 2, 4)
+    dealt = dict(spread="blocks", devices=1, parts=2, per_device_runs=4, padded_runs=8, dealt=True)
+    assert campaign_program({"program": dealt}, 7) == Program("blocks", 2, 4, dealt=True)
     assert campaign_program({}, 7) == Program("one", 1, 7)
 
 
@@ -153,7 +169,7 @@ def test_replay_is_bit_for_bit_with_the_campaigns_program(full_run, tmp_path, ca
     assert man["command"] == "wbc-jax replay" and man["run"] == RUN and man["check"]["bit_for_bit"]
     assert man["batch"]["same_layout"] and man["batch"]["batches"] == [8] and man["notes"] == []
     assert man["campaign_program"] == dict(spread="one", devices=1, parts=1, per_device_runs=8, padded_runs=8,
-                                           logs_per_chunk=2, n_chunks=3, platform="cpu", xla=man["xla"])
+                                           dealt=False, logs_per_chunk=2, n_chunks=3, platform="cpu", xla=man["xla"])
     for k in ("R", "T", "S"):
         assert man["check"]["replay"][k] == row[k]
     assert man["check"]["replay"]["success"] == bool(row["success"])

@@ -141,14 +141,16 @@ def program_record(n_runs: int, spread_mode: str, logs_per_chunk: int, n_chunks:
     Returns:
         dict with ``spread`` (one, mesh, blocks: :mod:`wbc_jax.rollout.spread`), ``devices`` (the devices one
         program spans: the mesh's size, else 1), ``parts`` (the batch's parts: devices of the mesh, processes of
-        the blocks, else 1), ``per_device_runs`` (the runs each part's program steps, padding included),
+        the blocks, else 1), ``per_device_runs`` (the runs each part's program steps, padding included), ``dealt``
+        (the runs dealt to the parts in turn, run r to part r % parts: the blocks; else cut in contiguous parts),
         ``padded_runs`` (parts x per_device_runs; the padding repeats the last run), ``logs_per_chunk``,
         ``n_chunks``, ``platform`` and ``xla`` (:func:`wbc_jax.runtime.jaxcfg.xla_record`).
     """
     parts = {"mesh": jax.device_count(), "blocks": jax.process_count()}.get(spread_mode, 1)
     per_device = -(-int(n_runs) // parts)
     return dict(spread=spread_mode, devices=parts if spread_mode == "mesh" else 1, parts=parts,
-                per_device_runs=per_device, padded_runs=per_device * parts, logs_per_chunk=int(logs_per_chunk),
+                per_device_runs=per_device, padded_runs=per_device * parts, dealt=spread_mode == "blocks",
+                logs_per_chunk=int(logs_per_chunk),
                 n_chunks=int(n_chunks), platform=jax.default_backend(), xla=jaxcfg.xla_record())
 
 

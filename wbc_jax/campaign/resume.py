@@ -42,7 +42,7 @@ def _shared(state, done: int, spread, n: int, axes):
     if distributed.is_multiprocess():
         state, done = multihost_utils.broadcast_one_to_all((runs.first(jax.device_get(state), n, axes),
                                                             np.int32(done)))
-    return spread.place_state(state, n, axes), int(done)
+    return spread.place_state(state, n, axes, own_contacts=True), int(done)
 
 
 def start_point(job: Job, state0, resume: bool) -> Start:
@@ -58,14 +58,14 @@ def start_point(job: Job, state0, resume: bool) -> Start:
     st = meta = problem = None
     if job.writer:
         try:
-            st, meta = checkpoint.load_state(job.ckpt, state0, job.identity, n_chunks)
+            st, meta = checkpoint.load_state(job.ckpt, state0, job.identity, n_chunks, job.built.batch.state_axes)
         except WbcJaxError as e:
             problem = e
     distributed.agree(problem)
     state, done = start.state, 0
     if sp.mode != "one":  # every process: process 0's resume point, placed as the batch
         state, done = _shared(state0 if st is None else st, meta["chunks_done"] if meta else 0, sp,
-                              job.built.design.n, job.batch.state_axes)
+                              job.built.design.n, job.built.batch.state_axes)
     elif st is not None:
         state, done = st, meta["chunks_done"]
     if meta is not None:

@@ -41,6 +41,7 @@ import jax
 
 from wbc_jax.campaign import checkpoint, interrupts, preflight
 from wbc_jax.campaign import gains as gains_mod
+from wbc_jax.campaign.blocks import Blocks
 from wbc_jax.campaign.build import (
     _sim,  # noqa: F401  (reached as runner._sim by callers of the campaign's Sim cache)
     backend_of,
@@ -70,8 +71,9 @@ from wbc_jax.rollout.spread import choose
 
 def after_chunk(done: int, n_chunks: int) -> None:
     """Called in every process after each finished chunk (``done`` of ``n_chunks``), once process 0 has begun
-    its checkpoint (written in the background; complete before the next one begins and before the command ends,
-    however it ends); does nothing. A test replaces it (e.g. to raise KeyboardInterrupt after the first chunk)."""
+    its checkpoint (or with Warp's blocks, each process its block; written in the background, complete before the
+    next one begins and before the command ends, however it ends); does nothing. A test replaces it (e.g. to raise
+    KeyboardInterrupt after the first chunk)."""
 
 
 class Rollout(NamedTuple):
@@ -101,24 +103,31 @@ def _announce(job: Job) -> None:
           f"{jax.devices()[0].device_kind}{sp.describe()}", flush=True)
 
 
+def _meta(job: Job, start: Start, done: int, marks: list, t_run: float, p_goal) -> dict:
+    """The checkpoint's meta.json fields after chunk ``done`` (process 0; the state files' entries added by the
+    writer)."""
+    return dict(identity=job.identity, chunks_done=done, n_chunks=job.built.n_chunks, marks=list(marks),
+                p_goal=None if p_goal is None else p_goal.tolist(),
+                wall_s=start.wall_before + time.perf_counter() - t_run, sessions=list(start.sessions))
+
+
 def _save(job: Job, start: Start, saver: checkpoint.Writer, gathering, done: int, marks: list, t_run: float):
     """Process 0: chunk ``done``'s gathered (object goal, state) on the host (``gathering``:
     :meth:`wbc_jax.rollout.spread.Gathering.finish`) and its checkpoint begun in the background (``saver``, once
     the previous write ended: one host copy of the state at a time); returns them."""
     saver.join()
     p_goal, state = gathering.finish()
-    meta = dict(identity=job.identity, chunks_done=done, n_chunks=job.built.n_chunks, marks=list(marks),
-                p_goal=p_goal.tolist(), wall_s=start.wall_before + time.perf_counter() - t_run,
-                sessions=list(start.sessions))
-    saver.save(job.ckpt, state, meta, on_saved=lambda: setattr(job.status, "saved", done))
+    saver.save(job.ckpt, state, _meta(job, start, done, marks, t_run, p_goal),
+               on_saved=lambda: setattr(job.status, "saved", done))
     return p_goal, state
 
 
 def _run_chunks(job: Job, start: Start, progress: bool, report: bool, guard: interrupts.Guard,
-                saver: checkpoint.Writer) -> tuple[Rollout, object]:
-    """Step every chunk from ``start``, checkpointing after each (process 0, in the background: ``saver``); returns
-    the finished rollout and the report worker started during it (None without ``report``). A signal stops the run
-    once the compile or the chunk in progress ends (``guard``); the finished chunks' checkpoint is kept."""
+                saver: checkpoint.Writer, blocks: Blocks | None = None) -> tuple[Rollout, object]:
+    """Step every chunk from ``start``, checkpointing after each in the background: the whole state gathered to
+    process 0 (``saver``), or with ``blocks`` each process's own runs but the last chunk's; returns the finished
+    rollout and the report worker started during it (None without ``report``). A signal stops the run once the
+    compile or the chunk in progress ends (``guard``); the finished chunks' checkpoint is kept."""
     b, sp, n_chunks, dz = job.batch, job.spread, job.built.n_chunks, job.built.design
     fn = chunk_fn(job.built.sim, b.in_axes, job.built.logs_per_chunk, sp.mesh, b.state_axes)
     bar = (ProgressBar(n_chunks, start.done, job.chunk_s, dz.n, job.built.sim.dt_physics)
@@ -151,13 +160,21 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool, guard: int
                 done += 1
                 if bar is not None:  # shown before the next chunk's dispatch, which on a CPU runs it
                     bar.chunk_done(dt_wall, fresh=first_in_process)
-                # this chunk's gather goes to the devices ahead of the next chunk, its copy to the host and its
-                # checkpoint run beside that chunk (nothing is donated: the state gathered stays valid)
-                gathering = sp.gather_start((final_input(logs), state), dz.n, (0, b.state_axes), fetch=job.writer)
+                # this chunk's gather (or with blocks, this process's runs) goes to the devices ahead of the next
+                # chunk, its copy to the host and its checkpoint run beside that chunk (nothing is donated: the state
+                # gathered stays valid)
+                own = blocks is not None and done < n_chunks  # the last chunk is gathered whole for the results
+                if own:
+                    gathering = sp.own_start(state, dz.n, b.state_axes)
+                else:
+                    gathering = sp.gather_start((final_input(logs), state), dz.n, (0, b.state_axes),
+                                                fetch=job.writer)
                 nxt = step(state) if done < n_chunks else None
             marks.append(dict(chunk=done, wall_s=dt_wall, fresh_process=first_in_process))
             first_in_process = False
-            if job.writer:  # the other processes take part in the gather's collective only
+            if own:
+                blocks.chunk_done(gathering, done, _meta(job, start, done, marks, t_run, None))
+            elif job.writer:  # the other processes take part in the gather's collective only
                 p_goal, gathered = _save(job, start, saver, gathering, done, marks, t_run)
             if done < n_chunks:
                 after_chunk(done, n_chunks)
@@ -169,6 +186,8 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool, guard: int
             reporter.close()
         with guard.deferred():
             saver.join()  # a finished chunk's checkpoint is complete before the run stops
+            if blocks is not None:
+                blocks.abandon()
         raise
     if bar is not None:
         bar.close()
@@ -179,9 +198,10 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool, guard: int
 
 
 def _write(job: Job, rollout: Rollout, clock: dict, report: bool, reporter, guard: interrupts.Guard,
-           saver: checkpoint.Writer) -> dict:
-    """results.csv and manifest.json into DIR (atomically, once the last checkpoint is written: ``saver``; a signal
-    waits for them), the checkpoint deleted, then the report; the summary lines. Returns the manifest."""
+           saver: checkpoint.Writer, blocks: Blocks | None = None) -> dict:
+    """results.csv and manifest.json into DIR (atomically, once the last checkpoint is written: ``saver``, and the
+    ``blocks`` it replaces are gone; a signal waits for them), the checkpoint deleted, then the report; the summary
+    lines. Returns the manifest."""
     from wbc_jax.rollout import final_results
 
     sim, dz = job.built.sim, job.built.design
@@ -201,6 +221,8 @@ def _write(job: Job, rollout: Rollout, clock: dict, report: bool, reporter, guar
                                  sessions=rollout.sessions, files=files)
     with guard.deferred():
         saver.join()  # the last chunk's checkpoint, written while the results above were computed
+        if blocks is not None:
+            blocks.finish()
     with guard.deferred(), atomic_dir(job.out) as tmp:  # the finished simulation first: a failing report keeps it
         df.to_csv(tmp / "results.csv", index=False)
         manifest["wall_s_total"] = time.perf_counter() - clock["import"] + wall_before
@@ -303,17 +325,23 @@ def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guar
     guard.check()
     check_horizon(spec, built)
     sp = choose(built.sim.robot.backend)  # several devices: each steps its own runs (wbc_jax.rollout.spread)
-    job = Job(spec, built, sp.place(built.batch), sp, identity, r["gains"], status.writer, out_p, ck, status)
+    job = Job(spec, built, sp.place(built.batch, own_contacts=True), sp, identity, r["gains"], status.writer, out_p,
+              ck, status)
     start = start_point(job, built.batch.state, r["resume"])
     status.stage, status.n_chunks = "chunks", built.n_chunks
     _announce(job)
     saver = checkpoint.Writer()
+    blocks = (Blocks(ck or checkpoint.ckpt_dir(Path(r["out"]).absolute()), sp, built.design.n, job.writer,
+                     on_meta=lambda k: setattr(status, "saved", k)) if sp.mode == "blocks" else None)
     try:
-        rollout, reporter = _run_chunks(job, start, r["progress"], r["report"], guard, saver)
+        rollout, reporter = _run_chunks(job, start, r["progress"], r["report"], guard, saver, blocks)
         if not job.writer:
+            if blocks is not None:
+                with guard.deferred():
+                    blocks.finish()  # once process 0 has saved the last chunk whole
             print(f"process {jax.process_index()}: done; process 0 writes {r['out']}", flush=True)
             return None
-        return _write(job, rollout, clock, r["report"], reporter, guard, saver)
+        return _write(job, rollout, clock, r["report"], reporter, guard, saver, blocks)
     finally:  # however the command ends, a finished chunk's checkpoint is complete first
         with guard.deferred():
             saver.join()

@@ -114,6 +114,25 @@ def data_axes(robot, d):
     return _DATA_AXES[key]
 
 
+def cut_contact_list(d, axes, n_runs: int):
+    """(``d``, ``axes``) for a block of ``n_runs`` runs of a larger batch: ``d`` a batched mjx.Data whose run rows
+    were already taken (run axes ``axes``: :func:`data_axes`). Warp: the shared contact list cut to the block's
+    ``n_runs x NACON_PER_RUN`` slots (``naconmax``, ``naccdmax`` with it), as :func:`make_data` sizes it: the
+    list is scratch that every step rebuilds, and kernels launched over every slot do no work for a block's
+    share of a larger batch's list. JAX (no shared list), or a list no larger: unchanged."""
+    if not is_warp(d):
+        return d, axes
+    impl, slots = d._impl, NACON_PER_RUN * max(int(n_runs), 1)
+    whole = int(impl.naconmax)
+    if slots >= whole:
+        return d, axes
+    names = [f.name for f in dataclasses.fields(impl) if getattr(axes._impl, f.name) is None
+             and np.ndim(getattr(impl, f.name)) and np.shape(getattr(impl, f.name))[0] == whole]
+    sizes = dict(naconmax=slots, naccdmax=min(int(impl.naccdmax), slots))  # make_data: naccdmax = naconmax
+    d = d.replace(_impl=impl.replace(**sizes, **{k: getattr(impl, k)[:slots] for k in names}))
+    return d, axes.replace(_impl=axes._impl.replace(**sizes))
+
+
 STATE_FIELDS = ("time", "qpos", "qvel", "act", "qacc_warmstart", "history", "plugin_state")
 """The fields of mjx.Data a physics step reads that it does not recompute (the integrated state and the solver's
 warm start); every other field is derived from them (and the inputs ``ctrl``, ``xfrc_applied``, which the rollout

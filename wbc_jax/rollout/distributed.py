@@ -202,3 +202,40 @@ def agree(error: WbcJaxError | None) -> None:
     if got[0]:
         raise WbcJaxError(bytes(got[1:]).rstrip(b"\0").decode(errors="replace"))
 
+
+
+HOST_WAIT_S = 24 * 3600.0  # longest a process waits at a host barrier or for a shared value (a partner's chunk)
+
+
+def _client():
+    from jax._src import distributed as jax_distributed
+
+    return jax_distributed.global_state.client
+
+
+def host_barrier(name: str, timeout_s: float = HOST_WAIT_S) -> None:
+    """Wait until every process has reached ``host_barrier(name)`` (a fresh name per meeting). Host-side only,
+    through the coordination service: the devices keep running what was dispatched to them. Nothing with one
+    process. A process that leaves ends the others' wait with an error (the service's heartbeat)."""
+    if _ACTIVE is not None:
+        _client().wait_at_barrier(name, int(timeout_s * 1000))
+
+
+_LOCAL: dict[str, str] = {}  # :func:`share`'s values with one process
+
+
+def share(key: str, value: str) -> None:
+    """Publish ``value`` under ``key`` (set once) for every process's :func:`shared` (the coordination service's
+    key-value store; with one process, this process's)."""
+    if _ACTIVE is None:
+        _LOCAL[key] = value
+    else:
+        _client().key_value_set(key, value)
+
+
+def shared(key: str, timeout_s: float = HOST_WAIT_S) -> str:
+    """The value some process published under ``key`` with :func:`share` (waits for it; with one process, KeyError
+    when none was)."""
+    if _ACTIVE is None:
+        return _LOCAL.pop(key)
+    return _client().blocking_key_value_get(key, int(timeout_s * 1000))

@@ -5,8 +5,10 @@
 * ``one``: a single device.
 * ``mesh`` (JAX physics, several devices): the run axis padded and split over every device of every process,
   one SPMD program in which each device steps its own runs (:mod:`wbc_jax.rollout.sharding`).
-* ``blocks`` (Warp physics, several processes): the runs padded to a multiple of the process count and cut into
-  contiguous blocks; process i steps block i on its first local device with the single-device program, and the
+* ``blocks`` (Warp physics, several processes): the runs padded to a multiple of the process count and dealt out
+  in turn (process i: runs i, i + P, i + 2P, ...), so that every block holds the same mix of the design's cells
+  (contiguous blocks of a factorial design differ in QP iterations by several per cent, and every process waits
+  for the slowest); process i steps block i on its first local device with the single-device program, and the
   processes meet only to gather results (an all-gather over one device per process). XLA cannot put MuJoCo Warp's
   kernels into one program over several devices with mujoco-mjx 3.17 and warp-lang 1.18 (``shard_map`` and
   ``pmap`` crash XLA's compiler, a GSPMD program runs slower than one GPU), while one process per GPU keeps each
@@ -42,11 +44,13 @@ class Gathering(NamedTuple):
     treedef: object
     n: int
     axes: object
+    order: np.ndarray | None = None  # ("blocks") the rows of the gathered blocks in run order
 
     def finish(self):
-        """The first ``n`` runs of the gathered tree as host numpy arrays (waits for the copies)."""
-        return runs.first(jax.tree_util.tree_unflatten(self.treedef, [np.asarray(x) for x in self.leaves]),
-                          self.n, self.axes)
+        """The first ``n`` runs of the gathered tree (``order``'s rows) as host numpy arrays (waits for the
+        copies)."""
+        tree = jax.tree_util.tree_unflatten(self.treedef, [np.asarray(x) for x in self.leaves])
+        return runs.first(tree, self.n, self.axes) if self.order is None else runs.take(tree, self.order, self.axes)
 
 
 @functools.lru_cache(maxsize=None)
@@ -82,32 +86,63 @@ class Spread:
         return ""
 
     def block(self, n: int) -> np.ndarray:
-        """("blocks") This process's rows of an n-run batch: block ``process`` of ``ceil(n / processes)`` rows,
-        past the last run padded with the last run."""
+        """("blocks") This process's rows of an n-run batch: ``ceil(n / processes)`` rows, runs ``process``,
+        ``process + processes``, ...; past the last run padded with the last run."""
         k = -(-n // self.processes)
-        return np.minimum(np.arange(k) + self.process * k, n - 1)
+        return np.minimum(self.process + self.processes * np.arange(k), n - 1)
 
-    def place(self, b):
+    def own_rows(self, n: int) -> range:
+        """("blocks") The real runs of an n-run batch in this process's block, in block order (its padding left
+        out; empty where the block is all padding)."""
+        return range(self.process, n, self.processes)
+
+    def run_order(self, n: int) -> np.ndarray:
+        """("blocks") (n,) for each run of an n-run batch its row in the blocks joined in process order."""
+        k, r = -(-n // self.processes), np.arange(n)
+        return (r % self.processes) * k + r // self.processes
+
+    def own_start(self, tree, n: int, axes=0) -> Gathering:
+        """("blocks") This process's real runs of ``tree`` (its block as :meth:`place` placed it, of an n-run
+        batch) on their way to the host, without any collective: :meth:`Gathering.finish` returns them."""
+        leaves, treedef, _ = runs.leaves_and_axes(tree, axes)
+        for x in leaves:
+            if isinstance(x, jax.Array):
+                x.copy_to_host_async()
+        return Gathering(leaves, treedef, len(self.own_rows(n)), axes)
+
+    def place(self, b, own_contacts: bool = False):
         """``b`` (a :class:`wbc_jax.rollout.batch.Batch`, whole in every process) as this process steps it: itself
-        ("one"), padded and sharded over the mesh ("mesh"), or this process's block on its device ("blocks")."""
+        ("one"), padded and sharded over the mesh ("mesh"), or this process's block on its device ("blocks"; with
+        ``own_contacts`` Warp's shared contact list sized for the block, :func:`wbc_jax.rollout.state.for_block`,
+        ``state_axes`` with it: the campaign's, whose chunk program is compiled for the placed batch)."""
         if self.mode == "mesh":
             from wbc_jax.rollout.sharding import shard_batch
 
             return shard_batch(b, self.mesh)[0]
         if self.mode == "blocks":
             from wbc_jax.rollout.batch import take_runs
+            from wbc_jax.rollout.state import for_block
 
-            return take_runs(b, self.block(int(np.shape(b.mu_ground)[0])))
+            rows = self.block(int(np.shape(b.mu_ground)[0]))
+            b = take_runs(b, rows)
+            if not own_contacts:
+                return b
+            state, axes = for_block(b.state, b.state_axes, len(rows))
+            return b._replace(state=state, state_axes=axes)
         return b
 
-    def place_state(self, state, n: int, axes=0):
+    def place_state(self, state, n: int, axes=0, own_contacts: bool = False):
         """A host state of all ``n`` runs (the same in every process) placed as :meth:`place` places a batch's."""
         if self.mode == "mesh":
             from wbc_jax.rollout.sharding import shard_runs
 
             return shard_runs(state, self.mesh, axes)
         if self.mode == "blocks":
-            return jax.device_put(runs.take(state, self.block(n), axes))
+            from wbc_jax.rollout.state import for_block
+
+            rows = self.block(n)
+            state = runs.take(state, rows, axes)
+            return jax.device_put(for_block(state, axes, len(rows))[0] if own_contacts else state)
         return state
 
     def gather_start(self, tree, n: int, axes=0, fetch: bool = True) -> Gathering:
@@ -124,11 +159,11 @@ class Spread:
         for x in leaves if fetch else ():
             if isinstance(x, jax.Array):
                 x.copy_to_host_async()
-        return Gathering(leaves, treedef, n, axes)
+        return Gathering(leaves, treedef, n, axes, self.run_order(n) if self.mode == "blocks" else None)
 
     def _blocks_whole(self, leaves: list, axes: list) -> list:
-        """("blocks") Each leaf with a run axis as the whole batch (every process's block, in process order) on this
-        process's device; the others (axes None) as they are, this process's own."""
+        """("blocks") Each leaf with a run axis as every process's block joined in process order (:meth:`run_order`
+        gives each run's row) on this process's device; the others (axes None) as they are, this process's own."""
         devices = [jax.local_devices(process_index=p)[0] for p in range(self.processes)]
         mesh = Mesh(np.asarray(devices), ("process",))
         mine = [i for i, a in enumerate(axes) if a is not None]

@@ -82,6 +82,16 @@ def state_axes(sim: Sim, state: RunState) -> RunState:
     return zeros._replace(d=physics.data_axes(sim.robot, state.d))
 
 
+def for_block(state, axes, n_runs: int):
+    """(``state``, ``axes``) of a block of ``n_runs`` runs taken from a larger batch's RunState (run axes ``axes``):
+    Warp's shared contact list sized for the block (:func:`wbc_jax.physics.backend.cut_contact_list`). Any other
+    pytree (no ``d``) unchanged."""
+    if not isinstance(state, RunState):
+        return state, axes
+    d, d_axes = physics.cut_contact_list(state.d, axes.d, n_runs)
+    return state._replace(d=d), axes._replace(d=d_axes)
+
+
 def init_state(sim: Sim, m, qpos0, qvel0=None, n_runs: int = 1) -> RunState:
     """Initial RunState of one run (vmappable over m, qpos0 and qvel0; qvel0 None: at rest). ``n_runs``: the size
     of the batch it is vmapped over (sizes the Warp backend's shared contact list)."""

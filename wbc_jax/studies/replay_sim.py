@@ -52,6 +52,11 @@ class Program(NamedTuple):
     spread: str
     parts: int
     per_device: int
+    dealt: bool = False  # the runs dealt to the parts in turn (run r: part r % parts, slot r // parts), not cut
+
+    def part_slot(self, r: int) -> tuple[int, int]:
+        """(part, slot in the part) of run ``r``."""
+        return (r % self.parts, r // self.parts) if self.dealt else (r // self.per_device, r % self.per_device)
 
 
 class Replayed(NamedTuple):
@@ -87,19 +92,21 @@ def fill_slots(run_ids, n: int, whole_batch: bool = False) -> np.ndarray:
     return slots
 
 
-def part_rows(run_ids, n: int, per_device: int, whole_batch: bool = False) -> list[np.ndarray]:
-    """The batches that replay ``run_ids`` part by part: for each part of the campaign's n-run batch (part k: runs
-    k * per_device ... (k + 1) * per_device - 1, past the last run padded with it) that holds a requested run, the
-    (per_device,) campaign run of each slot: :func:`fill_slots` within the part (``whole_batch``: the part's own)."""
-    out = []
-    for part in sorted({r // per_device for r in run_ids}):
-        own = np.minimum(np.arange(per_device) + part * per_device, n - 1)
+def part_rows(run_ids, n: int, program: Program, whole_batch: bool = False) -> list[np.ndarray]:
+    """The batches that replay ``run_ids`` part by part: for each part of the campaign's n-run batch
+    (:meth:`Program.part_slot`; a part's slots past the last run padded with it) that holds a requested run, the
+    (per_device,) campaign run of each slot: the part's own runs (``whole_batch``) or each requested run in its
+    slot, the other slots the part's requested runs in turn."""
+    out, size = [], program.per_device
+    for part in sorted({program.part_slot(r)[0] for r in run_ids}):
+        slots = np.arange(size)
+        own = np.minimum(part + program.parts * slots if program.dealt else part * size + slots, n - 1)
         if whole_batch:
             out.append(own)
             continue
-        mine = np.asarray(sorted(r for r in run_ids if r // per_device == part), dtype=int)
-        rows = mine[np.arange(per_device) % len(mine)]
-        rows[mine - part * per_device] = mine
+        mine = sorted(r for r in run_ids if program.part_slot(r)[0] == part)
+        rows = np.asarray(mine, dtype=int)[slots % len(mine)]
+        rows[[program.part_slot(r)[1] for r in mine]] = mine
         out.append(rows)
     return out
 
@@ -108,7 +115,8 @@ def campaign_program(manifest: dict, n: int) -> Program:
     """The campaign's :class:`Program`: its manifest's ``program`` record, else (an older manifest) its layout's."""
     record = manifest.get("program")
     if isinstance(record, dict):
-        return Program(str(record["spread"]), int(record["parts"]), int(record["per_device_runs"]))
+        return Program(str(record["spread"]), int(record["parts"]), int(record["per_device_runs"]),
+                       bool(record.get("dealt", False)))
     layout = manifest.get("layout") or {}
     spread = str(layout.get("spread", "one"))
     parts = {"mesh": len(layout.get("devices") or [None]), "blocks": int(layout.get("processes", 1))}.get(spread, 1)
@@ -118,7 +126,7 @@ def campaign_program(manifest: dict, n: int) -> Program:
 def this_program(spread: Spread, n: int) -> Program:
     """The :class:`Program` this process would run an n-run batch with."""
     parts = {"mesh": spread.mesh.size if spread.mesh is not None else 1, "blocks": spread.processes}.get(spread.mode, 1)
-    return Program(spread.mode, parts, -(-n // parts))
+    return Program(spread.mode, parts, -(-n // parts), spread.mode == "blocks")
 
 
 def _other_flags(flags) -> list[str]:
@@ -241,9 +249,9 @@ def simulate_runs(recorded: Recorded, run_ids, whole_batch: bool = False, progre
     if same_layout:
         batches, slots = [fill_slots(wanted, n, whole_batch)], [{r: r for r in wanted}]
     else:
-        size = program.per_device
-        batches, spread = part_rows(wanted, n, size, whole_batch), Spread("one")
-        slots = [{r: r % size for r in wanted if r // size == part} for part in sorted({r // size for r in wanted})]
+        batches, spread = part_rows(wanted, n, program, whole_batch), Spread("one")
+        parts = sorted({program.part_slot(r)[0] for r in wanted})
+        slots = [{r: program.part_slot(r)[1] for r in wanted if program.part_slot(r)[0] == part} for part in parts]
     notes = _notes(recorded, program, here)
     print(announce(recorded, wanted, built, batches, same_layout, spread.mode), flush=True)
     chunk_s = built.logs_per_chunk * built.sim.log_every * built.sim.dt_control
