@@ -232,7 +232,7 @@ def test_warp_state_run_axes_and_blocks(walks):
     """The run axes of a batched state (``rollout.state_axes``, from ``physics.data_axes``): on Warp every leaf
     with the run axis first is 0 and the shared contact list and its counters are None; on JAX every leaf is 0. A
     block of the batch (``Spread`` "blocks", one per process) takes its rows of the first and keeps the second, its
-    contact list cut to the block's slots (``physics.cut_contact_list``); the blocks joined back (``runs.concat``,
+    contact list cut to the block's slots (``physics.size_contact_list``); the blocks joined back (``runs.concat``,
     ``runs.first``) are the batch's per-run state. A run stepped in its block with the cut list ends bit for bit
     where it ends with the whole batch's list."""
     from wbc_jax.rollout import runs
@@ -274,3 +274,35 @@ def test_warp_state_run_axes_and_blocks(walks):
     for x, y, a in zip(whole, cut, ax):
         if a == 0:
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_warp_contact_list_sized_for_more_runs(walks):
+    """Runs taken into a batch larger than the one they came from (a gain search's sub-batches): with the source
+    batch's contact list (2 runs' slots for 8 runs) Warp's broad phase overflows and every run is flagged
+    (``physics.overflow``: the step's candidate pairs reached ``naconmax``); with the list sized for the 8 runs
+    (``rollout.batch.with_contact_list``) none is, and each run's state, sensors, controller state and
+    accumulators end bit for bit where they end in its own batch (the physics data's contact indices into the
+    shared list differ)."""
+    from wbc_jax.rollout.batch import take_runs, with_contact_list
+
+    sim, b, ref, _ = walks["warp:delayed@nan"]  # the 2-run walk after its first NAN_SECONDS
+    rows = np.array([0, 1] * 4)
+    sub = take_runs(b, rows)
+    sized = with_contact_list(sub)
+    assert sub.state.d._impl.naconmax == 2 * physics.NACON_PER_RUN
+    assert sized.state.d._impl.naconmax == sized.state.d._impl.naccdmax == 8 * physics.NACON_PER_RUN
+    flagged = []
+    for batch in (sub, sized):
+        st, _ = simulate(sim, batch.model, batch.in_axes, batch.state, batch.plan, batch.om, batch.gains, batch.push,
+                         batch.mu_ground, seconds=NAN_SECONDS, chunk_seconds=CHUNK_SECONDS)
+        flagged.append(np.asarray(final_results(sim, st, np.zeros((8, 3)), FACTORS[1][rows])["overflow"]))
+    assert flagged[0].all() and not flagged[1].any()
+    st = jax.device_get(st)  # the integrated physics state, the sensors, and everything but the physics data
+    for name in (*physics.STATE_FIELDS, "sensordata"):
+        if getattr(ref.d, name, None) is not None:
+            np.testing.assert_array_equal(np.asarray(getattr(st.d, name)), np.asarray(getattr(ref.d, name))[rows])
+    got = jax.tree_util.tree_leaves(st._replace(d=None))
+    want = jax.tree_util.tree_leaves(ref._replace(d=None))
+    assert len(got) == len(want) > 20
+    for x, y in zip(got, want):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y)[rows])

@@ -114,22 +114,29 @@ def data_axes(robot, d):
     return _DATA_AXES[key]
 
 
-def cut_contact_list(d, axes, n_runs: int):
-    """(``d``, ``axes``) for a block of ``n_runs`` runs of a larger batch: ``d`` a batched mjx.Data whose run rows
-    were already taken (run axes ``axes``: :func:`data_axes`). Warp: the shared contact list cut to the block's
-    ``n_runs x NACON_PER_RUN`` slots (``naconmax``, ``naccdmax`` with it), as :func:`make_data` sizes it: the
-    list is scratch that every step rebuilds, and kernels launched over every slot do no work for a block's
-    share of a larger batch's list. JAX (no shared list), or a list no larger: unchanged."""
+def size_contact_list(d, axes, n_runs: int):
+    """(``d``, ``axes``) with Warp's shared contact list sized for a batch of ``n_runs`` runs, as :func:`make_data`
+    sizes it (``n_runs x NACON_PER_RUN`` slots; ``naconmax``, ``naccdmax`` with it): ``d`` a batched mjx.Data whose
+    runs were taken from another batch (run axes ``axes``: :func:`data_axes`). The list is scratch that every step
+    rebuilds, so it is cut (a block of a larger batch: kernels launched over every slot do no work for slots its
+    runs never fill) or grown with zeros (more runs than the batch it came from: the runs' contacts would not fit,
+    Warp drops them and reports a broadphase or narrowphase overflow). JAX (no shared list): unchanged."""
     if not is_warp(d):
         return d, axes
     impl, slots = d._impl, NACON_PER_RUN * max(int(n_runs), 1)
-    whole = int(impl.naconmax)
-    if slots >= whole:
+    have = int(impl.naconmax)
+    if slots == have:
         return d, axes
     names = [f.name for f in dataclasses.fields(impl) if getattr(axes._impl, f.name) is None
-             and np.ndim(getattr(impl, f.name)) and np.shape(getattr(impl, f.name))[0] == whole]
-    sizes = dict(naconmax=slots, naccdmax=min(int(impl.naccdmax), slots))  # make_data: naccdmax = naconmax
-    d = d.replace(_impl=impl.replace(**sizes, **{k: getattr(impl, k)[:slots] for k in names}))
+             and np.ndim(getattr(impl, f.name)) and np.shape(getattr(impl, f.name))[0] == have]
+
+    def sized(x):
+        if slots < have:
+            return x[:slots]
+        return jnp.concatenate([x, jnp.zeros((slots - have, *x.shape[1:]), x.dtype)])
+
+    sizes = dict(naconmax=slots, naccdmax=slots)  # make_data: naccdmax = naconmax
+    d = d.replace(_impl=impl.replace(**sizes, **{k: sized(getattr(impl, k)) for k in names}))
     return d, axes.replace(_impl=axes._impl.replace(**sizes))
 
 
@@ -153,12 +160,14 @@ def freeze(ok, new, old):
 
 
 def overflow(d) -> jax.Array:
-    """() bool: this step's contacts or constraint rows may not all fit (Warp: the shared contact list is full,
-    or this run's rows reached ``njmax``); always False on JAX (fixed slots)."""
+    """() bool: this step's contacts or constraint rows may not all fit (Warp: the broad phase's candidate pairs or
+    the shared contact list reached its ``naconmax`` slots, or this run's rows reached ``njmax``); always False on
+    JAX (fixed slots)."""
     if not is_warp(d):
         return jnp.bool_(False)
     i = d._impl
-    return (jnp.max(i.nacon) >= i.naconmax) | (i.nefc >= i.njmax)
+    full = (jnp.max(i.nacon) >= i.naconmax) | (jnp.max(i.ncollision) >= i.naconmax)
+    return full | (i.nefc >= i.njmax)
 
 
 def solver_capped(m, d) -> jax.Array:

@@ -19,6 +19,7 @@ from wbc_jax.robot import scenario
 from wbc_jax.rollout import runs
 from wbc_jax.rollout.config import Sim
 from wbc_jax.rollout.state import Push, RunState, init_state, no_push, state_axes
+from wbc_jax.rollout.state import with_contact_list as state_contacts
 from wbc_jax.runtime import aot
 from wbc_jax.runtime.static import axes_key
 from wbc_jax.types import ObjectModel
@@ -54,6 +55,14 @@ def take_runs(b: Batch, rows, state=None, gains=None) -> Batch:
                       plan=runs.take(b.plan, rows), om=runs.take(b.om, rows),
                       gains=runs.take(b.gains, rows) if gains is None else gains, push=runs.take(b.push, rows),
                       mu_ground=runs.take(b.mu_ground, rows), factors=runs.take(b.factors, rows))
+
+def with_contact_list(b: Batch, n_runs: int | None = None) -> Batch:
+    """``b`` with Warp's shared contact list sized for ``n_runs`` runs (None: ``b``'s own), ``state_axes`` with it
+    (:func:`wbc_jax.rollout.state.with_contact_list`): for runs taken from another batch (a block of a larger batch,
+    or sub-batches larger than the batch they are taken from)."""
+    n = int(np.shape(b.mu_ground)[0]) if n_runs is None else n_runs
+    state, axes = state_contacts(b.state, b.state_axes, n)
+    return b._replace(state=state, state_axes=axes)
 
 # Setup arithmetic is done in numpy and each leaf is placed on the device once: eager jnp operations would each
 # compile a small program (hundreds per campaign, seconds of a warm start).

@@ -113,22 +113,18 @@ class Spread:
     def place(self, b, own_contacts: bool = False):
         """``b`` (a :class:`wbc_jax.rollout.batch.Batch`, whole in every process) as this process steps it: itself
         ("one"), padded and sharded over the mesh ("mesh"), or this process's block on its device ("blocks"; with
-        ``own_contacts`` Warp's shared contact list sized for the block, :func:`wbc_jax.rollout.state.for_block`,
-        ``state_axes`` with it: the campaign's, whose chunk program is compiled for the placed batch)."""
+        ``own_contacts`` Warp's shared contact list sized for the block and ``state_axes`` with it,
+        :func:`wbc_jax.rollout.batch.with_contact_list`: the campaign's, whose chunk program is compiled for the
+        placed batch)."""
         if self.mode == "mesh":
             from wbc_jax.rollout.sharding import shard_batch
 
             return shard_batch(b, self.mesh)[0]
         if self.mode == "blocks":
-            from wbc_jax.rollout.batch import take_runs
-            from wbc_jax.rollout.state import for_block
+            from wbc_jax.rollout.batch import take_runs, with_contact_list
 
-            rows = self.block(int(np.shape(b.mu_ground)[0]))
-            b = take_runs(b, rows)
-            if not own_contacts:
-                return b
-            state, axes = for_block(b.state, b.state_axes, len(rows))
-            return b._replace(state=state, state_axes=axes)
+            b = take_runs(b, self.block(int(np.shape(b.mu_ground)[0])))
+            return with_contact_list(b) if own_contacts else b
         return b
 
     def place_state(self, state, n: int, axes=0, own_contacts: bool = False):
@@ -138,11 +134,11 @@ class Spread:
 
             return shard_runs(state, self.mesh, axes)
         if self.mode == "blocks":
-            from wbc_jax.rollout.state import for_block
+            from wbc_jax.rollout.state import with_contact_list
 
             rows = self.block(n)
             state = runs.take(state, rows, axes)
-            return jax.device_put(for_block(state, axes, len(rows))[0] if own_contacts else state)
+            return jax.device_put(with_contact_list(state, axes, len(rows))[0] if own_contacts else state)
         return state
 
     def gather_start(self, tree, n: int, axes=0, fetch: bool = True) -> Gathering:

@@ -82,13 +82,13 @@ def state_axes(sim: Sim, state: RunState) -> RunState:
     return zeros._replace(d=physics.data_axes(sim.robot, state.d))
 
 
-def for_block(state, axes, n_runs: int):
-    """(``state``, ``axes``) of a block of ``n_runs`` runs taken from a larger batch's RunState (run axes ``axes``):
-    Warp's shared contact list sized for the block (:func:`wbc_jax.physics.backend.cut_contact_list`). Any other
-    pytree (no ``d``) unchanged."""
+def with_contact_list(state, axes, n_runs: int):
+    """(``state``, ``axes``) of a RunState of ``n_runs`` runs taken from another batch (run axes ``axes``) with
+    Warp's shared contact list sized for them (:func:`wbc_jax.physics.backend.size_contact_list`). Any other pytree
+    (no ``d``) unchanged."""
     if not isinstance(state, RunState):
         return state, axes
-    d, d_axes = physics.cut_contact_list(state.d, axes.d, n_runs)
+    d, d_axes = physics.size_contact_list(state.d, axes.d, n_runs)
     return state._replace(d=d), axes._replace(d=d_axes)
 
 

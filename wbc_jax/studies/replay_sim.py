@@ -35,7 +35,7 @@ from wbc_jax.campaign.manifest import NUMERICS, versions
 from wbc_jax.campaign.progress import ProgressBar
 from wbc_jax.errors import InputError
 from wbc_jax.rollout import final_results, runs
-from wbc_jax.rollout.batch import take_runs
+from wbc_jax.rollout.batch import take_runs, with_contact_list
 from wbc_jax.rollout.spread import Spread, choose
 from wbc_jax.runtime import jaxcfg
 from wbc_jax.studies.replay_inputs import Recorded
@@ -205,7 +205,8 @@ def announce(recorded: Recorded, run_ids, built: Built, batches: list, same_layo
 def _simulate_batch(built: Built, rows: np.ndarray, spread: Spread, slots: dict, bar, first: bool):
     """Step the batch of campaign runs ``rows`` through every chunk; returns ({run: Log}, {run: results}) of the
     runs of ``slots`` (run -> its slot in ``rows``). A signal stops it after the chunk in progress."""
-    batch = spread.place(take_runs(built.batch, rows))
+    # the contact list sized as the campaign sized it: its batch's (same layout), each block its own (Warp's blocks)
+    batch = spread.place(with_contact_list(take_runs(built.batch, rows)), own_contacts=True)
     fn = chunk_fn(built.sim, batch.in_axes, built.logs_per_chunk, spread.mesh, batch.state_axes)
     n, wanted = len(rows), sorted(slots)
     positions = [slots[r] for r in wanted]

@@ -27,7 +27,7 @@ import numpy as np
 from wbc_jax.campaign.build import LOG_EVERY, build, chunk_fn
 from wbc_jax.control.transport import TransportGains
 from wbc_jax.rollout import final_results
-from wbc_jax.rollout.batch import take_runs
+from wbc_jax.rollout.batch import take_runs, with_contact_list
 from wbc_jax.rollout.runs import concat, take
 from wbc_jax.rollout.spread import choose
 from wbc_jax.studies.tune_search import rank_key
@@ -58,9 +58,10 @@ class Evaluator:
         self.chunk_s = logs_per_chunk * LOG_EVERY * sim.dt_control
         self.seconds = n_chunks * self.chunk_s
         self.size = int(size)
-        self.batch, self.sel = b, np.asarray(sel)
+        # every sub-batch has `size` runs taken from b: Warp's shared contact list sized for them, not for b's runs
+        self.batch, self.sel = with_contact_list(b, self.size), np.asarray(sel)
         self.spread = choose(sim.robot.backend)  # every sub-batch over every device (wbc_jax.rollout.spread)
-        self.fn = chunk_fn(sim, b.in_axes, logs_per_chunk, self.spread.mesh, b.state_axes)
+        self.fn = chunk_fn(sim, b.in_axes, logs_per_chunk, self.spread.mesh, self.batch.state_axes)
         self.calls = 0
 
     def compiled_variants(self) -> int | None:
