@@ -20,6 +20,8 @@ process's part, :meth:`Spread.gather` brings every run's results back to every p
 :meth:`Spread.gather_start` puts the gather on the devices ahead of the next chunk and :meth:`Gathering.finish`
 collects it on the host while that chunk runs: with several processes the runs meet in one on-device all-gather
 (each device's queue runs in order, so a gather dispatched after the next chunk would wait for it).
+:meth:`Spread.own_start` instead brings only this process's runs to its host, without a collective (a Warp
+campaign's checkpoint blocks between chunks: ``wbc_jax.campaign.blocks``).
 """
 
 from __future__ import annotations
