@@ -221,21 +221,12 @@ def host_barrier(name: str, timeout_s: float = HOST_WAIT_S) -> None:
         _client().wait_at_barrier(name, int(timeout_s * 1000))
 
 
-_LOCAL: dict[str, str] = {}  # :func:`share`'s values with one process
-
-
 def share(key: str, value: str) -> None:
     """Publish ``value`` under ``key`` (set once) for every process's :func:`shared` (the coordination service's
-    key-value store; with one process, this process's)."""
-    if _ACTIVE is None:
-        _LOCAL[key] = value
-    else:
-        _client().key_value_set(key, value)
+    key-value store; several processes only)."""
+    _client().key_value_set(key, value)
 
 
 def shared(key: str, timeout_s: float = HOST_WAIT_S) -> str:
-    """The value some process published under ``key`` with :func:`share` (waits for it; with one process, KeyError
-    when none was)."""
-    if _ACTIVE is None:
-        return _LOCAL.pop(key)
+    """The value some process published under ``key`` with :func:`share` (waits for it; several processes only)."""
     return _client().blocking_key_value_get(key, int(timeout_s * 1000))
