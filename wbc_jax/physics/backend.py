@@ -130,10 +130,10 @@ def size_contact_list(d, axes, n_runs: int):
     names = [f.name for f in dataclasses.fields(impl) if getattr(axes._impl, f.name) is None
              and np.ndim(getattr(impl, f.name)) and np.shape(getattr(impl, f.name))[0] == have]
 
-    def sized(x):
-        if slots < have:
-            return x[:slots]
-        return jnp.concatenate([x, jnp.zeros((slots - have, *x.shape[1:]), x.dtype)])
+    def sized(x):  # on the host (an eager slice on the device compiles a program per shape), placed back as x was
+        h = np.asarray(x)
+        h = h[:slots] if slots < have else np.concatenate([h, np.zeros((slots - have, *h.shape[1:]), h.dtype)])
+        return jax.device_put(h, x.sharding) if isinstance(x, jax.Array) else h
 
     sizes = dict(naconmax=slots, naccdmax=slots)  # make_data: naccdmax = naconmax
     d = d.replace(_impl=impl.replace(**sizes, **{k: sized(getattr(impl, k)) for k in names}))
