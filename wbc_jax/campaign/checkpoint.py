@@ -3,9 +3,9 @@
 ``.<DIR name>.campaign-ckpt/`` holds ``meta.json`` (chunks done, wall time so far, the run's identity
 (``wbc_jax.campaign.manifest.run_identity``: spec, gains, backend, numerics versions, run count)) and the state it
 names with each file's SHA-256: either ``state_K.npz`` (every leaf of the batched RunState after chunk K, all runs)
-or, for a Warp campaign over several processes (``wbc_jax.campaign.blocks``), ``block_K_I.npz`` per process I (that
-process's runs, ``rows`` [start, stop) of the batch). :func:`save_state` writes the state first and then the meta
-that names it, so an interruption at any point leaves a consistent pair; :class:`Writer` runs writes in a
+or, for a Warp campaign over several processes (``wbc_jax.campaign.blocks``), ``block_K_I.npz`` per process I (the
+runs it was dealt, ``rows`` [start, stop, step] of the batch). :func:`save_state` writes the state first and then
+the meta that names it, so an interruption at any point leaves a consistent pair; :class:`Writer` runs writes in a
 background thread, one at a time. :func:`read_meta` checks the meta against this run's identity before anything is
 built or compiled, and :func:`load_state` the state against the fresh state's structure. Damage or a mismatch is a
 one-line ``CheckpointError`` that says how to restart; a checkpoint is never trusted silently.
@@ -258,17 +258,16 @@ def load_state(ck: Path, state_like, identity: dict, n_chunks: int, axes=0):
     if meta is None:
         return None, None
     like, treedef, like_axes = runs.leaves_and_axes(state_like, axes)
+    mismatch = f"{ck}: checkpoint does not match this version's rollout state; {RESTART.format(ck=ck)}"
     if "state_blocks" in meta:
         parts = [_load_leaves(ck, blk["file"]) for blk in meta["state_blocks"]]
         if any(len(p) != len(like) for p in parts):
-            raise CheckpointError(f"{ck}: checkpoint does not match this version's rollout state; "
-                                  f"{RESTART.format(ck=ck)}")
+            raise CheckpointError(mismatch)
         try:
             rows = _block_rows(meta)
             leaves = [None if a is None else _scatter([p[i] for p in parts], rows) for i, a in enumerate(like_axes)]
         except ValueError:
-            raise CheckpointError(f"{ck}: checkpoint does not match this version's rollout state; "
-                                  f"{RESTART.format(ck=ck)}") from None
+            raise CheckpointError(mismatch) from None
     else:
         leaves = _load_leaves(ck, meta["state_file"])
     # the leaves without a run axis (Warp's shared contact list) are scratch every step rebuilds: the fresh state's
@@ -276,8 +275,7 @@ def load_state(ck: Path, state_like, identity: dict, n_chunks: int, axes=0):
     if len(leaves) == len(like):
         leaves = [np.asarray(a) if ax is None else x for x, a, ax in zip(leaves, like, like_axes)]
     if treedef.num_leaves != len(leaves) or any(x.shape != a.shape for x, a in zip(leaves, like)):
-        raise CheckpointError(f"{ck}: checkpoint does not match this version's rollout state; "
-                              f"{RESTART.format(ck=ck)}")
+        raise CheckpointError(mismatch)
     # placed like the fresh state (committed to its device where that is): an uncommitted leaf changes the lowered
     # program's input shardings, so the chunk function would compile a second time and miss the compilation cache
     out = [jax.device_put(x, a.sharding) if getattr(a, "committed", False) else jnp.asarray(x)

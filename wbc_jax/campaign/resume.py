@@ -42,7 +42,7 @@ def _shared(state, done: int, spread, n: int, axes):
     if distributed.is_multiprocess():
         state, done = multihost_utils.broadcast_one_to_all((runs.first(jax.device_get(state), n, axes),
                                                             np.int32(done)))
-    return spread.place_state(state, n, axes, own_contacts=True), int(done)
+    return spread.place_state(state, n, axes), int(done)
 
 
 def start_point(job: Job, state0, resume: bool) -> Start:

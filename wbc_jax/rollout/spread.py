@@ -5,12 +5,12 @@
 * ``one``: a single device.
 * ``mesh`` (JAX physics, several devices): the run axis padded and split over every device of every process,
   one SPMD program in which each device steps its own runs (:mod:`wbc_jax.rollout.sharding`).
-* ``blocks`` (Warp physics, several processes): the runs padded to a multiple of the process count and dealt out
-  in turn (process i: runs i, i + P, i + 2P, ...), so that every block holds the same mix of the design's cells
-  (contiguous blocks of a factorial design differ in QP iterations by several per cent, and every process waits
-  for the slowest); process i steps block i on its first local device with the single-device program, and the
-  processes meet only to gather results (an all-gather over one device per process). XLA cannot put MuJoCo Warp's
-  kernels into one program over several devices with mujoco-mjx 3.17 and warp-lang 1.18 (``shard_map`` and
+* ``blocks`` (Warp physics, several processes): the runs padded to a multiple of the process count and dealt out in
+  turn (process i: runs i, i + P, i + 2P, ...), so that every block holds the same mix of the design's cells
+  (contiguous blocks of a factorial design hold different cells, whose runs take different work, and the campaign
+  waits for the slowest process); process i steps block i on its first local device with the single-device program,
+  and the processes meet only to gather results (an all-gather over one device per process). XLA cannot put MuJoCo
+  Warp's kernels into one program over several devices with mujoco-mjx 3.17 and warp-lang 1.18 (``shard_map`` and
   ``pmap`` crash XLA's compiler, a GSPMD program runs slower than one GPU), while one process per GPU keeps each
   GPU's speed. For the same reason one process that sees several GPUs runs Warp on its first GPU only (``one``;
   :attr:`Spread.note` says so): start one process per GPU (docs/cluster.md).
@@ -129,8 +129,9 @@ class Spread:
             return with_contact_list(b) if own_contacts else b
         return b
 
-    def place_state(self, state, n: int, axes=0, own_contacts: bool = False):
-        """A host state of all ``n`` runs (the same in every process) placed as :meth:`place` places a batch's."""
+    def place_state(self, state, n: int, axes=0):
+        """A host state of all ``n`` runs (the same in every process) placed as :meth:`place` places a campaign's
+        batch (``own_contacts``)."""
         if self.mode == "mesh":
             from wbc_jax.rollout.sharding import shard_runs
 
@@ -140,7 +141,7 @@ class Spread:
 
             rows = self.block(n)
             state = runs.take(state, rows, axes)
-            return jax.device_put(with_contact_list(state, axes, len(rows))[0] if own_contacts else state)
+            return jax.device_put(with_contact_list(state, axes, len(rows))[0])
         return state
 
     def gather_start(self, tree, n: int, axes=0, fetch: bool = True) -> Gathering:
