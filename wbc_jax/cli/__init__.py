@@ -15,6 +15,7 @@ from wbc_jax.cli import checks
 from wbc_jax.cli import parser as parser_module
 from wbc_jax.errors import UsageError, WbcJaxError
 from wbc_jax.io_utils import check_file_target, check_out_dir, claim_out_dir, release_out_dir
+from wbc_jax.rollout import distributed
 from wbc_jax.studies import replay, warmup
 
 CPU_BATCHES = {"rollout": (1, 4, 16), "profile": 16, "components": 16, "trace": 16}  # bench defaults on a CPU
@@ -143,8 +144,6 @@ def _cmd_trot(args: argparse.Namespace) -> int:
 def _join_processes(args: argparse.Namespace) -> None:
     """``jax.distributed`` from the ``--coordinator`` / ``--num-processes`` / ``--process-id`` flags or the
     environment (``wbc_jax.rollout.distributed``), before anything touches a device; nothing when none is set."""
-    from wbc_jax.rollout import distributed
-
     distributed.initialize(distributed.resolve(args.coordinator, args.num_processes, args.process_id,
                                                args.local_device_ids))
 
@@ -167,7 +166,6 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
 
 def _cmd_tune(args: argparse.Namespace) -> int:
     _join_processes(args)
-    from wbc_jax.rollout import distributed
     from wbc_jax.studies.tune import run_tune
 
     if distributed.is_writer():  # process 0 writes --out
@@ -224,8 +222,9 @@ def run() -> None:
     interpreter.
 
     Once a command has returned, what it wrote is closed (files are written atomically and closed before the
-    command returns). Python's exit handlers (``atexit``: logging, JAX's clean-up, ``weakref.finalize``) still run,
-    stdout and stderr are flushed, and threads that are not daemons are waited for. What is skipped is the
+    command returns). Threads that are not daemons are waited for, a process of a multi-process run that succeeded
+    leaves it (:func:`wbc_jax.rollout.distributed.leave`), Python's exit handlers (``atexit``: logging, JAX's
+    clean-up, ``weakref.finalize``) still run, and stdout and stderr are flushed. What is skipped is the
     interpreter's finalization, which frees every module and the GPU client's and MuJoCo Warp's objects one by
     one, where the operating system frees a process's memory and device context at once. An exception escaping
     :func:`main` (``--help`` included) takes Python's normal exit.
@@ -238,6 +237,8 @@ def run() -> None:
     for t in threading.enumerate():
         if t is not threading.main_thread() and not t.daemon:
             t.join()
+    if code == 0:  # a failing process leaves as before (JAX's exit handler), without waiting here for its partners
+        distributed.leave()
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
         try:

@@ -167,6 +167,24 @@ def is_writer() -> bool:
     return _ACTIVE is None or jax.process_index() == 0
 
 
+def leave() -> None:
+    """End this process's part in a multi-process run that succeeded (nothing with one process): XLA's warnings off,
+    then ``jax.distributed.shutdown()``, which waits for every process (a failing one shuts down in JAX's exit
+    handler) for at most the coordination service's shutdown timeout (``jax.distributed.initialize``'s default, 300 s)
+    and stops this process's client and, in process 0, the service. The warnings are off because the PJRT client
+    outlives the service until the process ends, and a GPU client's task watcher then logs ``WatchTasksAsync failed``.
+    """
+    if _ACTIVE is None:
+        return
+    import jax
+
+    jax.config.update("jax_logging_level", "ERROR")  # Python and C++ loggers: errors still show
+    try:
+        jax.distributed.shutdown()
+    except Exception:  # the command succeeded and wrote its results; a failed teardown does not undo that
+        pass
+
+
 def layout_record() -> dict:
     """The process and device layout, for a manifest: process count, this process's index, where the settings
     came from, and every device as (id, process, kind)."""
