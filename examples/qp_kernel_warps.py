@@ -26,7 +26,7 @@ DEFAULT_PARAMS, RELOADED = fused._compiler_params, iterate._operands
 SETTINGS = (("reloaded", 2), ("held", 2), ("held", 4), ("held", 8), ("held", 16), ("held", 32), ("reloaded", 16))
 
 
-def held(st, Ki_ref, W_ref, Si_ref):
+def held(st, Ki_ref, W_ref, Si_ref, dims):
     """The iterations kernel's operands, each loaded once per program and returned at every use."""
     load = lambda ref: ref[...]  # noqa: E731
     mats = [load(r) for r in (st.P, Ki_ref, st.Ae, st.Ai, st.db, W_ref, Si_ref, st.q, st.le, st.exe)]

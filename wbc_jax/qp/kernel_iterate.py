@@ -26,6 +26,7 @@ from wbc_jax.qp.kernel_layout import (
     Dims,
     entry,
     is_finite,
+    masked_load,
     matvec,
     read_blocks,
     read_rows,
@@ -90,13 +91,26 @@ def _at(ref, o):
     return ref[(pl.ds(o, ref.shape[0]),) + (slice(None),) * (len(ref.shape) - 1)]
 
 
-def _operands(st, Ki_ref, W_ref, Si_ref) -> _Operands:
-    """The :class:`_Operands` of the stage ``st`` (refs) and the factors."""
+def _at_real(ref, o, rows: int, cols: int):
+    """The (R, C) tile ``ref`` at the loop-variant offset ``o`` (:func:`_at`), reading only its first ``rows`` x
+    ``cols`` entries: the padding, zero in storage, comes as zeros without being loaded (the loads' bytes bound an
+    iteration at large batch)."""
+    R, C = ref.shape
+    r = jax.lax.broadcasted_iota(jnp.int32, (R, C), 0)
+    c = jax.lax.broadcasted_iota(jnp.int32, (R, C), 1)
+    return masked_load(ref, (pl.ds(o, R), pl.ds(0, C)), (r < rows) & (c < cols))
+
+
+def _operands(st, Ki_ref, W_ref, Si_ref, dims: Dims) -> _Operands:
+    """The :class:`_Operands` of the stage ``st`` (refs) and the factors; the matrices read at their real sizes."""
     lo, hi, rho = (lambda b, o, f=f: _at(f[b], o) for f in (st.lo, st.hi, st.rho))
     free = lambda b, o: _at(st.free[b], o) > 0.5  # noqa: E731
-    mats = (functools.partial(_at, r) for r in (st.P, Ki_ref, st.Ae, st.Ai, st.db, W_ref, Si_ref, st.q, st.le,
-                                                st.exe))
-    return _Operands(*mats, lo, hi, rho, free)
+    n, ne, mi = dims.n, dims.ne, dims.mi
+    mats = (functools.partial(_at_real, r, rows=a, cols=b) for r, a, b in (
+        (st.P, n, n), (Ki_ref, n, n), (st.Ae, ne, n), (st.Ai, mi, n)))
+    dense = (functools.partial(_at_real, r, rows=a, cols=b) for r, a, b in ((W_ref, n, ne), (Si_ref, ne, ne)))
+    vecs = (functools.partial(_at, r) for r in (st.q, st.le, st.exe))
+    return _Operands(*mats, functools.partial(_at, st.db), *dense, *vecs, lo, hi, rho, free)
 
 
 def _rows(ops: _Operands, x, o=0):
@@ -250,6 +264,6 @@ def iterate_kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every
     out = _Outputs(*refs[n_stage + 9:])
     Dc = st.Dc[...]
     Ei = [r[...] for r in st.Ei]
-    pg = _Program(_operands(st, Ki_ref, W_ref, Si_ref), s, dims, out, Dc, Ei, sync)
+    pg = _Program(_operands(st, Ki_ref, W_ref, Si_ref, dims), s, dims, out, Dc, Ei, sync)
     k, c = _iterations(pg, st, iters, max_iters, check_every)
     _finish(pg, st, k, c, l_refs, u_refs)
