@@ -178,8 +178,8 @@ def leave() -> None:
         return
     import jax
 
-    jax.config.update("jax_logging_level", "ERROR")  # Python and C++ loggers: errors still show
     try:
+        jax.config.update("jax_logging_level", "ERROR")  # Python and C++ loggers: errors still show
         jax.distributed.shutdown()
     except Exception:  # the command succeeded and wrote its results; a failed teardown does not undo that
         pass
