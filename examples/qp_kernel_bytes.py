@@ -60,10 +60,7 @@ def pallas_call(kernel, *args, **kwargs):
 def main(batch: int) -> None:
     if jax.default_backend() != "gpu":
         sys.exit("qp_kernel_bytes.py: needs a GPU (on a CPU the kernels run in Pallas' interpreter)")
-    rng = np.random.default_rng(3)
-    probs = [qp_problems.random_generic_qp(rng, n=56, m_eq=24, m_in=54) for _ in range(64)]
-    idx = np.arange(batch) % len(probs)
-    data = [jnp.asarray(np.stack([getattr(p, k) for p in probs])[idx], jnp.float32) for k in ("P", "q", "A", "l", "u")]
+    data = [jnp.asarray(x) for x in qp_problems.transport_sized(batch)]
     print(f"{jax.devices()[0].device_kind}, {batch} problems", flush=True)
     fused.pl.pallas_call, iterate._operands = pallas_call, operands
     try:

@@ -39,10 +39,7 @@ def held(st, Ki_ref, W_ref, Si_ref, dims):
 def main(batch: int, gpu_only: bool = True) -> None:
     if gpu_only and jax.default_backend() != "gpu":
         sys.exit("qp_kernel_warps.py: needs a GPU (on a CPU the kernels run in Pallas' interpreter, without warps)")
-    rng = np.random.default_rng(3)
-    probs = [qp_problems.random_generic_qp(rng, n=56, m_eq=24, m_in=54) for _ in range(64)]
-    idx = np.arange(batch) % len(probs)
-    data = [jnp.asarray(np.stack([getattr(p, k) for p in probs])[idx], jnp.float32) for k in ("P", "q", "A", "l", "u")]
+    data = [jnp.asarray(x) for x in qp_problems.transport_sized(batch)]
     print(f"{jax.devices()[0].device_kind}, {batch} problems", flush=True)
     for iters in (4, 16):
         s = QPSettings(iters=iters, max_iters=0, eps_abs=1e-4, eps_rel=1e-4, linsolve="inv", adapt_every=0, rho=3.0,

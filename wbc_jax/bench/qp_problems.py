@@ -302,6 +302,16 @@ def make_batch(seed: int, count: int, family: str = "mixed") -> QPProblem:
     return QPProblem(*(np.stack(f) for f in zip(*probs)))
 
 
+def transport_sized(batch: int, seed: int = 3, distinct: int = 64) -> QPData:
+    """``batch`` generic problems of the transport QP's size (56 variables, 24 equality and 54 inequality rows):
+    ``distinct`` of them (seed ``seed``) repeated in turn, float32, fields of shape (batch, ...) (the GPU kernel
+    studies' load)."""
+    rng = np.random.default_rng(seed)
+    probs = [random_generic_qp(rng, n=56, m_eq=24, m_in=54) for _ in range(distinct)]
+    idx = np.arange(batch) % distinct
+    return QPData(*(np.stack([getattr(p, k) for p in probs])[idx].astype(np.float32) for k in QPData._fields))
+
+
 class QPData(NamedTuple):
     """The data of a QP ``min 1/2 x'Px + q'x  s.t. l <= Ax <= u`` (no known solution), float64."""
 

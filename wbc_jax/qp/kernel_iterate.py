@@ -26,12 +26,12 @@ from wbc_jax.qp.kernel_layout import (
     Dims,
     entry,
     is_finite,
-    masked_load,
     matvec,
     read_blocks,
     read_rows,
     read_vec,
     rmatvec,
+    tile,
     write_rows,
     write_vec,
 )
@@ -91,26 +91,22 @@ def _at(ref, o):
     return ref[(pl.ds(o, ref.shape[0]),) + (slice(None),) * (len(ref.shape) - 1)]
 
 
-def _at_real(ref, o, rows: int, cols: int):
-    """The (R, C) tile ``ref`` at the loop-variant offset ``o`` (:func:`_at`), reading only its first ``rows`` x
-    ``cols`` entries: the padding, zero in storage, comes as zeros without being loaded (the loads' bytes bound an
-    iteration at large batch)."""
-    R, C = ref.shape
-    r = jax.lax.broadcasted_iota(jnp.int32, (R, C), 0)
-    c = jax.lax.broadcasted_iota(jnp.int32, (R, C), 1)
-    return masked_load(ref, (pl.ds(o, R), pl.ds(0, C)), (r < rows) & (c < cols))
-
-
 def _operands(st, Ki_ref, W_ref, Si_ref, dims: Dims) -> _Operands:
-    """The :class:`_Operands` of the stage ``st`` (refs) and the factors; the matrices read at their real sizes."""
+    """The :class:`_Operands` of the stage ``st`` (refs) and the factors. The matrices are read at their real sizes
+    (:func:`~.kernel_layout.tile` at the loop-variant offset): their padding, zero in storage, comes as zeros
+    without being loaded, since the loads' bytes bound an iteration at large batch."""
+    n, ne, mi = dims.n, dims.ne, dims.mi
+
+    def real(ref, rows: int, cols: int):
+        return lambda o: tile(ref, o, *ref.shape, rows, cols)
+
+    def at(ref):
+        return functools.partial(_at, ref)
+
     lo, hi, rho = (lambda b, o, f=f: _at(f[b], o) for f in (st.lo, st.hi, st.rho))
     free = lambda b, o: _at(st.free[b], o) > 0.5  # noqa: E731
-    n, ne, mi = dims.n, dims.ne, dims.mi
-    mats = (functools.partial(_at_real, r, rows=a, cols=b) for r, a, b in (
-        (st.P, n, n), (Ki_ref, n, n), (st.Ae, ne, n), (st.Ai, mi, n)))
-    dense = (functools.partial(_at_real, r, rows=a, cols=b) for r, a, b in ((W_ref, n, ne), (Si_ref, ne, ne)))
-    vecs = (functools.partial(_at, r) for r in (st.q, st.le, st.exe))
-    return _Operands(*mats, functools.partial(_at, st.db), *dense, *vecs, lo, hi, rho, free)
+    return _Operands(real(st.P, n, n), real(Ki_ref, n, n), real(st.Ae, ne, n), real(st.Ai, mi, n), at(st.db),
+                     real(W_ref, n, ne), real(Si_ref, ne, ne), at(st.q), at(st.le), at(st.exe), lo, hi, rho, free)
 
 
 def _rows(ops: _Operands, x, o=0):
