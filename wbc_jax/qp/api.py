@@ -60,10 +60,10 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
 
 
 def _warm_tuple(warm: Any):
-    """``(x, z, y, rho or None, iters or None)`` of a warm result (None: cold)."""
+    """``(x, z, y, rho or None)`` of a warm result (None: cold)."""
     if warm is None:
         return None
-    return (warm.x, warm.z, warm.y, getattr(warm, "rho", None), getattr(warm, "iters", None))
+    return (warm.x, warm.z, warm.y, getattr(warm, "rho", None))
 
 
 def _batched(fn, n_axes: int):

@@ -49,42 +49,7 @@ def solve_fused(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     else:
         wx, wz, wy = (jnp.asarray(v, dt) for v in warm[:3])
     rho = rules.warm_rho(None if warm is None else warm[3], s, dt)
-    solve = functools.partial(fused_solve, s=s, iters=iters, warm=warm is not None, ne=ne)
-    args = (P, A, q, l, u, wx, wz, wy, rho)
-    if warm is None or len(warm) < 5 or warm[4] is None:
-        return solve(*args)
-    return slowest_first(solve)(jnp.asarray(warm[4]), *args)
-
-
-def slowest_first(solve):
-    """``solve`` taking a leading ``priority`` argument: alone, ``solve(*args)``; under ``vmap``, the batch's problems
-    gathered in the order of decreasing ``priority`` (a stable sort: ties keep their order), solved as one batch, and
-    the results put back in the batch's order. Each problem's arithmetic is unchanged (results bit for bit); only
-    the order of the kernels' programs changes. Its use: ``priority`` the warm start's ADMM iterations, so that
-    problems which needed many iterations at the previous control step run first and beside each other (the
-    iterations kernel's programs stop at their own convergence)."""
-
-    @jax.custom_batching.custom_vmap
-    def ordered(priority, *args):
-        del priority
-        return solve(*args)
-
-    @ordered.def_vmap
-    def _rule(axis_size, in_batched, priority, *args):
-        p_batched, *batched = in_batched
-        axes = [0 if b else None for b in batched]
-        if not any(batched):
-            return solve(*args), jax.tree_util.tree_map(lambda _: False, jax.eval_shape(solve, *args))
-        if p_batched:
-            order = jnp.argsort(-priority, stable=True)
-            args = [a[order] if b else a for a, b in zip(args, batched)]
-        out = jax.vmap(solve, in_axes=axes)(*args)
-        if p_batched:
-            back = jnp.zeros_like(order).at[order].set(jnp.arange(axis_size, dtype=order.dtype))
-            out = jax.tree_util.tree_map(lambda v: v[back], out)
-        return out, jax.tree_util.tree_map(lambda _: True, out)
-
-    return ordered
+    return fused_solve(P, A, q, l, u, wx, wz, wy, rho, s=s, iters=iters, warm=warm is not None, ne=ne)
 
 
 def _pad_matrices(P, A, dims: Dims, interpret: bool):
