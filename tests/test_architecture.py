@@ -1,5 +1,6 @@
 """The package's shape: imports point one way (function-local imports included), MJX internals stay in one adapter
-module, the controllers import no simulator, and the code carries no lab notebook.
+module, the controllers import no simulator, the code carries no lab notebook, and the docs' pages of the current
+state (performance, results) stay pages, not diaries.
 
 The import graph is read from the sources with ``ast`` (every ``import`` and ``from ... import`` at any depth), so a
 function-local import that closes a circle is found like a top-level one.
@@ -38,6 +39,7 @@ NOTEBOOK = re.compile("(" + "|".join(["H1" "00", "H2" "00", r"20[0-9]{2}-[0-9]{2
 TESTS = PKG.parent / "tests"
 MAX_MODULE_LINES = 400
 MAX_FUNCTION_LINES = 80
+DOC_PAGE_BYTES = 25_000  # docs/performance.md and docs/results.md: a page of the current state each
 
 
 def _modules() -> dict[str, Path]:
@@ -162,3 +164,10 @@ def test_module_and_function_sizes():
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
             and node.end_lineno - node.lineno + 1 > MAX_FUNCTION_LINES]
     assert not big and not long, big + long
+
+
+def test_current_state_pages_stay_short():
+    """docs/performance.md and docs/results.md describe the current state, each at most DOC_PAGE_BYTES; the history
+    goes to CHANGELOG.md and git."""
+    sizes = {name: len((PKG.parent / "docs" / name).read_bytes()) for name in ("performance.md", "results.md")}
+    assert all(n <= DOC_PAGE_BYTES for n in sizes.values()), sizes
