@@ -172,28 +172,34 @@ def _termination(pg: _Program, x, ax, z, y):
 
 def _iterations(pg: _Program, st, iters: int, max_iters: int, check_every: int):
     """``iters`` steps from the stage's start, then blocks of ``check_every`` while unconverged, up to
-    ``max_iters``: ``(k, carry)``, the steps run (() int32) and the final ``(x, ax, z, y, bad)``."""
+    ``max_iters``: ``(k, carry)``, the steps run (() int32) and the final ``(x, ax, z, y, bad)``.
+
+    One loop of blocks, the fixed steps its first block, each block starting with :func:`_block_start` and the
+    test after it: the step and the test are each emitted once in the kernel (a second copy of the step, in a
+    loop of its own before the blocks, made every block's iterations slower)."""
     x0 = st.x[...]
     z0, y0 = [r[...] for r in st.z], [r[...] for r in st.y]
     write_vec(pg.out.x, jnp.zeros_like(x0), pg.dims.n)  # no step yet: zero deltas
     write_rows(pg.out.y, pg.dims, [jnp.zeros_like(v) for v in y0])
     pg.sync()  # before any step's deltas (a step's vectors may sit on other threads than these zeros)
     step = lambda _, c: _step(pg, c)  # noqa: E731
-    c = _block_start(pg.ops, x0, (z0, y0, jnp.zeros((), x0.dtype)))
-    c = jax.lax.fori_loop(0, iters, step, c)
-    k = jnp.int32(iters)
-    if max_iters > iters:
-        def unconverged(w):
-            k, c = w
-            x, ax, z, y, bad = c
-            return (k < max_iters) & (bad == 0.0) & jnp.logical_not(_termination(pg, x, ax, z, y)[2])
+    if max_iters <= iters:
+        c = _block_start(pg.ops, x0, (z0, y0, jnp.zeros((), x0.dtype)))
+        return jnp.int32(iters), jax.lax.fori_loop(0, iters, step, c)
 
-        def block(w):
-            k, c = w
-            active = jnp.minimum(check_every, max_iters - k)
-            return k + active, jax.lax.fori_loop(0, active, step, _block_start(pg.ops, c[0], c[2:]))
+    def unconverged(w):
+        k, c, done = w
+        return (k < max_iters) & (c[4] == 0.0) & (done == 0)
 
-        k, c = jax.lax.while_loop(unconverged, block, (k, c))
+    def block(w):
+        k, c, _ = w
+        n = jnp.where(k == 0, iters, jnp.minimum(check_every, max_iters - k))
+        c = jax.lax.fori_loop(0, n, step, _block_start(pg.ops, c[0], c[2:]))
+        x, ax, z, y, _ = c
+        return k + n, c, _termination(pg, x, ax, z, y)[2].astype(jnp.int32)
+
+    c = (x0, [jnp.zeros_like(v) for v in z0], z0, y0, jnp.zeros((), x0.dtype))  # ax: set by the block's start
+    k, c, _ = jax.lax.while_loop(unconverged, block, (jnp.int32(0), c, jnp.int32(0)))
     return k, c
 
 

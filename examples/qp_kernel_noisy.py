@@ -1,0 +1,76 @@
+"""The fused QP kernels on the campaign's own noisy QPs: a GPU study of where the iterations kernel's time goes.
+
+    python examples/qp_kernel_noisy.py --record FILE.npz [K]      (CPU: record K solves, default 1024)
+    python examples/qp_kernel_noisy.py FILE.npz [BATCH] [VARIANT ...]   (GPU; BATCH default 16384)
+
+``--record`` runs the paper campaign's first 1.5 s cut to 8 runs (``examples/qp_settings_study.py``: its velocity
+noise and pushes, the campaign's QP settings) and saves K of its control-step QPs with their warm starts, drawn
+at random (seed 0). On a GPU the K problems are repeated to BATCH and solved from their warm starts by the fused
+kernels under the campaign's settings and each VARIANT (``field=value`` of :class:`wbc_jax.qp.QPSettings`,
+comma-separated); each prints the best of 7 calls after the compile and the mean ADMM iterations. Fixed counts
+(``iters=K,max_iters=0``) give an iteration's cost without the convergence test; the campaign's settings (4
+iterations, then blocks of 4 with a test each) against them give the test's and the block restarts' share.
+"""
+
+import functools
+import json
+import sys
+import time
+
+import numpy as np
+
+FIELDS = ("P", "q", "A", "l", "u", "wx", "wz", "wy", "wrho")
+
+
+def record(path: str, k: int) -> None:
+    """Record the study's solves and save ``k`` of them, with the settings, to ``path``."""
+    sys.path.insert(0, "examples")
+    import qp_settings_study as study
+
+    problems, settings = study.record(study.small_spec())
+    pick = np.random.default_rng(0).choice(len(problems["P"]), size=min(k, len(problems["P"])), replace=False)
+    np.savez_compressed(path, settings=json.dumps(settings._asdict()),
+                        **{f: np.asarray(problems[f][pick], np.float32) for f in FIELDS})
+    print(f"{len(pick)} of {len(problems['P'])} recorded solves saved to {path}")
+
+
+def main(path: str, batch: int, variants: list[str]) -> None:
+    import jax
+    import jax.numpy as jnp
+
+    from wbc_jax.qp import QPResult, QPSettings, solve_qp
+
+    if jax.default_backend() != "gpu":
+        sys.exit("qp_kernel_noisy.py: timing needs a GPU (on a CPU the kernels run in Pallas' interpreter)")
+    f = np.load(path)
+    base = QPSettings(**{**json.loads(str(f["settings"])), "linsolve": "inv", "kernel": "fused"})
+    reps = -(-batch // len(f["P"]))
+    data = [jnp.asarray(np.concatenate([f[k]] * reps)[:batch]) for k in FIELDS]
+    print(f"{jax.devices()[0].device_kind}, {batch} problems ({len(f['P'])} recorded, repeated)", flush=True)
+
+    def solve(P, q, A, l, u, wx, wz, wy, wrho, s):
+        return solve_qp(P, q, A, l, u, warm=QPResult(wx, wy, wz, 0.0, 0.0, 0, 0, wrho), settings=s)
+
+    for variant in ["", *variants]:
+        change = {}
+        for item in filter(None, variant.split(",")):
+            key, value = item.split("=")
+            change[key] = type(getattr(base, key))(float(value))
+        s = base._replace(**change)
+        fn = jax.jit(functools.partial(solve, s=s))
+        out = jax.block_until_ready(fn(*data))
+        times = []
+        for _ in range(7):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(*data))
+            times.append(time.perf_counter() - t0)
+        it, flagged = np.asarray(out.iters), int((np.asarray(out.flag) != 0).sum())
+        print(f"{variant or 'campaign settings':36s} {1e3 * min(times):8.3f} ms  iterations mean {it.mean():6.2f} "
+              f"p50 {np.median(it):3.0f} p99 {np.percentile(it, 99):3.0f}  flagged {flagged}", flush=True)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "--record":
+        record(sys.argv[2], int(sys.argv[3]) if len(sys.argv) > 3 else 1024)
+    else:
+        main(sys.argv[1], int(sys.argv[2]) if len(sys.argv) > 2 else 16384, sys.argv[3:])
