@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-FIELDS = ("P", "q", "A", "l", "u", "wx", "wz", "wy", "wrho")
+FIELDS = ("P", "q", "A", "l", "u", "wx", "wz", "wy", "wrho", "wk")
 
 
 def record(path: str, k: int) -> None:
@@ -30,7 +30,7 @@ def record(path: str, k: int) -> None:
     problems, settings = study.record(study.small_spec())
     pick = np.random.default_rng(0).choice(len(problems["P"]), size=min(k, len(problems["P"])), replace=False)
     np.savez_compressed(path, settings=json.dumps(settings._asdict()),
-                        **{f: np.asarray(problems[f][pick], np.float32) for f in FIELDS})
+                        **{f: np.asarray(problems[f][pick], np.int32 if f == "wk" else np.float32) for f in FIELDS})
     print(f"{len(pick)} of {len(problems['P'])} recorded solves saved to {path}")
 
 
@@ -48,8 +48,8 @@ def main(path: str, batch: int, variants: list[str]) -> None:
     data = [jnp.asarray(np.concatenate([f[k]] * reps)[:batch]) for k in FIELDS]
     print(f"{jax.devices()[0].device_kind}, {batch} problems ({len(f['P'])} recorded, repeated)", flush=True)
 
-    def solve(P, q, A, l, u, wx, wz, wy, wrho, s):
-        return solve_qp(P, q, A, l, u, warm=QPResult(wx, wy, wz, 0.0, 0.0, 0, 0, wrho), settings=s)
+    def solve(P, q, A, l, u, wx, wz, wy, wrho, wk, s):
+        return solve_qp(P, q, A, l, u, warm=QPResult(wx, wy, wz, 0.0, 0.0, 0, wk, wrho), settings=s)
 
     for variant in ["", *variants]:
         change = {}

@@ -425,6 +425,56 @@ def test_fused_kernel_equals_xla_iterations(eq_rows, max_iters, box):
         assert np.mean(np.asarray(ref_w.iters)) < np.mean(np.asarray(ref.iters))  # the warm start was used
 
 
+def _first_test_case(kernel: str):
+    """6 cold WBC problems with the extension (10 fixed iterations, blocks of 10), then the same perturbed by 0.01 %
+    (most converge in 10 iterations) warm-started from the cold results with ``warm_first_test`` 0 and -1, float64:
+    (cold iterations, results with 0, with -1, settings)."""
+    b = pr.make_batch(3, 6, "wbc")
+    bp = pr.QPProblem(*pr.perturb(b, 4, 1e-4), b.x, b.y, b.f)
+    s = control_qp_settings(10, eq_rows=EXACT_ROWS, eps_abs=1e-6, eps_rel=1e-6, linsolve="inv", max_iters=200,
+                            check_every=10, kernel=kernel)
+    with jax.enable_x64(True):
+        data, data_p = ([jnp.asarray(a, jnp.float64) for a in p[:5]] for p in (b, bp))
+        cold = solve_qp(*data, settings=s)
+        on = solve_qp(*data_p, warm=cold, settings=s._replace(warm_first_test=0))
+        off = solve_qp(*data_p, warm=cold, settings=s)
+        cold_on = solve_qp(*data, settings=s._replace(warm_first_test=0))
+    assert all(np.array_equal(np.asarray(a), np.asarray(c)) for a, c in zip(cold, cold_on))  # cold: no change
+    return np.asarray(cold.iters), on, off, s
+
+
+def test_warm_first_test_tests_after_the_predecessors_iterations():
+    """QPSettings.warm_first_test (XLA path): a warm-started solve's first convergence test comes after the warm
+    result's iterations minus the setting, in whole blocks from ``iters``, at least ``iters`` and at most
+    FIRST_TEST_BLOCKS blocks more (hand-computed per problem), so no solve stops earlier; every solve still
+    converges; a cold solve is unchanged; settings it cannot serve are refused with a line naming it."""
+    from wbc_jax.qp.settings import FIRST_TEST_BLOCKS
+
+    wk, on, off, s = _first_test_case("xla")
+    first = np.clip(10 + (wk - 10) // 10 * 10, 10, 10 + FIRST_TEST_BLOCKS * 10)
+    it_on, it_off = np.asarray(on.iters), np.asarray(off.iters)
+    assert np.any(first > 10) and np.any(it_off < first)  # the case exercises a later first test
+    assert np.all(it_on >= first) and np.all((it_on - first) % 10 == 0)
+    assert np.all(it_on >= it_off) and np.all(np.asarray(on.flag) == 0)
+    for bad in (dict(warm_first_test=-2), dict(warm_first_test=0, adapt_every=5)):
+        with pytest.raises(ValueError, match="warm_first_test"):
+            solve_qp(*[jnp.zeros((2, 2)), jnp.zeros(2), jnp.eye(2), -jnp.ones(2), jnp.ones(2)],
+                     settings=s._replace(**bad))
+
+
+@pytest.mark.slow  # the Pallas interpreter's compiles
+def test_warm_first_test_fused_equals_xla():
+    """QPSettings.warm_first_test in the fused kernels (Pallas interpreter, float64) gives the XLA path's
+    iterations, flags and iterate."""
+    _, ref, _, _ = _first_test_case("xla")
+    _, fus, _, _ = _first_test_case("fused")
+    np.testing.assert_array_equal(np.asarray(fus.iters), np.asarray(ref.iters))
+    np.testing.assert_array_equal(np.asarray(fus.flag), np.asarray(ref.flag))
+    for k, scale in (("x", "x"), ("y", "y"), ("z", "z"), ("prim_res", "z"), ("dual_res", "y")):  # residuals: rounding
+        a, c = np.asarray(getattr(ref, k)), np.asarray(getattr(fus, k))                          # of their rows
+        assert np.max(np.abs(a - c)) <= 1e-9 * np.max(np.abs(np.asarray(getattr(ref, scale)))) + 1e-15, k
+
+
 def test_fused_kernel_flags():
     """The fused path's flags (Pallas interpreter, float64) equal the XLA path's and the expected ones on small
     problems: contradictory equalities and an empty box (primal infeasible), an unbounded cost (dual infeasible),

@@ -32,7 +32,7 @@ from jax import lax
 from wbc_jax.qp import rules
 from wbc_jax.qp.polish import polish
 from wbc_jax.qp.scaling import Scaled, all_finite, equilibrate, factor, mv, regularize_schur, solve
-from wbc_jax.qp.settings import BIG, QPResult, QPSettings
+from wbc_jax.qp.settings import BIG, FIRST_TEST_BLOCKS, QPResult, QPSettings
 
 
 class State(NamedTuple):
@@ -160,8 +160,9 @@ def _factor_parts(sp: Scaled, w, free, ex, s: QPSettings, ne: int):
         return K0, G, (sp.A[:ne] * ex[:ne, None] if ne > 0 else None)
 
 
-def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
-    """``iters`` iterations in segments of ``adapt_every`` with a refactorization in between.
+def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int, first=None):
+    """``iters`` iterations in segments of ``adapt_every`` with a refactorization in between; with ``first`` (()
+    int32, one factorization per solve) ``first`` iterations instead (:func:`wbc_jax.qp.rules.first_block`).
 
     Returns:
         ``(st, rho, cont)``: the iterate, the (adapted) rho for the next solve, and ``cont(st, length, active)``,
@@ -192,7 +193,10 @@ def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
     with jax.named_scope("qp_iterations"):
         if k == iters:  # one factorization per solve (the control loops' setting)
             kkt, rho_v = make_kkt(rho)
-            st = iterate(st, kkt, rho_v, iters)
+            if first is None:
+                st = iterate(st, kkt, rho_v, iters)
+            else:
+                st = iterate(st, kkt, rho_v, iters + FIRST_TEST_BLOCKS * s.check_every, first)
             if s.adapt_every > 0:
                 rho = _adapt(sp, st, rho, s)
             return st, rho, lambda st, length, active: iterate(st, kkt, rho_v, length, active)
@@ -210,14 +214,15 @@ def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int):
         return st, rho, lambda st, length, active: iterate(st, *make_kkt(rho), length, active)
 
 
-def _extend(P, q, A, sp: Scaled, st: State, cont, s: QPSettings, iters: int):
+def _extend(P, q, A, sp: Scaled, st: State, cont, s: QPSettings, iters: int, first=None):
     """The convergence-checked extension (``QPSettings.max_iters``): blocks of ``check_every`` iterations
-    (``cont`` from :func:`_run`) while outside tolerance, the last block cut at ``max_iters``.
+    (``cont`` from :func:`_run`) while outside tolerance, the last block cut at ``max_iters``; ``first``: the
+    iterations run before it when not ``iters``.
 
     Returns:
         ``(st, n_it)``: the iterate and () int32 the iterations run in all.
     """
-    n_it = jnp.asarray(iters, jnp.int32)
+    n_it = jnp.asarray(iters if first is None else first, jnp.int32)
     if s.max_iters <= iters:
         return st, n_it
 
@@ -291,7 +296,7 @@ def solve_xla(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
 
     Args:
         P: (n, n), q: (n,), A: (m, n), l, u: (m,) the problem.
-        warm: None (cold) or ``(x, z, y, rho or None)`` in the user's units.
+        warm: None (cold) or ``(x, z, y, rho or None[, iters or None])`` in the user's units.
         s: the settings (``"auto"`` choices made); iters: the fixed iterations.
     """
     dt = P.dtype
@@ -302,8 +307,10 @@ def solve_xla(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     free, eq, ex = row_kinds(sp, l, u, s)
     rho = rules.warm_rho(None if warm is None else warm[3], s, dt)
     st, w = _start(sp, warm, eq, free, ex, s, dt)
-    st, rho, cont = _run(sp, st, rho, w, free, ex, s, iters)
-    st, n_it = _extend(P, q, A, sp, st, cont, s, iters)
+    wk = warm[4] if warm is not None and len(warm) > 4 else None
+    first = rules.first_block(wk, s, iters) if wk is not None and s.warm_first_test >= 0 else None
+    st, rho, cont = _run(sp, st, rho, w, free, ex, s, iters, first)
+    st, n_it = _extend(P, q, A, sp, st, cont, s, iters, first)
     if s.polish:
         x, z, y = polish(sp, st.x, st.z, st.y, eq, free, s)
         st = st._replace(x=x, z=z, y=y)

@@ -59,11 +59,13 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     return solve_xla(P, q, A, l, u, warm, s, iters)
 
 
-def _warm_tuple(warm: Any):
-    """``(x, z, y, rho or None)`` of a warm result (None: cold)."""
+def _warm_tuple(warm: Any, s: QPSettings):
+    """``(x, z, y, rho or None, iters or None)`` of a warm result (None: cold); ``iters`` only where
+    ``s.warm_first_test`` uses it."""
     if warm is None:
         return None
-    return (warm.x, warm.z, warm.y, getattr(warm, "rho", None))
+    iters = getattr(warm, "iters", None) if s.warm_first_test >= 0 else None
+    return (warm.x, warm.z, warm.y, getattr(warm, "rho", None), iters)
 
 
 def _batched(fn, n_axes: int):
@@ -105,6 +107,9 @@ def resolve_settings(s: QPSettings, iters: int, dtype, backend: str) -> QPSettin
     if s.kernel == "fused" and (not one_factor or s.polish):
         raise ValueError(f"QPSettings.kernel='fused' needs one factorization per solve (adapt_every 0 or >= iters) "
                          f"and polish=False, got adapt_every={s.adapt_every}, iters={iters}, polish={s.polish}")
+    if s.warm_first_test < -1 or (s.warm_first_test >= 0 and not one_factor):
+        raise ValueError(f"QPSettings.warm_first_test must be -1 or >= 0 with one factorization per solve "
+                         f"(adapt_every 0 or >= iters), got {s.warm_first_test} with adapt_every={s.adapt_every}")
     if s.kernel == "fused" and backend != "cpu" and not f32:
         raise ValueError(f"QPSettings.kernel='fused' runs float32 problems on a {backend.upper()} (its Triton "
                          f"kernels), got {jnp.dtype(dtype).name}; use kernel='auto' or 'xla'")
@@ -150,4 +155,4 @@ def solve_qp(P, q, A, l, u, *, iters: int | None = None, warm: Any = None,
     m, n = jnp.shape(A)[-2:]
     _check_rows(s, it, m, n)
     P = jnp.asarray(P)
-    return _solve_jit(P, q, A, l, u, _warm_tuple(warm), iters=it, settings=s)
+    return _solve_jit(P, q, A, l, u, _warm_tuple(warm, s), iters=it, settings=s)

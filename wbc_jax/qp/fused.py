@@ -49,7 +49,9 @@ def solve_fused(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     else:
         wx, wz, wy = (jnp.asarray(v, dt) for v in warm[:3])
     rho = rules.warm_rho(None if warm is None else warm[3], s, dt)
-    return fused_solve(P, A, q, l, u, wx, wz, wy, rho, s=s, iters=iters, warm=warm is not None, ne=ne)
+    wk = warm[4] if warm is not None and len(warm) > 4 else None
+    first = rules.first_block(wk, s, iters) if wk is not None and s.warm_first_test >= 0 else None
+    return fused_solve(P, A, q, l, u, wx, wz, wy, rho, first, s=s, iters=iters, warm=warm is not None, ne=ne)
 
 
 def _pad_matrices(P, A, dims: Dims, interpret: bool):
@@ -84,7 +86,7 @@ def _compiler_params(interpret: bool, num_warps: int, factor_warps: int):
 
 
 @functools.partial(jax.jit, static_argnames=("s", "iters", "warm", "ne", "num_warps", "factor_warps"))
-def fused_solve(P, A, q, l, u, wx, wz, wy, rho, *, s: QPSettings, iters: int, warm: bool, ne: int,
+def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, *, s: QPSettings, iters: int, warm: bool, ne: int,
                 num_warps: int = 2, factor_warps: int = 2) -> QPResult:
     """One QP solved by the three kernels.
 
@@ -95,6 +97,8 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, *, s: QPSettings, iters: int, wa
         l, u: (m,) bounds (finite, ``+-BIG``).
         wx: (n,), wz, wy: (m,) the warm start (user's units; ignored when ``warm`` is False).
         rho: () the solve's rho (:func:`wbc_jax.qp.rules.warm_rho`).
+        first: None, or () int32 the iterations before the first convergence test
+            (:func:`wbc_jax.qp.rules.first_block`; None: ``iters``).
         s: the solver's settings; iters: the fixed iterations; warm: start from ``wx, wz, wy``; ne: the exact
             block's rows.
         num_warps, factor_warps: Triton warps per program of the preparation and iterations kernels, and of the
@@ -126,11 +130,13 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, *, s: QPSettings, iters: int, wa
             out_shape=[sd(N, N), sd(N, NE), sd(NE, NE)], name="admm_factor",
         )(st.P, st.Ae, st.Ai, st.kd, st.rho[0], st.rho[1], st.exe)
     kern = functools.partial(iterate_kernel, s=s, iters=iters, max_iters=max(s.max_iters, iters),
-                             check_every=max(s.check_every, 1), treedef=treedef, dims=dims, sync=sync)
+                             check_every=max(s.check_every, 1), treedef=treedef, dims=dims, sync=sync,
+                             first=first is not None)
+    extra = [] if first is None else [jnp.reshape(first, (1,)).astype(jnp.int32)]
     with jax.named_scope("qp_iterations"):
         i1 = jax.ShapeDtypeStruct((1,), jnp.int32)
         x, z, y, flag, k, prim, dual, rho_out = pl.pallas_call(
             kern, out_shape=[sd(n), sd(m), sd(m), i1, i1, sd(1), sd(1), sd(1)], interpret=interpret,
             compiler_params=params, name="admm_iterations",
-        )(*jax.tree_util.tree_leaves(st), *factors, *lb, *ub)
+        )(*jax.tree_util.tree_leaves(st), *factors, *lb, *ub, *extra)
     return QPResult(x=x, y=y, z=z, prim_res=prim[0], dual_res=dual[0], flag=flag[0], iters=k[0], rho=rho_out[0])

@@ -170,13 +170,14 @@ def _termination(pg: _Program, x, ax, z, y):
                              matvec(ops.P(0), x) * Dc, _rows_t(ops, y) * Dc, ops.q(0) * Dc, pg.s)
 
 
-def _iterations(pg: _Program, st, iters: int, max_iters: int, check_every: int):
+def _iterations(pg: _Program, st, iters: int, max_iters: int, check_every: int, first=None):
     """``iters`` steps from the stage's start, then blocks of ``check_every`` while unconverged, up to
     ``max_iters``: ``(k, carry)``, the steps run (() int32) and the final ``(x, ax, z, y, bad)``.
 
     One loop of blocks, the fixed steps its first block, each block starting with :func:`_block_start` and the
     test after it: the step and the test are each emitted once in the kernel (a second copy of the step, in a
-    loop of its own before the blocks, made every block's iterations slower)."""
+    loop of its own before the blocks, made every block's iterations slower). ``first`` (() int32): the first
+    block's length when not ``iters`` (``QPSettings.warm_first_test``)."""
     x0 = st.x[...]
     z0, y0 = [r[...] for r in st.z], [r[...] for r in st.y]
     write_vec(pg.out.x, jnp.zeros_like(x0), pg.dims.n)  # no step yet: zero deltas
@@ -193,7 +194,7 @@ def _iterations(pg: _Program, st, iters: int, max_iters: int, check_every: int):
 
     def block(w):
         k, c, _ = w
-        n = jnp.where(k == 0, iters, jnp.minimum(check_every, max_iters - k))
+        n = jnp.where(k == 0, iters if first is None else first, jnp.minimum(check_every, max_iters - k))
         c = jax.lax.fori_loop(0, n, step, _block_start(pg.ops, c[0], c[2:]))
         x, ax, z, y, _ = c
         return k + n, c, _termination(pg, x, ax, z, y)[2].astype(jnp.int32)
@@ -250,12 +251,14 @@ def _finish(pg: _Program, st, k, c, l_refs, u_refs) -> None:
     out.rho[...] = rules.clean(one + rho_out, s.rho, fmax)  # NaN rho: the settings' rho
 
 
-def iterate_kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, treedef, dims: Dims, sync):
+def iterate_kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every: int, treedef, dims: Dims, sync,
+                   first: bool = False):
     """One problem's solve from its stage and factors (module docstring).
 
     Args:
         refs: the stage's leaves (``treedef``), the factors ``Ki``, ``W``, ``Si``, the user's bounds ``l`` and
-            ``u`` as their three blocks each (for the certificates), then the outputs (:class:`_Outputs`).
+            ``u`` as their three blocks each (for the certificates), with ``first`` the first block's length (1,)
+            int32, then the outputs (:class:`_Outputs`).
         s: the settings; iters, max_iters, check_every: the fixed steps, the cap and the block length.
         dims: the real sizes; sync: ``__syncthreads`` on a GPU, :func:`~.kernel_layout.no_sync` in the interpreter.
     """
@@ -263,9 +266,10 @@ def iterate_kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every
     st = jax.tree_util.tree_unflatten(treedef, refs[:n_stage])
     Ki_ref, W_ref, Si_ref = refs[n_stage:n_stage + 3]
     l_refs, u_refs = refs[n_stage + 3:n_stage + 6], refs[n_stage + 6:n_stage + 9]
-    out = _Outputs(*refs[n_stage + 9:])
+    first_len = jnp.sum(refs[n_stage + 9][...]).astype(jnp.int32) if first else None
+    out = _Outputs(*refs[n_stage + 9 + int(first):])
     Dc = st.Dc[...]
     Ei = [r[...] for r in st.Ei]
     pg = _Program(_operands(st, Ki_ref, W_ref, Si_ref, dims), s, dims, out, Dc, Ei, sync)
-    k, c = _iterations(pg, st, iters, max_iters, check_every)
+    k, c = _iterations(pg, st, iters, max_iters, check_every, first_len)
     _finish(pg, st, k, c, l_refs, u_refs)

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 from wbc_jax.qp.scaling import Scaled, absmax, mv
 from wbc_jax.qp.settings import (
     BIG,
+    FIRST_TEST_BLOCKS,
     FLAG_DUAL_INFEASIBLE,
     FLAG_MAX_ITER,
     FLAG_NONFINITE,
@@ -52,6 +53,15 @@ def warm_rho(wr, s: QPSettings, dt):
     ``QPSettings.rho`` where there is none or it is not finite."""
     rho = jnp.asarray(s.rho if wr is None else wr, dt)
     return jnp.where(jnp.isfinite(rho), jnp.clip(rho, s.rho_min, s.rho_max), s.rho)
+
+
+def first_block(wk, s: QPSettings, iters: int):
+    """() int32, the iterations before a solve's first convergence test (:class:`~wbc_jax.qp.QPSettings`
+    ``warm_first_test``) from the warm result's iterations ``wk`` (None: cold, ``iters``)."""
+    if wk is None or s.warm_first_test < 0 or s.max_iters <= iters:
+        return jnp.int32(iters)
+    blocks = (jnp.asarray(wk, jnp.int32) - s.warm_first_test - iters) // s.check_every
+    return iters + jnp.clip(blocks, 0, FIRST_TEST_BLOCKS) * s.check_every
 
 
 def active_rows(y, dt):

@@ -24,6 +24,7 @@ FLAG_DUAL_INFEASIBLE = 3
 FLAG_NONFINITE = 4
 
 BIG = 1e20  # stands for an infinite bound inside the solver
+FIRST_TEST_BLOCKS = 3  # QPSettings.warm_first_test: the first block at most iters + this many blocks
 
 LINSOLVES = ("chol", "inv", "auto")
 KERNELS = ("xla", "fused", "auto")
@@ -74,6 +75,12 @@ class QPSettings(NamedTuple):
             ``vmap`` the XLA path runs the blocks until the batch's slowest problem has converged, converged
             problems keeping their result (default 0).
         check_every: iterations per block of the extension, one convergence test each (default 10).
+        warm_first_test: with ``max_iters > iters``, a warm start that carries its solve's iterations (a
+            ``QPResult``) and ``>= 0``: the first test comes after that count minus ``warm_first_test``, in whole
+            blocks of ``check_every`` from ``iters``, at least ``iters``, at most ``iters`` plus
+            :data:`FIRST_TEST_BLOCKS` blocks, the first block one projection and its iterations; a solve near its
+            predecessor (a control loop's) needs about as many iterations, so fewer tests run. -1: the first test
+            after ``iters`` (default -1).
         kernel: ``"xla"`` (XLA ops, :mod:`wbc_jax.qp.admm`), ``"fused"`` (three Pallas kernels of one program per
             problem, :mod:`wbc_jax.qp.fused`; needs one factorization per solve and no polishing; rho is then
             re-estimated from the final iterate) or ``"auto"`` (fused on a GPU for float32 where that holds, else
@@ -106,6 +113,7 @@ class QPSettings(NamedTuple):
     box_rows: int = 0
     max_iters: int = 0
     check_every: int = 10
+    warm_first_test: int = -1
     kernel: str = "xla"
 
 
