@@ -59,6 +59,21 @@ def test_paper_spec_hashes_unchanged(rel):
     assert list(s.factors) == ["m", "mu", "d"]
 
 
+def test_qp_first_test_key_default_hash_and_sim():
+    """campaign.qp_first_test: -1 by default, hash-neutral there (existing specs, baselines and checkpoints keep
+    their hash), another value changes the hash, is refused outside -1..1000 with a line naming the key, and
+    reaches the controller's QP settings (QPSettings.warm_first_test) of the campaign's Sim."""
+    from wbc_jax.campaign.build import _sim
+
+    base = dict(factors=dict(m=[0.2, 0.3], mu=[0.4, 1.0], d=[0.06, 0.1]))
+    s0, s1, s2 = (parse_spec(dict(base, campaign=c)) for c in ({}, dict(qp_first_test=-1), dict(qp_first_test=0)))
+    assert s0.campaign["qp_first_test"] == -1 and s0.hash == s1.hash != s2.hash
+    with pytest.raises(SpecError, match="campaign.qp_first_test"):
+        parse_spec(dict(base, campaign=dict(qp_first_test=-2)))
+    assert _sim("flat", 4, first_test=0).cfg.qp.warm_first_test == 0
+    assert _sim("flat", 4).cfg.qp.warm_first_test == -1
+
+
 def test_shipped_studies_load():
     abl, rob = load_spec(SWEEPS / "ablation.toml"), load_spec(SWEEPS / "robustness.toml")
     assert abl.factors["variant"] == ["full", "no_tray_cone", "no_observer", "no_posture"]

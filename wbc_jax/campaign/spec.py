@@ -16,6 +16,8 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     extra_seconds = 0.5        # simulated time after the planned path ends [s], 0..10
     max_seconds = 0.0          # cap on the simulated time [s] (0: no cap; a capped run stops mid-path), 0..600
     qp_iters = 4               # ADMM iterations per control step before the convergence checks (up to 200), 1..1000
+    qp_first_test = -1         # >= 0: a control step's first convergence check after the last step's iterations
+                               # minus this (QPSettings.warm_first_test; fewer checks under noise); -1: after qp_iters
     control_substeps = 1       # physics steps per control step (zero-order hold), 1..10; 1 = control at the
                                # physics rate (the control period is this x the scene's timestep; the metrics'
                                # physics-rate monitors still run every physics step, see wbc_jax.rollout.step)
@@ -101,6 +103,9 @@ CAMPAIGN = {
     "extra_seconds": (float, 0.5, 0.0, 10.0, False, "[s]"),
     "max_seconds": (float, 0.0, 0.0, 600.0, False, "[s], 0 = no cap"),
     "qp_iters": (int, 4, 1, 1000, False, "ADMM iterations before the convergence checks"),
+    "qp_first_test": (int, -1, -1, 1000, False,
+                      "the first convergence check after the last control step's iterations minus this; -1: after "
+                      "qp_iters"),
     "control_substeps": (int, 1, 1, 10, False,
                          "physics steps per control step (zero-order hold); 1 = control at the physics rate"),
     "chunk_seconds": (float, 2.0, 0.02, 60.0, False, "[s]"),
@@ -166,7 +171,8 @@ _HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_
                                "d": 0.08, "ground_mu": 0.0, "variant": "full", "terrain": "known",
                                "com_plan": "spline", "sensing": "auto",
                                "obj_accel": 0.0, "cone": "scene", "impratio": 0.0, "controller": "transport",
-                               "mass_error": 0.0, "walk_seconds": 10.0, "step_time": 0.25, "four_foot": 0.08},
+                               "mass_error": 0.0, "walk_seconds": 10.0, "step_time": 0.25, "four_foot": 0.08,
+                               "qp_first_test": -1},
                  "perturbations": {"push_dir_deg": 0.0}}
 
 

@@ -57,11 +57,11 @@ def warm_rho(wr, s: QPSettings, dt):
 
 def first_block(wk, s: QPSettings, iters: int):
     """() int32, the iterations before a solve's first convergence test (:class:`~wbc_jax.qp.QPSettings`
-    ``warm_first_test``) from the warm result's iterations ``wk`` (None: cold, ``iters``)."""
+    ``warm_first_test``) from the warm result's iterations ``wk`` (None: cold, ``iters``), at most ``max_iters``."""
     if wk is None or s.warm_first_test < 0 or s.max_iters <= iters:
         return jnp.int32(iters)
     blocks = (jnp.asarray(wk, jnp.int32) - s.warm_first_test - iters) // s.check_every
-    return iters + jnp.clip(blocks, 0, FIRST_TEST_BLOCKS) * s.check_every
+    return jnp.minimum(iters + jnp.clip(blocks, 0, FIRST_TEST_BLOCKS) * s.check_every, s.max_iters)
 
 
 def active_rows(y, dt):

@@ -38,6 +38,10 @@ CAMPAIGN_MEANING = {
     "extra_seconds": "simulated time after the planned path ends",
     "max_seconds": "cap on the simulated time (a capped run stops mid-path)",
     "qp_iters": "ADMM iterations per control step (static: one compile per value)",
+    "qp_first_test": "`QPSettings.warm_first_test` of the controller's QP: >= 0, a control step's first convergence "
+                     "check comes after the previous step's ADMM iterations minus this (in blocks of 4, at most 12 "
+                     "past `qp_iters`): fewer checks where each step needs about as many iterations as the last "
+                     "(velocity noise; docs/performance.md); -1 checks after `qp_iters`",
     "control_substeps": "physics steps per control step, zero-order hold; the metrics still sample every "
                         "physics step",
     "chunk_seconds": "simulated seconds per jit call and checkpoint",
