@@ -74,6 +74,21 @@ def test_qp_first_test_key_default_hash_and_sim():
     assert _sim("flat", 4).cfg.qp.warm_first_test == -1
 
 
+def test_qp_first_test_refused_where_the_qp_refactors(tmp_path, capsys):
+    """A centroidal spec whose QP refactors within a control step (qp_iters above its adapt_every) cannot use
+    campaign.qp_first_test: `wbc-jax campaign` exits 2 with one line naming the key and writes nothing."""
+    from wbc_jax import cli
+
+    p = tmp_path / "bad.toml"
+    p.write_text('[campaign]\ncontroller = "centroidal"\nscene = "flat"\nqp_iters = 12\nqp_first_test = 0\n'
+                 "[factors]\nspeed = [0.2, 0.4]\n")
+    out = tmp_path / "out"
+    assert cli.main(["campaign", "--spec", str(p), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "campaign.qp_first_test" in err[0] and str(p) in err[0]
+    assert not out.exists()
+
+
 def test_shipped_studies_load():
     abl, rob = load_spec(SWEEPS / "ablation.toml"), load_spec(SWEEPS / "robustness.toml")
     assert abl.factors["variant"] == ["full", "no_tray_cone", "no_observer", "no_posture"]

@@ -89,6 +89,23 @@ def sensing_of(spec: Spec) -> str:
                         f"{backend!r}) and control_substeps 1 (here {c['control_substeps']})") from None
 
 
+def check_qp(spec: Spec) -> None:
+    """SpecError naming ``campaign.qp_first_test`` where the spec's controller cannot use it: the first test's
+    schedule needs one QP factorization per control step (``QPSettings.warm_first_test``), and the centroidal
+    controller refactors every ``adapt_every`` ADMM iterations."""
+    from wbc_jax.control.centroidal import centroidal_qp_settings
+    from wbc_jax.control.transport import control_qp_settings
+
+    c = spec.campaign
+    iters = c["qp_iters"]
+    s = (control_qp_settings if c["controller"] == "transport" else centroidal_qp_settings)(iters)
+    if c["qp_first_test"] >= 0 and 0 < s.adapt_every < iters:
+        raise SpecError(f"{spec.path}: campaign.qp_first_test = {c['qp_first_test']}: needs one QP factorization "
+                        f"per control step; the {c['controller']} controller refactors every {s.adapt_every} ADMM "
+                        f"iterations, so campaign.qp_iters must be <= {s.adapt_every} (here {iters}), or "
+                        f"qp_first_test -1")
+
+
 def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, backend: str = "jax",
          solver_iterations: int = 0, sensing: str = "exact", controller: str = "transport", first_test: int = -1):
     """The (cached) Sim of a scene: ``controller`` with ``iters`` ADMM iterations (``first_test``: the QP's
@@ -206,6 +223,7 @@ def build(spec: Spec, gains=None) -> Built:
     from wbc_jax.rollout.batch import prepare_batch
 
     c = spec.campaign
+    check_qp(spec)
     dz = design(spec)
     transport = c["controller"] == "transport"
     sim = _sim(contact_scene(c), c["qp_iters"], bool(np.any(dz.qvel_noise_std > 0)), c["control_substeps"],

@@ -47,6 +47,7 @@ from wbc_jax.campaign.build import (
     backend_of,
     build,
     check_horizon,
+    check_qp,
     chunk_fn,
     has_accelerator,
     initial_configuration,  # noqa: F401  (reached as runner.initial_configuration)
@@ -304,6 +305,7 @@ def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guar
     spec = with_backend(spec, r["backend"])
     physics_backend = backend_of(spec)
     sensing_of(spec)  # a bad combination fails here, before anything is written
+    check_qp(spec)
     gains_mod.check_design(spec, r["gains"])
     identity = run_identity(spec, r["gains"], backend=physics_backend)
     status.writer = distributed.is_writer()
