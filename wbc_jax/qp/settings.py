@@ -79,8 +79,9 @@ class QPSettings(NamedTuple):
             ``QPResult``) and ``>= 0``: the first test comes after that count minus ``warm_first_test``, in whole
             blocks of ``check_every`` from ``iters``, at least ``iters``, at most ``iters`` plus
             :data:`FIRST_TEST_BLOCKS` blocks, the first block one projection and its iterations; a solve near its
-            predecessor (a control loop's) needs about as many iterations, so fewer tests run. -1: the first test
-            after ``iters`` (default -1).
+            predecessor (a control loop's) needs about as many iterations, so fewer tests run (a saving of the
+            fused kernels, which stop per problem; the XLA path runs the longest first block, masked). -1: the first
+            test after ``iters`` (default -1).
         kernel: ``"xla"`` (XLA ops, :mod:`wbc_jax.qp.admm`), ``"fused"`` (three Pallas kernels of one program per
             problem, :mod:`wbc_jax.qp.fused`; needs one factorization per solve and no polishing; rho is then
             re-estimated from the final iterate) or ``"auto"`` (fused on a GPU for float32 where that holds, else
