@@ -27,7 +27,7 @@ from wbc_jax.campaign.build import build
 from wbc_jax.campaign.spec import load_spec
 from wbc_jax.qp import QPResult, admm, rules, solve_qp
 from wbc_jax.qp.scaling import Scaled, equilibrate, factor, mv, regularize_schur, solve
-from wbc_jax.qp.settings import BIG
+from wbc_jax.qp.settings import BIG, FIRST_TEST_BLOCKS
 from wbc_jax.rollout import simulate
 
 FIELDS = ("P", "q", "A", "l", "u", "wx", "wz", "wy", "wrho", "x", "wk")
@@ -131,10 +131,11 @@ def reused_iterations(problems: dict, settings, lag: int, schur_fresh: bool):
 
 def first_test(problems: dict, settings, lead: int) -> None:
     """Print the iterations and convergence tests per solve when the first test comes at the previous solve's
-    iterations minus ``lead`` (in whole blocks of ``check_every``, at least ``iters``, at most 16) instead of after
-    ``iters``, and a time model at 16384 on one H200 (0.19 ms per iteration, 0.33 ms per test and block start:
-    ``examples/qp_kernel_noisy.py``)."""
-    ce, firsts = settings.check_every, (4, 8, 12, 16)
+    iterations minus ``lead`` (whole blocks of ``check_every`` from ``iters``, at most FIRST_TEST_BLOCKS blocks more:
+    :func:`wbc_jax.qp.rules.first_block`) instead of after ``iters``. Their time per solve on a GPU:
+    ``examples/qp_kernel_noisy.py`` with ``warm_first_test=LEAD``."""
+    ce = settings.check_every
+    firsts = tuple(settings.iters + b * ce for b in range(FIRST_TEST_BLOCKS + 1))
     its = {f: iterations(problems, settings._replace(iters=f))[0] for f in firsts}
     prev = problems["wk"].astype(int)
     want = np.clip((prev - lead - settings.iters) // ce * ce + settings.iters, settings.iters, firsts[-1])
@@ -142,8 +143,7 @@ def first_test(problems: dict, settings, lead: int) -> None:
     rows = (("test after iters", its[settings.iters], settings.iters), (f"first test lead={lead}", it, want))
     for name, k, f in rows:
         tests = 1 + (k - f) // ce
-        print(f"{name:32s} iterations mean {k.mean():6.2f}  tests {tests.mean():5.2f}  model "
-              f"{0.19 * k.mean() + 0.33 * tests.mean():5.2f} ms", flush=True)
+        print(f"{name:32s} iterations mean {k.mean():6.2f}  tests {tests.mean():5.2f}", flush=True)
 
 
 def parse(variant: str, settings) -> tuple:

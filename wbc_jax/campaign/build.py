@@ -90,20 +90,21 @@ def sensing_of(spec: Spec) -> str:
 
 
 def check_qp(spec: Spec) -> None:
-    """SpecError naming ``campaign.qp_first_test`` where the spec's controller cannot use it: the first test's
-    schedule needs one QP factorization per control step (``QPSettings.warm_first_test``), and the centroidal
-    controller refactors every ``adapt_every`` ADMM iterations."""
+    """SpecError naming ``campaign.qp_first_test`` where the spec's controller cannot use it: the solver's own rule
+    (:func:`wbc_jax.qp.api.resolve_settings`: one QP factorization per control step), which the centroidal
+    controller's QP breaks with ``qp_iters`` above its ``adapt_every``."""
     from wbc_jax.control.centroidal import centroidal_qp_settings
     from wbc_jax.control.transport import control_qp_settings
+    from wbc_jax.qp.api import resolve_settings
 
     c = spec.campaign
-    iters = c["qp_iters"]
+    iters, first = c["qp_iters"], c["qp_first_test"]
     s = (control_qp_settings if c["controller"] == "transport" else centroidal_qp_settings)(iters)
-    if c["qp_first_test"] >= 0 and 0 < s.adapt_every < iters:
-        raise SpecError(f"{spec.path}: campaign.qp_first_test = {c['qp_first_test']}: needs one QP factorization "
-                        f"per control step; the {c['controller']} controller refactors every {s.adapt_every} ADMM "
-                        f"iterations, so campaign.qp_iters must be <= {s.adapt_every} (here {iters}), or "
-                        f"qp_first_test -1")
+    try:
+        resolve_settings(s._replace(warm_first_test=first), iters, np.float32, "cpu")
+    except ValueError as e:
+        raise SpecError(f"{spec.path}: campaign.qp_first_test = {first} with campaign.qp_iters = {iters} and the "
+                        f"{c['controller']} controller: {e}") from None
 
 
 def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, backend: str = "jax",

@@ -296,7 +296,7 @@ def solve_xla(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
 
     Args:
         P: (n, n), q: (n,), A: (m, n), l, u: (m,) the problem.
-        warm: None (cold) or ``(x, z, y, rho or None[, iters or None])`` in the user's units.
+        warm: None (cold) or ``(x, z, y, rho or None, iters or None)`` in the user's units.
         s: the settings (``"auto"`` choices made); iters: the fixed iterations.
     """
     dt = P.dtype
@@ -307,8 +307,7 @@ def solve_xla(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     free, eq, ex = row_kinds(sp, l, u, s)
     rho = rules.warm_rho(None if warm is None else warm[3], s, dt)
     st, w = _start(sp, warm, eq, free, ex, s, dt)
-    wk = warm[4] if warm is not None and len(warm) > 4 else None
-    first = rules.first_block(wk, s, iters) if wk is not None and s.warm_first_test >= 0 else None
+    first = rules.first_block(warm, s, iters)
     st, rho, cont = _run(sp, st, rho, w, free, ex, s, iters, first)
     st, n_it = _extend(P, q, A, sp, st, cont, s, iters, first)
     if s.polish:

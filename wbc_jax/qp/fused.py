@@ -38,7 +38,7 @@ def solve_fused(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     the kernels' blocks, the first ``ne`` exact, the last ``box_rows`` a diagonal, the dense rows between.
 
     Args:
-        warm: None (cold) or ``(x, z, y, rho or None)`` in the user's units.
+        warm: None (cold) or ``(x, z, y, rho or None, iters or None)`` in the user's units.
     """
     dt = P.dtype
     m, n = A.shape
@@ -49,8 +49,7 @@ def solve_fused(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     else:
         wx, wz, wy = (jnp.asarray(v, dt) for v in warm[:3])
     rho = rules.warm_rho(None if warm is None else warm[3], s, dt)
-    wk = warm[4] if warm is not None and len(warm) > 4 else None
-    first = rules.first_block(wk, s, iters) if wk is not None and s.warm_first_test >= 0 else None
+    first = rules.first_block(warm, s, iters)
     return fused_solve(P, A, q, l, u, wx, wz, wy, rho, first, s=s, iters=iters, warm=warm is not None, ne=ne)
 
 

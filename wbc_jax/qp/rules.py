@@ -55,11 +55,13 @@ def warm_rho(wr, s: QPSettings, dt):
     return jnp.where(jnp.isfinite(rho), jnp.clip(rho, s.rho_min, s.rho_max), s.rho)
 
 
-def first_block(wk, s: QPSettings, iters: int):
+def first_block(warm, s: QPSettings, iters: int):
     """() int32, the iterations before a solve's first convergence test (:class:`~wbc_jax.qp.QPSettings`
-    ``warm_first_test``) from the warm result's iterations ``wk`` (None: cold, ``iters``), at most ``max_iters``."""
+    ``warm_first_test``) from the warm tuple's iterations (``warm[4]``), at most ``max_iters``; None where the test
+    comes after ``iters``: cold, the setting off, no extension, or a warm result without its iterations."""
+    wk = None if warm is None else warm[4]
     if wk is None or s.warm_first_test < 0 or s.max_iters <= iters:
-        return jnp.int32(iters)
+        return None
     blocks = (jnp.asarray(wk, jnp.int32) - s.warm_first_test - iters) // s.check_every
     return jnp.minimum(iters + jnp.clip(blocks, 0, FIRST_TEST_BLOCKS) * s.check_every, s.max_iters)
 
