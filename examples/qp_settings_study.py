@@ -1,12 +1,18 @@
 """ADMM iterations of the transport controller's QP under the campaign's velocity noise, per solver setting.
 
-    python examples/qp_settings_study.py [VARIANT ...]      e.g.  check_every=1  rho=1,check_every=1  reuse=10
+    python examples/qp_settings_study.py [VARIANT ...]      e.g.  alpha=1.3  rho=1,check_every=1  reuse=10
+                                                   first_test=0  alpha=1.3,first_test=0  closed:alpha=1.3
 
 The paper campaign's first 1.5 s (8 runs: m 0.2 / 0.4, mu 0.4 / 1.0, d 0.06 / 0.10, one repetition, its noise and
 pushes) is run once with the campaign's own settings while every control step's QP and warm start are recorded;
 then each recorded problem is solved again from its recorded warm start under each variant (``field=value`` of
 :class:`wbc_jax.qp.QPSettings`, comma-separated; ``rho`` replaces the warm start's rho), and the ADMM iterations
-are printed (mean, percentiles, max, flagged solves). ``reuse=LAG`` (``reuse_all=LAG``) solves each problem with the
+are printed (mean, percentiles, max, flagged solves). These open-loop figures can mislead where a setting changes
+the warm starts it would get (over-relaxation 1.3 re-solves the recorded problems in 11.88 mean iterations against
+15.90 at 1.6, but a rollout with 1.3 in its loop takes 16.90 against 16.83): ``closed:VARIANT`` runs the rollout
+again with the variant in the controller's loop (``QPSettings`` fields only) and prints its own solves'
+iterations.
+``reuse=LAG`` (``reuse_all=LAG``) solves each problem with the
 x-update's factor of ``K`` and the Ruiz scaling of the same run's problem LAG control steps earlier (runs chained
 through their warm starts) and the exact rows' Schur parts recomputed (also reused); the residuals are always the
 current problem's, so the fixed point is unchanged; steps where a row changed kind (a foot touching down or
@@ -14,6 +20,7 @@ lifting off) are counted apart. On a CPU: a few minutes of compilation, then 1-3
 variant.
 """
 
+import dataclasses
 import sys
 import tempfile
 from pathlib import Path
@@ -30,7 +37,7 @@ from wbc_jax.qp.scaling import Scaled, equilibrate, factor, mv, regularize_schur
 from wbc_jax.qp.settings import BIG, FIRST_TEST_BLOCKS
 from wbc_jax.rollout import simulate
 
-FIELDS = ("P", "q", "A", "l", "u", "wx", "wz", "wy", "wrho", "x", "wk")
+FIELDS = ("P", "q", "A", "l", "u", "wx", "wz", "wy", "wrho", "x", "wk", "k", "flag")
 SECONDS, CHUNK_S = 1.5, 0.5  # [s] simulated, and per chunk
 
 
@@ -47,26 +54,32 @@ def small_spec() -> Path:
     return path
 
 
-def record(spec_path: Path):
-    """Every control step's QP (P, q, A, l, u) and warm start (x, z, y, rho) of the campaign's rollout, as host
-    arrays with a leading axis over the solves, and the campaign's QP settings."""
+def record(spec_path: Path, change: str = ""):
+    """Every control step's QP (P, q, A, l, u), warm start (x, z, y, rho, the predecessor's iterations), solution,
+    iterations and flag of the campaign's rollout, as host arrays with a leading axis over the solves, and the
+    campaign's QP settings; ``change`` (``field=value,...``): the controller's QP settings changed so in the loop."""
+    jax.clear_caches()  # a chunk program traced before would call back into an earlier record's list
     built = build(load_spec(spec_path))
+    sim = built.sim
+    if change:
+        cfg = dataclasses.replace(sim.cfg, qp=parse(change, sim.cfg.qp)[0])
+        sim = dataclasses.replace(sim, controller=type(sim.controller)(cfg))
     rows, solve = [], transport.solve_qp
 
     def recording_solve(P, q, A, l, u, warm=None, settings=None):
         res = solve(P, q, A, l, u, warm=warm, settings=settings)
         jax.debug.callback(lambda *a: rows.append([np.array(v) for v in a]), P, q, A, l, u, warm.x, warm.z,
-                           warm.y, warm.rho, res.x, warm.iters)
+                           warm.y, warm.rho, res.x, warm.iters, res.iters, res.flag)
         return res
 
     transport.solve_qp = recording_solve
     try:
         b = built.batch
-        simulate(built.sim, b.model, b.in_axes, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground, SECONDS,
+        simulate(sim, b.model, b.in_axes, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground, SECONDS,
                  CHUNK_S)
     finally:
         transport.solve_qp = solve
-    qp = built.sim.cfg.qp._replace(box_rows=built.sim.cfg.k * (transport.N_FEET + transport.N_OBJ))
+    qp = sim.cfg.qp._replace(box_rows=built.sim.cfg.k * (transport.N_FEET + transport.N_OBJ))
     skip = 10 * built.design.n  # the standing start's first steps
     return {k: np.stack([r[i] for r in rows[skip:]]) for i, k in enumerate(FIELDS)}, qp
 
@@ -113,11 +126,17 @@ def _reused_solve(s, schur_fresh, cur, old):
     return k, done(st), same
 
 
+def predecessors(problems: dict) -> np.ndarray:
+    """(N,) each recorded solve's predecessor in its run (the solve whose solution is its warm start), -1 where
+    none was recorded."""
+    index = {problems["x"][i].tobytes(): i for i in range(len(problems["x"]))}
+    return np.array([index.get(w.tobytes(), -1) for w in problems["wx"]])
+
+
 def reused_iterations(problems: dict, settings, lag: int, schur_fresh: bool):
     """(iterations, converged, same row kinds) of every problem with a predecessor ``lag`` steps back in its run,
     solved with that predecessor's scaling and factor (:func:`_reused_solve`)."""
-    index = {problems["x"][i].tobytes(): i for i in range(len(problems["x"]))}
-    prev = np.array([index.get(w.tobytes(), -1) for w in problems["wx"]])  # the run's previous step
+    prev = predecessors(problems)
     old = np.arange(len(prev))
     for _ in range(lag):
         old = np.where(old >= 0, prev[np.maximum(old, 0)], -1)
@@ -131,13 +150,15 @@ def reused_iterations(problems: dict, settings, lag: int, schur_fresh: bool):
 
 def first_test(problems: dict, settings, lead: int) -> None:
     """Print the iterations and convergence tests per solve when the first test comes at the previous solve's
-    iterations minus ``lead`` (whole blocks of ``check_every`` from ``iters``, at most FIRST_TEST_BLOCKS blocks more:
-    :func:`wbc_jax.qp.rules.first_block`) instead of after ``iters``. Their time per solve on a GPU:
+    iterations (under ``settings``, tested after ``iters``) minus ``lead`` (whole blocks of ``check_every`` from
+    ``iters``, at most FIRST_TEST_BLOCKS blocks more: :func:`wbc_jax.qp.rules.first_block`) instead of after
+    ``iters``. Their time per solve on a GPU:
     ``examples/qp_kernel_noisy.py`` with ``warm_first_test=LEAD``."""
     ce = settings.check_every
     firsts = tuple(settings.iters + b * ce for b in range(FIRST_TEST_BLOCKS + 1))
     its = {f: iterations(problems, settings._replace(iters=f))[0] for f in firsts}
-    prev = problems["wk"].astype(int)
+    pred = predecessors(problems)  # the predecessor's iterations under these settings where it was recorded
+    prev = np.where(pred >= 0, its[settings.iters][np.maximum(pred, 0)], problems["wk"]).astype(int)
     want = np.clip((prev - lead - settings.iters) // ce * ce + settings.iters, settings.iters, firsts[-1])
     it = np.choose(np.searchsorted(firsts, want), [its[f] for f in firsts])
     rows = (("test after iters", its[settings.iters], settings.iters), (f"first test lead={lead}", it, want))
@@ -160,8 +181,23 @@ if __name__ == "__main__":
     problems, base = record(small_spec())
     print(f"{len(problems['P'])} recorded solves")
     for variant in ["", *sys.argv[1:]]:
-        if variant.startswith("first_test="):
-            first_test(problems, base, int(variant.split("=")[1]))
+        if variant.startswith("closed:"):  # the rollout again with the variant in its loop
+            closed, qp = record(small_spec(), variant[len("closed:"):])
+            it, flag, ce = closed["k"].astype(int), closed["flag"], qp.check_every
+            lead = qp.warm_first_test  # the first test's block (rules.first_block) from the predecessor's iterations
+            first = (np.clip((closed["wk"].astype(int) - lead - qp.iters) // ce * ce + qp.iters, qp.iters,
+                             qp.iters + FIRST_TEST_BLOCKS * ce) if lead >= 0 else np.full_like(it, qp.iters))
+            tests = 1 + np.maximum(it - np.minimum(first, qp.max_iters), 0) // ce
+            print(f"{variant:32s} iterations mean {it.mean():6.2f}  p50 {np.median(it):3.0f}  p90 "
+                  f"{np.percentile(it, 90):3.0f}  p99 {np.percentile(it, 99):3.0f}  max {it.max():3d}  flagged "
+                  f"{int((flag != 0).sum())}  tests {tests.mean():5.2f}  (closed loop, {len(it)} solves)",
+                  flush=True)
+            continue
+        if "first_test=" in variant:  # with other fields: e.g. alpha=1.3,first_test=0
+            rest = [item for item in variant.split(",") if not item.startswith("first_test=")]
+            lead = int(variant.split("first_test=")[1].split(",")[0])
+            print(f"-- {variant}", flush=True)
+            first_test(problems, parse(",".join(rest), base)[0], lead)
             continue
         if variant.startswith("reuse"):
             lag = int(variant.split("=")[1])

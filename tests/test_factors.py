@@ -63,15 +63,32 @@ def test_qp_first_test_key_default_hash_and_sim():
     """campaign.qp_first_test: -1 by default, hash-neutral there (existing specs, baselines and checkpoints keep
     their hash), another value changes the hash, is refused outside -1..1000 with a line naming the key, and
     reaches the controller's QP settings (QPSettings.warm_first_test) of the campaign's Sim."""
-    from wbc_jax.campaign.build import _sim
+    from wbc_jax.campaign.build import _sim, qp_changes
 
     base = dict(factors=dict(m=[0.2, 0.3], mu=[0.4, 1.0], d=[0.06, 0.1]))
     s0, s1, s2 = (parse_spec(dict(base, campaign=c)) for c in ({}, dict(qp_first_test=-1), dict(qp_first_test=0)))
     assert s0.campaign["qp_first_test"] == -1 and s0.hash == s1.hash != s2.hash
     with pytest.raises(SpecError, match="campaign.qp_first_test"):
         parse_spec(dict(base, campaign=dict(qp_first_test=-2)))
-    assert _sim("flat", 4, first_test=0).cfg.qp.warm_first_test == 0
-    assert _sim("flat", 4).cfg.qp.warm_first_test == -1
+    assert _sim("flat", 4, qp=qp_changes(s2)).cfg.qp.warm_first_test == 0
+    assert _sim("flat", 4, qp=qp_changes(s0)).cfg.qp.warm_first_test == -1
+
+
+def test_qp_alpha_key_default_hash_and_sim():
+    """campaign.qp_alpha: 0 (the controller's own over-relaxation) by default and hash-neutral there, another value
+    changes the hash, is refused outside 0..1.95 with a line naming the key, and becomes the controller's
+    QPSettings.alpha."""
+    from wbc_jax.campaign.build import _sim, qp_changes
+
+    base = dict(factors=dict(m=[0.2, 0.3], mu=[0.4, 1.0], d=[0.06, 0.1]))
+    s0, s1, s2 = (parse_spec(dict(base, campaign=c)) for c in ({}, dict(qp_alpha=0.0), dict(qp_alpha=1.3)))
+    assert s0.campaign["qp_alpha"] == 0.0 and s0.hash == s1.hash != s2.hash
+    with pytest.raises(SpecError, match="campaign.qp_alpha"):
+        parse_spec(dict(base, campaign=dict(qp_alpha=2.0)))
+    assert dict(qp_changes(s0)) == {"warm_first_test": -1}
+    assert dict(qp_changes(s2)) == {"warm_first_test": -1, "alpha": 1.3}
+    assert _sim("flat", 4, qp=qp_changes(s2)).cfg.qp.alpha == 1.3
+    assert _sim("flat", 4, qp=qp_changes(s0)).cfg.qp.alpha == 1.6
 
 
 def test_qp_first_test_refused_where_the_qp_refactors(tmp_path, capsys):

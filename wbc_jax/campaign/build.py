@@ -89,6 +89,14 @@ def sensing_of(spec: Spec) -> str:
                         f"{backend!r}) and control_substeps 1 (here {c['control_substeps']})") from None
 
 
+def qp_changes(spec: Spec) -> tuple:
+    """The spec's changes to its controller's QP settings (``campaign.qp_first_test``, ``campaign.qp_alpha``) as
+    sorted ``(QPSettings field, value)`` pairs (hashable: part of the Sim's cache key)."""
+    c = spec.campaign
+    return tuple(sorted({"warm_first_test": c["qp_first_test"],
+                         **({"alpha": c["qp_alpha"]} if c["qp_alpha"] > 0 else {})}.items()))
+
+
 def check_qp(spec: Spec) -> None:
     """SpecError naming ``campaign.qp_first_test`` where the spec's controller cannot use it: the solver's own rule
     (:func:`wbc_jax.qp.api.resolve_settings`: one QP factorization per control step), which the centroidal
@@ -108,21 +116,21 @@ def check_qp(spec: Spec) -> None:
 
 
 def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, backend: str = "jax",
-         solver_iterations: int = 0, sensing: str = "exact", controller: str = "transport", first_test: int = -1):
-    """The (cached) Sim of a scene: ``controller`` with ``iters`` ADMM iterations (``first_test``: the QP's
-    ``warm_first_test``), control period ``substeps`` x the scene's timestep."""
+         solver_iterations: int = 0, sensing: str = "exact", controller: str = "transport", qp: tuple = ()):
+    """The (cached) Sim of a scene: ``controller`` with ``iters`` ADMM iterations and its QP settings changed by
+    ``qp`` (:func:`qp_changes`), control period ``substeps`` x the scene's timestep."""
     from wbc_jax.control.centroidal import CentroidalConfig, centroidal_qp_settings
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
     from wbc_jax.robot.model import Robot
     from wbc_jax.rollout import make_sim
 
-    key = (scene, iters, sensor_noise, substeps, backend, solver_iterations, sensing, controller, first_test)
+    key = (scene, iters, sensor_noise, substeps, backend, solver_iterations, sensing, controller, qp)
     if key not in _SIMS:
         robot = Robot(scene, backend=backend, solver_iterations=solver_iterations)
         dt = float(robot.mj_model.opt.timestep) * substeps
-        cfg = (TransportConfig(dt=dt, qp=control_qp_settings(iters, warm_first_test=first_test))
+        cfg = (TransportConfig(dt=dt, qp=control_qp_settings(iters)._replace(**dict(qp)))
                if controller == "transport"
-               else CentroidalConfig(qp=centroidal_qp_settings(iters)._replace(warm_first_test=first_test), dt=dt))
+               else CentroidalConfig(qp=centroidal_qp_settings(iters)._replace(**dict(qp)), dt=dt))
         _SIMS[key] = make_sim(robot, cfg, n_substeps=substeps, log_every=LOG_EVERY, sensor_noise=sensor_noise,
                               sensing=sensing, controller=controller)
     return _SIMS[key]
@@ -228,7 +236,7 @@ def build(spec: Spec, gains=None) -> Built:
     dz = design(spec)
     transport = c["controller"] == "transport"
     sim = _sim(contact_scene(c), c["qp_iters"], bool(np.any(dz.qvel_noise_std > 0)), c["control_substeps"],
-               backend_of(spec), c["solver_iterations"], sensing_of(spec), c["controller"], c["qp_first_test"])
+               backend_of(spec), c["solver_iterations"], sensing_of(spec), c["controller"], qp_changes(spec))
     qpos0, qvel0 = initial_configuration(sim.robot, dz)
     gains = run_gains(gains, dz) if transport else centroidal_gains(gains, dz)
     b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=gains, plan_kwargs=_plan_kwargs(c), qpos0=qpos0, qvel0=qvel0,

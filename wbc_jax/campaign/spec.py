@@ -18,6 +18,8 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     qp_iters = 4               # ADMM iterations per control step before the convergence checks (up to 200), 1..1000
     qp_first_test = -1         # >= 0: a control step's first convergence check after the last step's iterations
                                # minus this (QPSettings.warm_first_test; fewer checks under noise); -1: after qp_iters
+    qp_alpha = 0.0             # ADMM over-relaxation of the controller's QP (QPSettings.alpha), 0..1.95; 0: the
+                               # controller's own (1.6)
     control_substeps = 1       # physics steps per control step (zero-order hold), 1..10; 1 = control at the
                                # physics rate (the control period is this x the scene's timestep; the metrics'
                                # physics-rate monitors still run every physics step, see wbc_jax.rollout.step)
@@ -106,6 +108,7 @@ CAMPAIGN = {
     "qp_first_test": (int, -1, -1, 1000, False,
                       "the first convergence check after the last control step's iterations minus this; -1: after "
                       "qp_iters"),
+    "qp_alpha": (float, 0.0, 0.0, 1.95, False, "ADMM over-relaxation of the controller's QP; 0 = the controller's"),
     "control_substeps": (int, 1, 1, 10, False,
                          "physics steps per control step (zero-order hold); 1 = control at the physics rate"),
     "chunk_seconds": (float, 2.0, 0.02, 60.0, False, "[s]"),
@@ -172,7 +175,7 @@ _HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_
                                "com_plan": "spline", "sensing": "auto",
                                "obj_accel": 0.0, "cone": "scene", "impratio": 0.0, "controller": "transport",
                                "mass_error": 0.0, "walk_seconds": 10.0, "step_time": 0.25, "four_foot": 0.08,
-                               "qp_first_test": -1},
+                               "qp_first_test": -1, "qp_alpha": 0.0},
                  "perturbations": {"push_dir_deg": 0.0}}
 
 
