@@ -8,10 +8,9 @@ pushes) is run once with the campaign's own settings while every control step's 
 then each recorded problem is solved again from its recorded warm start under each variant (``field=value`` of
 :class:`wbc_jax.qp.QPSettings`, comma-separated; ``rho`` replaces the warm start's rho), and the ADMM iterations
 are printed (mean, percentiles, max, flagged solves). These open-loop figures can mislead where a setting changes
-the warm starts it would get (over-relaxation 1.3 re-solves the recorded problems in 11.88 mean iterations against
-15.90 at 1.6, but a rollout with 1.3 in its loop takes 16.90 against 16.83): ``closed:VARIANT`` runs the rollout
-again with the variant in the controller's loop (``QPSettings`` fields only) and prints its own solves'
-iterations.
+the warm starts it would get (over-relaxation: docs/performance.md, open limits): ``closed:VARIANT`` runs the
+rollout again with the variant in the controller's loop (``QPSettings`` fields only) and prints its own solves'
+iterations and convergence tests.
 ``reuse=LAG`` (``reuse_all=LAG``) solves each problem with the
 x-update's factor of ``K`` and the Ruiz scaling of the same run's problem LAG control steps earlier (runs chained
 through their warm starts) and the exact rows' Schur parts recomputed (also reused); the residuals are always the
@@ -79,7 +78,7 @@ def record(spec_path: Path, change: str = ""):
                  CHUNK_S)
     finally:
         transport.solve_qp = solve
-    qp = sim.cfg.qp._replace(box_rows=built.sim.cfg.k * (transport.N_FEET + transport.N_OBJ))
+    qp = sim.cfg.qp._replace(box_rows=sim.cfg.k * (transport.N_FEET + transport.N_OBJ))
     skip = 10 * built.design.n  # the standing start's first steps
     return {k: np.stack([r[i] for r in rows[skip:]]) for i, k in enumerate(FIELDS)}, qp
 
@@ -148,6 +147,13 @@ def reused_iterations(problems: dict, settings, lag: int, schur_fresh: bool):
     return tuple(np.asarray(a) for a in out)
 
 
+def first_blocks(wk, settings) -> np.ndarray:
+    """(N,) each solve's iterations before its first convergence test under ``settings``, from its predecessor's
+    iterations ``wk`` (N,): :func:`wbc_jax.qp.rules.first_block`, or ``iters`` where that setting is off."""
+    first = rules.first_block((None,) * 4 + (jnp.asarray(wk, jnp.int32),), settings, settings.iters)
+    return np.full(np.shape(wk), settings.iters) if first is None else np.asarray(first)
+
+
 def first_test(problems: dict, settings, lead: int) -> None:
     """Print the iterations and convergence tests per solve when the first test comes at the previous solve's
     iterations (under ``settings``, tested after ``iters``) minus ``lead`` (whole blocks of ``check_every`` from
@@ -159,7 +165,7 @@ def first_test(problems: dict, settings, lead: int) -> None:
     its = {f: iterations(problems, settings._replace(iters=f))[0] for f in firsts}
     pred = predecessors(problems)  # the predecessor's iterations under these settings where it was recorded
     prev = np.where(pred >= 0, its[settings.iters][np.maximum(pred, 0)], problems["wk"]).astype(int)
-    want = np.clip((prev - lead - settings.iters) // ce * ce + settings.iters, settings.iters, firsts[-1])
+    want = first_blocks(prev, settings._replace(warm_first_test=lead))
     it = np.choose(np.searchsorted(firsts, want), [its[f] for f in firsts])
     rows = (("test after iters", its[settings.iters], settings.iters), (f"first test lead={lead}", it, want))
     for name, k, f in rows:
@@ -184,10 +190,7 @@ if __name__ == "__main__":
         if variant.startswith("closed:"):  # the rollout again with the variant in its loop
             closed, qp = record(small_spec(), variant[len("closed:"):])
             it, flag, ce = closed["k"].astype(int), closed["flag"], qp.check_every
-            lead = qp.warm_first_test  # the first test's block (rules.first_block) from the predecessor's iterations
-            first = (np.clip((closed["wk"].astype(int) - lead - qp.iters) // ce * ce + qp.iters, qp.iters,
-                             qp.iters + FIRST_TEST_BLOCKS * ce) if lead >= 0 else np.full_like(it, qp.iters))
-            tests = 1 + np.maximum(it - np.minimum(first, qp.max_iters), 0) // ce
+            tests = 1 + np.maximum(it - first_blocks(closed["wk"], qp), 0) // ce
             print(f"{variant:32s} iterations mean {it.mean():6.2f}  p50 {np.median(it):3.0f}  p90 "
                   f"{np.percentile(it, 90):3.0f}  p99 {np.percentile(it, 99):3.0f}  max {it.max():3d}  flagged "
                   f"{int((flag != 0).sum())}  tests {tests.mean():5.2f}  (closed loop, {len(it)} solves)",
