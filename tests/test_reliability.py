@@ -119,7 +119,7 @@ def _setup_round_two(t: Path) -> None:
     factor = lambda line: TINY.read_text().replace("[factors]", f"[factors]\n{line}", 1)  # noqa: E731
     (t / "gain_zero.toml").write_text(factor('"gain.r_vdot" = [0.0, 1.0]'))
     (t / "gain_fmax.toml").write_text(factor('"gain.f_max" = [0.001, 1.0]'))
-    (t / "chunks.toml").write_text(TINY.read_text().replace("chunk_seconds = 0.04", "chunk_seconds = 0.07"))
+    (t / "chunks.toml").write_text(TINY.read_text().replace("max_seconds = 0.12", "max_seconds = 0.13"))
     (t / "short.toml").write_text(TINY.read_text().replace("max_seconds = 0.12", "max_seconds = 0.0001"))
     (t / "tune.toml").write_bytes((SWEEPS / "gain_tuning_cpu.toml").read_bytes())
     (t / "link_file").symlink_to(t / "plain.txt")
@@ -223,9 +223,10 @@ BAD_INPUTS = [
      "factors.gain.r_vdot: level 0: a regularization weight's multiplier must be > 0"),
     ("campaign_factor_fmax_below_fmin", ["campaign", "--spec", "gain_fmax.toml", "--out", "o"],
      "factors.gain.f_max: f_min 2 N > f_max 0.4 N"),
-    # chunks that do not fit max_seconds; a max_seconds too short for metrics
+    # a max_seconds that no chunks can meet exactly; one too short for metrics
     ("campaign_chunks_overrun_cap", ["campaign", "--spec", "chunks.toml", "--out", "o"],
-     "max_seconds = 0.12 is not a whole number of chunks: chunk_seconds = 0.07 makes chunks of 0.08 s"),
+     "max_seconds = 0.13 is not a whole number of logged intervals (0.02 s = 20 control steps), so 0.16 s would be "
+     "simulated; use a multiple of 0.02 s, e.g. 0.12"),
     ("campaign_cap_too_short", ["campaign", "--spec", "short.toml", "--out", "o"],
      "max_seconds = 0.0001: shorter than one logged interval (0.02 s"),
     # unclear messages made clear
@@ -377,6 +378,22 @@ def test_resume_refuses_a_foreign_or_damaged_checkpoint(tmp_path, monkeypatch, c
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and msg in err[0] and "--resume to start over" in err[0], err
     assert ck.exists()  # kept: the user decides
+
+
+def test_resume_refuses_a_checkpoint_of_other_chunks(tmp_path):
+    """A checkpoint whose meta.json records chunks of another length (a chunk plan of another version) is refused
+    with the restart line; one of the same length, or one written before meta.json recorded it, is read."""
+    from wbc_jax.campaign.checkpoint import CheckpointError, read_meta
+    from wbc_jax.campaign.manifest import run_identity
+    from wbc_jax.campaign.spec import load_spec
+
+    identity = run_identity(load_spec(TINY))
+    for out, logs in (("a", 2), ("b", None)):
+        ck = _fake_ckpt(tmp_path, out=out, **({} if logs is None else dict(logs_per_chunk=logs)))
+        assert read_meta(ck, identity, 3, logs_per_chunk=2)["chunks_done"] == 1
+    ck = _fake_ckpt(tmp_path, out="c", logs_per_chunk=3)
+    with pytest.raises(CheckpointError, match=r"chunks of 3 logged intervals, this run's have 2 .*--resume to start"):
+        read_meta(ck, identity, 3, logs_per_chunk=2)
 
 
 def test_run_identity_names_what_determines_the_result():

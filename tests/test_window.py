@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from wbc_jax.campaign import runner as C
+from wbc_jax.campaign.build import chunk_plan
 from wbc_jax.campaign.spec import SWEEPS, load_spec
 from wbc_jax.metrics import paper as metrics
 from wbc_jax.rollout import clearance, clearance_name, final_results, with_metric_window
@@ -39,13 +40,13 @@ def _finalize(sim, design, state):
 
 @pytest.fixture(scope="module")
 def windowed():
-    """The tiny spec capped at 0.08 s (window 0.08 s) built for chunk_seconds 0.04 and 0.06; the 0.04 s chunk
-    function run for 2, 3 and 4 chunks (0.08, 0.12, 0.16 s simulated: chunk_seconds 0.04, 0.06 (2 chunks of 3 logs)
-    and 0.08 (2 of 4) round 0.08 s up to these) and, from the 2-chunk state, one more chunk with no window."""
+    """The tiny spec capped at 0.08 s (window 0.08 s) built for chunk_seconds 0.04 and 0.06 (both 2 chunks of 2
+    logs: the chunks fit the cap); the 0.04 s chunk function run for 2, 3 and 4 chunks (0.08, 0.12, 0.16 s
+    simulated, as whole chunks past a window would) and, from the 2-chunk state, one more chunk with no window."""
     spec_a, spec_b = _spec(max_seconds=0.08, chunk_seconds=0.04), _spec(max_seconds=0.08, chunk_seconds=0.06)
     sim, design, b, T_plan, lpc, n_chunks = C.build(spec_a)
     _, _, b6, _, lpc6, n6 = C.build(spec_b)
-    assert (lpc, n_chunks) == (2, 2) and (lpc6, n6) == (3, 2)  # 0.08 s and 0.12 s simulated
+    assert (lpc, n_chunks) == (2, 2) and (lpc6, n6) == (2, 2)  # 0.08 s simulated
     fn = C.chunk_fn(sim, b.in_axes, lpc)
     states, state = {}, b.state
     for k in range(1, 5):
@@ -65,6 +66,23 @@ def test_window_is_per_run_plan_end_capped_and_independent_of_chunking(windowed)
     ends = np.asarray(bu.plan.obj_path.t_knots)[:, -1]
     np.testing.assert_allclose(np.asarray(bu.state.acc.t_end), ends + 0.25, rtol=1e-6)
     assert T_plan == pytest.approx(ends.max())
+
+
+@pytest.mark.parametrize("chunk_s, cap, planned_s, extra_s, plan", [
+    (2.0, 0.0, 27.65, 0.5, (94, 15)),  # the paper course: 28.15 s in 15 chunks of 1.88 s (not 30 s)
+    (2.0, 0.0, 5.0, 1.0, (100, 3)),  # a horizon of whole chunks keeps them
+    (0.5, 0.0, 3.0, 0.5, (25, 7)),  # 3.5 s: 7 chunks of 0.5 s
+    (0.5, 0.0, 3.01, 0.5, (22, 8)),  # 3.51 s: 8 chunks of 0.44 s, 3.52 s (4.0 s before)
+    (2.0, 6.0, 27.65, 0.5, (100, 3)),  # a cap of whole chunks
+    (0.07, 0.12, 2.5, 0.0, (3, 2)),  # a cap met exactly by 2 chunks of 0.06 s (at most 0.08 s asked)
+    (0.04, 0.14, 2.5, 0.0, (1, 7)),  # 7 logs: only 1-log chunks divide it within 0.04 s
+    (0.04, 0.13, 2.5, 0.0, (2, 4)),  # not a whole number of logs: 0.16 s, refused by check_horizon
+])
+def test_chunks_fit_the_horizon(chunk_s, cap, planned_s, extra_s, plan):
+    """The fewest chunks of at most chunk_seconds (whole 0.02 s log intervals) that cover the horizon, each as short
+    as covers it; a cap is met exactly where it is a whole number of log intervals. Hand-computed."""
+    got = chunk_plan(dict(chunk_seconds=chunk_s, max_seconds=cap, extra_seconds=extra_s), 0.001, planned_s)
+    assert got == plan
 
 
 def test_tail_after_the_window_is_excluded(windowed):

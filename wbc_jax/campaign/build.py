@@ -284,24 +284,34 @@ def speed_ramps(spec: Spec, dz: Design):
 
 
 def chunk_plan(campaign: dict, dt_control: float, planned_s: float) -> tuple[int, int]:
-    """(logged samples per chunk, chunks) of a spec's ``campaign`` table: chunks of ``chunk_seconds`` rounded to
-    whole log intervals (LOG_EVERY control steps of ``dt_control`` [s]), as many as cover the horizon
-    (``planned_s`` + ``extra_seconds`` [s], capped by ``max_seconds``)."""
+    """(logged samples per chunk, chunks) of a spec's ``campaign`` table: as few chunks of at most
+    ``chunk_seconds`` (rounded to whole log intervals of LOG_EVERY control steps of ``dt_control`` [s]) as cover the
+    horizon (``planned_s`` + ``extra_seconds`` [s]), each made as short as still covers it, so the simulation ends
+    less than one log interval per chunk past the horizon instead of rounding it up to whole chunks of
+    ``chunk_seconds``. A ``max_seconds`` cap below the horizon is met exactly when it is a whole number of log
+    intervals: the fewest equal chunks that divide it (:func:`check_horizon` refuses the others)."""
     log_dt = dt_control * LOG_EVERY
-    logs_per_chunk = max(1, int(round(campaign["chunk_seconds"] / log_dt)))
+    most = max(1, int(round(campaign["chunk_seconds"] / log_dt)))
     horizon = planned_s + campaign["extra_seconds"]
-    if campaign["max_seconds"] > 0:
-        horizon = min(horizon, campaign["max_seconds"])
-    n_chunks = max(1, int(np.ceil(horizon / (logs_per_chunk * log_dt) - 1e-9)))
-    return logs_per_chunk, n_chunks
+    cap = campaign["max_seconds"]
+    if cap > 0:
+        horizon = min(horizon, cap)
+    logs = horizon / log_dt
+    n_chunks = max(1, int(np.ceil(logs / most - 1e-9)))
+    per_chunk = max(1, int(np.ceil(logs / n_chunks - 1e-9)))
+    whole = int(round(cap / log_dt))
+    if cap > 0 and n_chunks * per_chunk * log_dt > cap + 1e-9 and whole >= 1 and abs(cap / log_dt - whole) < 1e-6:
+        n_chunks = next(k for k in range(-(-whole // most), whole + 1) if whole % k == 0)
+        per_chunk = whole // n_chunks
+    return per_chunk, n_chunks
 
 
 def check_horizon(spec: Spec, built: Built) -> None:
     """Refuse a ``campaign.max_seconds`` that the chunks cannot honour exactly (before anything is compiled).
 
     Raises:
-        SpecError: the cap is shorter than one logged interval (no metric could be computed), or the whole chunks
-            of ``campaign.chunk_seconds`` would simulate past it; the line names a chunk length that fits.
+        SpecError: the cap is shorter than one logged interval (no metric could be computed), or not a whole number
+            of logged intervals (the chunks would simulate past it); the line names a cap that fits.
     """
     c = spec.campaign
     cap = c["max_seconds"]
@@ -311,19 +321,12 @@ def check_horizon(spec: Spec, built: Built) -> None:
     if cap < log_dt - 1e-9:
         raise SpecError(f"{spec.path}: campaign.max_seconds = {cap:g}: shorter than one logged interval ({log_dt:g} s "
                         f"= {LOG_EVERY} control steps), too short for any metric; use at least {log_dt:g}")
-    chunk_s = built.logs_per_chunk * log_dt
-    simulated = built.n_chunks * chunk_s
+    simulated = built.n_chunks * built.logs_per_chunk * log_dt
     if simulated <= cap + 1e-9:
         return
-    logs = cap / log_dt
-    if abs(logs - round(logs)) > 1e-6:
-        fix = f"use a max_seconds that is a multiple of {log_dt:g} s, e.g. {int(logs) * log_dt:g}"
-    else:
-        fit = max(k for k in range(1, built.logs_per_chunk + 1) if round(logs) % k == 0)
-        fix = f"use chunk_seconds = {fit * log_dt:g} (chunks must divide max_seconds in steps of {log_dt:g} s)"
-    raise SpecError(f"{spec.path}: campaign.max_seconds = {cap:g} is not a whole number of chunks: chunk_seconds = "
-                    f"{c['chunk_seconds']:g} makes chunks of {chunk_s:g} s, so {simulated:g} s would be simulated; "
-                    f"{fix}")
+    raise SpecError(f"{spec.path}: campaign.max_seconds = {cap:g} is not a whole number of logged intervals "
+                    f"({log_dt:g} s = {LOG_EVERY} control steps), so {simulated:g} s would be simulated; use a "
+                    f"multiple of {log_dt:g} s, e.g. {int(cap / log_dt + 1e-9) * log_dt:g}")
 
 
 def n_runs_of(spec: Spec) -> int:

@@ -184,13 +184,14 @@ def _state_files(meta: dict, done: int) -> list[tuple[str, str]]:
     return files
 
 
-def read_meta(ck: Path, identity: dict, n_chunks: int) -> dict | None:
-    """The checked ``meta.json`` of checkpoint ``ck`` (None when there is no checkpoint).
+def read_meta(ck: Path, identity: dict, n_chunks: int, logs_per_chunk: int | None = None) -> dict | None:
+    """The checked ``meta.json`` of checkpoint ``ck`` (None when there is no checkpoint); with ``logs_per_chunk``,
+    its chunks must be that long (a checkpoint written before meta.json recorded its chunks' length passes).
 
     Raises:
         CheckpointError: meta.json missing beside state files, unreadable, incomplete or with values out of
             range; an identity entry that differs from ``identity``; a state file missing or not matching its
-            SHA-256. The message says how to restart.
+            SHA-256; chunks of another length. The message says how to restart.
     """
     restart = RESTART.format(ck=ck)
     if not ck.exists():
@@ -222,6 +223,9 @@ def read_meta(ck: Path, identity: dict, n_chunks: int) -> dict | None:
     if files is None:
         raise CheckpointError(f"{ck}: damaged checkpoint (chunks_done {meta.get('chunks_done')!r} of "
                               f"{meta.get('n_chunks')!r}{why}; this run has {n_chunks}); {restart}")
+    if logs_per_chunk is not None and meta.get("logs_per_chunk", logs_per_chunk) != logs_per_chunk:
+        raise CheckpointError(f"{ck}: checkpoint made with chunks of {meta['logs_per_chunk']!r} logged intervals, "
+                              f"this run's have {logs_per_chunk} (its chunk plan differs); {restart}")
     for name, digest in files:
         state_p = ck / name
         if not state_p.is_file() or sha256_file(state_p) != digest:
@@ -247,14 +251,14 @@ def _scatter(blocks: list[np.ndarray], rows: list[range]) -> np.ndarray:
     return out
 
 
-def load_state(ck: Path, state_like, identity: dict, n_chunks: int, axes=0):
+def load_state(ck: Path, state_like, identity: dict, n_chunks: int, axes=0, logs_per_chunk: int | None = None):
     """The checkpoint's state (placed like ``state_like``, the fresh state of every run, run axes ``axes``: 0 or a
     pytree of 0 / None) and its checked meta; (None, None) without a checkpoint. A blocked state's run leaves are
     its blocks' rows put back in run order; the leaves without a run axis (scratch) are ``state_like``'s.
 
     Raises:
         CheckpointError: as :func:`read_meta`; a state file unreadable or not of ``state_like``'s structure."""
-    meta = read_meta(ck, identity, n_chunks)
+    meta = read_meta(ck, identity, n_chunks, logs_per_chunk)
     if meta is None:
         return None, None
     like, treedef, like_axes = runs.leaves_and_axes(state_like, axes)

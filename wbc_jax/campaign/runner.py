@@ -107,7 +107,8 @@ def _announce(job: Job) -> None:
 def _meta(job: Job, start: Start, done: int, marks: list, t_run: float, p_goal) -> dict:
     """The checkpoint's meta.json fields after chunk ``done`` (process 0; the state files' entries added by the
     writer)."""
-    return dict(identity=job.identity, chunks_done=done, n_chunks=job.built.n_chunks, marks=list(marks),
+    return dict(identity=job.identity, chunks_done=done, n_chunks=job.built.n_chunks,
+                logs_per_chunk=job.built.logs_per_chunk, marks=list(marks),
                 p_goal=None if p_goal is None else p_goal.tolist(),
                 wall_s=start.wall_before + time.perf_counter() - t_run, sessions=list(start.sessions))
 

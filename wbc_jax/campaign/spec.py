@@ -23,7 +23,7 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     control_substeps = 1       # physics steps per control step (zero-order hold), 1..10; 1 = control at the
                                # physics rate (the control period is this x the scene's timestep; the metrics'
                                # physics-rate monitors still run every physics step, see wbc_jax.rollout.step)
-    chunk_seconds = 2.0        # simulated seconds per jit call / checkpoint, 0.02..60
+    chunk_seconds = 2.0        # most simulated seconds per jit call / checkpoint (fitted to the horizon), 0.02..60
     m = 0.3                    # object mass [kg], tray friction, object side [m], foot/ground friction (0: the
     mu = 0.7                   # scene's) and controller variant of every run, for those of them that are not
     d = 0.08                   # factors

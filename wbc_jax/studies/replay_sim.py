@@ -173,6 +173,19 @@ def _notes(recorded: Recorded, program: Program, here: Program) -> list[str]:
     return notes
 
 
+def _recorded_chunks(recorded: Recorded, built: Built) -> Built:
+    """``built`` with the chunks the campaign stepped (its manifest's ``program`` record, else its ``chunk_s`` and
+    ``n_chunks``), whatever chunk plan this version makes from the spec: a replay steps the campaign's chunks."""
+    man = recorded.manifest
+    program = man.get("program") if isinstance(man.get("program"), dict) else {}
+    log_dt = built.sim.log_every * built.sim.dt_control
+    logs = program.get("logs_per_chunk") or (round(float(man["chunk_s"]) / log_dt) if man.get("chunk_s") else None)
+    n_chunks = program.get("n_chunks", man.get("n_chunks"))
+    if logs is None or n_chunks is None:
+        return built
+    return built._replace(logs_per_chunk=int(logs), n_chunks=int(n_chunks))
+
+
 def _check_plan(recorded: Recorded, built: Built) -> None:
     """The rebuilt batch's size, seeds and chunks equal the manifest's (else the code that builds it changed)."""
     man, dz = recorded.manifest, built.design
@@ -240,7 +253,7 @@ def simulate_runs(recorded: Recorded, run_ids, whole_batch: bool = False, progre
     spec = recorded.spec
     gains_mod.check_design(spec, recorded.gains)
     print(f"building the campaign's batch ({len(recorded.results)} runs)", flush=True)
-    built = build(spec, recorded.gains)
+    built = _recorded_chunks(recorded, build(spec, recorded.gains))
     check_horizon(spec, built)
     _check_plan(recorded, built)
     n, wanted = built.design.n, sorted(run_ids)

@@ -46,7 +46,8 @@ CAMPAIGN_MEANING = {
                 "controller's (1.6)",
     "control_substeps": "physics steps per control step, zero-order hold; the metrics still sample every "
                         "physics step",
-    "chunk_seconds": "simulated seconds per jit call and checkpoint",
+    "chunk_seconds": "the most simulated seconds per jit call and checkpoint: the fewest such chunks that cover the "
+                     "horizon, made equal and as short as cover it",
     "solver_iterations": "MuJoCo constraint-solver iterations per physics step (`opt.iterations`); 0 keeps the "
                          "scene's (4 in the shipped scenes)",
     "backend": "MJX physics implementation: \"warp\" (MuJoCo Warp kernels, NVIDIA GPUs; needs the cuda extra) or "
