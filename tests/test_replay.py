@@ -17,7 +17,7 @@ from wbc_jax.errors import InputError, SpecError
 from wbc_jax.studies import replay
 from wbc_jax.studies.replay_check import REPLAY_RTOL, compare, relative_difference
 from wbc_jax.studies.replay_inputs import read_campaign, read_results
-from wbc_jax.studies.replay_sim import Program, adopt_xla, campaign_program, fill_slots, part_rows
+from wbc_jax.studies.replay_sim import Program, adopt_xla, campaign_program, fill_slots, part_rows, recorded_chunks
 from wbc_jax.studies.replay_write import default_window
 
 RUN = 5  # the replayed run of the tiny campaign (8 runs)
@@ -75,6 +75,21 @@ def test_campaign_program_from_the_manifest_or_its_layout():
     dealt = dict(spread="blocks", devices=1, parts=2, per_device_runs=4, padded_runs=8, dealt=True)
     assert campaign_program({"program": dealt}, 7) == Program("blocks", 2, 4, dealt=True)
     assert campaign_program({}, 7) == Program("one", 1, 7)
+
+
+def test_replay_steps_the_campaigns_recorded_chunks():
+    """The chunks a replay steps are the manifest's (its program record, else an older manifest's chunk_s and
+    n_chunks), whatever this version's chunk plan makes of the spec; a manifest without them keeps the plan."""
+    from types import SimpleNamespace
+
+    from wbc_jax.campaign.build import Built
+
+    built = Built(SimpleNamespace(log_every=20, dt_control=0.001), None, None, 27.65, 94, 15)  # 15 x 1.88 s
+    recorded = lambda man: SimpleNamespace(manifest=man)  # noqa: E731
+    program = recorded_chunks(recorded(dict(program=dict(logs_per_chunk=100, n_chunks=15), chunk_s=2.0)), built)
+    legacy = recorded_chunks(recorded(dict(chunk_s=2.0, n_chunks=15)), built)  # before the program record
+    assert (program.logs_per_chunk, program.n_chunks) == (legacy.logs_per_chunk, legacy.n_chunks) == (100, 15)
+    assert recorded_chunks(recorded({}), built) is built
 
 
 def test_deterministic_gpu_ops_by_default_where_cuda_can_start(monkeypatch):

@@ -173,7 +173,7 @@ def _notes(recorded: Recorded, program: Program, here: Program) -> list[str]:
     return notes
 
 
-def _recorded_chunks(recorded: Recorded, built: Built) -> Built:
+def recorded_chunks(recorded: Recorded, built: Built) -> Built:
     """``built`` with the chunks the campaign stepped (its manifest's ``program`` record, else its ``chunk_s`` and
     ``n_chunks``), whatever chunk plan this version makes from the spec: a replay steps the campaign's chunks."""
     man = recorded.manifest
@@ -253,7 +253,7 @@ def simulate_runs(recorded: Recorded, run_ids, whole_batch: bool = False, progre
     spec = recorded.spec
     gains_mod.check_design(spec, recorded.gains)
     print(f"building the campaign's batch ({len(recorded.results)} runs)", flush=True)
-    built = _recorded_chunks(recorded, build(spec, recorded.gains))
+    built = recorded_chunks(recorded, build(spec, recorded.gains))
     check_horizon(spec, built)
     _check_plan(recorded, built)
     n, wanted = built.design.n, sorted(run_ids)
