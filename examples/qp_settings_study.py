@@ -12,10 +12,12 @@ the warm starts it would get (over-relaxation: docs/performance.md, open limits)
 rollout again with the variant in the controller's loop (``QPSettings`` fields only) and prints its own solves'
 iterations and convergence tests.
 ``reuse=LAG`` (``reuse_all=LAG``) solves each problem with the
-x-update's factor of ``K`` and the Ruiz scaling of the same run's problem LAG control steps earlier (runs chained
-through their warm starts) and the exact rows' Schur parts recomputed (also reused); the residuals are always the
-current problem's, so the fixed point is unchanged; steps where a row changed kind (a foot touching down or
-lifting off) are counted apart. On a CPU: a few minutes of compilation, then 1-3 min per
+x-update's matrix ``K`` and the Ruiz scaling of the same run's problem LAG control steps earlier (runs chained
+through their warm starts) and the exact rows' Schur parts recomputed (also reused), factored with the current
+rho; ``reuse_fixed=LAG`` also with that problem's rho, i.e. its factors as they were (nothing factored again: what
+a solver that skips the preparation and factorization would do); the residuals are always the current problem's,
+so the fixed point is unchanged; steps where a row changed kind (a foot touching down or lifting off) are counted
+apart. On a CPU: a few minutes of compilation, then 1-3 min per
 variant.
 """
 
@@ -94,11 +96,12 @@ def iterations(problems: dict, settings, rho=None):
     return np.asarray(it), np.asarray(flag)
 
 
-def _reused_solve(s, schur_fresh, cur, old):
+def _reused_solve(s, schur_fresh, old_rho, cur, old):
     """ADMM iterations of problem ``cur`` (P, q, A, l, u, wx, wz, wy, wrho) with the scaling, row weights and
-    factor of ``old`` (P, q, A, l, u, wy): (iterations, converged, same row kinds)."""
+    factor of ``old`` (P, q, A, l, u, wy, wrho; with ``old_rho`` its rho too): (iterations, converged, same row
+    kinds)."""
     P, q, A, l, u, wx, wz, wy, wrho = cur
-    Po, qo, Ao, lo, uo, wyo = old
+    Po, qo, Ao, lo, uo, wyo, wrho_old = old
     l, u, lo, uo = (jnp.clip(v, -BIG, BIG) for v in (l, u, lo, uo))
     P, Po = 0.5 * (P + P.T), 0.5 * (Po + Po.T)
     spo = equilibrate(Po, qo, Ao, lo, uo, s.ruiz_iters)
@@ -107,7 +110,7 @@ def _reused_solve(s, schur_fresh, cur, old):
     kinds, kinds_old = admm.row_kinds(sp, l, u, s), admm.row_kinds(spo, lo, uo, s)
     same = jnp.all(jnp.stack([jnp.all(a == b) for a, b in zip(kinds, kinds_old)]))
     free, eq, ex = kinds
-    ne, rho = s.eq_rows, rules.warm_rho(wrho, s, P.dtype)
+    ne, rho = s.eq_rows, rules.warm_rho(wrho_old if old_rho else wrho, s, P.dtype)
     _, w_old = admm._start(spo, (wx, wz, wyo, None), kinds_old[1], kinds_old[0], kinds_old[2], s, P.dtype)
     st, _ = admm._start(sp, (wx, wz, wy, None), eq, free, ex, s, P.dtype)
     K0, G, Ae = admm._factor_parts(spo, w_old, kinds_old[0], kinds_old[2], s, ne)
@@ -132,7 +135,7 @@ def predecessors(problems: dict) -> np.ndarray:
     return np.array([index.get(w.tobytes(), -1) for w in problems["wx"]])
 
 
-def reused_iterations(problems: dict, settings, lag: int, schur_fresh: bool):
+def reused_iterations(problems: dict, settings, lag: int, schur_fresh: bool, old_rho: bool = False):
     """(iterations, converged, same row kinds) of every problem with a predecessor ``lag`` steps back in its run,
     solved with that predecessor's scaling and factor (:func:`_reused_solve`)."""
     prev = predecessors(problems)
@@ -141,9 +144,9 @@ def reused_iterations(problems: dict, settings, lag: int, schur_fresh: bool):
         old = np.where(old >= 0, prev[np.maximum(old, 0)], -1)
     cur = np.nonzero(old >= 0)[0]
     s = settings._replace(linsolve="chol")
-    fn = jax.jit(jax.vmap(lambda c, o: _reused_solve(s, schur_fresh, c, o)))
+    fn = jax.jit(jax.vmap(lambda c, o: _reused_solve(s, schur_fresh, old_rho, c, o)))
     out = fn(tuple(jnp.asarray(problems[k][cur], jnp.float32) for k in FIELDS[:9]),
-             tuple(jnp.asarray(problems[k][old[cur]], jnp.float32) for k in ("P", "q", "A", "l", "u", "wy")))
+             tuple(jnp.asarray(problems[k][old[cur]], jnp.float32) for k in ("P", "q", "A", "l", "u", "wy", "wrho")))
     return tuple(np.asarray(a) for a in out)
 
 
@@ -204,7 +207,8 @@ if __name__ == "__main__":
             continue
         if variant.startswith("reuse"):
             lag = int(variant.split("=")[1])
-            it, conv, same = reused_iterations(problems, base, lag, schur_fresh=variant.startswith("reuse="))
+            it, conv, same = reused_iterations(problems, base, lag, schur_fresh=variant.startswith("reuse="),
+                                               old_rho=variant.startswith("reuse_fixed="))
             print(f"{variant:32s} iterations mean {it.mean():6.2f} (row kinds unchanged: {it[same].mean():6.2f}, "
                   f"{same.mean():.1%} of solves)  p99 {np.percentile(it, 99):3.0f}  unconverged "
                   f"{int((~conv).sum())} ({int((~conv & same).sum())} with unchanged kinds)", flush=True)
