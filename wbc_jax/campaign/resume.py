@@ -59,7 +59,7 @@ def start_point(job: Job, state0, resume: bool) -> Start:
     if job.writer:
         try:
             st, meta = checkpoint.load_state(job.ckpt, state0, job.identity, n_chunks, job.built.batch.state_axes,
-                                                  job.built.logs_per_chunk)
+                                             job.built.logs_per_chunk)
         except WbcJaxError as e:
             problem = e
     distributed.agree(problem)

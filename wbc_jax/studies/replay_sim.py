@@ -187,7 +187,8 @@ def recorded_chunks(recorded: Recorded, built: Built) -> Built:
 
 
 def _check_plan(recorded: Recorded, built: Built) -> None:
-    """The rebuilt batch's size, seeds and chunks equal the manifest's (else the code that builds it changed)."""
+    """The rebuilt batch's size and seeds equal the manifest's, and its chunks (:func:`recorded_chunks`' where the
+    manifest records them); else the code that builds it changed."""
     man, dz = recorded.manifest, built.design
     rebuilt = dict(n_runs=dz.n, n_chunks=built.n_chunks)
     if isinstance(man.get("program"), dict):
