@@ -11,14 +11,14 @@ are printed (mean, percentiles, max, flagged solves). These open-loop figures ca
 the warm starts it would get (over-relaxation: docs/performance.md, open limits): ``closed:VARIANT`` runs the
 rollout again with the variant in the controller's loop (``QPSettings`` fields only) and prints its own solves'
 iterations and convergence tests.
-``reuse=LAG`` (``reuse_all=LAG``) solves each problem with the
-x-update's matrix ``K`` and the Ruiz scaling of the same run's problem LAG control steps earlier (runs chained
-through their warm starts) and the exact rows' Schur parts recomputed (also reused), factored with the current
-rho; ``reuse_fixed=LAG`` also with that problem's rho, i.e. its factors as they were (nothing factored again: what
-a solver that skips the preparation and factorization would do); the residuals are always the current problem's,
-so the fixed point is unchanged; steps where a row changed kind (a foot touching down or lifting off) are counted
-apart. On a CPU: a few minutes of compilation, then 1-3 min per
-variant.
+``reuse=LAG`` (``reuse_all=LAG``) solves each problem with the x-update's matrix ``K`` and the Ruiz scaling of
+the same run's problem LAG control steps earlier (runs chained through their warm starts) and the exact rows'
+Schur parts recomputed (also reused), factored with the current rho; ``reuse_fixed=LAG`` also with that problem's
+rho, i.e. its factors as they were (nothing factored again: what a solver that skips the preparation and
+factorization would do); ``reuse_kernel=LAG`` the same with the current exact rows in the step beside the old
+``W`` and Schur factor (as the fused kernels would read them). The residuals are always the current problem's, so
+the fixed point is unchanged; steps where a row changed kind (a foot touching down or lifting off) are counted
+apart. On a CPU: a few minutes of compilation, then 1-3 min per variant.
 """
 
 import dataclasses
@@ -96,10 +96,11 @@ def iterations(problems: dict, settings, rho=None):
     return np.asarray(it), np.asarray(flag)
 
 
-def _reused_solve(s, schur_fresh, old_rho, cur, old):
+def _reused_solve(s, schur_fresh, old_rho, current_ae, cur, old):
     """ADMM iterations of problem ``cur`` (P, q, A, l, u, wx, wz, wy, wrho) with the scaling, row weights and
-    factor of ``old`` (P, q, A, l, u, wy, wrho; with ``old_rho`` its rho too): (iterations, converged, same row
-    kinds)."""
+    factor of ``old`` (P, q, A, l, u, wy, wrho; with ``old_rho`` its rho too; with ``current_ae`` the step's exact
+    rows are the current problem's, beside the old ``W`` and Schur factor, as the fused kernels would read them):
+    (iterations, converged, same row kinds)."""
     P, q, A, l, u, wx, wz, wy, wrho = cur
     Po, qo, Ao, lo, uo, wyo, wrho_old = old
     l, u, lo, uo = (jnp.clip(v, -BIG, BIG) for v in (l, u, lo, uo))
@@ -118,6 +119,8 @@ def _reused_solve(s, schur_fresh, old_rho, cur, old):
     Ae, held = (sp.A[:ne] * ex[:ne, None], ex[:ne]) if schur_fresh else (Ae, kinds_old[2][:ne])
     W = solve(fac, Ae.T, s.linsolve)
     kkt = admm.KKT(fac, Ae, W, factor(regularize_schur(mv(Ae, W), held), s.linsolve))
+    if current_ae:
+        kkt = kkt._replace(Ae=sp.A[:ne] * ex[:ne, None])
     rho_v = rules.rho_vec(rho, w_old, free, s)
     body = lambda _, st: admm._step(sp, kkt, rho_v, ex, free, s, st)  # noqa: E731
     block = lambda st, n: jax.lax.fori_loop(0, n, body, admm._project(sp, kkt, ex, st, s.linsolve))  # noqa: E731
@@ -135,7 +138,8 @@ def predecessors(problems: dict) -> np.ndarray:
     return np.array([index.get(w.tobytes(), -1) for w in problems["wx"]])
 
 
-def reused_iterations(problems: dict, settings, lag: int, schur_fresh: bool, old_rho: bool = False):
+def reused_iterations(problems: dict, settings, lag: int, schur_fresh: bool, old_rho: bool = False,
+                      current_ae: bool = False):
     """(iterations, converged, same row kinds) of every problem with a predecessor ``lag`` steps back in its run,
     solved with that predecessor's scaling and factor (:func:`_reused_solve`)."""
     prev = predecessors(problems)
@@ -144,7 +148,7 @@ def reused_iterations(problems: dict, settings, lag: int, schur_fresh: bool, old
         old = np.where(old >= 0, prev[np.maximum(old, 0)], -1)
     cur = np.nonzero(old >= 0)[0]
     s = settings._replace(linsolve="chol")
-    fn = jax.jit(jax.vmap(lambda c, o: _reused_solve(s, schur_fresh, old_rho, c, o)))
+    fn = jax.jit(jax.vmap(lambda c, o: _reused_solve(s, schur_fresh, old_rho, current_ae, c, o)))
     out = fn(tuple(jnp.asarray(problems[k][cur], jnp.float32) for k in FIELDS[:9]),
              tuple(jnp.asarray(problems[k][old[cur]], jnp.float32) for k in ("P", "q", "A", "l", "u", "wy", "wrho")))
     return tuple(np.asarray(a) for a in out)
@@ -208,7 +212,8 @@ if __name__ == "__main__":
         if variant.startswith("reuse"):
             lag = int(variant.split("=")[1])
             it, conv, same = reused_iterations(problems, base, lag, schur_fresh=variant.startswith("reuse="),
-                                               old_rho=variant.startswith("reuse_fixed="))
+                                               old_rho=variant.startswith(("reuse_fixed=", "reuse_kernel=")),
+                                               current_ae=variant.startswith("reuse_kernel="))
             print(f"{variant:32s} iterations mean {it.mean():6.2f} (row kinds unchanged: {it[same].mean():6.2f}, "
                   f"{same.mean():.1%} of solves)  p99 {np.percentile(it, 99):3.0f}  unconverged "
                   f"{int((~conv).sum())} ({int((~conv & same).sum())} with unchanged kinds)", flush=True)
