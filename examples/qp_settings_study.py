@@ -65,24 +65,35 @@ def record(spec_path: Path, change: str = ""):
     if change:
         cfg = dataclasses.replace(sim.cfg, qp=parse(change, sim.cfg.qp)[0])
         sim = dataclasses.replace(sim, controller=type(sim.controller)(cfg))
-    rows, solve = [], transport.solve_qp
+    rows, factored, solve = [], [], transport.solve_qp
 
     def recording_solve(P, q, A, l, u, warm=None, settings=None):
         res = solve(P, q, A, l, u, warm=warm, settings=settings)
         jax.debug.callback(lambda *a: rows.append([np.array(v) for v in a]), P, q, A, l, u, warm.x, warm.z,
                            warm.y, warm.rho, res.x, warm.iters, res.iters, res.flag)
+        if res.factors is not None:  # QPSettings.reuse_factors: whether the solve factored
+            jax.debug.callback(lambda f: factored.append(np.array(f)), res.factors.fresh)
         return res
 
     transport.solve_qp = recording_solve
     try:
         b = built.batch
+        factors = transport.initial_factors(sim.cfg) if change else None
+        if factors is not None:  # the changed controller's warm start carries QP factors: its state as it starts
+            n = b.state.cs.warm.x.shape[0]
+            warm = b.state.cs.warm._replace(factors=jax.tree_util.tree_map(
+                lambda a: jnp.broadcast_to(a, (n,) + a.shape), factors))
+            b = b._replace(state=b.state._replace(cs=b.state.cs._replace(warm=warm)))
         simulate(sim, b.model, b.in_axes, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground, SECONDS,
                  CHUNK_S)
     finally:
         transport.solve_qp = solve
     qp = sim.cfg.qp._replace(box_rows=sim.cfg.k * (transport.N_FEET + transport.N_OBJ))
     skip = 10 * built.design.n  # the standing start's first steps
-    return {k: np.stack([r[i] for r in rows[skip:]]) for i, k in enumerate(FIELDS)}, qp
+    out = {k: np.stack([r[i] for r in rows[skip:]]) for i, k in enumerate(FIELDS)}
+    if factored:
+        out["factored"] = np.stack(factored[skip:])
+    return out, qp
 
 
 def iterations(problems: dict, settings, rho=None):
@@ -200,8 +211,8 @@ if __name__ == "__main__":
             tests = 1 + np.maximum(it - first_blocks(closed["wk"], qp), 0) // ce
             print(f"{variant:32s} iterations mean {it.mean():6.2f}  p50 {np.median(it):3.0f}  p90 "
                   f"{np.percentile(it, 90):3.0f}  p99 {np.percentile(it, 99):3.0f}  max {it.max():3d}  flagged "
-                  f"{int((flag != 0).sum())}  tests {tests.mean():5.2f}  (closed loop, {len(it)} solves)",
-                  flush=True)
+                  f"{int((flag != 0).sum())}  tests {tests.mean():5.2f}  (closed loop, {len(it)} solves"
+                  + (f", {closed['factored'].mean():.1%} factored)" if "factored" in closed else ")"), flush=True)
             continue
         if "first_test=" in variant:  # with other fields: e.g. alpha=1.3,first_test=0
             rest = [item for item in variant.split(",") if not item.startswith("first_test=")]

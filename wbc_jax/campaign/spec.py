@@ -109,6 +109,8 @@ CAMPAIGN = {
                       "the first convergence check after the last control step's iterations minus this; -1: after "
                       "qp_iters"),
     "qp_alpha": (float, 0.0, 0.0, 1.95, False, "ADMM over-relaxation of the controller's QP; 0 = the controller's"),
+    "qp_reuse_factors": (int, 0, 0, 1, False,
+                         "1: the transport controller's QP factors every other control step (GPU kernels)"),
     "control_substeps": (int, 1, 1, 10, False,
                          "physics steps per control step (zero-order hold); 1 = control at the physics rate"),
     "chunk_seconds": (float, 2.0, 0.02, 60.0, False, "[s]"),
@@ -175,7 +177,7 @@ _HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_
                                "com_plan": "spline", "sensing": "auto",
                                "obj_accel": 0.0, "cone": "scene", "impratio": 0.0, "controller": "transport",
                                "mass_error": 0.0, "walk_seconds": 10.0, "step_time": 0.25, "four_foot": 0.08,
-                               "qp_first_test": -1, "qp_alpha": 0.0},
+                               "qp_first_test": -1, "qp_alpha": 0.0, "qp_reuse_factors": 0},
                  "perturbations": {"push_dir_deg": 0.0}}
 
 

@@ -22,7 +22,8 @@ from wbc_jax.control.transport_qp import (
     planned_object_forces,
 )
 from wbc_jax.control.variants import FULL, Variant
-from wbc_jax.qp import QPResult, QPSettings, solve_qp
+from wbc_jax.qp import QPResult, QPSettings, empty_factors, solve_qp
+from wbc_jax.qp.api import resolve_settings
 from wbc_jax.spatial import GRAVITY, full_precision
 from wbc_jax.types import DynTerms, ObjectModel, Observation, Reference, RobotIds
 
@@ -122,13 +123,26 @@ class QPDiag(NamedTuple):
     obj_forces: jax.Array
 
 
+def qp_settings(cfg: TransportConfig) -> QPSettings:
+    """The settings the controller solves its QP with: ``cfg.qp`` with the multiplier rows as the box block."""
+    return cfg.qp._replace(box_rows=cfg.k * (N_FEET + N_OBJ))
+
+
+def initial_factors(cfg: TransportConfig):
+    """The first warm start's QP factors where the solver will reuse factors on this machine
+    (``QPSettings.reuse_factors`` as :func:`wbc_jax.qp.api.resolve_settings` leaves it), else None."""
+    s = resolve_settings(qp_settings(cfg), cfg.qp.iters, jnp.zeros(()).dtype, jax.default_backend())
+    return empty_factors(cfg.n_var, cfg.n_con, s) if s.reuse_factors else None
+
+
 def init_control_state(cfg: TransportConfig, dyn: DynTerms, ids: RobotIds) -> ControlState:
     n, mcon = cfg.n_var, cfg.n_con
     z = jnp.zeros
     # no warm point yet (zeros), but a valid rho: the settings' initial rho (a 0 would be clipped to rho_min and,
     # with rho adaptation off, kept for the whole run)
     warm = QPResult(x=z(n), y=z(mcon), z=z(mcon), prim_res=z(()), dual_res=z(()),
-                    flag=jnp.zeros((), jnp.int32), iters=jnp.zeros((), jnp.int32), rho=z(()) + cfg.qp.rho)
+                    flag=jnp.zeros((), jnp.int32), iters=jnp.zeros((), jnp.int32), rho=z(()) + cfg.qp.rho,
+                    factors=initial_factors(cfg))
     obs = ObserverState(h0=dyn.h_G, integral=z(6), r=z(6), w_cmd=z(6))
     return ControlState(warm=warm, obs=obs, q_post=dyn.q[ids.act_qpos[12:]],
                         variant=Variant(*(jnp.asarray(v, float) for v in FULL)))
@@ -168,7 +182,7 @@ def transport_control(obs: Observation, ref: Reference, om: ObjectModel, gains: 
     with jax.named_scope("qp_assemble"):
         observer, qp = assemble(obs, ref, om, gains, cs, ids, cfg, mu_ground)
     res = solve_qp(qp.P, qp.q, qp.A, qp.l, qp.u, warm=cs.warm,
-                   settings=cfg.qp._replace(box_rows=cfg.k * (N_FEET + N_OBJ)))
+                   settings=qp_settings(cfg))
     tau_raw = qp.A_tau @ res.x + qp.h_a
     tmax = jnp.asarray(ids.tau_max)
     tau = jnp.clip(tau_raw, -tmax, tmax)

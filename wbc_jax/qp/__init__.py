@@ -7,7 +7,7 @@ rules, termination test and certificates in :mod:`wbc_jax.qp.rules`; the XLA pat
 GPU path in :mod:`wbc_jax.qp.fused` and its kernels (``kernel_*``); active-set polishing in :mod:`wbc_jax.qp.polish`.
 """
 
-from wbc_jax.qp.api import solve_qp
+from wbc_jax.qp.api import empty_factors, solve_qp
 from wbc_jax.qp.settings import (
     FLAG_DUAL_INFEASIBLE,
     FLAG_MAX_ITER,
@@ -26,5 +26,6 @@ __all__ = [
     "FLAG_SOLVED",
     "QPResult",
     "QPSettings",
+    "empty_factors",
     "solve_qp",
 ]

@@ -59,13 +59,23 @@ def _solve_one(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     return solve_xla(P, q, A, l, u, warm, s, iters)
 
 
+def empty_factors(n: int, m: int, s: QPSettings, dtype=jnp.float32):
+    """A warm result's ``factors`` before any solve made them (``QPSettings.reuse_factors``: the first solve
+    factors), for a problem of ``n`` variables and ``m`` rows under ``s`` (its ``eq_rows`` and ``box_rows``):
+    :func:`wbc_jax.qp.fused.empty_factors`."""
+    from wbc_jax.qp.fused import empty_factors as empty  # Pallas' Triton modules load only where the kernels run
+
+    return empty(n, m, s, dtype)
+
+
 def _warm_tuple(warm: Any, s: QPSettings):
-    """``(x, z, y, rho or None, iters or None)`` of a warm result (None: cold); ``iters`` only where
-    ``s.warm_first_test`` uses it."""
+    """``(x, z, y, rho or None, iters or None, factors or None)`` of a warm result (None: cold); ``iters`` only
+    where ``s.warm_first_test`` uses it, ``factors`` where ``s.reuse_factors`` does."""
     if warm is None:
         return None
     iters = getattr(warm, "iters", None) if s.warm_first_test >= 0 else None
-    return (warm.x, warm.z, warm.y, getattr(warm, "rho", None), iters)
+    factors = getattr(warm, "factors", None) if s.reuse_factors else None
+    return (warm.x, warm.z, warm.y, getattr(warm, "rho", None), iters, factors)
 
 
 def _batched(fn, n_axes: int):
@@ -84,7 +94,8 @@ def resolve_settings(s: QPSettings, iters: int, dtype, backend: str) -> QPSettin
     """``s`` with its ``"auto"`` choices made for this solve, checked (ValueError naming the setting).
 
     ``linsolve="auto"``: Cholesky on a CPU, the explicit inverse elsewhere. ``kernel="auto"``: the fused Pallas
-    kernels on a GPU for float32 problems with one factorization per solve and no polishing, else XLA. The kernels
+    kernels on a GPU for float32 problems with one factorization per solve and no polishing, else XLA (and then
+    ``reuse_factors`` off). The kernels
     are built for float32 (Triton's lowering fails in float64), so ``kernel="fused"`` with float64 data is refused
     off the CPU (Pallas' interpreter runs it).
 
@@ -102,7 +113,8 @@ def resolve_settings(s: QPSettings, iters: int, dtype, backend: str) -> QPSettin
         raise ValueError(f"QPSettings.kernel must be one of {KERNELS}, not {s.kernel!r}")
     one_factor = s.adapt_every == 0 or s.adapt_every >= iters
     f32 = jnp.dtype(dtype) == jnp.float32
-    if s.kernel == "auto":
+    auto_kernel = s.kernel == "auto"
+    if auto_kernel:
         s = s._replace(kernel="fused" if backend != "cpu" and one_factor and not s.polish and f32 else "xla")
     if s.kernel == "fused" and (not one_factor or s.polish):
         raise ValueError(f"QPSettings.kernel='fused' needs one factorization per solve (adapt_every 0 or >= iters) "
@@ -110,6 +122,12 @@ def resolve_settings(s: QPSettings, iters: int, dtype, backend: str) -> QPSettin
     if s.warm_first_test < -1 or (s.warm_first_test >= 0 and not one_factor):
         raise ValueError(f"QPSettings.warm_first_test must be -1 or >= 0 with one factorization per solve "
                          f"(adapt_every 0 or >= iters), got {s.warm_first_test} with adapt_every={s.adapt_every}")
+    if s.reuse_factors and s.kernel != "fused":
+        if auto_kernel:  # the XLA path factors every solve
+            s = s._replace(reuse_factors=False)
+        else:
+            raise ValueError(f"QPSettings.reuse_factors needs kernel='fused' or 'auto' (the XLA path factors every "
+                             f"solve), got kernel={s.kernel!r}")
     if s.kernel == "fused" and backend != "cpu" and not f32:
         raise ValueError(f"QPSettings.kernel='fused' runs float32 problems on a {backend.upper()} (its Triton "
                          f"kernels), got {jnp.dtype(dtype).name}; use kernel='auto' or 'xla'")

@@ -6,6 +6,12 @@ problem each (``QPSettings.kernel="fused"``).
 3. :mod:`~wbc_jax.qp.kernel_iterate`: the ADMM iterations with the convergence-checked extension, then the result
    in the user's units with its residuals, certificates, flag and next rho.
 
+With ``QPSettings.reuse_factors`` a result carries its factors and what they were made from
+(:class:`~wbc_jax.qp.kernel_layout.Factors`); the next solve warm-started from it scales the problem by their
+scaling with their rho and, per problem where no row changed kind, keeps them: its factorization program writes
+nothing into the outputs aliased to them. It then factors again the solve after. The ADMM step is residual-based,
+so kept factors only precondition it: the fixed point and the convergence test are the current problem's.
+
 The rows come in three blocks (exact, dense, box; :mod:`~wbc_jax.qp.kernel_layout`). The user's arrays reach the
 kernels as they are (masked loads) and ``x``, ``z``, ``y`` are written in the user's layout, so no XLA op pads,
 slices or concatenates around the kernels. One program per problem loads its matrices once and stops at its own
@@ -26,9 +32,9 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plgpu
 
 from wbc_jax.qp import rules
-from wbc_jax.qp.kernel_factor import factor_kernel
+from wbc_jax.qp.kernel_factor import factor_kernel, factor_or_keep_kernel
 from wbc_jax.qp.kernel_iterate import iterate_kernel
-from wbc_jax.qp.kernel_layout import Dims, no_sync, pow2
+from wbc_jax.qp.kernel_layout import Dims, Factors, no_sync, pow2
 from wbc_jax.qp.kernel_prepare import prepare_kernel, stage_shapes
 from wbc_jax.qp.settings import QPResult, QPSettings
 
@@ -38,19 +44,48 @@ def solve_fused(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     the kernels' blocks, the first ``ne`` exact, the last ``box_rows`` a diagonal, the dense rows between.
 
     Args:
-        warm: None (cold) or ``(x, z, y, rho or None, iters or None)`` in the user's units.
+        warm: None (cold) or ``(x, z, y, rho or None, iters or None, factors or None)`` in the user's units
+            (``factors``: :class:`~wbc_jax.qp.kernel_layout.Factors`, read with ``s.reuse_factors``).
     """
     dt = P.dtype
     m, n = A.shape
-    nb = s.box_rows
-    ne = max(min(s.eq_rows, m - nb), 1)  # one exact-block row that is not held stands for none
+    ne = _dims(n, m, s).ne
     if warm is None:
         wx, wz, wy = jnp.zeros(n, dt), jnp.zeros(m, dt), jnp.zeros(m, dt)
     else:
         wx, wz, wy = (jnp.asarray(v, dt) for v in warm[:3])
     rho = rules.warm_rho(None if warm is None else warm[3], s, dt)
     first = rules.first_block(warm, s, iters)
-    return fused_solve(P, A, q, l, u, wx, wz, wy, rho, first, s=s, iters=iters, warm=warm is not None, ne=ne)
+    old = None
+    if s.reuse_factors:
+        old = warm[5] if warm is not None and len(warm) > 5 and warm[5] is not None else empty_factors(n, m, s, dt)
+        rho = jnp.where(old.fresh, jnp.asarray(old.rho_s, dt), rho)
+    return fused_solve(P, A, q, l, u, wx, wz, wy, rho, first, old, s=s, iters=iters, warm=warm is not None, ne=ne)
+
+
+def _dims(n: int, m: int, s: QPSettings) -> Dims:
+    """The kernels' blocks of a problem of ``n`` variables and ``m`` rows: the first ``ne`` exact, the last
+    ``s.box_rows`` a diagonal, the dense rows between."""
+    nb = s.box_rows
+    ne = max(min(s.eq_rows, m - nb), 1)  # one exact-block row that is not held stands for none
+    return Dims(n, ne, m - ne - nb, nb)
+
+
+def empty_factors(n: int, m: int, s: QPSettings, dt=jnp.float32) -> Factors:
+    """The :class:`~wbc_jax.qp.kernel_layout.Factors` of a problem of ``n`` variables and ``m`` rows that no solve
+    has made yet (``fresh`` False: the next solve factors), e.g. a control loop's first warm start."""
+    dims = _dims(n, m, s)
+    N, NE, MI = pow2(n), pow2(dims.ne), pow2(dims.mi)
+    rows = (NE, MI, N)
+    return Factors(jnp.zeros((N, N), dt), jnp.zeros((N, NE), dt), jnp.zeros((NE, NE), dt), jnp.ones(N, dt),
+                   tuple(jnp.ones(r, dt) for r in rows), jnp.ones((), dt), tuple(jnp.zeros(r, dt) for r in rows),
+                   jnp.zeros(N, dt), tuple(jnp.zeros(r, dt) for r in rows), jnp.ones((), dt), jnp.zeros((), bool))
+
+
+def _kinds(st) -> tuple:
+    """Per row of a :class:`~wbc_jax.qp.kernel_layout.Stage`, each block's: 1.0 without bounds + 2.0 an equality
+    (the kinds :func:`~wbc_jax.qp.kernel_prepare.prepare` gives each row its rho by)."""
+    return tuple(f + 2.0 * (jnp.abs(h - lo) < rules.EQ_TOL) for f, lo, h in zip(st.free, st.lo, st.hi))
 
 
 def _pad_matrices(P, A, dims: Dims, interpret: bool):
@@ -85,8 +120,8 @@ def _compiler_params(interpret: bool, num_warps: int, factor_warps: int):
 
 
 @functools.partial(jax.jit, static_argnames=("s", "iters", "warm", "ne", "num_warps", "factor_warps"))
-def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, *, s: QPSettings, iters: int, warm: bool, ne: int,
-                num_warps: int = 2, factor_warps: int = 2) -> QPResult:
+def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, *, s: QPSettings, iters: int, warm: bool,
+                ne: int, num_warps: int = 2, factor_warps: int = 2) -> QPResult:
     """One QP solved by the three kernels.
 
     Args:
@@ -98,6 +133,10 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, *, s: QPSettings, it
         rho: () the solve's rho (:func:`wbc_jax.qp.rules.warm_rho`).
         first: None, or () int32 the iterations before the first convergence test
             (:func:`wbc_jax.qp.rules.first_block`; None: ``iters``).
+        old: None, or an earlier solve's :class:`~wbc_jax.qp.kernel_layout.Factors` (``s.reuse_factors``): where
+            they are ``fresh`` the problem is scaled by their scaling (and ``rho`` should be theirs), and where its
+            rows' kinds are theirs too the factorization keeps them (its program writes nothing); the result
+            carries the factors used, ``fresh`` where this solve factored.
         s: the solver's settings; iters: the fixed iterations; warm: start from ``wx, wz, wy``; ne: the exact
             block's rows.
         num_warps, factor_warps: Triton warps per program of the preparation and iterations kernels, and of the
@@ -108,26 +147,44 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, *, s: QPSettings, it
     """
     (m, n), nb = A.shape, s.box_rows
     dims = Dims(n, ne, m - ne - nb, nb)
+    given = old is not None
     N, NE = pow2(n), pow2(ne)
     dt = P.dtype
     interpret = jax.default_backend() == "cpu"
     P, A = _pad_matrices(P, A, dims, interpret)
     lb, ub = _bound_blocks(l, dims, dt), _bound_blocks(u, dims, dt)
     ins = [P, A, q, *lb, *ub, wy, jnp.reshape(rho, (1,)).astype(dt), wx, wz]
+    if given:
+        ins += [jnp.reshape(old.fresh, (1,)).astype(dt), old.D, *old.Ei, jnp.reshape(old.c, (1,)).astype(dt)]
     params, fparams, sync = _compiler_params(interpret, num_warps, factor_warps)
     sd = lambda *sh: jax.ShapeDtypeStruct(sh, dt)  # noqa: E731
     shapes = stage_shapes(dims, dt)
     treedef = jax.tree_util.tree_structure(shapes)
     with jax.named_scope("qp_equilibrate"):
         st = pl.pallas_call(
-            functools.partial(prepare_kernel, s=s, dims=dims, warm=warm, treedef=treedef), interpret=interpret,
+            functools.partial(prepare_kernel, s=s, dims=dims, warm=warm, treedef=treedef, given=given),
+            interpret=interpret,
             compiler_params=params, out_shape=jax.tree_util.tree_leaves(shapes), name="admm_prepare")(*ins)
     st = jax.tree_util.tree_unflatten(treedef, st)
+    factor_ins = (st.P, st.Ae, st.Ai, st.kd, st.rho[0], st.rho[1], st.exe)
+    if given:  # the old factors kept where the rows' kinds are theirs (with their rho and K's diagonal)
+        kinds = _kinds(st)
+        keep = old.fresh & functools.reduce(jnp.logical_and, [jnp.all(a == b) for a, b in zip(kinds, old.kinds)])
+        st = st._replace(rho=tuple(jnp.where(keep, o, r) for o, r in zip(old.rho, st.rho)),
+                         kd=jnp.where(keep, old.kd, st.kd))
+        factor_ins = (st.P, st.Ae, st.Ai, st.kd, st.rho[0], st.rho[1], st.exe)
     with jax.named_scope("qp_factor"):
-        factors = pl.pallas_call(
-            functools.partial(factor_kernel, n=n, ne=ne, sync=sync), interpret=interpret, compiler_params=fparams,
-            out_shape=[sd(N, N), sd(N, NE), sd(NE, NE)], name="admm_factor",
-        )(st.P, st.Ae, st.Ai, st.kd, st.rho[0], st.rho[1], st.exe)
+        if given:
+            factors = pl.pallas_call(
+                functools.partial(factor_or_keep_kernel, n=n, ne=ne, sync=sync), interpret=interpret,
+                compiler_params=fparams, out_shape=[sd(N, N), sd(N, NE), sd(NE, NE)], name="admm_factor",
+                input_output_aliases={8: 0, 9: 1, 10: 2},
+            )(*factor_ins, jnp.reshape(keep, (1,)).astype(dt), old.Ki, old.W, old.Si)
+        else:
+            factors = pl.pallas_call(
+                functools.partial(factor_kernel, n=n, ne=ne, sync=sync), interpret=interpret,
+                compiler_params=fparams, out_shape=[sd(N, N), sd(N, NE), sd(NE, NE)], name="admm_factor",
+            )(*factor_ins)
     kern = functools.partial(iterate_kernel, s=s, iters=iters, max_iters=max(s.max_iters, iters),
                              check_every=max(s.check_every, 1), treedef=treedef, dims=dims, sync=sync,
                              first=first is not None)
@@ -138,4 +195,8 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, *, s: QPSettings, it
             kern, out_shape=[sd(n), sd(m), sd(m), i1, i1, sd(1), sd(1), sd(1)], interpret=interpret,
             compiler_params=params, name="admm_iterations",
         )(*jax.tree_util.tree_leaves(st), *factors, *lb, *ub, *extra)
-    return QPResult(x=x, y=y, z=z, prim_res=prim[0], dual_res=dual[0], flag=flag[0], iters=k[0], rho=rho_out[0])
+    carried = None
+    if given:
+        carried = Factors(*factors, st.D, st.Ei, st.scal[0], st.rho, st.kd, kinds, st.scal[1], ~keep)
+    return QPResult(x=x, y=y, z=z, prim_res=prim[0], dual_res=dual[0], flag=flag[0], iters=k[0], rho=rho_out[0],
+                    factors=carried)

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 from jax.experimental import pallas as pl
 
-from wbc_jax.qp.kernel_layout import CK, dot
+from wbc_jax.qp.kernel_layout import CK, dot, entry, read_vec
 from wbc_jax.qp.scaling import regularize_schur
 
 
@@ -147,3 +147,16 @@ def factor_kernel(P_ref, Ae_ref, Ai_ref, kd_ref, re_ref, ri_ref, exe_ref, Ki_ref
     sync()
     S = _chunked(N, lambda k: dot(Ae_ref[:, k] * exe[:, None], W_ref[k, :], ((1,), (0,))), jnp.zeros((NE, NE), W.dtype))
     Si_ref[...] = sweep_inverse(regularize_schur(S, exe > 0.5), ne) * (exe[:, None] * exe[None, :])
+
+
+def factor_or_keep_kernel(P_ref, Ae_ref, Ai_ref, kd_ref, re_ref, ri_ref, exe_ref, keep_ref, Ki_old, W_old, Si_old,
+                          Ki_ref, W_ref, Si_ref, *, n: int, ne: int, sync):
+    """:func:`factor_kernel` where ``keep_ref`` (1,) is 0.0; where it is 1.0 the program writes nothing, so the
+    outputs, aliased to ``Ki_old``, ``W_old``, ``Si_old`` (the factors of an earlier solve,
+    ``QPSettings.reuse_factors``), keep them."""
+    del Ki_old, W_old, Si_old  # the outputs' buffers
+
+    @pl.when(entry(read_vec(keep_ref, 16, 1), 0) < 0.5)
+    def _():
+        factor_kernel(P_ref, Ae_ref, Ai_ref, kd_ref, re_ref, ri_ref, exe_ref, Ki_ref, W_ref, Si_ref, n=n, ne=ne,
+                      sync=sync)

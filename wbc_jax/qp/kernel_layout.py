@@ -63,6 +63,23 @@ class Stage(NamedTuple):
     scal: jax.Array  # (16,) [c, rho]
 
 
+class Factors(NamedTuple):
+    """A fused solve's x-update factors and the scaled data they were made from, carried by its result to the next
+    solve (``QPSettings.reuse_factors``; each per-row field a tuple of the exact, dense and box block's)."""
+
+    Ki: jax.Array  # (N, N) K^-1
+    W: jax.Array  # (N, NE) K^-1 Ae_h'
+    Si: jax.Array  # (NE, NE) S^-1
+    D: jax.Array  # (N,) column scaling
+    Ei: tuple  # 1 / row scaling
+    c: jax.Array  # () cost scaling
+    rho: tuple  # per-row rho of K
+    kd: jax.Array  # (N,) K's diagonal term
+    kinds: tuple  # per row: 1.0 without bounds + 2.0 an equality (the rows' kinds the factors hold for)
+    rho_s: jax.Array  # () the scalar rho the per-row rho was made from
+    fresh: jax.Array  # () bool: factored by the solve that returned them (the next may reuse them)
+
+
 def pow2(k: int) -> int:
     """The tile size of ``k`` entries: the next power of two, at least 16."""
     return 1 << max(4, (k - 1).bit_length())

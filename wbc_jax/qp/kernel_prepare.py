@@ -31,6 +31,8 @@ from wbc_jax.qp.kernel_layout import (
 from wbc_jax.qp.scaling import ruiz_pass
 from wbc_jax.qp.settings import BIG, QPSettings
 
+N_GIVEN = 6  # the preparation kernel's inputs of a given scaling: flag, D, 1 / E (3 blocks), c
+
 
 class Prepared(NamedTuple):
     """One problem after equilibration, in the kernels' layout (each per-row field a tuple of the exact, dense and
@@ -54,7 +56,8 @@ class Prepared(NamedTuple):
     y: tuple  # scaled start (0 on free rows and padding)
 
 
-def prepare(P, Ae, Ai, db, q, l, u, wx, wz, wy, rho, *, s: QPSettings, dims: Dims, warm: bool) -> Prepared:
+def prepare(P, Ae, Ai, db, q, l, u, wx, wz, wy, rho, *, s: QPSettings, dims: Dims, warm: bool,
+            given=None) -> Prepared:
     """The XLA path's preparation of one problem on the kernels' blocks: symmetrize ``P``, Ruiz passes
     (:func:`wbc_jax.qp.scaling.ruiz_pass`), the rows' kinds, the per-row rho and the start in the scaled problem
     (:func:`wbc_jax.qp.rules.scaled_start`, :func:`wbc_jax.qp.rules.start_on_rows`). Plain ``jnp``.
@@ -64,15 +67,25 @@ def prepare(P, Ae, Ai, db, q, l, u, wx, wz, wy, rho, *, s: QPSettings, dims: Dim
         l, u: tuples of the three blocks' bounds (finite, ``+-BIG``; padding 0).
         wx: (N,), wz, wy: tuples of the blocks: the warm point (user's units; ignored when ``warm`` is False).
         rho: () the solve's rho.
+        given: None, or ``(use, D, E, c)``: where ``use`` (() bool), the problem is scaled by this column scaling
+            (N,), row scalings (a tuple of the three blocks') and cost scaling () instead of its Ruiz passes'.
     """
     N = P.shape[0]
     masks = row_masks(dims, (Ae.shape[0], Ai.shape[0], N))
     P = 0.5 * (P + P.T)
     D, E, c = jnp.ones_like(q), [jnp.ones_like(v) for v in l], jnp.ones_like(rho)
     rows = (Ae, Ai)
+    P0, q0, rows0, db0 = P, q, rows, db
     for _ in range(s.ruiz_iters):
         P, q, rows, db, d, e, ct = ruiz_pass(P, q, rows, db, dims.n)
         D, E, c = D * d, [a * b for a, b in zip(E, e)], c * ct
+    if given is not None:
+        use, Dg, Eg, cg = given
+        P = jnp.where(use, cg * Dg[:, None] * P0 * Dg[None, :], P)
+        q = jnp.where(use, cg * Dg * q0, q)
+        rows = tuple(jnp.where(use, e[:, None] * M * Dg[None, :], R) for e, M, R in zip(Eg, rows0, rows))
+        db = jnp.where(use, Eg[2] * db0 * Dg, db)
+        D, E, c = jnp.where(use, Dg, D), [jnp.where(use, g, e) for g, e in zip(Eg, E)], jnp.where(use, cg, c)
     P = 0.5 * (P + P.T)
     ls, us = tuple(e * v for e, v in zip(E, l)), tuple(e * v for e, v in zip(E, u))
     free = tuple((a <= -BIG) & (b >= BIG) for a, b in zip(l, u))
@@ -100,10 +113,12 @@ def stage_shapes(dims: Dims, dt) -> Stage:
                  sd(N), rowb, rowb, sd(NE), sd(NE), sd(16))
 
 
-def prepare_kernel(*refs, s: QPSettings, dims: Dims, warm: bool, treedef):
+def prepare_kernel(*refs, s: QPSettings, dims: Dims, warm: bool, treedef, given: bool = False):
     """:func:`prepare` of one problem, written as a :class:`~.kernel_layout.Stage` (``treedef``'s leaves, after the
-    ``N_IN`` inputs). Reads the user's arrays as they are: ``P`` and the exact and dense blocks of ``A`` as tiles,
-    the box block's diagonal and the vectors by index, the bounds from their three blocks."""
+    ``N_IN`` inputs and, with ``given``, :data:`N_GIVEN` more: the flag (1,) (1.0: use them), ``D`` (N,), the row
+    blocks' ``1 / E`` and ``c`` (1,) of a scaling to use instead of the Ruiz passes'). Reads the user's arrays as
+    they are: ``P`` and the exact and dense blocks of ``A`` as tiles, the box block's diagonal and the vectors by
+    index, the bounds from their three blocks."""
     P_ref, A_ref, q_ref = refs[:3]
     wy_ref, rho_ref, wx_ref, wz_ref = refs[9:N_IN]
     N, NE, MI = pow2(dims.n), pow2(dims.ne), pow2(dims.mi)
@@ -114,9 +129,15 @@ def prepare_kernel(*refs, s: QPSettings, dims: Dims, warm: bool, treedef):
     q, wx = read_vec(q_ref, N, dims.n), read_vec(wx_ref, N, dims.n)
     l, u = read_blocks(refs[3:6], dims), read_blocks(refs[6:9], dims)
     wy, wz = read_rows(wy_ref, dims), read_rows(wz_ref, dims)
-    out = jax.tree_util.tree_unflatten(treedef, refs[N_IN:])
+    n_in = N_IN + (N_GIVEN if given else 0)
+    out = jax.tree_util.tree_unflatten(treedef, refs[n_in:])
     rho = entry(read_vec(rho_ref, 16, 1), 0)
-    pr = prepare(P, Ae, Ai, db, q, l, u, wx, wz, wy, rho, s=s, dims=dims, warm=warm)
+    scaling = None
+    if given:
+        use_ref, D_ref, E0_ref, E1_ref, E2_ref, c_ref = refs[N_IN:n_in]
+        Eg = tuple(1.0 / r[...] for r in (E0_ref, E1_ref, E2_ref))
+        scaling = (entry(read_vec(use_ref, 16, 1), 0) > 0.5, D_ref[...], Eg, entry(read_vec(c_ref, 16, 1), 0))
+    pr = prepare(P, Ae, Ai, db, q, l, u, wx, wz, wy, rho, s=s, dims=dims, warm=warm, given=scaling)
     i = jax.lax.broadcasted_iota(jnp.int32, q.shape, 0)
     vals = Stage(pr.P, pr.Ae, pr.Ai, pr.db, pr.q, jnp.where(i < dims.n, s.sigma + pr.db * pr.db * pr.rho[2], 1.0),
                  pr.D, 1.0 / (pr.c * pr.D), pr.l, pr.u, pr.rho, tuple(jnp.where(f, 1.0, 0.0) for f in pr.free),

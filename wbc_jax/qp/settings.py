@@ -13,7 +13,7 @@ Flags (``QPResult.flag``, int32):
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 
@@ -86,6 +86,12 @@ class QPSettings(NamedTuple):
             problem, :mod:`wbc_jax.qp.fused`; needs one factorization per solve and no polishing; rho is then
             re-estimated from the final iterate) or ``"auto"`` (fused on a GPU for float32 where that holds, else
             XLA) (default ``"xla"``).
+        reuse_factors: fused kernels only: a solve warm-started from a result that carries its factors
+            (``QPResult.factors``, made by a solve that factored) reuses them with their scaling and rho instead of
+            equilibrating and factoring again, where no row changed kind (free, equality, held) since; the next
+            solve then factors again, so every other solve of a control loop factors. The step is residual-based
+            (the factors precondition it), so the solution and the convergence test are the current problem's
+            (default False).
     """
 
     iters: int = 100
@@ -116,6 +122,7 @@ class QPSettings(NamedTuple):
     check_every: int = 10
     warm_first_test: int = -1
     kernel: str = "xla"
+    reuse_factors: bool = False
 
 
 class QPResult(NamedTuple):
@@ -130,6 +137,8 @@ class QPResult(NamedTuple):
         flag: () int32, ``FLAG_*`` (0 = converged to tolerance).
         iters: () int32, iterations run (``iters`` plus the extension's, ``QPSettings.max_iters``).
         rho: () final (adapted) rho of the scaled problem; a warm start reuses it.
+        factors: the fused kernels' factors and what they were made from
+            (:class:`wbc_jax.qp.kernel_layout.Factors`) where ``QPSettings.reuse_factors``, else None.
     """
 
     x: jax.Array
@@ -140,3 +149,4 @@ class QPResult(NamedTuple):
     flag: jax.Array
     iters: jax.Array
     rho: jax.Array
+    factors: Any = None
