@@ -163,16 +163,15 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, *, s: QPSe
     with jax.named_scope("qp_equilibrate"):
         st = pl.pallas_call(
             functools.partial(prepare_kernel, s=s, dims=dims, warm=warm, treedef=treedef, given=given),
-            interpret=interpret,
-            compiler_params=params, out_shape=jax.tree_util.tree_leaves(shapes), name="admm_prepare")(*ins)
+            interpret=interpret, compiler_params=params, out_shape=jax.tree_util.tree_leaves(shapes),
+            name="admm_prepare")(*ins)
     st = jax.tree_util.tree_unflatten(treedef, st)
-    factor_ins = (st.P, st.Ae, st.Ai, st.kd, st.rho[0], st.rho[1], st.exe)
     if given:  # the old factors kept where the rows' kinds are theirs (with their rho and K's diagonal)
         kinds = _kinds(st)
         keep = old.fresh & functools.reduce(jnp.logical_and, [jnp.all(a == b) for a, b in zip(kinds, old.kinds)])
         st = st._replace(rho=tuple(jnp.where(keep, o, r) for o, r in zip(old.rho, st.rho)),
                          kd=jnp.where(keep, old.kd, st.kd))
-        factor_ins = (st.P, st.Ae, st.Ai, st.kd, st.rho[0], st.rho[1], st.exe)
+    factor_ins = (st.P, st.Ae, st.Ai, st.kd, st.rho[0], st.rho[1], st.exe)
     with jax.named_scope("qp_factor"):
         if given:
             factors = pl.pallas_call(
