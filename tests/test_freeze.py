@@ -66,3 +66,28 @@ def test_other_run_is_untouched(pair):
     assert unpushed.failure_s.isna().all()
     for k in METRICS:
         np.testing.assert_array_equal(unpushed[k].to_numpy(), ref[k].to_numpy(), err_msg=k)
+
+
+def test_frozen_run_keeps_its_controller_state_but_the_qp_factors():
+    """Controller.freeze: a frozen run keeps its controller state leaf for leaf (the base rule); the transport's
+    carried QP factors (QPSettings.reuse_factors) follow the new step's, which no kept value depends on."""
+    import jax.numpy as jnp
+
+    from wbc_jax.control.transport import ControlState, TransportConfig, control_qp_settings, initial_factors
+    from wbc_jax.control.variants import FULL, Variant
+    from wbc_jax.qp import QPResult
+    from wbc_jax.rollout.controllers.transport import TransportController
+
+    cfg = TransportConfig(qp=control_qp_settings(kernel="fused", reuse_factors=True))
+    f0 = initial_factors(cfg)
+
+    def state(v):
+        warm = QPResult(*(jnp.full((3,), v) for _ in range(8)), factors=f0._replace(c=jnp.asarray(v)))
+        return ControlState(warm=warm, obs=jnp.full((2,), v), q_post=jnp.full((6,), v),
+                            variant=Variant(*(jnp.asarray(x, float) for x in FULL)))
+
+    old, new = state(1.0), state(2.0)
+    ctl = TransportController(cfg)
+    frozen, live = ctl.freeze(jnp.asarray(True), new, old), ctl.freeze(jnp.asarray(False), new, old)
+    assert float(frozen.warm.x[0]) == 1.0 and float(frozen.obs[0]) == 1.0 and float(frozen.warm.factors.c) == 2.0
+    assert float(live.warm.x[0]) == 2.0 and float(live.obs[0]) == 2.0 and float(live.warm.factors.c) == 2.0

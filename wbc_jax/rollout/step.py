@@ -221,5 +221,5 @@ def control_step(sim: Sim, m, run_state: RunState, plan, obj_model: ObjectModel,
     stepped = RunState(d=d_next, cs=control_state, p_lift=p_lift, rel0=run_state.rel0,
                        acc=pack(acc, run_state.acc.layout), prev=prev, metrics=record.metrics)
     kept = jax.tree_util.tree_map(lambda new, old: jnp.where(frozen, old, new),
-                                  stepped._replace(d=None), run_state._replace(d=None))
-    return kept._replace(d=d_next), record.log
+                                  stepped._replace(d=None, cs=None), run_state._replace(d=None, cs=None))
+    return kept._replace(d=d_next, cs=controller.freeze(frozen, control_state, run_state.cs)), record.log

@@ -5,6 +5,9 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
+import jax
+import jax.numpy as jnp
+
 
 class Record(NamedTuple):
     """What :meth:`Controller.record` returns for one control step of one run."""
@@ -29,3 +32,9 @@ class Controller:
     def init_metrics(self, robot, d, dyn):
         """The controller's own online reductions at t = 0 (None: it has none)."""
         return None
+
+    def freeze(self, frozen, new, old):
+        """The controller state a run keeps after a step: ``old`` where ``frozen`` (() bool: the run failed at an
+        earlier step and keeps its state), else ``new``. A controller may let scratch that no kept value depends on
+        follow ``new`` (sparing its copy)."""
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(frozen, b, a), new, old)

@@ -58,6 +58,14 @@ class TransportController(Controller, ByValue):
     def init_state(self, robot, d, dyn):
         return init_control_state(self.cfg, dyn, robot.ids)
 
+    def freeze(self, frozen, new, old):
+        """The base rule, but the QP's carried factors (``QPSettings.reuse_factors``) follow ``new``: they only
+        precondition the next solve, whose result a frozen run discards."""
+        factors = new.warm.factors
+        bare = lambda cs: cs._replace(warm=cs.warm._replace(factors=None))  # noqa: E731
+        kept = super().freeze(frozen, bare(new), bare(old))
+        return kept._replace(warm=kept.warm._replace(factors=factors))
+
     def make_plan(self, robot, course: bool, qpos0, kw: dict):
         """One plan (:func:`course_plan` when ``course``, else :func:`straight_plan`, with keyword arguments ``kw``)
         and numpy leaves, kept on disk like a compiled program (:func:`wbc_jax.runtime.aot.cached_value`: keyed by
