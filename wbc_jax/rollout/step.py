@@ -38,6 +38,7 @@ from wbc_jax.physics.observe import observe
 from wbc_jax.planner.scene_geometry import scene_geometry
 from wbc_jax.robot.model import mjx
 from wbc_jax.rollout.config import Sim
+from wbc_jax.rollout.controllers.base import keep_where
 from wbc_jax.rollout.packed import pack
 from wbc_jax.rollout.state import Push, RunState
 from wbc_jax.types import ObjectModel, Observation
@@ -220,6 +221,5 @@ def control_step(sim: Sim, m, run_state: RunState, plan, obj_model: ObjectModel,
     prev = (d_phys.qpos, d_phys.qvel, d_phys.time) if sim.sensing == "delayed" else None
     stepped = RunState(d=d_next, cs=control_state, p_lift=p_lift, rel0=run_state.rel0,
                        acc=pack(acc, run_state.acc.layout), prev=prev, metrics=record.metrics)
-    kept = jax.tree_util.tree_map(lambda new, old: jnp.where(frozen, old, new),
-                                  stepped._replace(d=None, cs=None), run_state._replace(d=None, cs=None))
+    kept = keep_where(frozen, stepped._replace(d=None, cs=None), run_state._replace(d=None, cs=None))
     return kept._replace(d=d_next, cs=controller.freeze(frozen, control_state, run_state.cs)), record.log

@@ -187,17 +187,13 @@ def recorded_chunks(recorded: Recorded, built: Built) -> Built:
 
 
 def _check_plan(recorded: Recorded, built: Built) -> None:
-    """The rebuilt batch's size and seeds equal the manifest's, and its chunks (:func:`recorded_chunks`' where the
-    manifest records them); else the code that builds it changed."""
+    """The rebuilt batch's size and seeds equal the manifest's (else the code that builds it changed; its chunks
+    are the manifest's: :func:`recorded_chunks`)."""
     man, dz = recorded.manifest, built.design
-    rebuilt = dict(n_runs=dz.n, n_chunks=built.n_chunks)
-    if isinstance(man.get("program"), dict):
-        rebuilt["logs_per_chunk"] = built.logs_per_chunk
-    for k, v in rebuilt.items():
-        recorded_value = man.get(k, (man.get("program") or {}).get(k))
-        if recorded_value is not None and int(recorded_value) != v:
-            raise InputError(f"{recorded.folder}/manifest.json {k} = {recorded_value}: this version builds {v} from "
-                             "the same spec; replay with the version that ran the campaign")
+    recorded_value = man.get("n_runs", (man.get("program") or {}).get("n_runs"))
+    if recorded_value is not None and int(recorded_value) != dz.n:
+        raise InputError(f"{recorded.folder}/manifest.json n_runs = {recorded_value}: this version builds {dz.n} "
+                         "from the same spec; replay with the version that ran the campaign")
     if not np.array_equal(dz.seed.astype(np.uint64), np.asarray(man["seeds"], np.uint64)):
         raise InputError(f"{recorded.folder}/manifest.json seeds differ from the design this version builds from the "
                          "same spec; replay with the version that ran the campaign")

@@ -9,6 +9,11 @@ import jax
 import jax.numpy as jnp
 
 
+def keep_where(frozen, new, old):
+    """``old`` where ``frozen`` (() bool), else ``new``, leaf for leaf of two pytrees of one structure."""
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(frozen, b, a), new, old)
+
+
 class Record(NamedTuple):
     """What :meth:`Controller.record` returns for one control step of one run."""
 
@@ -37,4 +42,4 @@ class Controller:
         """The controller state a run keeps after a step: ``old`` where ``frozen`` (() bool: the run failed at an
         earlier step and keeps its state), else ``new``. A controller may let scratch that no kept value depends on
         follow ``new`` (sparing its copy)."""
-        return jax.tree_util.tree_map(lambda a, b: jnp.where(frozen, b, a), new, old)
+        return keep_where(frozen, new, old)
