@@ -201,3 +201,29 @@ def test_robot_and_sim_compare_by_value(robot):
     sim = make_sim(robot, log_every=10)
     assert make_sim(same, log_every=10) == sim and {sim: 1}[make_sim(same, log_every=10)] == 1
     assert make_sim(robot, log_every=20) != sim and make_sim(robot, log_every=10, sensor_noise=True) != sim
+
+
+def test_initial_configuration_per_run(robot):
+    """Each run's start (wbc_jax.campaign.build.initial_configuration): its object side's home pose (computed once
+    per side), the object shifted by (obj_dx, obj_dy) and yawed by obj_yaw about world z, base and object moving at
+    v0; checked per run against home_qpos and rotation matrices."""
+    from wbc_jax.campaign.build import initial_configuration
+    from wbc_jax.campaign.design import design
+    from wbc_jax.campaign.spec import load_spec
+
+    dz = design(load_spec("sweeps/paper_campaign.toml"))
+    qpos, qvel = initial_configuration(robot, dz)
+    a, v = robot.ids.obj_qpos_adr, robot.ids.obj_dof_adr
+    assert qpos.shape == (dz.n, robot.mj_model.nq) and qvel.shape == (dz.n, robot.mj_model.nv)
+    for i in range(0, dz.n, 7):
+        home = robot.home_qpos(float(dz.d[i]))
+        np.testing.assert_array_equal(np.delete(qpos[i], range(a, a + 7)), np.delete(home, range(a, a + 7)))
+        np.testing.assert_allclose(qpos[i, a:a + 3], home[a:a + 3] + [dz.obj_dx[i], dz.obj_dy[i], 0.0], atol=1e-12)
+        R0, R = np.zeros(9), np.zeros(9)
+        mujoco.mju_quat2Mat(R0, home[a + 3:a + 7])
+        mujoco.mju_quat2Mat(R, qpos[i, a + 3:a + 7])
+        c, s = np.cos(dz.obj_yaw[i]), np.sin(dz.obj_yaw[i])
+        Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        np.testing.assert_allclose(R.reshape(3, 3), Rz @ R0.reshape(3, 3), atol=1e-12)
+        np.testing.assert_array_equal(qvel[i, :2], dz.v0[i])
+        np.testing.assert_array_equal(qvel[i, v:v + 2], dz.v0[i])

@@ -172,7 +172,8 @@ def initial_configuration(robot, dz: Design):
     horizontal plane (the tray is level at home) and yawed by obj_yaw about world z; robot base and object
     moving horizontally at v0."""
     ids = robot.ids
-    qpos = np.stack([robot.home_qpos(float(di)) for di in dz.d])
+    sides, inverse = np.unique(np.asarray(dz.d, float), return_inverse=True)  # the home pose once per object side
+    qpos = np.stack([robot.home_qpos(float(di)) for di in sides])[inverse.reshape(-1)]
     a = ids.obj_qpos_adr
     qpos[:, a] += dz.obj_dx
     qpos[:, a + 1] += dz.obj_dy
