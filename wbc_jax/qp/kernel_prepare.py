@@ -73,19 +73,24 @@ def prepare(P, Ae, Ai, db, q, l, u, wx, wz, wy, rho, *, s: QPSettings, dims: Dim
     N = P.shape[0]
     masks = row_masks(dims, (Ae.shape[0], Ai.shape[0], N))
     P = 0.5 * (P + P.T)
-    D, E, c = jnp.ones_like(q), [jnp.ones_like(v) for v in l], jnp.ones_like(rho)
-    rows = (Ae, Ai)
-    P0, q0, rows0, db0 = P, q, rows, db
-    for _ in range(s.ruiz_iters):
-        P, q, rows, db, d, e, ct = ruiz_pass(P, q, rows, db, dims.n)
-        D, E, c = D * d, [a * b for a, b in zip(E, e)], c * ct
-    if given is not None:
+
+    def equilibrated(P, q, rows, db):
+        D, E, c = jnp.ones_like(q), tuple(jnp.ones_like(v) for v in l), jnp.ones_like(rho)
+        for _ in range(s.ruiz_iters):
+            P, q, rows, db, d, e, ct = ruiz_pass(P, q, rows, db, dims.n)
+            D, E, c = D * d, tuple(a * b for a, b in zip(E, e)), c * ct
+        return P, q, rows, db, D, E, c
+
+    if given is None:
+        P, q, rows, db, D, E, c = equilibrated(P, q, (Ae, Ai), db)
+    else:  # one branch per problem: a kept scaling spares the Ruiz passes (and their registers)
         use, Dg, Eg, cg = given
-        P = jnp.where(use, cg * Dg[:, None] * P0 * Dg[None, :], P)
-        q = jnp.where(use, cg * Dg * q0, q)
-        rows = tuple(jnp.where(use, e[:, None] * M * Dg[None, :], R) for e, M, R in zip(Eg, rows0, rows))
-        db = jnp.where(use, Eg[2] * db0 * Dg, db)
-        D, E, c = jnp.where(use, Dg, D), [jnp.where(use, g, e) for g, e in zip(Eg, E)], jnp.where(use, cg, c)
+
+        def scaled(P, q, rows, db):
+            rows = tuple(e[:, None] * M * Dg[None, :] for e, M in zip(Eg, rows))
+            return cg * Dg[:, None] * P * Dg[None, :], cg * Dg * q, rows, Eg[2] * db * Dg, Dg, tuple(Eg), cg
+
+        P, q, rows, db, D, E, c = jax.lax.cond(use, scaled, equilibrated, P, q, (Ae, Ai), db)
     P = 0.5 * (P + P.T)
     ls, us = tuple(e * v for e, v in zip(E, l)), tuple(e * v for e, v in zip(E, u))
     free = tuple((a <= -BIG) & (b >= BIG) for a, b in zip(l, u))
