@@ -180,8 +180,6 @@ def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int, first=None):
     def iterate(st, kkt, rho_v, length, active=None):
         # active: () int, run only the first `active` of the `length` iterations (the extension's last block)
         st = _project(sp, kkt, ex, st, s.linsolve)
-        if s.anderson > 0:
-            return _anderson(lambda c: _step(sp, kkt, rho_v, ex, free, s, c), st, length, active, s)
 
         def body(c, i):
             nxt = _step(sp, kkt, rho_v, ex, free, s, c)
@@ -214,48 +212,6 @@ def _run(sp, st, rho, w, free, ex, s: QPSettings, iters: int, first=None):
             carry, _ = seg(carry, None, rem)
         st, rho = carry
         return st, rho, lambda st, length, active: iterate(st, *make_kkt(rho), length, active)
-
-
-def _anderson(T, st: State, length: int, active, s: QPSettings) -> State:
-    """``length`` steps of the map ``T`` (``active`` of them when given) with type-II Anderson acceleration of
-    memory ``s.anderson`` on w = (x, z, y); the last active step is plain (its iterate is T's output)."""
-    n, m = st.x.shape[0], st.z.shape[0]
-    M, dt = s.anderson, st.x.dtype
-    pack = lambda c: jnp.concatenate([c.x, c.z, c.y])  # noqa: E731
-    last = (length if active is None else active) - 1
-    w0 = pack(st)
-    h0 = (jnp.zeros((M, w0.shape[0]), dt), jnp.zeros((M, w0.shape[0]), dt), w0, jnp.zeros_like(w0), jnp.int32(0))
-
-    def body(c, i):
-        cur, (dW, dG, wp, gp, cnt) = c
-        nxt = T(cur)
-        w, tw = pack(cur), pack(nxt)
-        g = tw - w
-        if s.anderson_safe:  # restart the memory where the fixed-point residual grew
-            cnt = jnp.where((cnt > 0) & (jnp.sum(g * g) > jnp.sum(gp * gp)), 0, cnt)
-        slot = jnp.mod(cnt - 1, M)
-        upd = cnt > 0
-        dW = jnp.where(upd, dW.at[slot].set(w - wp), dW)
-        dG = jnp.where(upd, dG.at[slot].set(g - gp), dG)
-        valid = jnp.arange(M) < jnp.minimum(cnt, M)
-        G = jnp.where(valid[:, None], dG, 0.0)
-        A = G @ G.T
-        reg = (s.anderson_reg * jnp.trace(A) / M + 1e-30) * jnp.eye(M, dtype=dt)
-        A = A + reg + jnp.diag(jnp.where(valid, 0.0, 1.0))
-        gamma = jnp.where(valid, jnp.linalg.solve(A, G @ g), 0.0)
-        wa = tw - (jnp.where(valid[:, None], dW + dG, 0.0)).T @ gamma
-        use = (i != last) & (cnt > 0) & jnp.all(jnp.isfinite(wa)) & ~nxt.bad
-        wn = jnp.where(use, wa, tw)
-        acc = nxt._replace(x=wn[:n], z=wn[n:n + m], y=wn[n + m:])
-        h = (dW, dG, w, g, cnt + 1)
-        if active is not None:
-            keep = i < active
-            acc = jax.tree_util.tree_map(lambda a, b: jnp.where(keep, a, b), acc, cur)
-            h = jax.tree_util.tree_map(lambda a, b: jnp.where(keep, a, b), h, c[1])
-        return (acc, h), None
-
-    (st, _), _ = lax.scan(body, (st, h0), jnp.arange(length), unroll=s.unroll)
-    return st
 
 
 def _extend(P, q, A, sp: Scaled, st: State, cont, s: QPSettings, iters: int, first=None):

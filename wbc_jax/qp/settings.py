@@ -123,11 +123,6 @@ class QPSettings(NamedTuple):
     warm_first_test: int = -1
     kernel: str = "xla"
     reuse_factors: bool = False
-    # XLA path prototype: type-II Anderson acceleration of the ADMM map on (x, z, y), memory `anderson` (0: off),
-    # Tikhonov weight `anderson_reg` of the trace, `anderson_safe`: restart the memory where the residual grew
-    anderson: int = 0
-    anderson_reg: float = 1e-6
-    anderson_safe: int = 0
 
 
 class QPResult(NamedTuple):
