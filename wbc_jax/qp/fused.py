@@ -49,7 +49,6 @@ def solve_fused(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     """
     dt = P.dtype
     m, n = A.shape
-    ne = _dims(n, m, s).ne
     if warm is None:
         wx, wz, wy = jnp.zeros(n, dt), jnp.zeros(m, dt), jnp.zeros(m, dt)
     else:
@@ -58,9 +57,9 @@ def solve_fused(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     first = rules.first_block(warm, s, iters)
     old = None
     if s.reuse_factors:
-        old = warm[5] if warm is not None and len(warm) > 5 and warm[5] is not None else empty_factors(n, m, s, dt)
+        old = warm[5] if warm is not None and warm[5] is not None else empty_factors(n, m, s, dt)
         rho = jnp.where(old.fresh, jnp.asarray(old.rho_s, dt), rho)
-    return fused_solve(P, A, q, l, u, wx, wz, wy, rho, first, old, s=s, iters=iters, warm=warm is not None, ne=ne)
+    return fused_solve(P, A, q, l, u, wx, wz, wy, rho, first, old, s=s, iters=iters, warm=warm is not None)
 
 
 def _dims(n: int, m: int, s: QPSettings) -> Dims:
@@ -119,15 +118,15 @@ def _compiler_params(interpret: bool, num_warps: int, factor_warps: int):
             plgpu.CompilerParams(num_warps=factor_warps, num_stages=1), plgpu.debug_barrier)
 
 
-@functools.partial(jax.jit, static_argnames=("s", "iters", "warm", "ne", "num_warps", "factor_warps"))
+@functools.partial(jax.jit, static_argnames=("s", "iters", "warm", "num_warps", "factor_warps"))
 def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, *, s: QPSettings, iters: int, warm: bool,
-                ne: int, num_warps: int = 2, factor_warps: int = 2) -> QPResult:
+                num_warps: int = 2, factor_warps: int = 2) -> QPResult:
     """One QP solved by the three kernels.
 
     Args:
-        P: (n, n) cost; A: (m, n) the rows: the exact block's ``ne`` first, the box block's ``s.box_rows`` last
-            (row ``m - nb + i`` bounds variable ``n - nb + i`` alone), the dense block's between; q: (n,); all in
-            the user's units.
+        P: (n, n) cost; A: (m, n) the rows in the blocks of :func:`_dims`: the exact block's ``ne`` first, the box
+            block's ``s.box_rows`` (nb) last (row ``m - nb + i`` bounds variable ``n - nb + i`` alone), the dense
+            block's between; q: (n,); all in the user's units.
         l, u: (m,) bounds (finite, ``+-BIG``).
         wx: (n,), wz, wy: (m,) the warm start (user's units; ignored when ``warm`` is False).
         rho: () the solve's rho (:func:`wbc_jax.qp.rules.warm_rho`).
@@ -137,16 +136,16 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, *, s: QPSe
             they are ``fresh`` the problem is scaled by their scaling (and ``rho`` should be theirs), and where its
             rows' kinds are theirs too the factorization keeps them (its program writes nothing); the result
             carries the factors used, ``fresh`` where this solve factored.
-        s: the solver's settings; iters: the fixed iterations; warm: start from ``wx, wz, wy``; ne: the exact
-            block's rows.
+        s: the solver's settings; iters: the fixed iterations; warm: start from ``wx, wz, wy``.
         num_warps, factor_warps: Triton warps per program of the preparation and iterations kernels, and of the
             factorization kernel.
 
     Returns:
         :class:`~wbc_jax.qp.settings.QPResult`, rows in their order (exact, dense, box).
     """
-    (m, n), nb = A.shape, s.box_rows
-    dims = Dims(n, ne, m - ne - nb, nb)
+    m, n = A.shape
+    dims = _dims(n, m, s)
+    ne = dims.ne
     given = old is not None
     N, NE = pow2(n), pow2(ne)
     dt = P.dtype
