@@ -88,7 +88,7 @@ def record(spec_path: Path, change: str = ""):
                  CHUNK_S)
     finally:
         transport.solve_qp = solve
-    qp = sim.cfg.qp._replace(box_rows=sim.cfg.k * (transport.N_FEET + transport.N_OBJ))
+    qp = transport.qp_settings(sim.cfg)  # the settings the controller solves with
     skip = 10 * built.design.n  # the standing start's first steps
     out = {k: np.stack([r[i] for r in rows[skip:]]) for i, k in enumerate(FIELDS)}
     if factored:
