@@ -217,6 +217,45 @@ def test_solver_cap_is_counted(walks):
     assert np.all((frac >= 0) & (frac <= 1)) and np.all(np.isnan(walks["jax"][3]["solver_cap_fraction"]))
 
 
+def test_contact_sensor_slots_hold_every_match():
+    """The Warp scene's ``contact_sensor_maxmatch`` (:func:`wbc_jax.robot.sensors.max_pair_contacts`, 4 on the
+    flat scene) against MuJoCo Warp's default 64: the robot at home lowered 0.25 m into the floor (its trunk, thighs
+    and shanks, capsules and boxes, penetrate), one physics step: every sensor's count equals MuJoCo C's contacts
+    of its pair at that configuration (float64 ``mj_forward``), and the sensordata equal bit for bit; with one
+    slot the pairs of more contacts read as a match overflow (``contacts.match_overflow``), with four none does."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    robot = Robot("flat", backend="warp")
+    assert physics.contact_sensor_slots(robot.mjx_model) == 4
+    assert physics.contact_sensor_slots(Robot("flat").mjx_model) is None  # JAX: no sensors
+    qpos = robot.home_qpos(0.08)
+    qpos[2] -= 0.25
+    d = jax.vmap(lambda q: physics.make_data(robot, 1).replace(qpos=q))(jax.numpy.asarray(qpos)[None])
+    sim = SimpleNamespace(robot=robot)
+
+    def step(k):
+        mx = robot.mjx_model
+        m = mx.replace(opt=mx.opt.replace(_impl=dataclasses.replace(mx.opt._impl, contact_sensor_maxmatch=k)))
+        d1 = jax.jit(jax.vmap(physics.mjx.step, in_axes=(None, 0)))(m, d)
+        over = jax.jit(jax.vmap(lambda d: contacts.match_overflow(sim, m, d)))(d1)
+        return np.asarray(d1.sensordata[0]), bool(np.asarray(over)[0])
+
+    (sd4, over4), (sd64, _), (_, over1) = step(4), step(64), step(1)
+    s = robot.sensors
+    mj, data = robot.mj_model, mujoco.MjData(robot.mj_model)
+    data.qpos[:] = qpos
+    mujoco.mj_forward(mj, data)
+    pairs = np.concatenate([robot.ids.obj_pair, robot.ids.nonfoot_floor_pair, robot.ids.wall_pair]).astype(int)
+    n_c = [sum({int(c.geom1), int(c.geom2)} == {int(mj.pair_geom1[p]), int(mj.pair_geom2[p])}
+               for c in data.contact[:data.ncon]) for p in pairs]
+    found = sd4[np.concatenate([s.obj, s.nonfoot, s.wall])]
+    np.testing.assert_array_equal(found, n_c)
+    assert found.max() > 1 and np.sum(found > 0) > 5  # several pairs touch, some at several points
+    np.testing.assert_array_equal(sd4, sd64)
+    assert over1 and not over4
+
+
 def test_backend_choice(monkeypatch):
     assert physics.resolve_backend("jax") == "jax"
     assert physics.resolve_backend("auto") == "jax"  # a CPU: MuJoCo Warp's CPU path is for tests

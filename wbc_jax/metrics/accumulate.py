@@ -75,7 +75,7 @@ class SubstepMonitors(NamedTuple):
     wall: jax.Array  # bool, anything penetrates a wall (dist < 0)
     off: jax.Array  # bool, every object contact sphere farther than CONTACT_DIST from the tray
     finite: jax.Array  # bool, positions after the step and the held torques are finite
-    overflow: jax.Array  # bool, the step's contacts or constraint rows may not all have fit (Warp)
+    overflow: jax.Array  # bool, the step's contacts, constraint rows or contact-sensor matches may not all fit (Warp)
     solver_cap: jax.Array  # bool, the step's constraint solve stopped at opt.iterations
     clear: jax.Array  # [m] clearance after the step (+inf: no such pair)
     clear_k: jax.Array  # int32, its pair (Accum.min_clear_k numbering; -1: none)

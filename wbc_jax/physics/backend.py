@@ -181,6 +181,13 @@ def solver_capped(m, d) -> jax.Array:
     return d._impl.solver_niter >= m.opt.iterations
 
 
+def contact_sensor_slots(m) -> int | None:
+    """The contacts MuJoCo Warp's contact sensors of ``m`` (an MJX model) hold per run and sensor
+    (``contact_sensor_maxmatch``: the model's numeric of that name, else 64); None on JAX (no sensors read)."""
+    impl = getattr(m.opt, "_impl", None)
+    return getattr(impl, "contact_sensor_maxmatch", None)
+
+
 def reports_solver_cap(robot) -> bool:
     """Whether :func:`solver_capped` is measured on ``robot``'s backend (Warp) rather than always False (JAX)."""
     return robot.backend == "warp"

@@ -176,6 +176,17 @@ def nonfoot_dist(sim, d) -> jax.Array:
     return _slot_dist(d, sim.nonfoot_slots)
 
 
+def match_overflow(sim, m, d) -> jax.Array:
+    """() bool: a contact sensor matched more contacts than the model ``m``'s slots per sensor hold
+    (:func:`wbc_jax.physics.backend.contact_sensor_slots`; its nearest contact may then be missed:
+    :mod:`wbc_jax.robot.sensors`), read from the sensors' ``found`` (every match counted); always False on JAX."""
+    sensors, slots = sim.robot.sensors, physics.contact_sensor_slots(m)
+    if sensors is None or slots is None:
+        return jnp.bool_(False)
+    adr = np.concatenate([sensors.obj, sensors.nonfoot, sensors.wall])
+    return jnp.any(d.sensordata[adr] > slots)
+
+
 def wall_dist(sim, d) -> jax.Array:
     """(w,) distance of each wall slot (JAX) or pair (Warp) [m]; < 0 is penetration."""
     if sim.robot.backend == "warp":

@@ -2,6 +2,12 @@
 
 Per object contact sphere its contact with the tray (``found``, contact-frame ``force``, ``dist``), per non-foot
 ground pair and per wall pair ``found`` and ``dist``; added to the scene's spec before it is compiled.
+
+MuJoCo Warp matches each sensor against the contact list in slots of ``contact_sensor_maxmatch`` contacts per run
+and sensor (64 by default, from the model's numeric of that name), filled and sorted every physics step. The scene
+gets the most contacts one of its sensed pairs can produce instead (:func:`max_pair_contacts`): the same matches,
+sorted in smaller slots. ``found`` counts every match, so a pair with more is detected
+(:func:`wbc_jax.physics.contacts.match_overflow`).
 """
 
 from __future__ import annotations
@@ -17,6 +23,15 @@ from wbc_jax.errors import SceneError
 _FOUND, _FORCE, _DIST = 0, 1, 3  # bits of mjtConDataField: found, force (3), dist
 _MINDIST = 1  # mjtConReduce: the nearest contact first
 _DIST_TYPES = (int(mujoco.mjtGeom.mjGEOM_SPHERE), int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_BOX))
+_G = mujoco.mjtGeom
+# the most contacts MuJoCo Warp's collision functions give one geom pair, by (unordered) geom types: sphere pairs 1;
+# capsule vs plane or box 2 (the segment's ends); box vs plane 4 (its corners); box vs box 4 (the convex path's
+# multicontact keeps at most 4 points)
+_PAIR_CONTACTS = {frozenset((_G.mjGEOM_SPHERE, _G.mjGEOM_PLANE)): 1, frozenset((_G.mjGEOM_SPHERE, _G.mjGEOM_BOX)): 1,
+                  frozenset((_G.mjGEOM_SPHERE,)): 1, frozenset((_G.mjGEOM_CAPSULE, _G.mjGEOM_PLANE)): 2,
+                  frozenset((_G.mjGEOM_CAPSULE, _G.mjGEOM_BOX)): 2, frozenset((_G.mjGEOM_BOX, _G.mjGEOM_PLANE)): 4,
+                  frozenset((_G.mjGEOM_BOX,)): 4}
+WARP_MAXMATCH = 64  # MuJoCo Warp's contact_sensor_maxmatch without the numeric
 
 
 @dataclass(frozen=True, eq=False)
@@ -35,6 +50,16 @@ class ContactSensors:
     nonfoot: np.ndarray
     nonfoot_geoms: np.ndarray
     wall: np.ndarray
+
+
+def max_pair_contacts(model: mujoco.MjModel, pairs) -> int:
+    """The most contacts MuJoCo Warp gives any of the geom pairs ``pairs`` ((k, 2) geom ids of ``model``): 1 for a
+    sphere, 2 for a capsule vs a plane or box, 4 for a box vs a plane or box; :data:`WARP_MAXMATCH` where a pair
+    is of other types."""
+    def one(a, b):
+        return _PAIR_CONTACTS.get(frozenset((_G(int(model.geom_type[a])), _G(int(model.geom_type[b])))),
+                                  WARP_MAXMATCH)
+    return max((one(a, b) for a, b in np.asarray(pairs).reshape(-1, 2)), default=1)
 
 
 def with_contact_sensors(path: Path, base: mujoco.MjModel, ids) -> tuple[mujoco.MjModel, ContactSensors]:
@@ -72,6 +97,10 @@ def with_contact_sensors(path: Path, base: mujoco.MjModel, ids) -> tuple[mujoco.
     names = {"obj": [add(f"wbc_obj{i}", (_FORCE, _DIST), g1[p], g2[p]) for i, p in enumerate(ids.obj_pair)],
              "nonfoot": [add(f"wbc_nonfoot{i}", (_DIST,), g1[p], g2[p]) for i, p in enumerate(ids.nonfoot_floor_pair)],
              "wall": [add(f"wbc_wall{i}", (_DIST,), g1[p], g2[p]) for i, p in enumerate(ids.wall_pair)]}
+    sensed = np.concatenate([ids.obj_pair, ids.nonfoot_floor_pair, ids.wall_pair]).astype(int)
+    maxmatch = max_pair_contacts(base, np.stack([g1[sensed], g2[sensed]], axis=1))
+    if "contact_sensor_maxmatch" not in [n.name for n in spec.numerics]:
+        spec.add_numeric(name="contact_sensor_maxmatch", data=[float(maxmatch)])
     m = spec.compile()
     if m.npair != base.npair or m.ngeom != base.ngeom:
         raise AssertionError("adding contact sensors changed the scene's pairs or geoms")

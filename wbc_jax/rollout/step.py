@@ -135,8 +135,9 @@ def substep_monitors(sim: Sim, m, obj_model: ObjectModel, tau, d, d_after) -> Su
     clear, clear_k = clearance(sim, d_after)
     if sim.monitors == "no_clearance":  # (Sim.monitors) the computation drops out of the program
         clear, clear_k = jnp.full_like(clear, jnp.inf), jnp.full_like(clear_k, -1)
+    overflow = physics.overflow(d_after) | contacts.match_overflow(sim, m, d_after)
     out = SubstepMonitors(inv_h=inv_h, cone=cone, acc=acc_norm, nonfoot_floor=nonfoot, nonfoot_k=nonfoot_k, t=d.time,
-                          wall=wall, off=off, finite=finite, overflow=physics.overflow(d_after),
+                          wall=wall, off=off, finite=finite, overflow=overflow,
                           solver_cap=physics.solver_capped(m, d_after), clear=clear, clear_k=clear_k)
     if sim.monitors == "finite_only":
         out = SubstepMonitors(**{k: v if k in ("finite", "t") else jnp.zeros_like(v) for k, v in out._asdict().items()})
