@@ -227,3 +227,28 @@ def test_initial_configuration_per_run(robot):
         np.testing.assert_allclose(R.reshape(3, 3), Rz @ R0.reshape(3, 3), atol=1e-12)
         np.testing.assert_array_equal(qvel[i, :2], dz.v0[i])
         np.testing.assert_array_equal(qvel[i, v:v + 2], dz.v0[i])
+
+
+def test_max_pair_contacts_by_geom_types():
+    """``robot.sensors.max_pair_contacts`` (the Warp scene's contact-sensor slots) from the pairs' geom types, hand
+    counted from MuJoCo Warp's collision functions: sphere pairs 1, capsule vs plane or box 2, box vs plane 4, box
+    vs box 4 on the convex path and 8 on the box_box primitive (native CCD disabled), other types MuJoCo Warp's
+    default; the largest over the pairs."""
+    from wbc_jax.robot.sensors import WARP_MAXMATCH, max_pair_contacts
+
+    spec = mujoco.MjSpec()
+    G = mujoco.mjtGeom
+    kinds = {"plane": G.mjGEOM_PLANE, "sphere": G.mjGEOM_SPHERE, "capsule": G.mjGEOM_CAPSULE, "box": G.mjGEOM_BOX,
+             "box2": G.mjGEOM_BOX, "ellipsoid": G.mjGEOM_ELLIPSOID}
+    for name, t in kinds.items():
+        spec.worldbody.add_geom(name=name, type=t, size=[0.1, 0.1, 0.1])
+    m = spec.compile()
+    g = {name: m.geom(name).id for name in kinds}
+    cases = [(("sphere", "plane"), 1), (("box", "sphere"), 1), (("capsule", "plane"), 2), (("box", "capsule"), 2),
+             (("plane", "box"), 4), (("box", "box2"), 4), (("ellipsoid", "box"), WARP_MAXMATCH)]
+    for (a, b), want in cases:
+        assert max_pair_contacts(m, [(g[a], g[b])]) == want, (a, b)
+    assert max_pair_contacts(m, [(g["sphere"], g["plane"]), (g["capsule"], g["plane"])]) == 2
+    m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_NATIVECCD)
+    assert max_pair_contacts(m, [(g["box"], g["box2"])]) == 8
+    assert max_pair_contacts(m, [(g["plane"], g["box"])]) == 4

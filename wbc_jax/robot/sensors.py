@@ -26,7 +26,7 @@ _DIST_TYPES = (int(mujoco.mjtGeom.mjGEOM_SPHERE), int(mujoco.mjtGeom.mjGEOM_PLAN
 _G = mujoco.mjtGeom
 # the most contacts MuJoCo Warp's collision functions give one geom pair, by (unordered) geom types: sphere pairs 1;
 # capsule vs plane or box 2 (the segment's ends); box vs plane 4 (its corners); box vs box 4 (the convex path's
-# multicontact keeps at most 4 points)
+# multicontact keeps at most 4 points; 8 from the box_box primitive, used where the model disables native CCD)
 _PAIR_CONTACTS = {frozenset((_G.mjGEOM_SPHERE, _G.mjGEOM_PLANE)): 1, frozenset((_G.mjGEOM_SPHERE, _G.mjGEOM_BOX)): 1,
                   frozenset((_G.mjGEOM_SPHERE,)): 1, frozenset((_G.mjGEOM_CAPSULE, _G.mjGEOM_PLANE)): 2,
                   frozenset((_G.mjGEOM_CAPSULE, _G.mjGEOM_BOX)): 2, frozenset((_G.mjGEOM_BOX, _G.mjGEOM_PLANE)): 4,
@@ -54,11 +54,15 @@ class ContactSensors:
 
 def max_pair_contacts(model: mujoco.MjModel, pairs) -> int:
     """The most contacts MuJoCo Warp gives any of the geom pairs ``pairs`` ((k, 2) geom ids of ``model``): 1 for a
-    sphere, 2 for a capsule vs a plane or box, 4 for a box vs a plane or box; :data:`WARP_MAXMATCH` where a pair
-    is of other types."""
+    sphere, 2 for a capsule vs a plane or box, 4 for a box vs a plane or box (8 for two boxes where the model
+    disables native CCD); :data:`WARP_MAXMATCH` where a pair is of other types."""
+    primitive_boxes = bool(model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_NATIVECCD)
+
     def one(a, b):
-        return _PAIR_CONTACTS.get(frozenset((_G(int(model.geom_type[a])), _G(int(model.geom_type[b])))),
-                                  WARP_MAXMATCH)
+        types = frozenset((_G(int(model.geom_type[a])), _G(int(model.geom_type[b]))))
+        if primitive_boxes and types == frozenset((_G.mjGEOM_BOX,)):
+            return 8
+        return _PAIR_CONTACTS.get(types, WARP_MAXMATCH)
     return max((one(a, b) for a, b in np.asarray(pairs).reshape(-1, 2)), default=1)
 
 
