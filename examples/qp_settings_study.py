@@ -78,11 +78,14 @@ def record(spec_path: Path, change: str = ""):
     transport.solve_qp = recording_solve
     try:
         b = built.batch
-        factors = transport.initial_factors(sim.cfg) if change else None
-        if factors is not None:  # the changed controller's warm start carries QP factors: its state as it starts
-            n = b.state.cs.warm.x.shape[0]
-            warm = b.state.cs.warm._replace(factors=jax.tree_util.tree_map(
-                lambda a: jnp.broadcast_to(a, (n,) + a.shape), factors))
+        if change:  # the changed controller's first warm start, as its init makes it: its rho (carried from step to
+            # step where rho is not adapted) and, where the solver reuses them, empty QP factors
+            warm = b.state.cs.warm
+            warm = warm._replace(rho=jnp.full_like(warm.rho, sim.cfg.qp.rho))
+            factors = transport.initial_factors(sim.cfg)
+            if factors is not None:
+                warm = warm._replace(factors=jax.tree_util.tree_map(
+                    lambda a: jnp.broadcast_to(a, (warm.x.shape[0],) + a.shape), factors))
             b = b._replace(state=b.state._replace(cs=b.state.cs._replace(warm=warm)))
         simulate(sim, b.model, b.in_axes, b.state, b.plan, b.om, b.gains, b.push, b.mu_ground, SECONDS,
                  CHUNK_S)
