@@ -4,6 +4,7 @@ two tiny 2-factor campaigns end to end, and the report's success-rate and ablati
 
 import dataclasses
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -112,6 +113,29 @@ def test_qp_reuse_factors_key_default_hash_and_sim():
     trot = parse_spec(dict(campaign=dict(controller="centroidal", scene="flat", qp_reuse_factors=1),
                            factors=dict(mass_error=[0.0, 0.1])))
     with pytest.raises(SpecError, match="campaign.qp_reuse_factors = 1 with the centroidal controller"):
+        check_qp(trot)
+
+
+def test_qp_rho_key_default_hash_and_sim():
+    """campaign.qp_rho: 0 (the transport controller's own rho, 3) by default and hash-neutral there, another value
+    changes the hash, becomes the controller's QPSettings.rho and its first warm start's rho (the solve starts from
+    it and passes it on: not adapted); refused outside 0..1000 and with the centroidal controller (which adapts
+    rho), one line naming the key."""
+    from wbc_jax.campaign.build import _sim, check_qp, qp_changes
+    from wbc_jax.control.transport import init_control_state
+
+    base = dict(factors=dict(m=[0.2, 0.3], mu=[0.4, 1.0], d=[0.06, 0.1]))
+    s0, s1, s2 = (parse_spec(dict(base, campaign=c)) for c in ({}, dict(qp_rho=0.0), dict(qp_rho=2.0)))
+    assert s0.hash == s1.hash != s2.hash and "rho" not in dict(qp_changes(s0))
+    with pytest.raises(SpecError, match="campaign.qp_rho"):
+        parse_spec(dict(base, campaign=dict(qp_rho=1001.0)))
+    cfg0, cfg2 = (_sim("flat", 4, qp=qp_changes(s)).cfg for s in (s0, s2))
+    assert cfg0.qp.rho == 3.0 and cfg2.qp.rho == 2.0
+    dyn, ids = SimpleNamespace(h_G=np.zeros(6), q=np.zeros(40)), SimpleNamespace(act_qpos=np.arange(18))
+    assert [float(init_control_state(c, dyn, ids).warm.rho) for c in (cfg0, cfg2)] == [3.0, 2.0]
+    trot = parse_spec(dict(campaign=dict(controller="centroidal", scene="flat", qp_rho=2.0),
+                           factors=dict(mass_error=[0.0, 0.1])))
+    with pytest.raises(SpecError, match="campaign.qp_rho = 2.0 with the centroidal controller"):
         check_qp(trot)
 
 

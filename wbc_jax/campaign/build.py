@@ -91,19 +91,21 @@ def sensing_of(spec: Spec) -> str:
 
 def qp_changes(spec: Spec) -> tuple:
     """The spec's changes to its controller's QP settings (``campaign.qp_first_test``, ``campaign.qp_alpha``,
-    ``campaign.qp_reuse_factors``) as sorted ``(QPSettings field, value)`` pairs (hashable: part of the Sim's cache
-    key)."""
+    ``campaign.qp_rho``, ``campaign.qp_reuse_factors``) as sorted ``(QPSettings field, value)`` pairs (hashable:
+    part of the Sim's cache key)."""
     c = spec.campaign
     return tuple(sorted({"warm_first_test": c["qp_first_test"],
                          **({"alpha": c["qp_alpha"]} if c["qp_alpha"] > 0 else {}),
+                         **({"rho": c["qp_rho"]} if c["qp_rho"] > 0 else {}),
                          **({"reuse_factors": True} if c["qp_reuse_factors"] else {})}.items()))
 
 
 def check_qp(spec: Spec) -> None:
     """SpecError naming ``campaign.qp_first_test`` where the spec's controller cannot use it: the solver's own rule
     (:func:`wbc_jax.qp.api.resolve_settings`: one QP factorization per control step), which the centroidal
-    controller's QP breaks with ``qp_iters`` above its ``adapt_every``; and ``campaign.qp_reuse_factors`` but with
-    the transport controller (whose warm start carries the factors)."""
+    controller's QP breaks with ``qp_iters`` above its ``adapt_every``; and ``campaign.qp_reuse_factors`` and
+    ``campaign.qp_rho`` but with the transport controller (whose warm start carries the factors, and its rho, which
+    it does not adapt)."""
     from wbc_jax.control.centroidal import centroidal_qp_settings
     from wbc_jax.control.transport import control_qp_settings
     from wbc_jax.qp.api import resolve_settings
@@ -112,6 +114,9 @@ def check_qp(spec: Spec) -> None:
     if c["qp_reuse_factors"] and c["controller"] != "transport":
         raise SpecError(f"{spec.path}: campaign.qp_reuse_factors = 1 with the {c['controller']} controller: only the "
                         "transport controller's QP (the fused kernels) reuses its factors; use 0")
+    if c["qp_rho"] and c["controller"] != "transport":
+        raise SpecError(f"{spec.path}: campaign.qp_rho = {c['qp_rho']} with the {c['controller']} controller: its "
+                        "QP adapts rho from its own start; use 0 (only the transport controller keeps a set rho)")
     iters, first = c["qp_iters"], c["qp_first_test"]
     s = (control_qp_settings if c["controller"] == "transport" else centroidal_qp_settings)(iters)
     try:

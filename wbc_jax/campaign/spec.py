@@ -20,6 +20,8 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
                                # minus this (QPSettings.warm_first_test; fewer checks under noise); -1: after qp_iters
     qp_alpha = 0.0             # ADMM over-relaxation of the controller's QP (QPSettings.alpha), 0..1.95; 0: the
                                # controller's own (1.6)
+    qp_rho = 0.0               # ADMM step size rho of the transport controller's QP (QPSettings.rho), 0..1000;
+                               # 0: the controller's own (3)
     control_substeps = 1       # physics steps per control step (zero-order hold), 1..10; 1 = control at the
                                # physics rate (the control period is this x the scene's timestep; the metrics'
                                # physics-rate monitors still run every physics step, see wbc_jax.rollout.step)
@@ -109,6 +111,7 @@ CAMPAIGN = {
                       "the first convergence check after the last control step's iterations minus this; -1: after "
                       "qp_iters"),
     "qp_alpha": (float, 0.0, 0.0, 1.95, False, "ADMM over-relaxation of the controller's QP; 0 = the controller's"),
+    "qp_rho": (float, 0.0, 0.0, 1000.0, False, "ADMM step size rho of the transport controller's QP; 0 = its own"),
     "qp_reuse_factors": (int, 0, 0, 1, False,
                          "1: the transport controller's QP factors every other control step (GPU kernels)"),
     "control_substeps": (int, 1, 1, 10, False,
@@ -177,7 +180,8 @@ _HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_
                                "com_plan": "spline", "sensing": "auto",
                                "obj_accel": 0.0, "cone": "scene", "impratio": 0.0, "controller": "transport",
                                "mass_error": 0.0, "walk_seconds": 10.0, "step_time": 0.25, "four_foot": 0.08,
-                               "qp_first_test": -1, "qp_alpha": 0.0, "qp_reuse_factors": 0},
+                               "qp_first_test": -1, "qp_alpha": 0.0, "qp_reuse_factors": 0,
+                               "qp_rho": 0.0},
                  "perturbations": {"push_dir_deg": 0.0}}
 
 

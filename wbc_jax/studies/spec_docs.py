@@ -47,6 +47,8 @@ CAMPAIGN_MEANING = {
                         "fused GPU kernels; the XLA path, e.g. on a CPU, factors every step)",
     "qp_alpha": "`QPSettings.alpha` of the controller's QP (ADMM over-relaxation, in (0, 2)); 0 keeps the "
                 "controller's (1.6)",
+    "qp_rho": "`QPSettings.rho` of the transport controller's QP (its ADMM step size, which it does not adapt: the "
+              "first control step starts from it and each step passes it on); 0 keeps the controller's (3)",
     "control_substeps": "physics steps per control step, zero-order hold; the metrics still sample every "
                         "physics step",
     "chunk_seconds": "the most simulated seconds per jit call and checkpoint: the fewest such chunks that cover the "
