@@ -242,14 +242,13 @@ def test_contact_sensor_slots_hold_every_match():
         return np.asarray(d1.sensordata[0]), bool(np.asarray(over)[0])
 
     (sd4, over4), (sd64, _), (_, over1) = step(4), step(64), step(1)
-    s = robot.sensors
     mj, data = robot.mj_model, mujoco.MjData(robot.mj_model)
     data.qpos[:] = qpos
     mujoco.mj_forward(mj, data)
     pairs = np.concatenate([robot.ids.obj_pair, robot.ids.nonfoot_floor_pair, robot.ids.wall_pair]).astype(int)
     n_c = [sum({int(c.geom1), int(c.geom2)} == {int(mj.pair_geom1[p]), int(mj.pair_geom2[p])}
                for c in data.contact[:data.ncon]) for p in pairs]
-    found = sd4[np.concatenate([s.obj, s.nonfoot, s.wall])]
+    found = sd4[robot.sensors.found]
     np.testing.assert_array_equal(found, n_c)
     assert found.max() > 1 and np.sum(found > 0) > 5  # several pairs touch, some at several points
     np.testing.assert_array_equal(sd4, sd64)

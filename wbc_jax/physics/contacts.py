@@ -183,8 +183,7 @@ def match_overflow(sim, m, d) -> jax.Array:
     sensors, slots = sim.robot.sensors, physics.contact_sensor_slots(m)
     if sensors is None or slots is None:
         return jnp.bool_(False)
-    adr = np.concatenate([sensors.obj, sensors.nonfoot, sensors.wall])
-    return jnp.any(d.sensordata[adr] > slots)
+    return jnp.any(d.sensordata[sensors.found] > slots)
 
 
 def wall_dist(sim, d) -> jax.Array:

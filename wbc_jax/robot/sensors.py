@@ -51,6 +51,11 @@ class ContactSensors:
     nonfoot_geoms: np.ndarray
     wall: np.ndarray
 
+    @property
+    def found(self) -> np.ndarray:
+        """Every sensor's ``found`` address: the object's, the non-foot pairs', the wall pairs', in that order."""
+        return np.concatenate([self.obj, self.nonfoot, self.wall])
+
 
 def max_pair_contacts(model: mujoco.MjModel, pairs) -> int:
     """The most contacts MuJoCo Warp gives any of the geom pairs ``pairs`` ((k, 2) geom ids of ``model``): 1 for a
