@@ -255,6 +255,51 @@ def test_contact_sensor_slots_hold_every_match():
     assert over1 and not over4
 
 
+def test_box_box_pairs_on_the_primitive_as_mujoco_c():
+    """The Warp scene collides box-box pairs with MuJoCo Warp's box_box primitive (native CCD disabled in
+    :func:`wbc_jax.robot.sensors.with_contact_sensors`; the JAX backend's model untouched), so its contact-sensor
+    slots are 8 (:func:`max_pair_contacts`). The transport scene's tray pushed 0.125 m into the wall's lintel, the
+    cube (side 0.08 m) yawed 45 deg 10 mm into its underside at its edge (5 contacts), one physics step: every wall
+    sensor's count equals MuJoCo C's contacts of its pair (float64 ``mj_forward``, ``mjc_BoxBox``) and its ``dist``
+    the nearest of them (float32 tolerance); no match overflow."""
+    from types import SimpleNamespace
+
+    robot = Robot("transport", backend="warp")
+    ccd = int(mujoco.mjtDisableBit.mjDSBL_NATIVECCD)
+    assert robot.mj_model.opt.disableflags & ccd and not Robot("transport").mj_model.opt.disableflags & ccd
+    assert physics.contact_sensor_slots(robot.mjx_model) == 8
+    mj = robot.mj_model
+    qpos = robot.home_qpos(0.08)
+    tray = mj.geom("tray").id
+    data = mujoco.MjData(mj)
+    data.qpos[:] = qpos
+    mujoco.mj_kinematics(mj, data)
+    lintel = mj.geom("wall_lintel").id  # its face toward the robot at y = -2.375
+    face = data.geom_xpos[lintel, 1] + mj.geom_size[lintel, 1]
+    qpos[1] += face - 0.025 - data.geom_xpos[tray, 1]  # the tray's centre 25 mm behind the face
+    qpos[2] += 0.02  # the feet off the ground
+    obj = mj.jnt_qposadr[mj.body_jntadr[mj.geom_bodyid[mj.geom("object").id]]]  # the cube, yawed 45 deg, 10 mm
+    bottom = data.geom_xpos[lintel, 2] - mj.geom_size[lintel, 2]  # into the lintel's underside by its edge
+    qpos[obj:obj + 7] = [0.0, face - 0.02, bottom - 0.03, np.cos(np.pi / 8), 0.0, 0.0, np.sin(np.pi / 8)]
+    data.qpos[:] = qpos
+    mujoco.mj_forward(mj, data)
+    d = jax.vmap(lambda q: physics.make_data(robot, 1).replace(qpos=q))(jax.numpy.asarray(qpos)[None])
+    d1 = jax.jit(jax.vmap(physics.mjx.step, in_axes=(None, 0)))(robot.mjx_model, d)
+    over = jax.jit(jax.vmap(lambda d: contacts.match_overflow(SimpleNamespace(robot=robot), robot.mjx_model, d)))(d1)
+    sd = np.asarray(d1.sensordata[0])
+    wall = robot.ids.wall_pair.astype(int)
+    box = int(mujoco.mjtGeom.mjGEOM_BOX)
+    mine = [[c for c in data.contact[:data.ncon]
+             if {int(c.geom1), int(c.geom2)} == {int(mj.pair_geom1[p]), int(mj.pair_geom2[p])}] for p in wall]
+    np.testing.assert_array_equal(sd[robot.sensors.wall], [len(c) for c in mine])
+    boxes = [i for i, p in enumerate(wall) if mj.geom_type[mj.pair_geom1[p]] == mj.geom_type[mj.pair_geom2[p]] == box]
+    touching = [i for i in boxes if mine[i]]
+    assert len(touching) == 2 and max(len(mine[i]) for i in touching) > 4  # tray and cube, more than 4 points
+    np.testing.assert_allclose(sd[robot.sensors.wall[touching] + 1], [min(c.dist for c in mine[i]) for i in touching],
+                               atol=2e-6)
+    assert not bool(np.asarray(over)[0])
+
+
 def test_backend_choice(monkeypatch):
     assert physics.resolve_backend("jax") == "jax"
     assert physics.resolve_backend("auto") == "jax"  # a CPU: MuJoCo Warp's CPU path is for tests

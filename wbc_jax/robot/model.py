@@ -128,7 +128,8 @@ class Robot:
         scene: 'flat', 'transport' or a path to a scene XML.
         backend: MJX implementation of the physics, "jax" or "warp" (:mod:`wbc_jax.physics.backend`; resolve "auto"
             before). With "warp" the scene gets the contact sensors the rollout reads
-            (:func:`wbc_jax.physics.contacts.add_contact_sensors`); the physics is the same model's.
+            (:func:`wbc_jax.robot.sensors.with_contact_sensors`); the physics is the same model's, box-box pairs on
+            MuJoCo Warp's box_box primitive.
         solver_iterations: MuJoCo constraint-solver iterations per physics step (``opt.iterations``); 0: the
             scene's own value.
     """

@@ -3,6 +3,10 @@
 Per object contact sphere its contact with the tray (``found``, contact-frame ``force``, ``dist``), per non-foot
 ground pair and per wall pair ``found`` and ``dist``; added to the scene's spec before it is compiled.
 
+The Warp scene also disables native CCD (``mjDSBL_NATIVECCD``): MuJoCo Warp then collides box-box pairs with its
+``box_box`` primitive (up to 8 contacts, like MuJoCo C's ``mjc_BoxBox``) instead of its convex GJK/EPA kernel,
+whose compile is a fresh machine's longest (the shipped scenes' box-box pairs: robot boxes vs the wall's).
+
 MuJoCo Warp matches each sensor against the contact list in slots of ``contact_sensor_maxmatch`` contacts per run
 and sensor (64 by default, from the model's numeric of that name), filled and sorted every physics step. The scene
 gets the most contacts one of its sensed pairs can produce instead (:func:`max_pair_contacts`): the same matches,
@@ -22,6 +26,7 @@ from wbc_jax.errors import SceneError
 
 _FOUND, _FORCE, _DIST = 0, 1, 3  # bits of mjtConDataField: found, force (3), dist
 _MINDIST = 1  # mjtConReduce: the nearest contact first
+_NATIVECCD = int(mujoco.mjtDisableBit.mjDSBL_NATIVECCD)  # MuJoCo Warp: box-box pairs on the box_box primitive
 _DIST_TYPES = (int(mujoco.mjtGeom.mjGEOM_SPHERE), int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_BOX))
 _G = mujoco.mjtGeom
 # the most contacts MuJoCo Warp's collision functions give one geom pair, by (unordered) geom types: sphere pairs 1;
@@ -57,11 +62,13 @@ class ContactSensors:
         return np.concatenate([self.obj, self.nonfoot, self.wall])
 
 
-def max_pair_contacts(model: mujoco.MjModel, pairs) -> int:
+def max_pair_contacts(model: mujoco.MjModel, pairs, primitive_boxes: bool | None = None) -> int:
     """The most contacts MuJoCo Warp gives any of the geom pairs ``pairs`` ((k, 2) geom ids of ``model``): 1 for a
-    sphere, 2 for a capsule vs a plane or box, 4 for a box vs a plane or box (8 for two boxes where the model
-    disables native CCD); :data:`WARP_MAXMATCH` where a pair is of other types."""
-    primitive_boxes = bool(model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_NATIVECCD)
+    sphere, 2 for a capsule vs a plane or box, 4 for a box vs a plane or box (8 for two boxes on the box_box
+    primitive: ``primitive_boxes``, None: where ``model`` disables native CCD); :data:`WARP_MAXMATCH` where a pair is
+    of other types."""
+    if primitive_boxes is None:
+        primitive_boxes = bool(model.opt.disableflags & _NATIVECCD)
 
     def one(a, b):
         types = frozenset((_G(int(model.geom_type[a])), _G(int(model.geom_type[b]))))
@@ -82,6 +89,7 @@ def with_contact_sensors(path: Path, base: mujoco.MjModel, ids) -> tuple[mujoco.
         (MuJoCo model with the sensors, ContactSensors).
     """
     spec = mujoco.MjSpec.from_file(str(path))
+    spec.option.disableflags |= _NATIVECCD  # box-box pairs on MuJoCo Warp's box_box primitive (module docstring)
     g1, g2 = base.pair_geom1, base.pair_geom2
     for p in np.concatenate([ids.foot_pair.ravel(), ids.obj_pair]).astype(int):
         for g in (g1[p], g2[p]):
@@ -107,7 +115,7 @@ def with_contact_sensors(path: Path, base: mujoco.MjModel, ids) -> tuple[mujoco.
              "nonfoot": [add(f"wbc_nonfoot{i}", (_DIST,), g1[p], g2[p]) for i, p in enumerate(ids.nonfoot_floor_pair)],
              "wall": [add(f"wbc_wall{i}", (_DIST,), g1[p], g2[p]) for i, p in enumerate(ids.wall_pair)]}
     sensed = np.concatenate([ids.obj_pair, ids.nonfoot_floor_pair, ids.wall_pair]).astype(int)
-    maxmatch = max_pair_contacts(base, np.stack([g1[sensed], g2[sensed]], axis=1))
+    maxmatch = max_pair_contacts(base, np.stack([g1[sensed], g2[sensed]], axis=1), primitive_boxes=True)
     if "contact_sensor_maxmatch" not in [n.name for n in spec.numerics]:
         spec.add_numeric(name="contact_sensor_maxmatch", data=[float(maxmatch)])
     m = spec.compile()
