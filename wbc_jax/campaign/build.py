@@ -13,7 +13,7 @@ import hashlib
 import json
 import tempfile
 from pathlib import Path
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import numpy as np
@@ -239,9 +239,20 @@ def _plan_kwargs(campaign: dict) -> dict:
 def build(spec: Spec, gains=None) -> Built:
     """Spec -> :class:`Built` (the Sim, the design, the Batch with perturbed initial states and pushes, the chunk
     plan). ``gains``: controller gains (unbatched, of the spec's controller) instead of the defaults."""
+    return _build(spec, gains, states=True)[0]
+
+
+def build_ahead(spec: Spec, gains=None) -> tuple[Built, Callable[[], Built]]:
+    """:func:`build` with the batch's initial states as shapes only (``jax.ShapeDtypeStruct`` leaves: nothing of
+    them runs), and a function returning the Built with them made. Between the two, :func:`compile_chunk` (on the
+    Warp backend the initial states are MuJoCo Warp's first call, which compiles the model's kernels)."""
+    return _build(spec, gains, states=False)
+
+
+def _build(spec: Spec, gains, states: bool) -> tuple[Built, Callable[[], Built] | None]:
     from wbc_jax.control.variants import Variant
     from wbc_jax.rollout import make_push, with_metric_window, with_variant
-    from wbc_jax.rollout.batch import prepare_batch
+    from wbc_jax.rollout.batch import initial_states, prepare_batch
 
     c = spec.campaign
     check_qp(spec)
@@ -254,7 +265,7 @@ def build(spec: Spec, gains=None) -> Built:
     b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=gains, plan_kwargs=_plan_kwargs(c), qpos0=qpos0, qvel0=qvel0,
                       speed=dz.speed if "speed" in spec.factors else None,
                       ground_mu=dz.ground_mu if np.all(dz.ground_mu > 0) else None,
-                      ramp=speed_ramps(spec, dz))
+                      ramp=speed_ramps(spec, dz), shapes_only=not states)
     planned_s = sim.controller.planned_s(b.plan)
     t_plan = sim.controller.plan_end(b.plan)  # (B,) each run's plan end [s]
     # push start: a fraction of the planned duration (each run's own when the speed or the ramps are varied)
@@ -265,11 +276,34 @@ def build(spec: Spec, gains=None) -> Built:
     t_end = t_plan + c["extra_seconds"]
     if c["max_seconds"] > 0:
         t_end = np.minimum(t_end, c["max_seconds"])
-    state = with_metric_window(b.state, t_end)
-    if transport:
-        state = with_variant(state, Variant(*dz.variant.T))
-    b = b._replace(push=push, state=state)
-    return Built(sim, dz, b, planned_s, *chunk_plan(c, sim.dt_control, planned_s))
+
+    def finish(state):
+        state = with_metric_window(state, t_end)
+        return with_variant(state, Variant(*dz.variant.T)) if transport else state
+
+    b = b._replace(push=push, state=finish(b.state))  # shapes stay shapes (Packed._replace, placed_like)
+    built = Built(sim, dz, b, planned_s, *chunk_plan(c, sim.dt_control, planned_s))
+
+    def with_states() -> Built:
+        state = finish(initial_states(sim, b.model, b.in_axes, qpos0, qvel0))
+        return built._replace(batch=b._replace(state=state))
+
+    return built, None if states else with_states
+
+
+def compile_chunk(built: Built):
+    """The chunk program (:func:`chunk_fn`, one device) compiled for ``built``'s batch from its arguments' shapes
+    (``jax.stages.Compiled``; the initial states may be shapes only: :func:`build_ahead`). The campaign
+    compiles it before MuJoCo Warp's first call, beside the kernels' preload (:mod:`wbc_jax.physics.warp_kernels`),
+    and calls it instead of tracing the program again. Raises ValueError where the chunk program cannot be lowered
+    ahead (the JAX backend's is exported instead: :func:`wbc_jax.runtime.aot.cached_jit`)."""
+    from wbc_jax.rollout.batch import chunk_args
+
+    b = built.batch
+    fn = chunk_fn(built.sim, b.in_axes, built.logs_per_chunk, None, b.state_axes)
+    if not hasattr(fn, "lower"):
+        raise ValueError("compile_chunk: the chunk program of this backend is exported, not compiled ahead")
+    return fn.lower(*chunk_args(b)).compile()
 
 
 def contact_scene(campaign: dict) -> str:

@@ -46,9 +46,11 @@ from wbc_jax.campaign.build import (
     _sim,  # noqa: F401  (reached as runner._sim by callers of the campaign's Sim cache)
     backend_of,
     build,
+    build_ahead,
     check_horizon,
     check_qp,
     chunk_fn,
+    compile_chunk,
     has_accelerator,
     initial_configuration,  # noqa: F401  (reached as runner.initial_configuration)
     sensing_of,
@@ -125,11 +127,13 @@ def _save(job: Job, start: Start, saver: checkpoint.Writer, gathering, done: int
 
 
 def _run_chunks(job: Job, start: Start, progress: bool, report: bool, guard: interrupts.Guard,
-                saver: checkpoint.Writer, blocks: Blocks | None = None) -> tuple[Rollout, object]:
+                saver: checkpoint.Writer, blocks: Blocks | None = None, compiled=None) -> tuple[Rollout, object]:
     """Step every chunk from ``start``, checkpointing after each in the background: the whole state gathered to
     process 0 (``saver``), or with ``blocks`` each process's own runs but the last chunk's; returns the finished
     rollout and the report worker started during it (None without ``report``). A signal stops the run once the
-    compile or the chunk in progress ends (``guard``); the finished chunks' checkpoint is kept."""
+    compile or the chunk in progress ends (``guard``); the finished chunks' checkpoint is kept. ``compiled``: the
+    chunk program compiled ahead (:func:`wbc_jax.campaign.build.compile_chunk`), called instead of the jitted one
+    where its arguments' types match (else the program is traced and compiled again, with a note)."""
     b, sp, n_chunks, dz = job.batch, job.spread, job.built.n_chunks, job.built.design
     fn = chunk_fn(job.built.sim, b.in_axes, job.built.logs_per_chunk, sp.mesh, b.state_axes)
     bar = (ProgressBar(n_chunks, start.done, job.chunk_s, dz.n, job.built.sim.dt_physics)
@@ -137,13 +141,25 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool, guard: int
     state, done, marks, p_goal, gathered = start.state, start.done, start.marks, start.p_goal, None
     t_run = time.perf_counter()
     first_in_process = True  # that chunk's wall time includes compilation
-    step = lambda st: fn(b.model, st, b.plan, b.om, b.gains, b.push, b.mu_ground)  # noqa: E731  (dispatch only)
+    program = [fn if compiled is None else compiled]
+
+    def step(st):  # dispatch only
+        try:
+            return program[0](b.model, st, b.plan, b.om, b.gains, b.push, b.mu_ground)
+        except TypeError as e:  # the program compiled ahead takes other argument types: traced and compiled now
+            if program[0] is fn:
+                raise
+            print(f"note: the chunk program compiled ahead does not take this state ({str(e)[:160]}); compiling "
+                  "it again", file=sys.stderr, flush=True)
+            program[0] = fn
+            return fn(b.model, st, b.plan, b.om, b.gains, b.push, b.mu_ground)
+
     final_input = job.built.sim.controller.final_input  # what finalization needs of the last logs (p_goal)
     reporter = None
-    if done < n_chunks and job.writer:
+    if done < n_chunks and job.writer and compiled is None:
         stage("compiling the chunk program (the first run on a machine: minutes; later runs load it from the "
               "compilation cache)")
-    if bar is not None and done < n_chunks:
+    if bar is not None and done < n_chunks and compiled is None:
         bar.compiling(f"compiling, then chunk {done + 1}")
     try:
         with guard.deferred():
@@ -232,6 +248,8 @@ def _write(job: Job, rollout: Rollout, clock: dict, report: bool, reporter, guar
             manifest["warp_preload_s"] = clock["warp_preload_s"]
         if "warp_ahead" in clock:  # the model's own kernels, compiled in parallel at each Warp callable's first call
             manifest["warp_compile_ahead"] = clock["warp_ahead"].summary()
+        if "chunk_ahead_s" in clock:  # the chunk program, compiled from the batch's shapes during setup
+            manifest["chunk_compiled_ahead_s"] = round(clock["chunk_ahead_s"], 3)
         write_json_atomic(tmp / "manifest.json", manifest)
     shutil.rmtree(job.ckpt, ignore_errors=True)
     job.status.stage = "written"
@@ -317,17 +335,29 @@ def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guar
     for line in preflight.notes(spec, physics_backend, r["allow_large"]) if status.writer else []:
         print(line, flush=True)
     preload = warp_kernels.start_preload(physics_backend)  # Warp's kernels compile while the batch is built
+    sp = choose(physics_backend)  # several devices: each steps its own runs (wbc_jax.rollout.spread)
+    # Warp on one device, from the start: the chunk program compiles from the batch's shapes before the initial
+    # states (MuJoCo Warp's first call, which compiles the model's kernels), beside the preload
+    ahead = physics_backend == "warp" and sp.mode == "one" and status.saved == 0
     if status.writer:
         stage(f"building {design(spec).n} runs on scene {spec.campaign['scene']} (initial states, plans, pushes)"
               + ("; MuJoCo Warp's kernels compiling meanwhile" if preload else ""))
+    compiled = None
     with guard.deferred():  # the batch's initial states compile
-        built = build(spec, r["gains"])
+        built, with_states = build_ahead(spec, r["gains"]) if ahead else (build(spec, r["gains"]), None)
+        if ahead:
+            if status.writer:
+                stage("compiling the chunk program (the first run on a machine: minutes; later runs load it from the "
+                      "compilation cache)")
+            t0 = time.perf_counter()
+            compiled = compile_chunk(built)
+            clock["chunk_ahead_s"] = time.perf_counter() - t0
+            built = with_states()
         if preload is not None:
             clock["warp_preload_s"] = preload.result()[1]
             clock["warp_ahead"] = preload.ahead
     guard.check()
     check_horizon(spec, built)
-    sp = choose(built.sim.robot.backend)  # several devices: each steps its own runs (wbc_jax.rollout.spread)
     job = Job(spec, built, sp.place(built.batch, own_contacts=True), sp, identity, r["gains"], status.writer, out_p,
               ck, status)
     start = start_point(job, built.batch.state, r["resume"])
@@ -337,7 +367,7 @@ def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guar
     blocks = (Blocks(ck or checkpoint.ckpt_dir(Path(r["out"]).absolute()), sp, built.design.n, job.writer,
                      on_meta=lambda k: setattr(status, "saved", k)) if sp.mode == "blocks" else None)
     try:
-        rollout, reporter = _run_chunks(job, start, r["progress"], r["report"], guard, saver, blocks)
+        rollout, reporter = _run_chunks(job, start, r["progress"], r["report"], guard, saver, blocks, compiled)
         if not job.writer:
             if blocks is not None:
                 with guard.deferred():

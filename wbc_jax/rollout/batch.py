@@ -104,9 +104,19 @@ def _init_fn(sim: Sim, in_axes, n_runs: int):
     return _INIT_FNS[key]
 
 
+def initial_states(sim: Sim, model, in_axes, qpos0, qvel0, shapes_only: bool = False) -> RunState:
+    """The runs' initial states (``init_state`` of each run, batched): ``model`` the batched model (run axes
+    ``in_axes``), ``qpos0``, ``qvel0`` (B, nq), (B, nv). ``shapes_only``: their shapes and dtypes
+    (``jax.ShapeDtypeStruct`` leaves, ``jax.eval_shape``: nothing runs, MuJoCo Warp's kernels are not called), the
+    same program traced once for both."""
+    fn = _init_fn(sim, in_axes, int(np.shape(qpos0)[0]))
+    args = (model, jnp.asarray(qpos0, float), jnp.asarray(qvel0, float))
+    return jax.eval_shape(fn, *args) if shapes_only else fn(*args)
+
+
 def prepare_batch(sim: Sim, m, mu, d, gains=None, push: Push | None = None,
                   plan_kwargs: dict | None = None, qpos0=None, qvel0=None, speed=None, ground_mu=None,
-                  ramp=None) -> Batch:
+                  ramp=None, shapes_only: bool = False) -> Batch:
     """Validated factors (each (B,) or scalar) -> a ready Batch.
 
     Args:
@@ -121,6 +131,8 @@ def prepare_batch(sim: Sim, m, mu, d, gains=None, push: Push | None = None,
         speed: (B,) cruise speed of each run's plan [m/s] instead of ``plan_kwargs``' (None: that one).
         ground_mu: (B,) foot/ground friction of each run, in the physics and the controller (None: the scene's).
         ramp: (B,) duration of each run's speed ramps [s] (the planner's ``ramp``) instead of ``plan_kwargs``'.
+        shapes_only: the state holds the initial states' shapes only (:func:`initial_states`), for a program
+            compiled before they exist; the caller makes them with the same ``qpos0``, ``qvel0``.
     """
     robot, controller = sim.robot, sim.controller
     f = scenario.validate_factors(robot.ids, m, mu, d)
@@ -142,7 +154,7 @@ def prepare_batch(sim: Sim, m, mu, d, gains=None, push: Push | None = None,
     unique = [controller.make_plan(robot, course, q, dict(k, side=float(key[0])) if course else k)
               for q, key, k in zip(q_levels, levels, kws)]
     plans = stack(controller.align_plans(unique), index=inverse)
-    state = _init_fn(sim, in_axes, B)(bm, jnp.asarray(qpos0, float), jnp.asarray(qvel0, float))
+    state = initial_states(sim, bm, in_axes, qpos0, qvel0, shapes_only)
     obj_model = ObjectModel(mass=jnp.asarray(f.m), side=jnp.asarray(f.d), mu=jnp.asarray(f.mu),
                             inset=jnp.full(B, robot.ids.obj_sphere_radius))
     gains = controller.default_gains() if gains is None else gains
