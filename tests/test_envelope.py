@@ -13,7 +13,7 @@ import pytest
 from wbc_jax.analysis import claims, envelope
 from wbc_jax.analysis.report.document import Doc
 from wbc_jax.analysis.report.envelope_section import claims_section, envelope_section
-from wbc_jax.campaign import build, spec
+from wbc_jax.campaign import build, size, spec
 from wbc_jax.campaign.design import design
 
 REPS = 6
@@ -126,7 +126,7 @@ def test_envelope_spec():
     assert set(s.factors) == {"variant", "mu", "obj_accel", "speed", "push_N"}
     assert set(s.factors["variant"]) == {"full", "no_tray_cone", "no_observer"}
     assert min(s.factors["mu"]) <= 0.2
-    n = build.n_runs_of(s)
+    n = size.n_runs_of(s)
     assert n == design(s).n and n <= 1500
 
 

@@ -3,7 +3,8 @@
 :func:`build` turns a validated spec (``wbc_jax.campaign.spec``) into a :class:`Built`: the cached Sim of the scene,
 the design table (one row per run), a :class:`wbc_jax.rollout.batch.Batch` with each run's perturbed initial state,
 push, metric window and controller variant, and how the simulated horizon is cut into chunks of whole log
-intervals. :func:`check_size` refuses a batch that cannot fit in memory before anything is built.
+intervals. :func:`wbc_jax.campaign.size.check_size` refuses a batch that cannot fit in memory before anything is
+built.
 """
 
 from __future__ import annotations
@@ -20,14 +21,10 @@ import numpy as np
 
 from wbc_jax.campaign.design import Design, design
 from wbc_jax.campaign.spec import BACKENDS, Spec
-from wbc_jax.errors import LimitError, SpecError
+from wbc_jax.errors import SpecError
 from wbc_jax.runtime import aot
 
 LOG_EVERY = 20  # control steps per logged sample (the rollout's outer scan)
-# memory estimate of a batched rollout, per run [bytes]: state, model, plan and QP workspace, plus the logged samples
-# of one chunk; deliberately generous round numbers (not measured), only meant to stop batches that cannot fit
-RUN_BYTES = 4 << 20
-LOG_SAMPLE_BYTES = 64 << 10
 _SIMS: dict = {}
 _FNS: dict = {}
 
@@ -373,43 +370,3 @@ def check_horizon(spec: Spec, built: Built) -> None:
     raise SpecError(f"{spec.path}: campaign.max_seconds = {cap:g} is not a whole number of logged intervals "
                     f"({log_dt:g} s = {LOG_EVERY} control steps), so {simulated:g} s would be simulated; use a "
                     f"multiple of {log_dt:g} s, e.g. {int(cap / log_dt + 1e-9) * log_dt:g}")
-
-
-def n_runs_of(spec: Spec) -> int:
-    """Number of runs of a spec (cells x reps), without building the design."""
-    return int(np.prod([len(v) for v in spec.factors.values()])) * spec.reps
-
-
-def check_size(spec: Spec, allow_large: bool = False) -> None:
-    """Refuse a campaign whose batch would not fit in memory (an estimate, before the design is built).
-
-    Raises:
-        LimitError: runs x (RUN_BYTES + a chunk's log samples x LOG_SAMPLE_BYTES) exceeds the available memory,
-            unless ``allow_large``.
-    """
-    c = spec.campaign
-    n = n_runs_of(spec)
-    samples = max(1.0, c["chunk_seconds"] / (0.002 * c["control_substeps"] * LOG_EVERY))  # 2 ms physics step
-    need = n * (RUN_BYTES + samples * LOG_SAMPLE_BYTES)
-    avail = _available_memory()
-    if avail and need > avail and not allow_large:
-        raise LimitError(f"{spec.path}: {n:,} runs need about {need / 2**30:,.1f} GiB, "
-                         f"{avail / 2**30:,.1f} GiB available; fewer levels or reps, a smaller "
-                         "campaign.chunk_seconds, or --allow-large to try anyway")
-
-
-def _available_memory() -> int | None:
-    """Available memory [bytes]: the accelerator's free memory, else the host's MemAvailable; None if unknown."""
-    try:
-        st = jax.local_devices()[0].memory_stats() or {}
-        if "bytes_limit" in st:
-            return int(st["bytes_limit"] - st.get("bytes_in_use", 0))
-    except Exception:  # noqa: BLE001  (CPU devices have no memory stats)
-        pass
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None

@@ -21,8 +21,8 @@ import jax
 import numpy as np
 
 from wbc_jax.campaign import controllers
-from wbc_jax.campaign.build import n_runs_of
 from wbc_jax.campaign.results import Summary, nan_none
+from wbc_jax.campaign.size import n_runs_of
 from wbc_jax.campaign.spec import Spec
 from wbc_jax.rollout import distributed
 from wbc_jax.runtime import jaxcfg

@@ -14,8 +14,8 @@ from pathlib import Path
 import jax
 
 from wbc_jax.campaign import checkpoint
-from wbc_jax.campaign.build import check_size, n_runs_of
 from wbc_jax.campaign.manifest import COMMAND
+from wbc_jax.campaign.size import check_size, n_runs_of
 from wbc_jax.campaign.spec import Spec
 from wbc_jax.errors import CheckpointError, OutputError, WbcJaxError
 from wbc_jax.io_utils import check_out_dir, claim_out_dir

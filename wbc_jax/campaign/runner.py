@@ -9,7 +9,7 @@ that fails leaves the results, writes ``DIR/report_error.txt`` and ends the comm
 ``wbc-jax report DIR/results.csv``).
 
 DIR must be new or empty, or (``--force``) hold an earlier campaign (``wbc_jax.io_utils.check_out_dir``); it is
-checked, with the spec's size against the machine's memory (``wbc_jax.campaign.build.check_size``), before anything
+checked, with the spec's size against the machine's memory (``wbc_jax.campaign.size.check_size``), before anything
 is compiled.
 
 Checkpoint (``wbc_jax.campaign.checkpoint``): ``.<DIR name>.campaign-ckpt/`` next to DIR holds the state after the
@@ -126,6 +126,24 @@ def _save(job: Job, start: Start, saver: checkpoint.Writer, gathering, done: int
     return p_goal, state
 
 
+def _dispatch(fn, compiled, b):
+    """``state -> fn(b's chunk arguments with that state)`` (dispatch only), with ``compiled`` (the program compiled
+    ahead) instead of ``fn`` while its arguments' types match (else traced and compiled again, with a note)."""
+    program = [fn if compiled is None else compiled]
+
+    def step(st):
+        try:
+            return program[0](b.model, st, b.plan, b.om, b.gains, b.push, b.mu_ground)
+        except TypeError as e:  # the program compiled ahead takes other argument types
+            if program[0] is fn:
+                raise
+            print(f"note: the chunk program compiled ahead does not take this state ({str(e)[:160]}); compiling "
+                  "it again", file=sys.stderr, flush=True)
+            program[0] = fn
+            return fn(b.model, st, b.plan, b.om, b.gains, b.push, b.mu_ground)
+    return step
+
+
 def _run_chunks(job: Job, start: Start, progress: bool, report: bool, guard: interrupts.Guard,
                 saver: checkpoint.Writer, blocks: Blocks | None = None, compiled=None) -> tuple[Rollout, object]:
     """Step every chunk from ``start``, checkpointing after each in the background: the whole state gathered to
@@ -141,19 +159,7 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool, guard: int
     state, done, marks, p_goal, gathered = start.state, start.done, start.marks, start.p_goal, None
     t_run = time.perf_counter()
     first_in_process = True  # that chunk's wall time includes compilation
-    program = [fn if compiled is None else compiled]
-
-    def step(st):  # dispatch only
-        try:
-            return program[0](b.model, st, b.plan, b.om, b.gains, b.push, b.mu_ground)
-        except TypeError as e:  # the program compiled ahead takes other argument types: traced and compiled now
-            if program[0] is fn:
-                raise
-            print(f"note: the chunk program compiled ahead does not take this state ({str(e)[:160]}); compiling "
-                  "it again", file=sys.stderr, flush=True)
-            program[0] = fn
-            return fn(b.model, st, b.plan, b.om, b.gains, b.push, b.mu_ground)
-
+    step = _dispatch(fn, compiled, b)
     final_input = job.built.sim.controller.final_input  # what finalization needs of the last logs (p_goal)
     reporter = None
     if done < n_chunks and job.writer and compiled is None:
@@ -282,7 +288,7 @@ def run_campaign(spec_path: str | None, out: str, resume: bool = False, report: 
         progress: show a progress bar on stderr.
         gains: controller gains (unbatched TransportGains) instead of the defaults.
         force: replace DIR when it holds an earlier campaign.
-        allow_large: run even when the memory estimate (:func:`wbc_jax.campaign.build.check_size`) exceeds what is
+        allow_large: run even when the memory estimate (:func:`wbc_jax.campaign.size.check_size`) exceeds what is
             available.
         inputs: further input files (e.g. the gains file) that DIR must not hold.
         backend: physics backend ("auto", "jax", "warp") instead of the spec's ``campaign.backend``.
