@@ -28,3 +28,15 @@ def test_preload_only_where_warp_runs_on_a_gpu_and_its_error_reaches_the_caller(
     monkeypatch.setattr(warp_kernels, "preload", lambda workers, device, names: 1 / 0)
     with pytest.raises(ZeroDivisionError):
         warp_kernels.Preload(2).result()
+
+
+def test_warmup_compiles_the_campaigns_chunk_program_on_warp(capsys):
+    """On Warp the warmup builds and compiles as the campaign does (``build_ahead``, ``compile_chunk``: the chunk
+    program from the batch's shapes, then the initial states) and runs the first chunk: the CI baseline spec, CPU."""
+    pytest.importorskip("warp")
+    from wbc_jax.campaign.spec import SWEEPS
+
+    spec = str(SWEEPS.parent / "reports" / "baseline" / "spec.toml")
+    assert cli.main(["warmup", "--spec", spec, "--backend", "warp"]) == 0
+    out = capsys.readouterr().out
+    assert "warmup: setup_s" in out and "compile_chunk_s" in out and "first_chunk_s" in out, out

@@ -6,7 +6,8 @@ A campaign's first run on a machine compiles MuJoCo Warp's kernels (Warp's kerne
 a spec's shapes and prints each stage's wall time, so a cluster image or a user runs it once and later campaigns of
 that spec start warm:
 
-1. setup: the spec built as the campaign builds it (plans, batched model, initial states; their small programs);
+1. setup: the spec built as the campaign builds it (plans, batched model, initial states; their small programs; on
+   Warp the chunk program compiled from the batch's shapes before the initial states, as the campaign does);
 2. on Warp, from the start: MuJoCo Warp's step modules compiled on the GPU by a pool of threads
    (:func:`wbc_jax.physics.warp_kernels.preload`) while the main thread builds the spec and compiles the chunk
    program; at the first call of each MJX Warp function, the kernels MuJoCo Warp builds for the model, compiled by
@@ -38,24 +39,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     return w
 
 
-def _compile_chunk(built):
-    """The campaign's chunk program for ``built`` (``wbc_jax.campaign.build``'s, so the persistent cache holds what
-    the campaign looks up), compiled without running it where it is a plain jit (Warp); an exported program (JAX
-    physics) compiles on its first call."""
-    from wbc_jax.campaign.build import chunk_fn
-    from wbc_jax.rollout.batch import chunk_args
-
-    b = built.batch
-    fn = chunk_fn(built.sim, b.in_axes, built.logs_per_chunk, state_axes=b.state_axes)
-    return fn.lower(*chunk_args(b)).compile() if hasattr(fn, "lower") else fn
-
-
 def warmup(spec_path: str, backend: str | None = None, workers: int | None = None) -> dict:
     """Compile what the spec's first campaign compiles (module docstring). Returns each stage's wall time [s] (and
     the number of Warp modules preloaded)."""
     import jax
 
-    from wbc_jax.campaign.build import backend_of, build, with_backend
+    from wbc_jax.campaign.build import backend_of, build, build_ahead, chunk_fn, compile_chunk, with_backend
     from wbc_jax.campaign.progress import stage
     from wbc_jax.campaign.spec import load_spec
     from wbc_jax.physics import warp_kernels
@@ -65,12 +54,20 @@ def warmup(spec_path: str, backend: str | None = None, workers: int | None = Non
     spec = with_backend(load_spec(spec_path), backend)
     preload = warp_kernels.start_preload(backend_of(spec), workers)  # Warp compiles while the setup runs
     stage(f"building {spec_path}" + (" (MuJoCo Warp's kernels compiling meanwhile)" if preload else ""))
-    built = build(spec)
+    # as the campaign does (wbc_jax.campaign.runner), so the persistent cache holds the program it looks up: on Warp
+    # the chunk program compiled from the batch's shapes before the initial states; an exported program (JAX
+    # physics) compiles on its first call
+    warp = backend_of(spec) == "warp"
+    built, with_states = build_ahead(spec) if warp else (build(spec), None)
     stages = dict(setup_s=time.perf_counter() - t_start)
     stage("compiling the chunk program")
     t0 = time.perf_counter()
-    program = _compile_chunk(built)
+    b = built.batch
+    program = (compile_chunk(built) if warp
+               else chunk_fn(built.sim, b.in_axes, built.logs_per_chunk, state_axes=b.state_axes))
     stages["compile_chunk_s"] = time.perf_counter() - t0
+    if warp:
+        built = with_states()
     if preload is not None:
         stages["warp_modules"], stages["warp_preload_s"] = preload.result()
     stage("running the first chunk")
