@@ -71,6 +71,10 @@ from wbc_jax.physics import warp_kernels
 from wbc_jax.rollout import distributed
 from wbc_jax.rollout.spread import choose
 
+# the stage line before the chunk program compiles
+COMPILING = ("compiling the chunk program (the first run on a machine: minutes; later runs load it from the "
+             "compilation cache)")
+
 
 def after_chunk(done: int, n_chunks: int) -> None:
     """Called in every process after each finished chunk (``done`` of ``n_chunks``), once process 0 has begun
@@ -163,8 +167,7 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool, guard: int
     final_input = job.built.sim.controller.final_input  # what finalization needs of the last logs (p_goal)
     reporter = None
     if done < n_chunks and job.writer and compiled is None:
-        stage("compiling the chunk program (the first run on a machine: minutes; later runs load it from the "
-              "compilation cache)")
+        stage(COMPILING)
     if bar is not None and done < n_chunks and compiled is None:
         bar.compiling(f"compiling, then chunk {done + 1}")
     try:
@@ -353,8 +356,7 @@ def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guar
         built, with_states = build_ahead(spec, r["gains"]) if ahead else (build(spec, r["gains"]), None)
         if ahead:
             if status.writer:
-                stage("compiling the chunk program (the first run on a machine: minutes; later runs load it from the "
-                      "compilation cache)")
+                stage(COMPILING)
             t0 = time.perf_counter()
             compiled = compile_chunk(built)
             clock["chunk_ahead_s"] = time.perf_counter() - t0
