@@ -396,8 +396,8 @@ def test_warp_contact_list_sized_for_more_runs(walks):
 
 def test_campaign_chunk_program_compiled_ahead(tmp_path, monkeypatch, capsys):
     """A Warp campaign on one device compiles its chunk program from the batch's shapes before the initial states
-    exist (``build_ahead``, ``compile_chunk``: MuJoCo Warp's first call compiles the model's kernels,
-    which a fresh GPU does beside the program's compile) and calls it: the CI baseline spec on Warp (8 runs, 3
+    exist (``build_ahead``, ``states_and_program``: MuJoCo Warp's first call compiles the model's kernels, which a
+    fresh GPU does beside the program's compile) and calls it: the CI baseline spec on Warp (8 runs, 3
     chunks), results.csv equal in every column to the same campaign whose chunk program is traced and compiled at
     its first chunk (as before), no note of a program that did not take the state."""
     import pandas as pd
@@ -411,7 +411,8 @@ def test_campaign_chunk_program_compiled_ahead(tmp_path, monkeypatch, capsys):
     assert "compiled ahead does not take" not in capsys.readouterr().err
     manifest = json.loads((tmp_path / "ahead" / "manifest.json").read_text())
     assert manifest["chunk_compiled_ahead_s"] > 0 and manifest["physics_backend"] == "warp"
-    monkeypatch.setattr(runner, "compile_chunk", lambda built: None)  # the program traced at the first chunk
+    monkeypatch.setattr(runner, "states_and_program",  # the program traced at the first chunk
+                        lambda built, with_states, ahead: (with_states(), None, 0.0))
     assert cli.main(["campaign", "--spec", spec, "--backend", "warp", "--out", str(tmp_path / "first"),
                      "--no-report"]) == 0
     a, b = (pd.read_csv(tmp_path / d / "results.csv") for d in ("ahead", "first"))

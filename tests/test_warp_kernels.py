@@ -72,6 +72,38 @@ def test_a_first_call_compiles_ahead_then_runs_and_a_failing_pass_leaves_the_cal
     assert ahead.summary()["failed"] == 1 and "compiling the model's kernels ahead failed" in capsys.readouterr().err
 
 
+def test_work_beside_runs_after_the_skipped_pass_and_before_the_call():
+    """The window a first call opens: the work starts once the skipped pass (a capture) has ended and has ended
+    before the call runs; a window no first call opened runs its work where its result is asked for."""
+    import threading
+
+    events = []
+
+    def step(a, b):
+        events.append(("step", wp.get_device("cpu").is_capturing))
+        _step(a, b, 7.0)
+
+    def work():
+        events.append(("work", threading.current_thread().name))
+        return 42
+
+    ahead = warp_kernels.CompileAhead(workers=2)
+    beside = ahead.open_window(work)
+    a, b = _arrays()
+    with wp.ScopedDevice("cpu"):
+        warp_kernels._FirstCall(step, ahead)(a, b)
+    assert beside.result() == 42 and ahead.beside is None and not ahead.failed
+    assert events == [("step", True), ("work", "beside-warp"), ("step", False)], events
+    np.testing.assert_array_equal(b.numpy(), np.full(4, 14.0))
+
+    def fails():
+        raise RuntimeError("compile failed")
+
+    with pytest.raises(RuntimeError, match="compile failed"):
+        ahead.open_window(fails).result()  # no first call: run here, its error raised here
+    assert warp_kernels.Beside(lambda: 7).result() == 7
+
+
 def test_install_wraps_only_callables_that_capture_warp_graphs(monkeypatch):
     pytest.importorskip("jax")
     monkeypatch.setattr(wp, "jax_callable", wp.jax_callable)  # restored after the test

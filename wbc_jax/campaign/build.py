@@ -13,6 +13,7 @@ import dataclasses
 import hashlib
 import json
 import tempfile
+import time
 from pathlib import Path
 from typing import Callable, NamedTuple
 
@@ -288,19 +289,42 @@ def _build(spec: Spec, gains, states: bool) -> tuple[Built, Callable[[], Built] 
     return built, None if states else with_states
 
 
-def compile_chunk(built: Built):
-    """The chunk program (:func:`chunk_fn`, one device) compiled for ``built``'s batch from its arguments' shapes
-    (``jax.stages.Compiled``; the initial states may be shapes only: :func:`build_ahead`). The campaign
-    compiles it before MuJoCo Warp's first call, beside the kernels' preload (:mod:`wbc_jax.physics.warp_kernels`),
-    and calls it instead of tracing the program again. Raises ValueError where the chunk program cannot be lowered
-    ahead (the JAX backend's is exported instead: :func:`wbc_jax.runtime.aot.cached_jit`)."""
+def lower_chunk(built: Built):
+    """The chunk program (:func:`chunk_fn`, one device) traced and lowered for ``built``'s batch from its arguments'
+    shapes (``jax.stages.Lowered``; the initial states may be shapes only: :func:`build_ahead`). Raises ValueError
+    where the chunk program cannot be lowered ahead (the JAX backend's is exported instead:
+    :func:`wbc_jax.runtime.aot.cached_jit`)."""
     from wbc_jax.rollout.batch import chunk_args
 
     b = built.batch
     fn = chunk_fn(built.sim, b.in_axes, built.logs_per_chunk, None, b.state_axes)
     if not hasattr(fn, "lower"):
         raise ValueError("compile_chunk: the chunk program of this backend is exported, not compiled ahead")
-    return fn.lower(*chunk_args(b)).compile()
+    return fn.lower(*chunk_args(b))
+
+
+def compile_chunk(built: Built):
+    """:func:`lower_chunk` compiled (``jax.stages.Compiled``), called instead of tracing the program again."""
+    return lower_chunk(built).compile()
+
+
+def states_and_program(built: Built, with_states: Callable[[], Built], ahead=None):
+    """``(with_states(), compile_chunk(built), seconds)`` for a :func:`build_ahead` pair: the chunk program traced
+    first, then the initial states made (on Warp, MuJoCo Warp's first call) and the program compiled, XLA's compile
+    in the window of ``ahead``'s next first call when given (a ``wbc_jax.physics.warp_kernels.CompileAhead``: beside
+    the model's kernels' compile), else after the states. ``seconds``: the program's trace and compile [s]."""
+    t0 = time.perf_counter()
+    lowered = lower_chunk(built)
+    traced_s = time.perf_counter() - t0
+    if ahead is None:
+        states = with_states()
+        t0 = time.perf_counter()
+        return states, lowered.compile(), traced_s + time.perf_counter() - t0
+    beside = ahead.open_window(lowered.compile)
+    try:
+        return with_states(), beside.result(), traced_s + beside.seconds
+    finally:
+        ahead.beside = None  # an unopened window does not carry over to a later first call
 
 
 def contact_scene(campaign: dict) -> str:

@@ -50,10 +50,10 @@ from wbc_jax.campaign.build import (
     check_horizon,
     check_qp,
     chunk_fn,
-    compile_chunk,
     has_accelerator,
     initial_configuration,  # noqa: F401  (reached as runner.initial_configuration)
     sensing_of,
+    states_and_program,
     with_backend,
 )
 from wbc_jax.campaign.design import design
@@ -345,8 +345,8 @@ def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guar
         print(line, flush=True)
     preload = warp_kernels.start_preload(physics_backend)  # Warp's kernels compile while the batch is built
     sp = choose(physics_backend)  # several devices: each steps its own runs (wbc_jax.rollout.spread)
-    # Warp on one device, from the start: the chunk program compiles from the batch's shapes before the initial
-    # states (MuJoCo Warp's first call, which compiles the model's kernels), beside the preload
+    # Warp on one device, from the start: the chunk program is traced from the batch's shapes, then compiled while
+    # the initial states' first MuJoCo Warp call compiles the model's kernels (build.states_and_program)
     ahead = physics_backend == "warp" and sp.mode == "one" and status.saved == 0
     if status.writer:
         stage(f"building {design(spec).n} runs on scene {spec.campaign['scene']} (initial states, plans, pushes)"
@@ -357,10 +357,8 @@ def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guar
         if ahead:
             if status.writer:
                 stage(COMPILING)
-            t0 = time.perf_counter()
-            compiled = compile_chunk(built)
-            clock["chunk_ahead_s"] = time.perf_counter() - t0
-            built = with_states()
+            built, compiled, clock["chunk_ahead_s"] = states_and_program(built, with_states,
+                                                                         preload and preload.ahead)
         if preload is not None:
             clock["warp_preload_s"] = preload.result()[1]
             clock["warp_ahead"] = preload.ahead

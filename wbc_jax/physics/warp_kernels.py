@@ -13,6 +13,8 @@ that compilation parallel on a GPU:
    the modules it would have launched are compiled by the pool (:func:`load_modules`); then the call runs as it would
    have. Nothing of the skipped pass reaches the device, and the call itself is unchanged (the same kernels, launched
    the same way), so results are those without it.
+3. :class:`Beside` runs other work (XLA compiling the chunk program) while that pool compiles, inside the window a
+   first call opens: after its skipped pass's capture, before the call itself (no capture of this process beside it).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import threading
 import time
 import traceback
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Callable
 
 from wbc_jax.physics import backend  # MJX imports MuJoCo Warp, which declares its kernels
 
@@ -142,6 +145,13 @@ class CompileAhead:
         self.workers, self.preload = workers, preload
         self.calls: list[tuple[int, float]] = []
         self.failed: list[str] = []
+        self.beside: Beside | None = None  # run in the next first call's window (:meth:`open_window`)
+
+    def open_window(self, work: Callable[[], Any]) -> Beside:
+        """A :class:`Beside` of ``work`` that the next first call starts after its skipped pass and waits for
+        before the call runs; its :meth:`Beside.result` runs ``work`` itself when no first call came."""
+        self.beside = Beside(work)
+        return self.beside
 
     def install(self) -> CompileAhead:
         """Wrap ``warp.jax_callable`` (once per process: a later instance replaces the earlier's bookkeeping)."""
@@ -164,11 +174,13 @@ class CompileAhead:
         """Compile what ``func(*args)`` launches (the preloaded modules by the preload), then return."""
         import warp as wp
 
-        t0 = time.perf_counter()
+        t0, beside, self.beside = time.perf_counter(), self.beside, None
         try:
             device = wp.get_device()
             preloaded = () if self.preload is None else self.preload.names
             found = {m: dims for m, dims in launched_modules(func, args, device).items() if m.name not in preloaded}
+            if beside is not None:  # the capture has ended
+                beside.start()
             if self.preload is not None:
                 self.preload.result()
             load_modules(found, device, self.workers)
@@ -178,11 +190,60 @@ class CompileAhead:
             self.failed.append(f"{type(e).__name__}: {e} ({where.filename}:{where.lineno})")
             print(f"MuJoCo Warp: compiling the model's kernels ahead failed ({self.failed[-1]}); they compile at "
                   "their first launch instead", file=sys.stderr, flush=True)
+        finally:
+            if beside is not None:
+                beside.wait()  # before the call, which captures its graph
 
     def summary(self) -> dict:
         """{"modules": compiled ahead, "seconds": spent in first calls, "failed": skipped passes that failed}."""
         return dict(modules=sum(n for n, _ in self.calls), seconds=round(sum(s for _, s in self.calls), 3),
                     failed=len(self.failed))
+
+
+class Beside:
+    """``work()`` (no arguments) run in a thread in the window a :class:`CompileAhead` first call opens
+    (:meth:`CompileAhead.open_window`): started once the call's skipped pass has ended its CUDA graph capture, waited
+    for before the call runs (it captures its graph then), so no capture of this process runs beside it; XLA
+    compiling beside MuJoCo Warp's captures failed them (CUDA error 904). :meth:`wait` gives up after
+    :attr:`wait_s` seconds with a note (the call then runs beside the work). :meth:`result` returns what ``work``
+    returned, running it on the caller's thread when no window started it, or raises what it raised;
+    :attr:`seconds`: its wall time."""
+
+    wait_s = 300.0
+
+    def __init__(self, work: Callable[[], Any]):
+        self.work, self.seconds = work, 0.0
+        self._out: dict = {}
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="beside-warp", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        t0 = time.perf_counter()
+        try:
+            self._out["result"] = self.work()
+        except BaseException as e:  # re-raised in the caller's thread by result()
+            self._out["error"] = e
+        self.seconds = time.perf_counter() - t0
+
+    def wait(self) -> None:
+        """Until the work ends, at most :attr:`wait_s` seconds."""
+        self._thread.join(self.wait_s)
+        if self._thread.is_alive():
+            print(f"MuJoCo Warp: the work beside the kernels' compile ran past {self.wait_s:.0f} s; the first call "
+                  "goes on beside it", file=sys.stderr, flush=True)
+
+    def result(self) -> Any:
+        """What ``work`` returned (run here if no window started it)."""
+        if self._thread is None:
+            self._run()
+        else:
+            self._thread.join()
+        if "error" in self._out:
+            raise self._out["error"]
+        return self._out["result"]
 
 
 class _FirstCall:

@@ -7,7 +7,8 @@ a spec's shapes and prints each stage's wall time, so a cluster image or a user 
 that spec start warm:
 
 1. setup: the spec built as the campaign builds it (plans, batched model, initial states; their small programs; on
-   Warp the chunk program compiled from the batch's shapes before the initial states, as the campaign does);
+   Warp the chunk program traced from the batch's shapes, then compiled while the initial states' first MuJoCo Warp
+   call compiles the model's kernels, as the campaign does: ``wbc_jax.campaign.build.states_and_program``);
 2. on Warp, from the start: MuJoCo Warp's step modules compiled on the GPU by a pool of threads
    (:func:`wbc_jax.physics.warp_kernels.preload`) while the main thread builds the spec and compiles the chunk
    program; at the first call of each MJX Warp function, the kernels MuJoCo Warp builds for the model, compiled by
@@ -44,7 +45,7 @@ def warmup(spec_path: str, backend: str | None = None, workers: int | None = Non
     the number of Warp modules preloaded)."""
     import jax
 
-    from wbc_jax.campaign.build import backend_of, build, build_ahead, chunk_fn, compile_chunk, with_backend
+    from wbc_jax.campaign.build import backend_of, build, build_ahead, chunk_fn, states_and_program, with_backend
     from wbc_jax.campaign.progress import stage
     from wbc_jax.campaign.spec import load_spec
     from wbc_jax.physics import warp_kernels
@@ -62,12 +63,11 @@ def warmup(spec_path: str, backend: str | None = None, workers: int | None = Non
     stages = dict(setup_s=time.perf_counter() - t_start)
     stage("compiling the chunk program")
     t0 = time.perf_counter()
-    b = built.batch
-    program = (compile_chunk(built) if warp
-               else chunk_fn(built.sim, b.in_axes, built.logs_per_chunk, state_axes=b.state_axes))
-    stages["compile_chunk_s"] = time.perf_counter() - t0
     if warp:
-        built = with_states()
+        built, program, _ = states_and_program(built, with_states, preload and preload.ahead)
+    else:
+        program = chunk_fn(built.sim, built.batch.in_axes, built.logs_per_chunk, state_axes=built.batch.state_axes)
+    stages["compile_chunk_s"] = time.perf_counter() - t0
     if preload is not None:
         stages["warp_modules"], stages["warp_preload_s"] = preload.result()
     stage("running the first chunk")
