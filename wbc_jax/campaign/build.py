@@ -299,7 +299,7 @@ def lower_chunk(built: Built):
     b = built.batch
     fn = chunk_fn(built.sim, b.in_axes, built.logs_per_chunk, None, b.state_axes)
     if not hasattr(fn, "lower"):
-        raise ValueError("compile_chunk: the chunk program of this backend is exported, not compiled ahead")
+        raise ValueError("lower_chunk: the chunk program of this backend is exported, not lowered ahead")
     return fn.lower(*chunk_args(b))
 
 
