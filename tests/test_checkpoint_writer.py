@@ -38,11 +38,11 @@ def _slow_save(monkeypatch, fail_at: int | None = None):
     """``checkpoint.save_state`` made slow (``SLOW_WRITE_S``), failing with OSError for chunk ``fail_at``."""
     real = checkpoint.save_state
 
-    def save(ck, state, meta):
+    def save(ck, state, meta, cancelled=None):
         time.sleep(SLOW_WRITE_S)
         if meta["chunks_done"] == fail_at:
             raise OSError(28, "No space left on device")
-        real(ck, state, meta)
+        real(ck, state, meta, cancelled)
 
     monkeypatch.setattr(checkpoint, "save_state", save)
 
@@ -61,6 +61,40 @@ def test_writer_runs_one_write_at_a_time_and_raises_its_error_once(tmp_path, mon
     writer.join()  # once
     assert saved == [1] and [p.name for p in ck.glob("state_*.npz")] == ["state_1.npz"]  # chunk 1's kept whole
     writer.save(ck, {"a": np.ones(3)}, dict(chunks_done=3))
+    writer.join()
+    assert json.loads((ck / "meta.json").read_text())["chunks_done"] == 3
+
+
+def test_a_cancelled_write_leaves_the_checkpoint_before_it(tmp_path):
+    """``save_state`` cancelled: :class:`checkpoint.Cancelled`, no state file of its chunk nor a temporary one, the
+    meta still naming the chunk before; :meth:`Writer.cancel` stops a write in progress and returns at once."""
+    ck = tmp_path / "ck"
+    checkpoint.save_state(ck, {"a": np.zeros(3)}, dict(chunks_done=1))
+    with pytest.raises(checkpoint.Cancelled):
+        checkpoint.save_state(ck, {"a": np.ones(3)}, dict(chunks_done=2), cancelled=lambda: True)
+    assert sorted(p.name for p in ck.iterdir()) == ["meta.json", "state_1.npz"]
+    assert json.loads((ck / "meta.json").read_text())["chunks_done"] == 1
+
+    writer, blocks_written = checkpoint.Writer(), []
+    real = checkpoint.write_npz
+
+    def slow(f, leaves, block=1 << 20, cancelled=None):  # a write of many 1-element blocks, 10 ms each
+        def late():
+            blocks_written.append(1)
+            time.sleep(0.01)
+            return cancelled()
+        real(f, leaves, block=1, cancelled=late)
+
+    checkpoint.write_npz, t0 = slow, time.perf_counter()
+    try:
+        writer.save(ck, {"a": np.ones(10_000)}, dict(chunks_done=2))  # ~80,000 blocks: minutes uncancelled
+        time.sleep(0.2)
+        writer.cancel()
+    finally:
+        checkpoint.write_npz = real
+    assert time.perf_counter() - t0 < 5 and len(blocks_written) > 5
+    assert sorted(p.name for p in ck.iterdir()) == ["meta.json", "state_1.npz"]
+    writer.save(ck, {"a": np.ones(3)}, dict(chunks_done=3))  # the writer writes again after a cancel
     writer.join()
     assert json.loads((ck / "meta.json").read_text())["chunks_done"] == 3
 
@@ -169,6 +203,61 @@ def test_a_failed_write_stops_the_run_with_its_error(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="No space left"):
         _run(job, checkpoint.Writer())
     assert job.status.saved == 1 and _saved_state(job.ckpt)[0]["chunks_done"] == 1
+
+
+@pytest.mark.parametrize("results_fail", [False, True])
+def test_results_written_first_then_the_last_checkpoint_cancelled_or_kept(tmp_path, monkeypatch, results_fail):
+    """After the last chunk (``runner._write``, the results' computation stood in): results.csv and manifest.json
+    are written while the last chunk's checkpoint is still being written, which is then cancelled and the checkpoint
+    deleted; where writing the results fails, the last checkpoint is completed (the finished simulation kept)."""
+    import pandas as pd
+
+    from wbc_jax import rollout as rollout_pkg
+
+    job = _job(tmp_path, monkeypatch)
+    real = checkpoint.save_state
+    last = {}
+
+    def save(ck, state, meta, cancelled=None):  # the last chunk's write: long unless cancelled
+        if meta["chunks_done"] == N_CHUNKS:
+            t0 = time.perf_counter()
+            while time.perf_counter() - t0 < 3.0:
+                if cancelled is not None and cancelled():
+                    last["cancelled"] = True
+                    raise checkpoint.Cancelled("cancelled")
+                time.sleep(0.01)
+        real(ck, state, meta, cancelled)
+
+    monkeypatch.setattr(checkpoint, "save_state", save)
+    saver = checkpoint.Writer()
+    rollout, _ = _run(job, saver)
+    monkeypatch.setattr(rollout_pkg, "final_results", lambda *a: None)
+    monkeypatch.setattr(runner, "results_table", lambda spec, dz, res: pd.DataFrame({"success": [True] * N_RUNS}))
+    monkeypatch.setattr(runner, "summarize", lambda spec, df: SimpleNamespace(warnings=[], qp_flagged_runs=0))
+    monkeypatch.setattr(runner, "campaign_manifest", lambda *a, **k: {"warnings": []})
+    monkeypatch.setattr(runner, "sensing_of", lambda spec: "delayed")
+    if results_fail:
+        def full(path, data):
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(runner, "write_json_atomic", full)
+    job.built.design.mu, job.out, job.spec, job.gains = np.ones(N_RUNS), tmp_path / "out", None, None
+    job.chunk_s, job.seconds = 0.01, 0.03
+    clock = {"import": time.perf_counter(), "start": time.perf_counter()}
+    t0 = time.perf_counter()
+    with interrupts.Guard("test") as guard:
+        if results_fail:
+            with pytest.raises(OSError, match="No space left"):
+                runner._write(job, rollout, clock, False, None, guard, saver)
+        else:
+            runner._write(job, rollout, clock, False, None, guard, saver)
+    if results_fail:  # the last write completed: a resume finds the finished simulation
+        assert not (tmp_path / "out" / "results.csv").exists() and "cancelled" not in last
+        assert _saved_state(job.ckpt)[0]["chunks_done"] == N_CHUNKS
+    else:
+        assert time.perf_counter() - t0 < 2.5 and last == {"cancelled": True}
+        assert (tmp_path / "out" / "results.csv").exists() and (tmp_path / "out" / "manifest.json").exists()
+        assert not job.ckpt.exists()
 
 
 # ---------------------------------------------------------------- the split gather in two processes

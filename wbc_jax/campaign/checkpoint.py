@@ -45,11 +45,16 @@ def sha256_file(path: Path) -> str:
     return h.hexdigest()
 
 
-def write_npz(f, leaves, block: int = 1 << 20) -> None:
+class Cancelled(Exception):
+    """A write stopped by :meth:`Writer.cancel` before it ended (its file removed, the meta not written)."""
+
+
+def write_npz(f, leaves, block: int = 1 << 20, cancelled: Callable[[], bool] | None = None) -> None:
     """``leaves`` (numpy arrays) to the open binary file ``f`` as ``np.savez`` writes them (uncompressed,
     ``arr_0.npy`` ...; read by ``np.load``), each array's bytes handed to the zip in ``block``-byte views: the zip's
     CRC and the file writes release the interpreter lock, where ``np.savez`` holds it while it copies each 16 MiB
-    piece, which stalls the simulating thread (Warp's launch callback) of a campaign writing in the background."""
+    piece, which stalls the simulating thread (Warp's launch callback) of a campaign writing in the background.
+    Raises :class:`Cancelled` between two blocks once ``cancelled()`` is true."""
     with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
         for i, x in enumerate(leaves):
             x = np.asarray(x, order="C")  # (np.ascontiguousarray makes a 0-d array 1-d)
@@ -57,28 +62,35 @@ def write_npz(f, leaves, block: int = 1 << 20) -> None:
                 np.lib.format.write_array_header_1_0(fp, np.lib.format.header_data_from_array_1_0(x))
                 data = memoryview(x.reshape(-1).view(np.uint8))
                 for start in range(0, len(data), block):
+                    if cancelled is not None and cancelled():
+                        raise Cancelled("checkpoint write cancelled")
                     fp.write(data[start:start + block])
 
 
-def _write_leaves(ck: Path, name: str, leaves) -> str:
-    """``leaves`` (host arrays) to ``ck/name`` atomically (a temporary file renamed); returns its SHA-256."""
+def _write_leaves(ck: Path, name: str, leaves, cancelled: Callable[[], bool] | None = None) -> str:
+    """``leaves`` (host arrays) to ``ck/name`` atomically (a temporary file renamed, removed when the write fails
+    or is cancelled: :func:`write_npz`); returns its SHA-256."""
     ck.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=".state.", suffix=".npz", dir=ck)
-    with os.fdopen(fd, "wb") as f:
-        write_npz(f, leaves)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write_npz(f, leaves, cancelled=cancelled)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
     os.chmod(tmp, file_mode())
     digest = sha256_file(Path(tmp))
     os.replace(tmp, ck / name)
     return digest
 
 
-def save_state(ck: Path, state, meta: dict) -> None:
+def save_state(ck: Path, state, meta: dict, cancelled: Callable[[], bool] | None = None) -> None:
     """State of chunk k to ``state_k.npz`` first, then ``meta.json`` (naming that file and its SHA-256)
-    atomically, then the older state files go: an interruption at any point leaves a consistent (meta, state)
-    pair."""
+    atomically, then the older state files go: an interruption at any point (or :class:`Cancelled`, once
+    ``cancelled()`` is true) leaves a consistent (meta, state) pair."""
     leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(jax.device_get(state))]
     name = f"state_{meta['chunks_done']}.npz"
-    digest = _write_leaves(ck, name, leaves)
+    digest = _write_leaves(ck, name, leaves, cancelled)
     write_json_atomic(ck / "meta.json", dict(meta, state_file=name, state_sha256=digest))
     for old in ck.glob("state_*.npz"):
         if old.name != name:
@@ -118,19 +130,32 @@ class Writer:
     """:func:`save_state` in a background thread, one write at a time, so that the caller's next chunk runs meanwhile.
 
     :meth:`save` first waits for the previous write; :meth:`join` waits for the write in progress and raises, in the
-    caller's thread, the exception the write raised (once). The thread is not a daemon: an exiting interpreter
-    waits for the write in progress.
+    caller's thread, the exception the write raised (once); :meth:`cancel` stops a state's write where its caller
+    no longer needs it. The thread is not a daemon: an exiting interpreter waits for the write in progress.
     """
 
     def __init__(self):
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
+        self._cancel = threading.Event()
 
     def save(self, ck: Path, state, meta: dict, on_saved: Callable[[], None] | None = None) -> None:
         """Start writing ``state`` (host arrays the caller leaves unchanged) and ``meta`` to ``ck`` once the previous
         write ended (:meth:`join`: its error is raised here); ``on_saved`` runs in the writer thread after both files
         are written."""
-        self.run(lambda: save_state(ck, state, meta), on_saved and (lambda _: on_saved()))
+        self.run(lambda: save_state(ck, state, meta, self._cancel.is_set), on_saved and (lambda _: on_saved()))
+
+    def cancel(self) -> None:
+        """Stop the state's write in progress (:func:`save_state`: its file removed, the meta naming the state
+        before) and wait for it; its error, if any, is dropped. For a caller that has kept what the state holds
+        otherwise (a campaign's results)."""
+        self._cancel.set()
+        try:
+            self.join()
+        except Exception:  # the write is not needed: a cancelled or failed write is dropped
+            pass
+        finally:
+            self._cancel.clear()
 
     def run(self, task: Callable[[], object], on_done: Callable[[object], None] | None = None) -> None:
         """Start ``task`` (a write) once the previous one ended (its error is raised here); ``on_done`` gets its

@@ -224,3 +224,17 @@ def campaign_manifest(spec: Spec, built, df, summary: Summary, timing: Timing, *
                                cap_fraction_mean=nan_none(df.solver_cap_fraction.mean()),
                                cap_fraction_max=nan_none(df.solver_cap_fraction.max())),
         files=files)
+
+
+def setup_figures(clock: dict) -> dict:
+    """The manifest's figures of a Warp campaign's setup from its ``clock``: MuJoCo Warp's kernels compiled (or
+    loaded from its cache) during setup, the model's own kernels compiled at each Warp callable's first call, the
+    chunk program traced and compiled from the batch's shapes."""
+    out = {}
+    if "warp_preload_s" in clock:
+        out["warp_preload_s"] = clock["warp_preload_s"]
+    if "warp_ahead" in clock:
+        out["warp_compile_ahead"] = clock["warp_ahead"].summary()
+    if "chunk_ahead_s" in clock:
+        out["chunk_compiled_ahead_s"] = round(clock["chunk_ahead_s"], 3)
+    return out

@@ -17,7 +17,8 @@ last finished chunk and the run's identity (``wbc_jax.campaign.manifest.run_iden
 while the next chunk runs and complete before the command ends. Ctrl-C keeps it;
 ``--resume`` continues from it (the chunks are the same, so the results equal an uninterrupted run's) after checking
 the identity and the checksum: a mismatch or damage is a one-line error; it is deleted once the results are
-written. A run that goes non-finite is frozen by the rollout and reported failed; the others continue.
+written (the last chunk's own write, then no longer needed, is cancelled). A run that goes non-finite is frozen
+by the rollout and reported failed; the others continue.
 
 Several devices or processes (``wbc_jax.rollout.distributed``: ``jax.distributed`` initialised by the CLI): the runs
 are spread over them (``wbc_jax.rollout.spread``: on JAX physics one program over every device of every process, on
@@ -58,7 +59,7 @@ from wbc_jax.campaign.build import (
 )
 from wbc_jax.campaign.design import design
 from wbc_jax.campaign.job import Job, Status
-from wbc_jax.campaign.manifest import COMMAND, Timing, campaign_manifest, run_identity
+from wbc_jax.campaign.manifest import COMMAND, Timing, campaign_manifest, run_identity, setup_figures
 from wbc_jax.campaign.manifest import git_commit as _git_commit  # noqa: F401  (reached as runner._git_commit)
 from wbc_jax.campaign.manifest import versions as _versions  # noqa: F401  (reached as runner._versions)
 from wbc_jax.campaign.progress import ProgressBar, stage, throughput
@@ -226,9 +227,9 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool, guard: int
 
 def _write(job: Job, rollout: Rollout, clock: dict, report: bool, reporter, guard: interrupts.Guard,
            saver: checkpoint.Writer, blocks: Blocks | None = None) -> dict:
-    """results.csv and manifest.json into DIR (atomically, once the last checkpoint is written: ``saver``, and the
-    ``blocks`` it replaces are gone; a signal waits for them), the checkpoint deleted, then the report; the summary
-    lines. Returns the manifest."""
+    """results.csv and manifest.json into DIR (atomically; a signal waits for them), then the last checkpoint's
+    write (``saver``) cancelled, or completed where the results were not written, and the checkpoint deleted; then
+    the report; the summary lines. ``blocks``: the last checkpoint completed first. Returns the manifest."""
     from wbc_jax.rollout import final_results
 
     sim, dz = job.built.sim, job.built.design
@@ -246,20 +247,22 @@ def _write(job: Job, rollout: Rollout, clock: dict, report: bool, reporter, guar
     manifest = campaign_manifest(job.spec, job.built, df, summary, timing, identity=job.identity, gains=job.gains,
                                  sensing=sensing_of(job.spec), spread_mode=job.spread.mode, chunk_s=job.chunk_s,
                                  sessions=rollout.sessions, files=files)
-    with guard.deferred():
-        saver.join()  # the last chunk's checkpoint, written while the results above were computed
-        if blocks is not None:
+    if blocks is not None:
+        with guard.deferred():
+            saver.join()  # the last chunk saved whole, then the blocks it replaces go
             blocks.finish()
-    with guard.deferred(), atomic_dir(job.out) as tmp:  # the finished simulation first: a failing report keeps it
-        df.to_csv(tmp / "results.csv", index=False)
-        manifest["wall_s_total"] = time.perf_counter() - clock["import"] + wall_before
-        if "warp_preload_s" in clock:  # MuJoCo Warp's kernels compiled (or loaded from its cache) during setup
-            manifest["warp_preload_s"] = clock["warp_preload_s"]
-        if "warp_ahead" in clock:  # the model's own kernels, compiled in parallel at each Warp callable's first call
-            manifest["warp_compile_ahead"] = clock["warp_ahead"].summary()
-        if "chunk_ahead_s" in clock:  # the chunk program, compiled from the batch's shapes during setup
-            manifest["chunk_compiled_ahead_s"] = round(clock["chunk_ahead_s"], 3)
-        write_json_atomic(tmp / "manifest.json", manifest)
+    try:
+        with guard.deferred(), atomic_dir(job.out) as tmp:  # the finished simulation first: a failing report keeps it
+            df.to_csv(tmp / "results.csv", index=False)
+            manifest["wall_s_total"] = time.perf_counter() - clock["import"] + wall_before
+            manifest.update(setup_figures(clock))
+            write_json_atomic(tmp / "manifest.json", manifest)
+    except BaseException:
+        with guard.deferred():
+            saver.join()  # no results: the last chunk's checkpoint keeps the finished simulation
+        raise
+    with guard.deferred():
+        saver.cancel()  # the results hold the finished simulation
     shutil.rmtree(job.ckpt, ignore_errors=True)
     job.status.stage = "written"
     try:
