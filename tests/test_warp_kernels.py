@@ -96,6 +96,14 @@ def test_work_beside_runs_after_the_skipped_pass_and_before_the_call():
     assert events == [("step", True), ("work", "beside-warp"), ("step", False)], events
     np.testing.assert_array_equal(b.numpy(), np.full(4, 14.0))
 
+    def broken(*args):
+        raise ValueError("no such field")
+
+    beside = ahead.open_window(work)  # a failing skipped pass: the window never opens, the work runs when asked
+    with pytest.raises(ValueError):
+        warp_kernels._FirstCall(broken, ahead)()
+    assert len(ahead.failed) == 1 and beside.result() == 42 and events[-1] == ("work", "MainThread")
+
     def fails():
         raise RuntimeError("compile failed")
 

@@ -229,7 +229,9 @@ class Beside:
         self.seconds = time.perf_counter() - t0
 
     def wait(self) -> None:
-        """Until the work ends, at most :attr:`wait_s` seconds."""
+        """Until the work ends, at most :attr:`wait_s` seconds (at once where it was not started)."""
+        if self._thread is None:
+            return
         self._thread.join(self.wait_s)
         if self._thread.is_alive():
             print(f"MuJoCo Warp: the work beside the kernels' compile ran past {self.wait_s:.0f} s; the first call "
