@@ -137,3 +137,43 @@ def test_a_module_used_outside_a_launch_loads_in_the_skipped_pass():
     found = warp_kernels.launched_modules(query_then_launch, (b,), "cpu")
     assert kernel.module.execs and kernel.module not in found  # loaded by the query, so nothing left to compile
     np.testing.assert_array_equal(b.numpy(), np.full(4, 2.0))
+
+
+def test_states_and_program_compiles_in_the_first_calls_window(monkeypatch):
+    """``build.states_and_program``: the program traced first, its compile run in the window of the first call that
+    making the initial states makes (here a Warp function on the CPU), the states ready when it returns."""
+    import threading
+    from types import SimpleNamespace
+
+    import jax.numpy as jnp
+
+    from wbc_jax.campaign import build
+
+    events = []
+
+    class Lowered:
+        def compile(self):
+            events.append(("compile", threading.current_thread().name))
+            return "program"
+
+    def lower(built):
+        events.append(("lower", threading.current_thread().name))
+        return Lowered()
+
+    monkeypatch.setattr(build, "lower_chunk", lower)
+    ahead = warp_kernels.CompileAhead(workers=2)
+    a, b = _arrays()
+
+    def step(a, b):
+        events.append(("step", wp.get_device("cpu").is_capturing))
+        _step(a, b, 11.0)
+
+    def with_states():
+        with wp.ScopedDevice("cpu"):
+            warp_kernels._FirstCall(step, ahead)(a, b)
+        return SimpleNamespace(batch=SimpleNamespace(state=jnp.asarray(b.numpy())))
+
+    made, program, seconds = build.states_and_program(SimpleNamespace(), with_states, ahead)
+    assert program == "program" and seconds >= 0 and ahead.beside is None
+    assert events == [("lower", "MainThread"), ("step", True), ("compile", "beside-warp"), ("step", False)], events
+    np.testing.assert_array_equal(np.asarray(made.batch.state), np.full(4, 22.0))
