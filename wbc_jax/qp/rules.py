@@ -125,11 +125,21 @@ def termination(ax, z, px, aty, q, s: QPSettings):
         ``(prim, dual, converged)``: ``||A x - z||_inf``, ``||P x + q + A'y||_inf`` and () bool, both within
         ``eps_abs + eps_rel * scale``.
     """
+    prim, prim_ok = primal_test(ax, z, s)
+    dual, dual_ok = dual_test(px, aty, q, s)
+    return prim, dual, prim_ok & dual_ok
+
+
+def primal_test(ax, z, s: QPSettings):
+    """``(||A x - z||_inf, () bool: within eps_abs + eps_rel max(||A x||_inf, ||z||_inf))``, rows in blocks."""
     prim = amax(*(a - b for a, b in zip(ax, z)))
+    return prim, prim <= s.eps_abs + s.eps_rel * jnp.maximum(amax(*ax), amax(*z))
+
+
+def dual_test(px, aty, q, s: QPSettings):
+    """``(||P x + q + A'y||_inf, () bool: within eps_abs + eps_rel max(||P x||, ||A'y||, ||q||)_inf)``."""
     dual = amax(px + q + aty)
-    prim_tol = s.eps_abs + s.eps_rel * jnp.maximum(amax(*ax), amax(*z))
-    dual_tol = s.eps_abs + s.eps_rel * jnp.maximum(jnp.maximum(amax(px), amax(aty)), amax(q))
-    return prim, dual, (prim <= prim_tol) & (dual <= dual_tol)
+    return dual, dual <= s.eps_abs + s.eps_rel * jnp.maximum(jnp.maximum(amax(px), amax(aty)), amax(q))
 
 
 def primal_infeasible(l, u, dy, at, s: QPSettings):
