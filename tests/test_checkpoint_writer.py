@@ -72,6 +72,8 @@ def test_a_cancelled_write_leaves_the_checkpoint_before_it(tmp_path):
     checkpoint.save_state(ck, {"a": np.zeros(3)}, dict(chunks_done=1))
     with pytest.raises(checkpoint.Cancelled):
         checkpoint.save_state(ck, {"a": np.ones(3)}, dict(chunks_done=2), cancelled=lambda: True)
+    with pytest.raises(checkpoint.Cancelled):  # nothing to write block by block: cancelled before the hash
+        checkpoint.save_state(ck, {"a": np.zeros(0)}, dict(chunks_done=2), cancelled=lambda: True)
     assert sorted(p.name for p in ck.iterdir()) == ["meta.json", "state_1.npz"]
     assert json.loads((ck / "meta.json").read_text())["chunks_done"] == 1
 

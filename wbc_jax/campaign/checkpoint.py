@@ -75,6 +75,8 @@ def _write_leaves(ck: Path, name: str, leaves, cancelled: Callable[[], bool] | N
     try:
         with os.fdopen(fd, "wb") as f:
             write_npz(f, leaves, cancelled=cancelled)
+        if cancelled is not None and cancelled():  # before the file is read again for its hash
+            raise Cancelled("checkpoint write cancelled")
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
