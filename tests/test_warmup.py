@@ -31,7 +31,7 @@ def test_preload_only_where_warp_runs_on_a_gpu_and_its_error_reaches_the_caller(
 
 
 def test_warmup_compiles_the_campaigns_chunk_program_on_warp(capsys):
-    """On Warp the warmup builds and compiles as the campaign does (``build_ahead``, ``compile_chunk``: the chunk
+    """On Warp the warmup builds and compiles as the campaign does (``build_ahead``, ``states_and_program``: the chunk
     program from the batch's shapes, then the initial states) and runs the first chunk: the CI baseline spec, CPU."""
     pytest.importorskip("warp")
     from wbc_jax.campaign.spec import SWEEPS

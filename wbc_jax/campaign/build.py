@@ -242,8 +242,9 @@ def build(spec: Spec, gains=None) -> Built:
 
 def build_ahead(spec: Spec, gains=None) -> tuple[Built, Callable[[], Built]]:
     """:func:`build` with the batch's initial states as shapes only (``jax.ShapeDtypeStruct`` leaves: nothing of
-    them runs), and a function returning the Built with them made. Between the two, :func:`compile_chunk` (on the
-    Warp backend the initial states are MuJoCo Warp's first call, which compiles the model's kernels)."""
+    them runs), and a function returning the Built with them made; :func:`states_and_program` calls it and compiles
+    the chunk program (on the Warp backend the initial states are MuJoCo Warp's first call, which compiles the
+    model's kernels)."""
     return _build(spec, gains, states=False)
 
 
@@ -303,16 +304,13 @@ def lower_chunk(built: Built):
     return fn.lower(*chunk_args(b))
 
 
-def compile_chunk(built: Built):
-    """:func:`lower_chunk` compiled (``jax.stages.Compiled``), called instead of tracing the program again."""
-    return lower_chunk(built).compile()
-
-
 def states_and_program(built: Built, with_states: Callable[[], Built], ahead=None):
-    """``(with_states(), compile_chunk(built), seconds)`` for a :func:`build_ahead` pair: the chunk program traced
-    first, then the initial states made (on Warp, MuJoCo Warp's first call) and the program compiled, XLA's compile
-    in the window of ``ahead``'s next first call when given (a ``wbc_jax.physics.warp_kernels.CompileAhead``: beside
-    the model's kernels' compile), else after the states. ``seconds``: the program's trace and compile [s]."""
+    """``(with_states(), the chunk program compiled, seconds)`` for a :func:`build_ahead` pair (the program:
+    ``jax.stages.Compiled``, called instead of tracing it again): the chunk program traced first
+    (:func:`lower_chunk`), then the initial states made (on Warp, MuJoCo Warp's first call) and the program compiled,
+    XLA's compile in the window of ``ahead``'s next first call when given (a
+    ``wbc_jax.physics.warp_kernels.CompileAhead``: beside the model's kernels' compile), else after the states.
+    ``seconds``: the program's trace and compile [s]."""
     t0 = time.perf_counter()
     lowered = lower_chunk(built)
     traced_s = time.perf_counter() - t0

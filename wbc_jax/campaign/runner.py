@@ -155,7 +155,7 @@ def _run_chunks(job: Job, start: Start, progress: bool, report: bool, guard: int
     process 0 (``saver``), or with ``blocks`` each process's own runs but the last chunk's; returns the finished
     rollout and the report worker started during it (None without ``report``). A signal stops the run once the
     compile or the chunk in progress ends (``guard``); the finished chunks' checkpoint is kept. ``compiled``: the
-    chunk program compiled ahead (:func:`wbc_jax.campaign.build.compile_chunk`), called instead of the jitted one
+    chunk program compiled ahead (:func:`wbc_jax.campaign.build.states_and_program`), called instead of the jitted one
     where its arguments' types match (else the program is traced and compiled again, with a note)."""
     b, sp, n_chunks, dz = job.batch, job.spread, job.built.n_chunks, job.built.design
     fn = chunk_fn(job.built.sim, b.in_axes, job.built.logs_per_chunk, sp.mesh, b.state_axes)

@@ -62,23 +62,13 @@ class Preload:
     installs beside it (None otherwise)."""
 
     def __init__(self, workers: int, device: str = "cuda:0", names: tuple[str, ...] = STEP_MODULES):
-        self._out: dict = {}
         self.names, self.ahead = names, None
-        self._thread = threading.Thread(target=self._run, args=(workers, device), name="warp-preload", daemon=True)
-        self._thread.start()
-
-    def _run(self, workers: int, device: str) -> None:
-        try:
-            self._out["result"] = preload(workers, device, self.names)
-        except BaseException as e:  # re-raised in the caller's thread by result()
-            self._out["error"] = e
+        self._job = Beside(lambda: preload(workers, device, names), name="warp-preload")
+        self._job.start()
 
     def result(self) -> tuple[int, float]:
         """(modules, seconds) once the preload has ended."""
-        self._thread.join()
-        if "error" in self._out:
-            raise self._out["error"]
-        return self._out["result"]
+        return self._job.result()
 
 
 def launched_modules(func, args: tuple, device) -> dict:
@@ -206,18 +196,19 @@ class Beside:
     for before the call runs (it captures its graph then), so no capture of this process runs beside it; XLA
     compiling beside MuJoCo Warp's captures failed them (CUDA error 904). :meth:`wait` gives up after
     :attr:`wait_s` seconds with a note (the call then runs beside the work). :meth:`result` returns what ``work``
-    returned, running it on the caller's thread when no window started it, or raises what it raised;
-    :attr:`seconds`: its wall time."""
+    returned, running it on the caller's thread when nothing started it, or raises what it raised;
+    :attr:`seconds`: its wall time. Also the :class:`Preload`'s thread."""
 
     wait_s = 300.0
 
-    def __init__(self, work: Callable[[], Any]):
-        self.work, self.seconds = work, 0.0
+    def __init__(self, work: Callable[[], Any], name: str = "beside-warp"):
+        self.work, self.name, self.seconds = work, name, 0.0
         self._out: dict = {}
         self._thread: threading.Thread | None = None
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="beside-warp", daemon=True)
+        """Run ``work`` in a daemon thread named :attr:`name`."""
+        self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
