@@ -170,18 +170,6 @@ def _termination(pg: _Program, x, ax, z, y):
                              matvec(ops.P(0), x) * Dc, _rows_t(ops, y) * Dc, ops.q(0) * Dc, pg.s)
 
 
-def _converged(pg: _Program, x, ax, z, y):
-    """() bool, :func:`_termination`'s verdict, the dual half (``P x`` and ``A'y``: matrix reads) computed only
-    where the primal half holds (most failing tests fail on the primal half under the campaign's noise)."""
-    Ei, Dc, ops, s = pg.Ei, pg.Dc, pg.ops, pg.s
-    _, prim_ok = rules.primal_test([a * e for a, e in zip(ax, Ei)], [a * e for a, e in zip(z, Ei)], s)
-
-    def dual_ok():
-        return rules.dual_test(matvec(ops.P(0), x) * Dc, _rows_t(ops, y) * Dc, ops.q(0) * Dc, s)[1]
-
-    return jax.lax.cond(prim_ok, dual_ok, lambda: prim_ok)
-
-
 def _iterations(pg: _Program, st, iters: int, max_iters: int, check_every: int, first=None):
     """``iters`` steps from the stage's start, then blocks of ``check_every`` while unconverged, up to
     ``max_iters``: ``(k, carry)``, the steps run (() int32) and the final ``(x, ax, z, y, bad)``.
@@ -209,7 +197,7 @@ def _iterations(pg: _Program, st, iters: int, max_iters: int, check_every: int, 
         n = jnp.where(k == 0, iters if first is None else first, jnp.minimum(check_every, max_iters - k))
         c = jax.lax.fori_loop(0, n, step, _block_start(pg.ops, c[0], c[2:]))
         x, ax, z, y, _ = c
-        return k + n, c, _converged(pg, x, ax, z, y).astype(jnp.int32)
+        return k + n, c, _termination(pg, x, ax, z, y)[2].astype(jnp.int32)
 
     c = (x0, [jnp.zeros_like(v) for v in z0], z0, y0, jnp.zeros((), x0.dtype))  # ax: set by the block's start
     k, c, _ = jax.lax.while_loop(unconverged, block, (jnp.int32(0), c, jnp.int32(0)))
