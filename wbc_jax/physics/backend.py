@@ -31,8 +31,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.physics import warp_ffi
-
 with contextlib.redirect_stdout(io.StringIO()):
     # MJX prints a notice on stdout when the optional Warp backend (warp-lang) is absent.
     from mujoco import mjx
@@ -264,12 +262,10 @@ def put_model(mj_model, impl: str, device):
     """``mjx.put_model`` on ``device``; a Warp model (``impl == "warp"``) does not print "solver/linesearch
     iterations limit reached": the scenes cap the constraint solver at ``opt.iterations`` on purpose (fixed cost
     per step), so reaching it is normal. Capacity overflows (contacts, constraint rows) still print, and the rollout
-    fails the runs they touch. Warp's graph relaunches take the short path of :mod:`wbc_jax.physics.warp_ffi`."""
+    fails the runs they touch."""
     if impl != "warp":
         return mjx.put_model(mj_model, device=device)
     from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
-
-    warp_ffi.install()
 
     mx = mjx.put_model(mj_model, impl="warp", device=device)
     opt = mx.opt
