@@ -324,7 +324,7 @@ def states_and_program(built: Built, with_states: Callable[[], Built], ahead=Non
         jax.block_until_ready(made.batch.state)  # the first call has run, also where XLA runs it on its own thread
         return made, beside.result(), traced_s + beside.seconds
     finally:
-        ahead.beside = None  # an unopened window does not carry over to a later first call
+        ahead.close_window()
 
 
 def contact_scene(campaign: dict) -> str:

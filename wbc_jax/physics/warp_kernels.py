@@ -143,6 +143,10 @@ class CompileAhead:
         self.beside = Beside(work)
         return self.beside
 
+    def close_window(self) -> None:
+        """Drop a window no first call has opened, so that it does not carry over to a later first call."""
+        self.beside = None
+
     def install(self) -> CompileAhead:
         """Wrap ``warp.jax_callable`` (once per process: a later instance replaces the earlier's bookkeeping)."""
         import warp as wp
