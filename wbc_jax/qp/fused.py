@@ -187,8 +187,6 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, *, s: QPSe
                              check_every=max(s.check_every, 1), treedef=treedef, dims=dims, sync=sync,
                              first=first is not None)
     extra = [] if first is None else [jnp.reshape(first, (1,)).astype(jnp.int32)]
-    if s.stored_t:
-        extra += [jnp.swapaxes(st.Ae, -1, -2), jnp.swapaxes(st.Ai, -1, -2)]
     with jax.named_scope("qp_iterations"):
         i1 = jax.ShapeDtypeStruct((1,), jnp.int32)
         x, z, y, flag, k, prim, dual, rho_out = pl.pallas_call(

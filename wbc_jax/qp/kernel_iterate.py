@@ -32,7 +32,6 @@ from wbc_jax.qp.kernel_layout import (
     read_vec,
     rmatvec,
     tile,
-    upper_half,
     write_rows,
     write_vec,
 )
@@ -72,8 +71,6 @@ class _Operands(NamedTuple):
     hi: Callable
     rho: Callable
     free: Callable
-    AeT: Callable = None
-    AiT: Callable = None
 
 
 class _Program(NamedTuple):
@@ -94,7 +91,7 @@ def _at(ref, o):
     return ref[(pl.ds(o, ref.shape[0]),) + (slice(None),) * (len(ref.shape) - 1)]
 
 
-def _operands(st, Ki_ref, W_ref, Si_ref, dims: Dims, half: bool = False, At=()) -> _Operands:
+def _operands(st, Ki_ref, W_ref, Si_ref, dims: Dims) -> _Operands:
     """The :class:`_Operands` of the stage ``st`` (refs) and the factors. The matrices are read at their real sizes
     (:func:`~.kernel_layout.tile` at the loop-variant offset): their padding, zero in storage, comes as zeros
     without being loaded, since the loads' bytes bound an iteration at large batch."""
@@ -103,26 +100,13 @@ def _operands(st, Ki_ref, W_ref, Si_ref, dims: Dims, half: bool = False, At=()) 
     def real(ref, rows: int, cols: int):
         return lambda o: tile(ref, o, *ref.shape, rows, cols)
 
-    def sym(ref):
-        if not half:
-            return lambda o: (tile(ref, o, *ref.shape, n, n), False)
-        return lambda o: (upper_half(ref, o, *ref.shape, n), True)
-
     def at(ref):
         return functools.partial(_at, ref)
 
     lo, hi, rho = (lambda b, o, f=f: _at(f[b], o) for f in (st.lo, st.hi, st.rho))
     free = lambda b, o: _at(st.free[b], o) > 0.5  # noqa: E731
-    return _Operands(sym(st.P), sym(Ki_ref), real(st.Ae, ne, n), real(st.Ai, mi, n), at(st.db),
-                     real(W_ref, n, ne), real(Si_ref, ne, ne), at(st.q), at(st.le), at(st.exe), lo, hi, rho, free,
-                     *((real(At[0], n, ne), real(At[1], n, mi)) if At else ()))
-
-
-def _smv(read, o, v):
-    """``M v`` for a symmetric matrix read by ``read`` (whole, or its upper triangle with half its diagonal: then
-    ``M v = T v + T' v``)."""
-    T, half = read(o)
-    return matvec(T, v) + rmatvec(T, v) if half else matvec(T, v)
+    return _Operands(real(st.P, n, n), real(Ki_ref, n, n), real(st.Ae, ne, n), real(st.Ai, mi, n), at(st.db),
+                     real(W_ref, n, ne), real(Si_ref, ne, ne), at(st.q), at(st.le), at(st.exe), lo, hi, rho, free)
 
 
 def _rows(ops: _Operands, x, o=0):
@@ -132,8 +116,6 @@ def _rows(ops: _Operands, x, o=0):
 
 def _rows_t(ops: _Operands, v, o=0):
     """``A' v`` from the blocks' ``v``."""
-    if ops.AeT is not None:
-        return matvec(ops.AeT(o), v[0]) + matvec(ops.AiT(o), v[1]) + ops.db(o) * v[2]
     return rmatvec(ops.Ae(o), v[0]) + rmatvec(ops.Ai(o), v[1]) + ops.db(o) * v[2]
 
 
@@ -155,8 +137,8 @@ def _step(pg: _Program, c):
     ops, alpha, dims = pg.ops, pg.s.alpha, pg.dims
     x, ax, z, y, bad = c
     o = (bad > 2.0).astype(jnp.int32)  # 0 (bad is 0 or 1), but not known to be
-    r = _smv(ops.P, o, x) + ops.q(o) + _rows_t(ops, [y[b] + ops.rho(b, o) * (ax[b] - z[b]) for b in range(3)], o)
-    t = _smv(ops.Ki, o, r)
+    r = matvec(ops.P(o), x) + ops.q(o) + _rows_t(ops, [y[b] + ops.rho(b, o) * (ax[b] - z[b]) for b in range(3)], o)
+    t = matvec(ops.Ki(o), r)
     exe_ = ops.exe(o)
     dnu = -matvec(ops.Si(o), exe_ * (ops.le(o) - ax[0]) + exe_ * matvec(ops.Ae(o), t))
     xt = x - t - matvec(ops.W(o), dnu)
@@ -185,7 +167,7 @@ def _termination(pg: _Program, x, ax, z, y):
     """:func:`wbc_jax.qp.rules.termination` in the user's units, from the scaled iterate (``ax = A x``)."""
     Ei, Dc, ops = pg.Ei, pg.Dc, pg.ops
     return rules.termination([a * e for a, e in zip(ax, Ei)], [a * e for a, e in zip(z, Ei)],
-                             _smv(ops.P, 0, x) * Dc, _rows_t(ops, y) * Dc, ops.q(0) * Dc, pg.s)
+                             matvec(ops.P(0), x) * Dc, _rows_t(ops, y) * Dc, ops.q(0) * Dc, pg.s)
 
 
 def _iterations(pg: _Program, st, iters: int, max_iters: int, check_every: int, first=None):
@@ -210,19 +192,14 @@ def _iterations(pg: _Program, st, iters: int, max_iters: int, check_every: int, 
         k, c, done = w
         return (k < max_iters) & (c[4] == 0.0) & (done == 0)
 
-    restart = pg.s.restart_blocks
-
     def block(w):
         k, c, _ = w
         n = jnp.where(k == 0, iters if first is None else first, jnp.minimum(check_every, max_iters - k))
-        c = jax.lax.fori_loop(0, n, step, _block_start(pg.ops, c[0], c[2:]) if restart else c)
+        c = jax.lax.fori_loop(0, n, step, _block_start(pg.ops, c[0], c[2:]))
         x, ax, z, y, _ = c
         return k + n, c, _termination(pg, x, ax, z, y)[2].astype(jnp.int32)
 
-    if restart:
-        c = (x0, [jnp.zeros_like(v) for v in z0], z0, y0, jnp.zeros((), x0.dtype))  # ax: set by the block's start
-    else:
-        c = _block_start(pg.ops, x0, (z0, y0, jnp.zeros((), x0.dtype)))
+    c = (x0, [jnp.zeros_like(v) for v in z0], z0, y0, jnp.zeros((), x0.dtype))  # ax: set by the block's start
     k, c, _ = jax.lax.while_loop(unconverged, block, (jnp.int32(0), c, jnp.int32(0)))
     return k, c
 
@@ -235,7 +212,7 @@ def _infeasibility(pg: _Program, dx, dy, D, cs, E, l_refs, u_refs):
     pinf = rules.primal_infeasible(l, u, [e * a / cs for a, e in zip(dy, E)],
                                    lambda v: _rows_t(ops, [a * e for a, e in zip(v, Ei)]) / D, s)
     dinf = rules.dual_infeasible(l, u, D * dx, [a * e for a, e in zip(_rows(ops, dx), Ei)],
-                                 _smv(ops.P, 0, dx) * pg.Dc, jnp.sum(ops.q(0) * dx) / cs, s)
+                                 matvec(ops.P(0), dx) * pg.Dc, jnp.sum(ops.q(0) * dx) / cs, s)
     empty = rules.amax(*[jnp.where(a > b, 1.0, 0.0) for a, b in zip(l, u)]) > 0.0
     return pinf, dinf, empty
 
@@ -258,7 +235,7 @@ def _finish(pg: _Program, st, k, c, l_refs, u_refs) -> None:
     flag = rules.status(is_finite(xu, *zu, *yu, prim, dual) & (bad == 0.0), empty, pinf, dinf, conv)
     rho_out = entry(scal, 1)
     if s.adapt_every > 0:
-        rho_out = rules.adapt_rho(rho_out, *rules.rel_residuals(ax, z, _smv(ops.P, 0, x), _rows_t(ops, y),
+        rho_out = rules.adapt_rho(rho_out, *rules.rel_residuals(ax, z, matvec(ops.P(0), x), _rows_t(ops, y),
                                                                 ops.q(0), 1e-30), s)
     fmax = float(jnp.finfo(x.dtype).max)
     pg.sync()  # every thread's reads of the deltas done
@@ -290,11 +267,9 @@ def iterate_kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every
     Ki_ref, W_ref, Si_ref = refs[n_stage:n_stage + 3]
     l_refs, u_refs = refs[n_stage + 3:n_stage + 6], refs[n_stage + 6:n_stage + 9]
     first_len = jnp.sum(refs[n_stage + 9][...]).astype(jnp.int32) if first else None
-    base = n_stage + 9 + int(first)
-    At = refs[base:base + 2] if s.stored_t else ()
-    out = _Outputs(*refs[base + len(At):])
+    out = _Outputs(*refs[n_stage + 9 + int(first):])
     Dc = st.Dc[...]
     Ei = [r[...] for r in st.Ei]
-    pg = _Program(_operands(st, Ki_ref, W_ref, Si_ref, dims, s.sym_halves, At), s, dims, out, Dc, Ei, sync)
+    pg = _Program(_operands(st, Ki_ref, W_ref, Si_ref, dims), s, dims, out, Dc, Ei, sync)
     k, c = _iterations(pg, st, iters, max_iters, check_every, first_len)
     _finish(pg, st, k, c, l_refs, u_refs)

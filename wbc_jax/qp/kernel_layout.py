@@ -140,15 +140,6 @@ def tile(ref, row0: int, rows: int, cols: int, n_rows: int, n_cols: int):
     return masked_load(ref, (pl.ds(row0, rows), pl.ds(0, cols)), (r < n_rows) & (c < n_cols))
 
 
-def upper_half(ref, row0: int, rows: int, cols: int, n: int):
-    """The (rows, cols) tile of the symmetric (n, n) matrix in ``ref`` from row ``row0`` read as its upper triangle
-    with half its diagonal (``T + T'`` is the matrix): a masked load of about half the bytes."""
-    r = jax.lax.broadcasted_iota(jnp.int32, (rows, cols), 0)
-    c = jax.lax.broadcasted_iota(jnp.int32, (rows, cols), 1)
-    T = masked_load(ref, (pl.ds(row0, rows), pl.ds(0, cols)), (r < n) & (c < n) & (r <= c))
-    return jnp.where(r == c, 0.5 * T, T)
-
-
 def row_index(dims: Dims):
     """Per block (exact, dense, box): the user's row index of each of the block's entries (int32, the box block's
     laid over the variables: variable ``i`` is bounded by row ``m - n + i``) and the mask of its real entries.

@@ -92,13 +92,6 @@ class QPSettings(NamedTuple):
             solve then factors again, so every other solve of a control loop factors. The step is residual-based
             (the factors precondition it), so the solution and the convergence test are the current problem's
             (default False).
-        restart_blocks: fused kernels only: every block of the extension starts by projecting ``x`` onto the
-            exact rows and recomputing ``A x`` (True, default); False: only the first block (the step keeps ``x``
-            on the exact rows and carries ``A x``; rounding differs).
-        sym_halves: fused kernels only: the iterations read ``P`` and the factor ``K^-1`` as their upper triangles
-            (``M v = T v + T' v``, about half the bytes; the stored lower triangles are not read) (default False).
-        stored_t: fused kernels only: ``A' v`` from transposed copies of the scaled rows (a row reduction, as
-            ``A x``) instead of a column reduction of ``A`` (default False).
     """
 
     iters: int = 100
@@ -130,9 +123,6 @@ class QPSettings(NamedTuple):
     warm_first_test: int = -1
     kernel: str = "xla"
     reuse_factors: bool = False
-    restart_blocks: bool = True
-    sym_halves: bool = False
-    stored_t: bool = False
 
 
 class QPResult(NamedTuple):
