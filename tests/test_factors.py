@@ -17,7 +17,7 @@ from wbc_jax.errors import SpecError
 # the spec hashes checkpoints and regress baselines are keyed on: new keys at their defaults must not change them
 # (a changed default that changes the behaviour, e.g. qp_iters or com_plan, changes them on purpose)
 PAPER_HASHES = {
-    "sweeps/paper_campaign.toml": "97c786ce059fb00fff66272ba3e75ff6f2226c8a04b7a513c6e7b0e316ce6d43",
+    "sweeps/paper_campaign.toml": "6c80b53cea620d58f3d69d08bd8421249c89604bf0e208149edc751a54b04e75",
     "sweeps/paper_exact.toml": "5d461b6e9beeed1a757197d656952316ad1b7272628b1bbeeab74079d7f40379",
     "sweeps/quick.toml": "b8310fc2f2f5e793797a3ec48062571166a24698a54f63fe8d6efe9f3465889c",
     "reports/baseline/spec.toml": "654ac4b816ec9952866d7c292c7b7f16465bda8ef005664d4b52627da5172bdf",
