@@ -25,6 +25,7 @@ import pytest
 from wbc_jax.campaign import checkpoint, interrupts, runner
 from wbc_jax.campaign.job import Status
 from wbc_jax.campaign.resume import Start
+from wbc_jax.errors import OutputError
 from wbc_jax.rollout.spread import Spread
 
 SLOW_WRITE_S = 0.3  # a stand-in write's extra time: long enough that an unjoined write would still be running
@@ -63,6 +64,22 @@ def test_writer_runs_one_write_at_a_time_and_raises_its_error_once(tmp_path, mon
     writer.save(ck, {"a": np.ones(3)}, dict(chunks_done=3))
     writer.join()
     assert json.loads((ck / "meta.json").read_text())["chunks_done"] == 3
+
+
+def test_join_keeping_names_both_failed_writes(tmp_path, monkeypatch):
+    """Writer.join_keeping (a campaign's results could not be written): the write in progress completes and keeps
+    its state, nothing raised; where it failed too, one OutputError names the folder and both errors."""
+    _slow_save(monkeypatch, fail_at=2)
+    writer, ck, out = checkpoint.Writer(), tmp_path / "ck", tmp_path / "out"
+    results_error = PermissionError(13, "Permission denied")
+    writer.save(ck, {"a": np.zeros(3)}, dict(chunks_done=1))
+    writer.join_keeping(results_error, out)
+    assert json.loads((ck / "meta.json").read_text())["chunks_done"] == 1
+    writer.save(ck, {"a": np.ones(3)}, dict(chunks_done=2))
+    with pytest.raises(OutputError, match=r"out: results not written \(.*Permission denied\); the last checkpoint's "
+                       r"write failed too \(.*No space left on device\): the finished simulation is lost") as e:
+        writer.join_keeping(results_error, out)
+    assert e.value.__cause__ is results_error
 
 
 def test_a_cancelled_write_leaves_the_checkpoint_before_it(tmp_path):

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.errors import CheckpointError
+from wbc_jax.errors import CheckpointError, OutputError
 from wbc_jax.io_utils import file_mode, write_json_atomic
 from wbc_jax.rollout import runs
 
@@ -183,6 +183,16 @@ class Writer:
         if self._error is not None:
             error, self._error = self._error, None
             raise error
+
+    def join_keeping(self, err: BaseException, out) -> None:
+        """:meth:`join` where the results could not be written to ``out`` (``err``), so that the write in progress
+        keeps the finished simulation. Raises :class:`~wbc_jax.errors.OutputError` naming both failures where that
+        write failed too (the simulation is then lost)."""
+        try:
+            self.join()
+        except Exception as e:
+            raise OutputError(f"{out}: results not written ({err}); the last checkpoint's write failed too ({e}): "
+                              "the finished simulation is lost") from err
 
 
 def _block_rows(meta: dict) -> list[range]:

@@ -259,7 +259,7 @@ def _write(job: Job, rollout: Rollout, clock: dict, report: bool, reporter, guar
             write_json_atomic(tmp / "manifest.json", manifest)
     except BaseException:
         with guard.deferred():
-            saver.join()  # no results: the last chunk's checkpoint keeps the finished simulation
+            saver.join_keeping(sys.exc_info()[1], job.out)  # no results: the last checkpoint keeps the simulation
         raise
     with guard.deferred():
         saver.cancel()  # the results hold the finished simulation
