@@ -257,9 +257,9 @@ def _write(job: Job, rollout: Rollout, clock: dict, report: bool, reporter, guar
             manifest["wall_s_total"] = time.perf_counter() - clock["import"] + wall_before
             manifest.update(setup_figures(clock))
             write_json_atomic(tmp / "manifest.json", manifest)
-    except BaseException:
+    except BaseException as err:
         with guard.deferred():
-            saver.join_keeping(sys.exc_info()[1], job.out)  # no results: the last checkpoint keeps the simulation
+            saver.join_keeping(err, job.out)  # no results: the last checkpoint keeps the finished simulation
         raise
     with guard.deferred():
         saver.cancel()  # the results hold the finished simulation
