@@ -16,6 +16,7 @@ from wbc_jax.cli import parser as parser_module
 from wbc_jax.errors import UsageError, WbcJaxError
 from wbc_jax.io_utils import check_file_target, check_out_dir, claim_out_dir, release_out_dir
 from wbc_jax.rollout import distributed
+from wbc_jax.runtime import jaxcfg
 from wbc_jax.studies import replay, warmup
 
 CPU_BATCHES = {"rollout": (1, 4, 16), "profile": 16, "components": 16, "trace": 16}  # bench defaults on a CPU
@@ -151,6 +152,7 @@ def _join_processes(args: argparse.Namespace) -> None:
 def _cmd_campaign(args: argparse.Namespace) -> int:
     stage("loading JAX, MuJoCo MJX and the controllers")
     _join_processes(args)
+    jaxcfg.start_backend()  # the device's client starts while MJX imports
     from wbc_jax.campaign.runner import run_campaign
 
     gains = None
@@ -166,6 +168,7 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
 
 def _cmd_tune(args: argparse.Namespace) -> int:
     _join_processes(args)
+    jaxcfg.start_backend()
     from wbc_jax.studies.tune import run_tune
 
     if distributed.is_writer():  # process 0 writes --out
@@ -198,8 +201,6 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as e:
         print(f"{e.prog}: error: {e}", file=sys.stderr)
         return 2
-    from wbc_jax.runtime import jaxcfg
-
     if args.command != "report":
         jaxcfg.configure()
     name = f"wbc-jax {args.command}"

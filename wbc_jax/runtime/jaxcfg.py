@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import threading
 from importlib import metadata
 from pathlib import Path
 
@@ -110,3 +111,23 @@ def configure() -> None:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     _configured = True
+
+
+def start_backend() -> threading.Thread:
+    """Start JAX's default backend (the device's client: on a GPU the CUDA context and its memory pool) in a daemon
+    thread, so that it starts while this process goes on importing MJX and MuJoCo Warp (Python, seconds).
+
+    Call after :func:`configure` and after ``jax.distributed.initialize`` (both must precede the backend). An error
+    starting the backend is left to the main thread: its first use of a device raises it there. Returns the thread.
+    """
+    import jax
+
+    def start():
+        try:
+            jax.devices()
+        except Exception:  # noqa: BLE001  (raised again where the main thread first uses a device)
+            pass
+
+    thread = threading.Thread(target=start, name="wbc-jax-backend", daemon=True)
+    thread.start()
+    return thread

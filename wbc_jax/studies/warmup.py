@@ -87,5 +87,8 @@ def main(args: argparse.Namespace) -> int:
         from wbc_jax.errors import InputError
 
         raise InputError(f"--workers {args.workers}: expected an integer >= 0")
+    from wbc_jax.runtime import jaxcfg
+
+    jaxcfg.start_backend()  # the device's client starts while MJX imports
     warmup(args.spec, args.backend, args.workers)
     return 0
