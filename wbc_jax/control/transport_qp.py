@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 
 from wbc_jax.control.variants import FULL, Variant
+from wbc_jax.runtime.transfer import to_device
 from wbc_jax.spatial import GRAVITY, cone_edges, cube_inertia, edge_wrenches, rot_error
 from wbc_jax.types import DynTerms, ObjectModel, ObjectState, Reference, RobotIds
 
@@ -93,7 +94,7 @@ class TransportGains(NamedTuple):
 
 def default_gains() -> TransportGains:
     """Defaults; public-code values where they exist (docs/method.md, "Transport controller")."""
-    f = lambda *x: jnp.asarray(x if len(x) > 1 else x[0], dtype=float)  # noqa: E731
+    f = lambda *x: to_device(x if len(x) > 1 else x[0], float)  # noqa: E731
     return TransportGains(
         kp_com=f(2000.0, 2000.0, 2000.0), kd_com=f(300.0, 300.0, 300.0),
         kp_rot=f(600.0, 600.0, 600.0), kd_rot=f(50.0, 50.0, 50.0),

@@ -22,6 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.interpolate import CubicSpline
 
+from wbc_jax.runtime.transfer import to_device
+
 _EPS_LEN = 1e-9  # [m] paths shorter than this are treated as a point
 
 
@@ -239,7 +241,7 @@ def pad_path(path: CubicPath, n_knots: int) -> CubicPath:
     end = coef[-1, 0] + T * (coef[-1, 1] + T * (coef[-1, 2] + T * coef[-1, 3]))
     rest = np.zeros((extra,) + coef.shape[1:], coef.dtype)
     rest[:, 0] = end
-    return CubicPath(jnp.asarray(np.append(tk, np.full(extra, tk[-1]))), jnp.asarray(np.concatenate([coef, rest])))
+    return CubicPath(to_device(np.append(tk, np.full(extra, tk[-1]))), to_device(np.concatenate([coef, rest])))
 
 
 def path_end_time(path: CubicPath):

@@ -16,12 +16,12 @@ from pathlib import Path
 from typing import NamedTuple
 
 import jax
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 
 from wbc_jax.errors import FactorError
 from wbc_jax.robot.model import mjcf_dir, scene_path
+from wbc_jax.runtime.transfer import to_device
 from wbc_jax.spatial import cube_inertia
 from wbc_jax.types import RobotIds
 
@@ -147,7 +147,7 @@ def batch_model(mjx_model, mj_model: mujoco.MjModel, ids: RobotIds, f: Factors, 
         "geom_pos": field("geom_pos", ids.obj_contact_geom, v["sphere_pos"]),
         "pair_friction": friction,
     }
-    fields = {k: jnp.asarray(x) for k, x in fields.items()}
+    fields = {k: to_device(x) for k, x in fields.items()}
     batched = mjx_model.tree_replace(fields)
     in_axes = jax.tree_util.tree_map(lambda _: None, mjx_model)
     in_axes = in_axes.tree_replace({k: 0 for k in fields})

@@ -22,6 +22,7 @@ from wbc_jax.rollout.state import Push, RunState, init_state, no_push, state_axe
 from wbc_jax.rollout.state import with_contact_list as state_contacts
 from wbc_jax.runtime import aot
 from wbc_jax.runtime.static import axes_key
+from wbc_jax.runtime.transfer import to_device
 from wbc_jax.types import ObjectModel
 
 
@@ -155,8 +156,8 @@ def prepare_batch(sim: Sim, m, mu, d, gains=None, push: Push | None = None,
               for q, key, k in zip(q_levels, levels, kws)]
     plans = stack(controller.align_plans(unique), index=inverse)
     state = initial_states(sim, bm, in_axes, qpos0, qvel0, shapes_only)
-    obj_model = ObjectModel(mass=jnp.asarray(f.m), side=jnp.asarray(f.d), mu=jnp.asarray(f.mu),
-                            inset=jnp.full(B, robot.ids.obj_sphere_radius))
+    obj_model = ObjectModel(mass=to_device(f.m), side=to_device(f.d), mu=to_device(f.mu),
+                            inset=to_device(np.full(B, robot.ids.obj_sphere_radius)))
     gains = controller.default_gains() if gains is None else gains
     if not controller.batched(gains):
         gains = broadcast(gains, B)

@@ -5,7 +5,6 @@ from __future__ import annotations
 from typing import Any, NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.control.variants import Variant
@@ -17,6 +16,7 @@ from wbc_jax.rollout.config import Sim
 from wbc_jax.rollout.controllers.base import object_in_tray
 from wbc_jax.rollout.controllers.transport import Log
 from wbc_jax.rollout.packed import Packed, pack, placed_like
+from wbc_jax.runtime.transfer import to_device
 
 __all__ = ["Log", "Push", "RunState", "empty_log", "init_state", "make_push", "no_push", "object_in_tray",
            "state_axes", "with_metric_window", "with_variant"]
@@ -46,8 +46,8 @@ def make_push(force, t0, duration, qvel_noise_std=0.0, seed=0) -> Push:
     """A Push from plain values (one run; or arrays with a leading run axis: ``seed`` (B,) then gives (B, 2) keys)."""
     seed = np.asarray(seed, dtype=np.uint64)
     key = np.stack([np.zeros_like(seed), seed], axis=-1).astype(np.uint32)
-    return Push(jnp.asarray(force, dtype=float), jnp.asarray(t0, dtype=float), jnp.asarray(duration, dtype=float),
-                jnp.asarray(qvel_noise_std, dtype=float), jnp.asarray(key))
+    return Push(to_device(force, float), to_device(t0, float), to_device(duration, float),
+                to_device(qvel_noise_std, float), to_device(key))
 
 
 def no_push() -> Push:
