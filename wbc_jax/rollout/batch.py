@@ -111,7 +111,7 @@ def initial_states(sim: Sim, model, in_axes, qpos0, qvel0, shapes_only: bool = F
     (``jax.ShapeDtypeStruct`` leaves, ``jax.eval_shape``: nothing runs, MuJoCo Warp's kernels are not called), the
     same program traced once for both."""
     fn = _init_fn(sim, in_axes, int(np.shape(qpos0)[0]))
-    args = (model, jnp.asarray(qpos0, float), jnp.asarray(qvel0, float))
+    args = (model, to_device(qpos0, float), to_device(qvel0, float))
     return jax.eval_shape(fn, *args) if shapes_only else fn(*args)
 
 
