@@ -65,29 +65,22 @@ def with_contact_list(b: Batch, n_runs: int | None = None) -> Batch:
     state, axes = state_contacts(b.state, b.state_axes, n)
     return b._replace(state=state, state_axes=axes)
 
-# Setup arithmetic is done in numpy and each leaf is placed on the device once: eager jnp operations would each
-# compile a small program (hundreds per campaign, seconds of a warm start).
-
-
-def _device(x):
-    """One host -> device transfer of a numpy leaf (dtype as jnp.asarray gives it, converted on the host: a
-    conversion on the device compiles a program per shape)."""
-    x = np.asarray(x)
-    return jax.device_put(x.astype(jax.dtypes.canonicalize_dtype(x.dtype), copy=False))
+# Setup arithmetic is done in numpy and each leaf is placed on the device once (runtime.transfer.to_device): eager
+# jnp operations would each compile a small program (hundreds per campaign, seconds of a warm start).
 
 
 def stack(trees, index=None):
     """Leafwise stack of pytrees along a new leading axis, optionally gathered with ``index`` (host arithmetic)."""
     def one(*xs):
         x = np.stack([np.asarray(v) for v in xs])
-        return _device(x if index is None else x[index])
+        return to_device(x if index is None else x[index])
 
     return jax.tree_util.tree_map(one, *trees)
 
 
 def broadcast(tree, B: int):
     """Every leaf repeated along a new leading axis of size B (host arithmetic, one transfer per leaf)."""
-    return jax.tree_util.tree_map(lambda x: _device(np.broadcast_to(np.asarray(x), (B,) + np.shape(x))), tree)
+    return jax.tree_util.tree_map(lambda x: to_device(np.broadcast_to(np.asarray(x), (B,) + np.shape(x))), tree)
 
 
 _INIT_FNS: dict = {}
@@ -165,9 +158,9 @@ def prepare_batch(sim: Sim, m, mu, d, gains=None, push: Push | None = None,
     if jnp.ndim(push.t0) == 0:
         push = broadcast(push, B)
     if ground_mu is None:
-        # the scene's value as a strong-typed array like a ground_mu factor's (_device: float32, or float64 under
+        # the scene's value as a strong-typed array like a ground_mu factor's (to_device: float32, or float64 under
         # x64): a weak-typed jnp.full made batches with and without that factor compile separate programs
-        mu_ground = _device(np.full(B, float(robot.mj_model.pair_friction[robot.ids.foot_pair[0, 0], 0])))
+        mu_ground = to_device(np.full(B, float(robot.mj_model.pair_friction[robot.ids.foot_pair[0, 0], 0])))
     else:
-        mu_ground = _device(np.broadcast_to(np.asarray(ground_mu, float), (B,)))
+        mu_ground = to_device(np.broadcast_to(np.asarray(ground_mu, float), (B,)))
     return Batch(bm, in_axes, state, plans, obj_model, gains, push, mu_ground, f, state_axes(sim, state))
