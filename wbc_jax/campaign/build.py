@@ -24,6 +24,7 @@ from wbc_jax.campaign.design import Design, design
 from wbc_jax.campaign.spec import BACKENDS, Spec
 from wbc_jax.errors import SpecError
 from wbc_jax.runtime import aot
+from wbc_jax.runtime.transfer import to_device
 
 LOG_EVERY = 20  # control steps per logged sample (the rollout's outer scan)
 _SIMS: dict = {}
@@ -199,7 +200,7 @@ def centroidal_gains(gains, dz: Design):
     dtype = out["mass_scale"].dtype
     out["mass_scale"] = (1.0 + dz.mass_error).astype(dtype)
     out["load_mass"] = np.asarray(dz.m).astype(dtype)
-    return type(base)(**{k: jax.numpy.asarray(v) for k, v in out.items()})
+    return type(base)(**{k: to_device(v) for k, v in out.items()})
 
 
 def run_gains(gains, dz: Design):
@@ -216,7 +217,7 @@ def run_gains(gains, dz: Design):
         scale = dz.gain_scale.get(name)
         if scale is not None:
             x = x * scale.reshape((dz.n,) + (1,) * np.ndim(leaf)).astype(x.dtype)
-        out[name] = jax.numpy.asarray(x)
+        out[name] = to_device(x)
     return type(base)(**out)
 
 

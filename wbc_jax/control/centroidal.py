@@ -36,6 +36,7 @@ from wbc_jax.control.centroidal_dynamics import centroidal_terms
 from wbc_jax.control.transport import control_qp_settings
 from wbc_jax.control.transport_qp import ConstraintRows
 from wbc_jax.qp import QPResult, QPSettings, solve_qp
+from wbc_jax.runtime.transfer import to_device
 from wbc_jax.spatial import GRAVITY, full_precision, rot_error
 from wbc_jax.types import DynTerms, Observation, RobotIds
 
@@ -93,7 +94,7 @@ class CentroidalGains(NamedTuple):
 
 def default_gains(**overrides) -> CentroidalGains:
     """Defaults (paper's Q and W; the rest tuned on this robot, docs/method.md, "Centroidal controller")."""
-    f = lambda *x: jnp.asarray(x if len(x) > 1 else x[0], dtype=float)  # noqa: E731
+    f = lambda *x: to_device(x if len(x) > 1 else x[0], float)  # noqa: E731
     g = CentroidalGains(
         kd_xy=f(10.0, 30.0), kp_z=f(400.0), kd_z=f(40.0), kp_rot=f(200.0, 200.0, 200.0),
         kd_rot=f(30.0, 30.0, 30.0), kp_sw=f(400.0), ki_sw=f(0.0), kd_sw=f(40.0), alpha=f(10.0),
