@@ -61,3 +61,17 @@ def test_stage_lines_in_order(tmp_path, monkeypatch, capsys):
     assert lines[0] == "loading JAX, MuJoCo MJX and the controllers...", lines
     assert lines[1].startswith("reading the spec sweeps/quick.toml"), lines
     assert any(line.startswith("building 54 runs on scene flat") for line in lines[2:]), lines
+
+
+def test_a_bad_spec_fails_before_jax_loads(tmp_path, capsys):
+    """``wbc-jax campaign`` reads the spec before it loads JAX and MJX: a bad key is one line on stderr, exit 2,
+    no stage line printed and nothing written."""
+    from wbc_jax import cli
+    from wbc_jax.campaign.spec import SWEEPS
+
+    spec = tmp_path / "bad.toml"
+    spec.write_text((SWEEPS / "quick.toml").read_text().replace("[campaign]", "[campaign]\nrepz = 3", 1))
+    rc = cli.main(["campaign", "--spec", str(spec), "--out", str(tmp_path / "c")])
+    captured = capsys.readouterr()
+    assert rc == 2 and "repz" in captured.err and len(captured.err.strip().splitlines()) == 1
+    assert "loading JAX" not in captured.out and not (tmp_path / "c").exists()

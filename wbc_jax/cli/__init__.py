@@ -150,6 +150,10 @@ def _join_processes(args: argparse.Namespace) -> None:
 
 
 def _cmd_campaign(args: argparse.Namespace) -> int:
+    if args.spec is not None:  # a bad spec fails in a second, before JAX and MuJoCo MJX load (seconds)
+        from wbc_jax.campaign.spec import load_spec
+
+        load_spec(args.spec)
     stage("loading JAX, MuJoCo MJX and the controllers")
     _join_processes(args)
     jaxcfg.start_backend()  # the device's client starts while MJX imports
