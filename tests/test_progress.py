@@ -64,8 +64,8 @@ def test_stage_lines_in_order(tmp_path, monkeypatch, capsys):
 
 
 def test_a_bad_spec_fails_before_jax_loads(tmp_path, capsys):
-    """``wbc-jax campaign`` reads the spec before it loads JAX and MJX: a bad key is one line on stderr, exit 2,
-    no stage line printed and nothing written."""
+    """``wbc-jax campaign`` and ``warmup`` read the spec before they load JAX and MJX: a bad key is one line on
+    stderr, exit 2, no stage line printed and nothing written."""
     from wbc_jax import cli
     from wbc_jax.campaign.spec import SWEEPS
 
@@ -75,3 +75,6 @@ def test_a_bad_spec_fails_before_jax_loads(tmp_path, capsys):
     captured = capsys.readouterr()
     assert rc == 2 and "repz" in captured.err and len(captured.err.strip().splitlines()) == 1
     assert "loading JAX" not in captured.out and not (tmp_path / "c").exists()
+    assert cli.main(["warmup", "--spec", str(spec)]) == 2  # warmup too, before it builds anything
+    captured = capsys.readouterr()
+    assert "repz" in captured.err and "building" not in captured.out

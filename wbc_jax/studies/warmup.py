@@ -87,8 +87,10 @@ def main(args: argparse.Namespace) -> int:
         from wbc_jax.errors import InputError
 
         raise InputError(f"--workers {args.workers}: expected an integer >= 0")
+    from wbc_jax.campaign.spec import load_spec
     from wbc_jax.runtime import jaxcfg
 
+    load_spec(args.spec)  # a bad spec fails in a second, before JAX and MuJoCo MJX load
     jaxcfg.start_backend()  # the device's client starts while MJX imports
     warmup(args.spec, args.backend, args.workers)
     return 0
