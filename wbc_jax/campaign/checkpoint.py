@@ -23,12 +23,12 @@ from pathlib import Path
 from typing import Callable
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.errors import CheckpointError, OutputError
 from wbc_jax.io_utils import file_mode, write_json_atomic
 from wbc_jax.rollout import runs
+from wbc_jax.runtime.transfer import to_device
 
 RESTART = "delete {ck}, or run with --force instead of --resume to start over"
 
@@ -319,7 +319,7 @@ def load_state(ck: Path, state_like, identity: dict, n_chunks: int, axes=0, logs
         raise CheckpointError(mismatch)
     # placed like the fresh state (committed to its device where that is): an uncommitted leaf changes the lowered
     # program's input shardings, so the chunk function would compile a second time and miss the compilation cache
-    out = [jax.device_put(x, a.sharding) if getattr(a, "committed", False) else jnp.asarray(x)
+    out = [jax.device_put(x, a.sharding) if getattr(a, "committed", False) else to_device(x)
            for x, a in zip(leaves, like)]
     return jax.tree_util.tree_unflatten(treedef, out), meta
 

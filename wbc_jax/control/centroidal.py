@@ -103,7 +103,7 @@ def default_gains(**overrides) -> CentroidalGains:
         f_max=f(500.0), tau_margin=f(0.95), k_ff=f(1.0), kp_joint=f(30.0), kd_joint=f(1.0), mass_scale=f(1.0),
         load_mass=f(0.3),
     )
-    return g._replace(**{k: jnp.asarray(v, dtype=float) for k, v in overrides.items()})
+    return g._replace(**{k: to_device(v, float) for k, v in overrides.items()})
 
 
 class CentroidalRef(NamedTuple):

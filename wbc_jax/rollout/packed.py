@@ -20,6 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from wbc_jax.runtime.transfer import to_device
+
 
 class Layout(NamedTuple):
     """Where each field of a NamedTuple class lives in a :class:`Packed` (static, hashable)."""
@@ -109,7 +111,7 @@ def placed_like(old, new: np.ndarray):
     shardings); else a default device array (also after a shapes-only ``old``)."""
     if isinstance(old, np.ndarray):
         return new
-    return jax.device_put(new, old.sharding) if getattr(old, "committed", False) else jnp.asarray(new)
+    return jax.device_put(new, old.sharding) if getattr(old, "committed", False) else to_device(new)
 
 
 def pack(nt, layout: Layout | None = None) -> Packed:
