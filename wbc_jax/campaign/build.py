@@ -96,7 +96,7 @@ def qp_changes(spec: Spec) -> tuple:
     return tuple(sorted({"warm_first_test": c["qp_first_test"],
                          **({"alpha": c["qp_alpha"]} if c["qp_alpha"] > 0 else {}),
                          **({"rho": c["qp_rho"]} if c["qp_rho"] > 0 else {}),
-                         **({"reuse_factors": c["qp_reuse_factors"]} if c["qp_reuse_factors"] else {})}.items()))
+                         **({"reuse_factors": True} if c["qp_reuse_factors"] else {})}.items()))
 
 
 def check_qp(spec: Spec) -> None:
@@ -111,8 +111,8 @@ def check_qp(spec: Spec) -> None:
 
     c = spec.campaign
     if c["qp_reuse_factors"] and c["controller"] != "transport":
-        raise SpecError(f"{spec.path}: campaign.qp_reuse_factors = {c['qp_reuse_factors']} with the {c['controller']} "
-                        "controller: only the transport controller's QP (the fused kernels) reuses its factors; use 0")
+        raise SpecError(f"{spec.path}: campaign.qp_reuse_factors = 1 with the {c['controller']} controller: only the "
+                        "transport controller's QP (the fused kernels) reuses its factors; use 0")
     if c["qp_rho"] and c["controller"] != "transport":
         raise SpecError(f"{spec.path}: campaign.qp_rho = {c['qp_rho']} with the {c['controller']} controller: its "
                         "QP adapts rho from its own start; use 0 (only the transport controller keeps a set rho)")

@@ -112,9 +112,8 @@ CAMPAIGN = {
                       "qp_iters"),
     "qp_alpha": (float, 0.0, 0.0, 1.95, False, "ADMM over-relaxation of the controller's QP; 0 = the controller's"),
     "qp_rho": (float, 0.0, 0.0, 1000.0, False, "ADMM step size rho of the transport controller's QP; 0 = its own"),
-    "qp_reuse_factors": (int, 0, 0, 8, False,
-                         "k: the transport controller's QP keeps its factors for up to k control steps after one "
-                         "that factored (GPU kernels); 0 = factor every step"),
+    "qp_reuse_factors": (int, 0, 0, 1, False,
+                         "1: the transport controller's QP factors every other control step (GPU kernels)"),
     "control_substeps": (int, 1, 1, 10, False,
                          "physics steps per control step (zero-order hold); 1 = control at the physics rate"),
     "chunk_seconds": (float, 2.0, 0.02, 60.0, False, "[s]"),

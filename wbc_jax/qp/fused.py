@@ -9,8 +9,7 @@ problem each (``QPSettings.kernel="fused"``).
 With ``QPSettings.reuse_factors`` a result carries its factors and what they were made from
 (:class:`~wbc_jax.qp.kernel_layout.Factors`); the next solve warm-started from it scales the problem by their
 scaling with their rho and, per problem where no row changed kind, keeps them: its factorization program writes
-nothing into the outputs aliased to them. Up to ``reuse_factors`` solves in a row keep them; the solve after
-factors again (a row that changed kind factors at once). The ADMM step is residual-based,
+nothing into the outputs aliased to them. It then factors again the solve after. The ADMM step is residual-based,
 so kept factors only precondition it: the fixed point and the convergence test are the current problem's.
 
 The rows come in three blocks (exact, dense, box; :mod:`~wbc_jax.qp.kernel_layout`). The user's arrays reach the
@@ -59,7 +58,7 @@ def solve_fused(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     old = None
     if s.reuse_factors:
         old = warm[5] if warm is not None and warm[5] is not None else empty_factors(n, m, s, dt)
-        rho = jnp.where(old.left > 0, jnp.asarray(old.rho_s, dt), rho)
+        rho = jnp.where(old.fresh, jnp.asarray(old.rho_s, dt), rho)
     return fused_solve(P, A, q, l, u, wx, wz, wy, rho, first, old, s=s, iters=iters, warm=warm is not None)
 
 
@@ -73,14 +72,13 @@ def _dims(n: int, m: int, s: QPSettings) -> Dims:
 
 def empty_factors(n: int, m: int, s: QPSettings, dt=jnp.float32) -> Factors:
     """The :class:`~wbc_jax.qp.kernel_layout.Factors` of a problem of ``n`` variables and ``m`` rows that no solve
-    has made yet (``left`` 0: the next solve factors), e.g. a control loop's first warm start."""
+    has made yet (``fresh`` False: the next solve factors), e.g. a control loop's first warm start."""
     dims = _dims(n, m, s)
     N, NE, MI = pow2(n), pow2(dims.ne), pow2(dims.mi)
     rows = (NE, MI, N)
     return Factors(jnp.zeros((N, N), dt), jnp.zeros((N, NE), dt), jnp.zeros((NE, NE), dt), jnp.ones(N, dt),
                    tuple(jnp.ones(r, dt) for r in rows), jnp.ones((), dt), tuple(jnp.zeros(r, dt) for r in rows),
-                   jnp.zeros(N, dt), tuple(jnp.zeros(r, dt) for r in rows), jnp.ones((), dt), jnp.zeros((), bool),
-                   jnp.zeros((), jnp.int32))
+                   jnp.zeros(N, dt), tuple(jnp.zeros(r, dt) for r in rows), jnp.ones((), dt), jnp.zeros((), bool))
 
 
 def _kinds(st) -> tuple:
@@ -135,9 +133,9 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, *, s: QPSe
         first: None, or () int32 the iterations before the first convergence test
             (:func:`wbc_jax.qp.rules.first_block`; None: ``iters``).
         old: None, or an earlier solve's :class:`~wbc_jax.qp.kernel_layout.Factors` (``s.reuse_factors``): where
-            ``left`` > 0 the problem is scaled by their scaling (``rho`` should be theirs), and where its rows'
-            kinds are theirs too the factorization keeps them (its program writes nothing); the result carries the
-            factors used, ``fresh`` where this solve factored, ``left`` one less on a keep, else ``s.reuse_factors``.
+            they are ``fresh`` the problem is scaled by their scaling (and ``rho`` should be theirs), and where its
+            rows' kinds are theirs too the factorization keeps them (its program writes nothing); the result
+            carries the factors used, ``fresh`` where this solve factored.
         s: the solver's settings; iters: the fixed iterations; warm: start from ``wx, wz, wy``.
         num_warps, factor_warps: Triton warps per program of the preparation and iterations kernels, and of the
             factorization kernel.
@@ -156,7 +154,7 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, *, s: QPSe
     lb, ub = _bound_blocks(l, dims, dt), _bound_blocks(u, dims, dt)
     ins = [P, A, q, *lb, *ub, wy, jnp.reshape(rho, (1,)).astype(dt), wx, wz]
     if given:
-        ins += [jnp.reshape(old.left > 0, (1,)).astype(dt), old.D, *old.Ei, jnp.reshape(old.c, (1,)).astype(dt)]
+        ins += [jnp.reshape(old.fresh, (1,)).astype(dt), old.D, *old.Ei, jnp.reshape(old.c, (1,)).astype(dt)]
     params, fparams, sync = _compiler_params(interpret, num_warps, factor_warps)
     sd = lambda *sh: jax.ShapeDtypeStruct(sh, dt)  # noqa: E731
     shapes = stage_shapes(dims, dt)
@@ -169,7 +167,7 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, *, s: QPSe
     st = jax.tree_util.tree_unflatten(treedef, st)
     if given:  # the old factors kept where the rows' kinds are theirs (with their rho and K's diagonal)
         kinds = _kinds(st)
-        keep = (old.left > 0) & functools.reduce(jnp.logical_and, [jnp.all(a == b) for a, b in zip(kinds, old.kinds)])
+        keep = old.fresh & functools.reduce(jnp.logical_and, [jnp.all(a == b) for a, b in zip(kinds, old.kinds)])
         st = st._replace(rho=tuple(jnp.where(keep, o, r) for o, r in zip(old.rho, st.rho)),
                          kd=jnp.where(keep, old.kd, st.kd))
     factor_ins = (st.P, st.Ae, st.Ai, st.kd, st.rho[0], st.rho[1], st.exe)
@@ -197,7 +195,6 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, *, s: QPSe
         )(*jax.tree_util.tree_leaves(st), *factors, *lb, *ub, *extra)
     carried = None
     if given:
-        left = jnp.where(keep, old.left - 1, jnp.int32(s.reuse_factors))
-        carried = Factors(*factors, st.D, st.Ei, st.scal[0], st.rho, st.kd, kinds, st.scal[1], ~keep, left)
+        carried = Factors(*factors, st.D, st.Ei, st.scal[0], st.rho, st.kd, kinds, st.scal[1], ~keep)
     return QPResult(x=x, y=y, z=z, prim_res=prim[0], dual_res=dual[0], flag=flag[0], iters=k[0], rho=rho_out[0],
                     factors=carried)

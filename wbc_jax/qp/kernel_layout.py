@@ -77,8 +77,7 @@ class Factors(NamedTuple):
     kd: jax.Array  # (N,) K's diagonal term
     kinds: tuple  # per row: 1.0 without bounds + 2.0 an equality (the rows' kinds the factors hold for)
     rho_s: jax.Array  # () the scalar rho the per-row rho was made from
-    fresh: jax.Array  # () bool: factored by the solve that returned them
-    left: jax.Array  # () int32: the next solves that may still keep them (0: the next one factors)
+    fresh: jax.Array  # () bool: factored by the solve that returned them (the next may reuse them)
 
 
 def pow2(k: int) -> int:

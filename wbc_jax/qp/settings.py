@@ -86,12 +86,12 @@ class QPSettings(NamedTuple):
             problem, :mod:`wbc_jax.qp.fused`; needs one factorization per solve and no polishing; rho is then
             re-estimated from the final iterate) or ``"auto"`` (fused on a GPU for float32 where that holds, else
             XLA) (default ``"xla"``).
-        reuse_factors: fused kernels only: k >= 1: a solve warm-started from a result that carries its factors
-            (``QPResult.factors``) reuses them with their scaling and rho instead of equilibrating and factoring
-            again, where no row changed kind (free, equality, held) since they were made and fewer than k solves
-            in a row kept them; so a control loop factors at every (k+1)-th solve or where a row changed kind.
-            The step is residual-based (the factors precondition it), so the solution and the convergence test are
-            the current problem's. 0 (or False): off (default 0).
+        reuse_factors: fused kernels only: a solve warm-started from a result that carries its factors
+            (``QPResult.factors``, made by a solve that factored) reuses them with their scaling and rho instead of
+            equilibrating and factoring again, where no row changed kind (free, equality, held) since; the next
+            solve then factors again, so every other solve of a control loop factors. The step is residual-based
+            (the factors precondition it), so the solution and the convergence test are the current problem's
+            (default False).
     """
 
     iters: int = 100
@@ -122,7 +122,7 @@ class QPSettings(NamedTuple):
     check_every: int = 10
     warm_first_test: int = -1
     kernel: str = "xla"
-    reuse_factors: int = 0
+    reuse_factors: bool = False
 
 
 class QPResult(NamedTuple):

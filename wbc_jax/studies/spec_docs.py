@@ -42,10 +42,9 @@ CAMPAIGN_MEANING = {
                      "check comes after the previous step's ADMM iterations minus this (in blocks of 4, at most 12 "
                      "past `qp_iters`): fewer checks where each step needs about as many iterations as the last "
                      "(velocity noise; docs/performance.md); -1 checks after `qp_iters`",
-    "qp_reuse_factors": "`QPSettings.reuse_factors` of the transport controller's QP: k >= 1, up to k control "
-                        "steps after one that factored reuse its factors, scaling and rho where no row changed kind "
-                        "(1: every other step factors; the fused GPU kernels; the XLA path, e.g. on a CPU, factors "
-                        "every step)",
+    "qp_reuse_factors": "`QPSettings.reuse_factors` of the transport controller's QP: 1, a control step whose "
+                        "predecessor factored reuses its factors, scaling and rho where no row changed kind (the "
+                        "fused GPU kernels; the XLA path, e.g. on a CPU, factors every step)",
     "qp_alpha": "`QPSettings.alpha` of the controller's QP (ADMM over-relaxation, in (0, 2)); 0 keeps the "
                 "controller's (1.6)",
     "qp_rho": "`QPSettings.rho` of the transport controller's QP (its ADMM step size, which it does not adapt: the "
