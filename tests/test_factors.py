@@ -94,17 +94,22 @@ def test_qp_alpha_key_default_hash_and_sim():
 
 
 def test_qp_reuse_factors_key_default_hash_and_sim():
-    """campaign.qp_reuse_factors: 0 by default and hash-neutral there, 1 changes the hash and becomes the transport
-    controller's QPSettings.reuse_factors (the solver keeps it where the fused kernels run, drops it on the XLA
-    path: this CPU's controller state carries no factors); refused outside 0..1 and with the centroidal
-    controller, one line naming the key."""
-    from wbc_jax.campaign.build import _sim, check_qp, qp_changes
+    """campaign.qp_reuse_factors: 0 by default and hash-neutral there, 1 changes the hash and, with Warp physics,
+    becomes the transport controller's QPSettings.reuse_factors (the solver keeps it where the fused kernels run,
+    drops it on the XLA path: this CPU's controller state carries no factors); with JAX physics it is not applied
+    (a note says so); refused outside 0..1 and with the centroidal controller, one line naming the key."""
+    from wbc_jax.campaign.build import _sim, check_qp, qp_changes, with_backend
+    from wbc_jax.campaign.preflight import notes
     from wbc_jax.control.transport import initial_factors
 
     base = dict(factors=dict(m=[0.2, 0.3], mu=[0.4, 1.0], d=[0.06, 0.1]))
     s0, s1, s2 = (parse_spec(dict(base, campaign=c)) for c in ({}, dict(qp_reuse_factors=0),
-                                                                 dict(qp_reuse_factors=1)))
+                                                                 dict(qp_reuse_factors=1, backend="warp")))
     assert s0.hash == s1.hash != s2.hash and "reuse_factors" not in dict(qp_changes(s0))
+    on_jax = with_backend(s2, "jax")
+    assert "reuse_factors" not in dict(qp_changes(on_jax))
+    assert [n for n in notes(on_jax, "jax", False) if "qp_reuse_factors = 1 applies with Warp physics only" in n]
+    assert not [n for n in notes(s2, "warp", False) if "qp_reuse_factors" in n]
     with pytest.raises(SpecError, match="campaign.qp_reuse_factors"):
         parse_spec(dict(base, campaign=dict(qp_reuse_factors=2)))
     cfg = _sim("flat", 4, qp=qp_changes(s2)).cfg

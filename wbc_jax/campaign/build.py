@@ -91,12 +91,14 @@ def sensing_of(spec: Spec) -> str:
 def qp_changes(spec: Spec) -> tuple:
     """The spec's changes to its controller's QP settings (``campaign.qp_first_test``, ``campaign.qp_alpha``,
     ``campaign.qp_rho``, ``campaign.qp_reuse_factors``) as sorted ``(QPSettings field, value)`` pairs (hashable:
-    part of the Sim's cache key)."""
+    part of the Sim's cache key). ``campaign.qp_reuse_factors`` only with Warp physics: with MJX's JAX physics
+    the transport controller drops the object with it (a kept factorization's solve diverges; docs/performance.md)."""
     c = spec.campaign
+    reuse = c["qp_reuse_factors"] and backend_of(spec) == "warp"
     return tuple(sorted({"warm_first_test": c["qp_first_test"],
                          **({"alpha": c["qp_alpha"]} if c["qp_alpha"] > 0 else {}),
                          **({"rho": c["qp_rho"]} if c["qp_rho"] > 0 else {}),
-                         **({"reuse_factors": True} if c["qp_reuse_factors"] else {})}.items()))
+                         **({"reuse_factors": True} if reuse else {})}.items()))
 
 
 def check_qp(spec: Spec) -> None:

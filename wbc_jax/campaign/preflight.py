@@ -74,11 +74,15 @@ def _check_resume_backend(ck: Path, meta: dict | None, identity: dict, backend_f
 
 
 def notes(spec: Spec, physics_backend: str, allow_large: bool) -> list[str]:
-    """Lines to print before the build: Warp physics on a CPU is slow; a large campaign's setup takes a while."""
+    """Lines to print before the build: Warp physics on a CPU is slow; the QP's factors are kept with Warp physics
+    only; a large campaign's setup takes a while."""
     out = []
     if physics_backend == "warp" and jax.default_backend() == "cpu":
         out.append("warning: physics backend 'warp' on a CPU: MuJoCo Warp's kernels run on the CPU here, many "
                    "times slower than --backend jax")
+    if spec.campaign["qp_reuse_factors"] and physics_backend != "warp":
+        out.append(f"note: campaign.qp_reuse_factors = 1 applies with Warp physics only; with {physics_backend!r} "
+                   "physics every control step factors its QP (docs/performance.md)")
     n = n_runs_of(spec)
     if n >= LARGE_RUNS or allow_large:
         large = " (--allow-large)" if allow_large else ""
