@@ -10,7 +10,8 @@ With ``QPSettings.reuse_factors`` a result carries its factors and what they wer
 (:class:`~wbc_jax.qp.kernel_layout.Factors`); the next solve warm-started from it scales the problem by their
 scaling with their rho and, per problem where no row changed kind, keeps them: its factorization program writes
 nothing into the outputs aliased to them. It then factors again the solve after. The ADMM step is residual-based,
-so kept factors only precondition it: the fixed point and the convergence test are the current problem's.
+so kept factors only precondition it: the fixed point and the convergence test are the current problem's; but
+the step with them can diverge where the problem moved far from theirs (docs/performance.md).
 
 The rows come in three blocks (exact, dense, box; :mod:`~wbc_jax.qp.kernel_layout`). The user's arrays reach the
 kernels as they are (masked loads) and ``x``, ``z``, ``y`` are written in the user's layout, so no XLA op pads,

@@ -90,8 +90,8 @@ class QPSettings(NamedTuple):
             (``QPResult.factors``, made by a solve that factored) reuses them with their scaling and rho instead of
             equilibrating and factoring again, where no row changed kind (free, equality, held) since; the next
             solve then factors again, so every other solve of a control loop factors. The step is residual-based
-            (the factors precondition it), so the solution and the convergence test are the current problem's
-            (default False).
+            (the factors precondition it), so the solution and the convergence test are the current problem's,
+            but it can diverge where the problem moved far from theirs (default False).
     """
 
     iters: int = 100
