@@ -14,6 +14,7 @@ from pathlib import Path
 import jax
 
 from wbc_jax.campaign import checkpoint
+from wbc_jax.campaign.build import qp_changes
 from wbc_jax.campaign.manifest import COMMAND
 from wbc_jax.campaign.size import check_size, n_runs_of
 from wbc_jax.campaign.spec import Spec
@@ -80,7 +81,7 @@ def notes(spec: Spec, physics_backend: str, allow_large: bool) -> list[str]:
     if physics_backend == "warp" and jax.default_backend() == "cpu":
         out.append("warning: physics backend 'warp' on a CPU: MuJoCo Warp's kernels run on the CPU here, many "
                    "times slower than --backend jax")
-    if spec.campaign["qp_reuse_factors"] and physics_backend != "warp":
+    if spec.campaign["qp_reuse_factors"] and "reuse_factors" not in dict(qp_changes(spec)):  # the rule: qp_changes
         out.append(f"note: campaign.qp_reuse_factors = 1 applies with Warp physics only; with {physics_backend!r} "
                    "physics every control step factors its QP (docs/performance.md)")
     n = n_runs_of(spec)
