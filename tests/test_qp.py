@@ -205,6 +205,28 @@ def test_warm_start_admm_only(batch, perturbed):
     assert warm_half >= cold_half + ADMM_WARM_HALF_GAIN, (cold_half, warm_half)
 
 
+def test_nonfinite_warm_result_starts_from_zero(batch, res64):
+    """A warm result flagged FLAG_NONFINITE (a diverged solve: its iterate the last finite one, here 1e30) starts
+    the next solve from zero with the settings' rho, per problem: those problems equal the solve from a zero warm
+    start bit for bit and converge; the others keep their warm start (float64, 6 problems, 3 flagged)."""
+    k, s = 6, QPSettings()
+    data = [a[:k] for a in batch[:5]]
+    bad = np.arange(k) % 2 == 0
+    good = jax.tree_util.tree_map(lambda a: a[:k], res64)
+    sel = lambda b, v: np.where(b.reshape(-1, *[1] * (np.ndim(v) - 1)), np.full_like(v, 1e30), v)  # noqa: E731
+    poisoned = good._replace(x=sel(bad, good.x), z=sel(bad, good.z), y=sel(bad, good.y),
+                             flag=np.where(bad, FLAG_NONFINITE, good.flag), rho=np.where(bad, np.nan, good.rho))
+    zero = good._replace(x=0 * good.x, z=0 * good.z, y=0 * good.y, flag=0 * good.flag,
+                         rho=np.full_like(good.rho, s.rho))
+    with jax.enable_x64(True):
+        got, from_zero, from_good = (jax.tree_util.tree_map(np.asarray, solve_qp(*data, warm=w, settings=s))
+                                     for w in (poisoned, zero, good))
+    for field in ("x", "y", "z", "iters", "flag"):
+        np.testing.assert_array_equal(getattr(got, field)[bad], getattr(from_zero, field)[bad])
+        np.testing.assert_array_equal(getattr(got, field)[~bad], getattr(from_good, field)[~bad])
+    assert np.all(got.flag == FLAG_SOLVED) and np.all(np.isfinite(got.x))
+
+
 def test_vmap_equals_one_by_one(batch):
     k = 6
     data = [a[:k] for a in batch[:5]]

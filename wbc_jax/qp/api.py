@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 
 from wbc_jax.qp.admm import solve_xla
-from wbc_jax.qp.settings import BIG, KERNELS, LINSOLVES, QPResult, QPSettings
+from wbc_jax.qp.settings import BIG, FLAG_NONFINITE, KERNELS, LINSOLVES, QPResult, QPSettings
 
 
 def _dtype(P, q, A):
@@ -70,12 +70,22 @@ def empty_factors(n: int, m: int, s: QPSettings, dtype=jnp.float32):
 
 def _warm_tuple(warm: Any, s: QPSettings):
     """``(x, z, y, rho or None, iters or None, factors or None)`` of a warm result (None: cold); ``iters`` only
-    where ``s.warm_first_test`` uses it, ``factors`` where ``s.reuse_factors`` does."""
+    where ``s.warm_first_test`` uses it, ``factors`` where ``s.reuse_factors`` does. A result flagged
+    ``FLAG_NONFINITE`` (a diverged solve, its iterate the last finite one) starts the solve from zero with
+    ``s.rho``, tested after the fixed iterations and its factors not kept, so that it cannot poison the next."""
     if warm is None:
         return None
     iters = getattr(warm, "iters", None) if s.warm_first_test >= 0 else None
     factors = getattr(warm, "factors", None) if s.reuse_factors else None
-    return (warm.x, warm.z, warm.y, getattr(warm, "rho", None), iters, factors)
+    x, z, y, rho = warm.x, warm.z, warm.y, getattr(warm, "rho", None)
+    flag = getattr(warm, "flag", None)
+    if flag is not None:
+        bad = jnp.asarray(flag) == FLAG_NONFINITE
+        x, z, y = (jnp.where(bad[..., None], jnp.zeros_like(v), v) for v in (x, z, y))  # bad: the batch's shape
+        rho = None if rho is None else jnp.where(bad, jnp.nan, rho)  # rules.warm_rho: s.rho where not finite
+        iters = None if iters is None else jnp.where(bad, 0, iters)
+        factors = None if factors is None else factors._replace(fresh=factors.fresh & ~bad)
+    return (x, z, y, rho, iters, factors)
 
 
 def _batched(fn, n_axes: int):
