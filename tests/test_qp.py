@@ -20,7 +20,9 @@ from jax.experimental import pallas as pl
 from wbc_jax.bench import qp_problems as pr
 from wbc_jax.control.transport import control_qp_settings
 from wbc_jax.qp import (
+    FLAG_DIVERGED,
     FLAG_DUAL_INFEASIBLE,
+    FLAG_MAX_ITER,
     FLAG_NONFINITE,
     FLAG_PRIMAL_INFEASIBLE,
     FLAG_SOLVED,
@@ -31,6 +33,7 @@ from wbc_jax.qp import (
 from wbc_jax.qp.api import resolve_settings
 from wbc_jax.qp.kernel_factor import factor_kernel, sweep_inverse
 from wbc_jax.qp.kernel_layout import no_sync, pow2
+from wbc_jax.qp.settings import DIVERGED_RATIO
 
 SEED = 20240603
 N_PROBLEMS = 200
@@ -225,6 +228,29 @@ def test_nonfinite_warm_result_starts_from_zero(batch, res64):
         np.testing.assert_array_equal(getattr(got, field)[bad], getattr(from_zero, field)[bad])
         np.testing.assert_array_equal(getattr(got, field)[~bad], getattr(from_good, field)[~bad])
     assert np.all(got.flag == FLAG_SOLVED) and np.all(np.isfinite(got.x))
+
+
+def test_unconverged_solve_far_above_its_warm_residual_is_diverged(batch):
+    """FLAG_DIVERGED: a solve that ends unconverged (one iteration, from a warm start whose duals are 1e3 off) with a
+    primal residual above DIVERGED_RATIO x max(its warm result's, eps_abs) is flagged diverged, per problem, its
+    iterate unchanged; under that bound it stays FLAG_MAX_ITER; after an unusable warm result (that solve starts
+    from zero) and without a warm residual none is (float64, 6 problems; warm residuals 1e-12 and 1e-3)."""
+    k, s = 6, QPSettings(max_iters=0)
+    data = [a[:k] for a in batch[:5]]
+    with jax.enable_x64(True):
+        good = solve_qp(*data)
+        far = good._replace(y=good.y + 1e3)
+        warm = far._replace(prim_res=np.where(np.arange(k) % 2 == 0, 1e-12, 1e-3))
+        plain, got, after_bad = (jax.tree_util.tree_map(np.asarray, solve_qp(*data, iters=1, warm=w, settings=s))
+                                 for w in (far._replace(prim_res=None), warm,
+                                           warm._replace(flag=np.full(k, FLAG_NONFINITE))))
+    assert np.all(np.asarray(good.flag) == FLAG_SOLVED) and np.all(plain.flag == FLAG_MAX_ITER)
+    want = np.where(plain.prim_res > DIVERGED_RATIO * np.maximum(warm.prim_res, s.eps_abs), FLAG_DIVERGED,
+                    FLAG_MAX_ITER)
+    assert np.any(want == FLAG_DIVERGED) and np.any(want == FLAG_MAX_ITER)
+    np.testing.assert_array_equal(got.flag, want)
+    np.testing.assert_array_equal(got.x, plain.x)
+    assert not np.any(after_bad.flag == FLAG_DIVERGED)
 
 
 def test_vmap_equals_one_by_one(batch):

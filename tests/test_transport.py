@@ -142,12 +142,12 @@ def test_object_wrench_is_no_lever_for_the_com_row(setup, qp_at):
 
 
 def test_diverged_solve_is_not_applied(setup, monkeypatch):
-    """A control step whose QP solve is flagged FLAG_NONFINITE (diverged; its iterate 1e30) applies the last step's
-    solution: the torques and the observer's commanded wrench equal those of the same step given that solution as
-    its own, where a converged solve's are its own."""
+    """A control step whose QP solve is unusable (FLAG_NONFINITE or FLAG_DIVERGED; its iterate 1e30) applies the
+    last step's solution: the torques and the observer's commanded wrench equal those of the same step given that
+    solution as its own, and the state's warm result carries it; a converged solve's are its own."""
     import wbc_jax.control.transport as tc
     from wbc_jax.physics.observe import observe
-    from wbc_jax.qp import FLAG_NONFINITE
+    from wbc_jax.qp import FLAG_DIVERGED, FLAG_NONFINITE
 
     robot, sim, b = setup
     m, st = _take0(b.model, b.in_axes), _take0(b.state)
@@ -163,14 +163,17 @@ def test_diverged_solve_is_not_applied(setup, monkeypatch):
             return res._replace(flag=jnp.asarray(flag, res.flag.dtype), x=jnp.full_like(res.x, x) if x else res.x)
         monkeypatch.setattr(tc, "solve_qp", fake)
         tau, new, _ = tc.transport_control(obs, ref, _take0(b.om), _take0(b.gains), cs, robot.ids, sim.cfg)
-        return np.asarray(tau), np.asarray(new.obs.w_cmd)
+        return np.asarray(tau), np.asarray(new.obs.w_cmd), np.asarray(new.warm.x)
 
-    diverged, converged = step(FLAG_NONFINITE, 1e30), step(0, 0)
+    converged = step(0, 0)
     monkeypatch.setattr(tc, "solve_qp", lambda *a, **kw: solve(*a, **kw)._replace(x=last))
     given_last = tc.transport_control(obs, ref, _take0(b.om), _take0(b.gains), cs, robot.ids, sim.cfg)
-    np.testing.assert_array_equal(diverged[0], np.asarray(given_last[0]))
-    np.testing.assert_array_equal(diverged[1], np.asarray(given_last[1].obs.w_cmd))
-    assert np.all(np.isfinite(diverged[0])) and not np.array_equal(converged[0], diverged[0])
+    for flag in (FLAG_NONFINITE, FLAG_DIVERGED):
+        diverged = step(flag, 1e30)
+        np.testing.assert_array_equal(diverged[0], np.asarray(given_last[0]))
+        np.testing.assert_array_equal(diverged[1], np.asarray(given_last[1].obs.w_cmd))
+        np.testing.assert_array_equal(diverged[2], np.asarray(last))
+        assert np.all(np.isfinite(diverged[0])) and not np.array_equal(converged[0], diverged[0])
 
 
 def test_loaded_stand_under_qp_torques(setup):

@@ -22,7 +22,7 @@ from wbc_jax.control.transport_qp import (
     planned_object_forces,
 )
 from wbc_jax.control.variants import FULL, Variant
-from wbc_jax.qp import FLAG_NONFINITE, QPResult, QPSettings, empty_factors, solve_qp
+from wbc_jax.qp import QPResult, QPSettings, empty_factors, solve_qp, unusable
 from wbc_jax.qp.api import resolve_settings
 from wbc_jax.spatial import GRAVITY, full_precision
 from wbc_jax.types import DynTerms, ObjectModel, Observation, Reference, RobotIds
@@ -177,16 +177,16 @@ def transport_control(obs: Observation, ref: Reference, om: ObjectModel, gains: 
             static configuration; mu_ground: () or (4,) friction under each foot.
 
     Returns:
-        (tau (18,) actuator torques [N m], new ControlState, QPDiag). A solve flagged ``FLAG_NONFINITE`` (it
-        diverged: its iterate is the last finite one) is not applied: the last step's solution stands in for the
-        torques and the observer's commanded wrench, and the next solve starts afresh
-        (:func:`wbc_jax.qp.solve_qp`'s warm rule).
+        (tau (18,) actuator torques [N m], new ControlState, QPDiag). An :func:`~wbc_jax.qp.unusable` solve
+        (``FLAG_NONFINITE``, ``FLAG_DIVERGED``) is not applied: the last applied solution stands in for the
+        torques, the observer's commanded wrench and the state's warm result (whose flag makes the next solve
+        start afresh: :func:`wbc_jax.qp.solve_qp`'s warm rule).
     """
     with jax.named_scope("qp_assemble"):
         observer, qp = assemble(obs, ref, om, gains, cs, ids, cfg, mu_ground)
     res = solve_qp(qp.P, qp.q, qp.A, qp.l, qp.u, warm=cs.warm,
                    settings=qp_settings(cfg))
-    x = jnp.where(res.flag == FLAG_NONFINITE, cs.warm.x, res.x)
+    x = jnp.where(unusable(res.flag), cs.warm.x, res.x)  # the warm result's x: the last applied solution
     tau_raw = qp.A_tau @ x + qp.h_a
     tmax = jnp.asarray(ids.tau_max)
     tau = jnp.clip(tau_raw, -tmax, tmax)
@@ -195,4 +195,4 @@ def transport_control(obs: Observation, ref: Reference, om: ObjectModel, gains: 
     diag = QPDiag(tau=tau, prim_res=res.prim_res, dual_res=res.dual_res, flag=res.flag,
                   tau_excess=jnp.max(jnp.abs(tau_raw) - tmax), iters=res.iters,
                   obj_forces=planned_object_forces(x, om.mu, ids.nv_robot, cfg.k))
-    return tau, cs._replace(warm=res, obs=observer), diag
+    return tau, cs._replace(warm=res._replace(x=x), obs=observer), diag

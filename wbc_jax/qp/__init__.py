@@ -9,6 +9,7 @@ GPU path in :mod:`wbc_jax.qp.fused` and its kernels (``kernel_*``); active-set p
 
 from wbc_jax.qp.api import empty_factors, solve_qp
 from wbc_jax.qp.settings import (
+    FLAG_DIVERGED,
     FLAG_DUAL_INFEASIBLE,
     FLAG_MAX_ITER,
     FLAG_NONFINITE,
@@ -16,9 +17,11 @@ from wbc_jax.qp.settings import (
     FLAG_SOLVED,
     QPResult,
     QPSettings,
+    unusable,
 )
 
 __all__ = [
+    "FLAG_DIVERGED",
     "FLAG_DUAL_INFEASIBLE",
     "FLAG_MAX_ITER",
     "FLAG_NONFINITE",
@@ -28,4 +31,5 @@ __all__ = [
     "QPSettings",
     "empty_factors",
     "solve_qp",
+    "unusable",
 ]

@@ -31,7 +31,17 @@ import jax
 import jax.numpy as jnp
 
 from wbc_jax.qp.admm import solve_xla
-from wbc_jax.qp.settings import BIG, FLAG_NONFINITE, KERNELS, LINSOLVES, QPResult, QPSettings
+from wbc_jax.qp.settings import (
+    BIG,
+    DIVERGED_RATIO,
+    FLAG_DIVERGED,
+    FLAG_MAX_ITER,
+    KERNELS,
+    LINSOLVES,
+    QPResult,
+    QPSettings,
+    unusable,
+)
 
 
 def _dtype(P, q, A):
@@ -70,9 +80,9 @@ def empty_factors(n: int, m: int, s: QPSettings, dtype=jnp.float32):
 
 def _warm_tuple(warm: Any, s: QPSettings):
     """``(x, z, y, rho or None, iters or None, factors or None)`` of a warm result (None: cold); ``iters`` only
-    where ``s.warm_first_test`` uses it, ``factors`` where ``s.reuse_factors`` does. A result flagged
-    ``FLAG_NONFINITE`` (a diverged solve, its iterate the last finite one) starts the solve from zero with
-    ``s.rho``, tested after the fixed iterations and its factors not kept, so that it cannot poison the next."""
+    where ``s.warm_first_test`` uses it, ``factors`` where ``s.reuse_factors`` does. An :func:`unusable` result
+    (``FLAG_NONFINITE``, ``FLAG_DIVERGED``) starts the solve from zero with ``s.rho``, tested after the fixed
+    iterations and its factors not kept, so that it cannot poison the next."""
     if warm is None:
         return None
     iters = getattr(warm, "iters", None) if s.warm_first_test >= 0 else None
@@ -80,7 +90,7 @@ def _warm_tuple(warm: Any, s: QPSettings):
     x, z, y, rho = warm.x, warm.z, warm.y, getattr(warm, "rho", None)
     flag = getattr(warm, "flag", None)
     if flag is not None:
-        bad = jnp.asarray(flag) == FLAG_NONFINITE
+        bad = unusable(jnp.asarray(flag))
         x, z, y = (jnp.where(bad[..., None], jnp.zeros_like(v), v) for v in (x, z, y))  # bad: the batch's shape
         rho = None if rho is None else jnp.where(bad, jnp.nan, rho)  # rules.warm_rho: s.rho where not finite
         iters = None if iters is None else jnp.where(bad, 0, iters)
@@ -183,4 +193,16 @@ def solve_qp(P, q, A, l, u, *, iters: int | None = None, warm: Any = None,
     m, n = jnp.shape(A)[-2:]
     _check_rows(s, it, m, n)
     P = jnp.asarray(P)
-    return _solve_jit(P, q, A, l, u, _warm_tuple(warm, s), iters=it, settings=s)
+    return _mark_diverged(_solve_jit(P, q, A, l, u, _warm_tuple(warm, s), iters=it, settings=s), warm, s)
+
+
+def _mark_diverged(res: QPResult, warm: Any, s: QPSettings) -> QPResult:
+    """``res`` flagged ``FLAG_DIVERGED`` where it is ``FLAG_MAX_ITER`` with a primal residual above
+    ``DIVERGED_RATIO`` times ``max(warm.prim_res, s.eps_abs)``; not after an :func:`unusable` warm result (that
+    solve started from zero) nor without a warm result carrying ``prim_res`` and ``flag``."""
+    prev, flag = getattr(warm, "prim_res", None), getattr(warm, "flag", None)
+    if prev is None or flag is None:
+        return res
+    bound = jnp.where(unusable(jnp.asarray(flag)), jnp.inf, DIVERGED_RATIO * jnp.maximum(prev, s.eps_abs))
+    diverged = (res.flag == FLAG_MAX_ITER) & (res.prim_res > bound)
+    return res._replace(flag=jnp.where(diverged, FLAG_DIVERGED, res.flag).astype(res.flag.dtype))

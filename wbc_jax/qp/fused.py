@@ -11,7 +11,7 @@ With ``QPSettings.reuse_factors`` a result carries its factors and what they wer
 scaling with their rho and, per problem where no row changed kind, keeps them: its factorization program writes
 nothing into the outputs aliased to them. It then factors again the solve after. The ADMM step is residual-based,
 so kept factors only precondition it: the fixed point and the convergence test are the current problem's; but
-the step with them can diverge where the problem moved far from theirs (docs/performance.md).
+the step with them can diverge where the problem moved far from theirs (``FLAG_DIVERGED``, docs/performance.md).
 
 The rows come in three blocks (exact, dense, box; :mod:`~wbc_jax.qp.kernel_layout`). The user's arrays reach the
 kernels as they are (masked loads) and ``x``, ``z``, ``y`` are written in the user's layout, so no XLA op pads,

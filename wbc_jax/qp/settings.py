@@ -9,6 +9,10 @@ Flags (``QPResult.flag``, int32):
     3 ``FLAG_DUAL_INFEASIBLE``: certificate of an unbounded objective (P singular).
     4 ``FLAG_NONFINITE``: a non-finite value appeared (bad data, failed Cholesky); the
       output is the last finite iterate (or zeros).
+    5 ``FLAG_DIVERGED``: not within tolerance, and the primal residual above ``DIVERGED_RATIO`` times that of
+      the (usable) warm start's result: the iterations diverged (a kept factorization's step can,
+      :mod:`wbc_jax.qp.fused`); the output is that iterate.
+Results flagged 4 or 5 are :func:`unusable`: not to be applied, nor to warm-start a solve.
 """
 
 from __future__ import annotations
@@ -22,8 +26,16 @@ FLAG_MAX_ITER = 1
 FLAG_PRIMAL_INFEASIBLE = 2
 FLAG_DUAL_INFEASIBLE = 3
 FLAG_NONFINITE = 4
+FLAG_DIVERGED = 5
+DIVERGED_RATIO = 1e6  # an unconverged solve's primal residual over its warm start's that marks it diverged
 
 BIG = 1e20  # stands for an infinite bound inside the solver
+
+
+def unusable(flag):
+    """Where a result's iterate is not to be applied nor to warm-start a solve: ``flag`` (int array) is
+    ``FLAG_NONFINITE`` or ``FLAG_DIVERGED``. Returns a bool array of ``flag``'s shape."""
+    return (flag == FLAG_NONFINITE) | (flag == FLAG_DIVERGED)
 FIRST_TEST_BLOCKS = 3  # QPSettings.warm_first_test: the first block at most iters + this many blocks
 
 LINSOLVES = ("chol", "inv", "auto")
@@ -91,7 +103,7 @@ class QPSettings(NamedTuple):
             equilibrating and factoring again, where no row changed kind (free, equality, held) since; the next
             solve then factors again, so every other solve of a control loop factors. The step is residual-based
             (the factors precondition it), so the solution and the convergence test are the current problem's,
-            but it can diverge where the problem moved far from theirs (default False).
+            but it can diverge where the problem moved far from theirs (``FLAG_DIVERGED``) (default False).
     """
 
     iters: int = 100
