@@ -91,8 +91,8 @@ def sensing_of(spec: Spec) -> str:
 def qp_changes(spec: Spec) -> tuple:
     """The spec's changes to its controller's QP settings (``campaign.qp_first_test``, ``campaign.qp_alpha``,
     ``campaign.qp_rho``, ``campaign.qp_reuse_factors``) as sorted ``(QPSettings field, value)`` pairs (hashable:
-    part of the Sim's cache key). ``campaign.qp_reuse_factors`` only with Warp physics, where it is measured: with
-    MJX's JAX physics a kept factorization's solve diverged on the course (docs/performance.md)."""
+    part of the Sim's cache key). ``campaign.qp_reuse_factors`` only with Warp physics, where it makes the step
+    faster: with MJX's JAX physics the step gains nothing (docs/performance.md)."""
     c = spec.campaign
     reuse = c["qp_reuse_factors"] and backend_of(spec) == "warp"
     return tuple(sorted({"warm_first_test": c["qp_first_test"],

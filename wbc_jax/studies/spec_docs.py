@@ -44,8 +44,8 @@ CAMPAIGN_MEANING = {
                      "(velocity noise; docs/performance.md); -1 checks after `qp_iters`",
     "qp_reuse_factors": "`QPSettings.reuse_factors` of the transport controller's QP: 1, a control step whose "
                         "predecessor factored reuses its factors, scaling and rho where no row changed kind (the "
-                        "fused GPU kernels, with Warp physics only: with JAX physics a kept factorization's solve "
-                        "diverged on the course; the XLA path, e.g. on a CPU, factors every step)",
+                        "fused GPU kernels, with Warp physics only: with JAX physics the step gains nothing; the XLA "
+                        "path, e.g. on a CPU, factors every step)",
     "qp_alpha": "`QPSettings.alpha` of the controller's QP (ADMM over-relaxation, in (0, 2)); 0 keeps the "
                 "controller's (1.6)",
     "qp_rho": "`QPSettings.rho` of the transport controller's QP (its ADMM step size, which it does not adapt: the "
