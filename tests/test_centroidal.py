@@ -212,6 +212,43 @@ def test_qp_matches_osqp_and_obeys_the_model(robot):
     assert np.all(np.abs(np.asarray(A_tau, float) @ x + np.asarray(b_tau, float)) <= np.asarray(ids.tau_max))
 
 
+def test_unusable_solve_is_not_applied(robot, monkeypatch):
+    """A centroidal control step whose QP solve is unusable (FLAG_NONFINITE, FLAG_DIVERGED; its iterate 1e30)
+    applies the last solution: its torques equal those of the same step given that solution as its own, the
+    state's warm result carries it; a converged solve's torques are its own."""
+    import wbc_jax.control.centroidal as cc
+    from wbc_jax.physics.observe import observe
+    from wbc_jax.qp import FLAG_DIVERGED, FLAG_NONFINITE
+
+    ids, cfg = robot.ids, cc.CentroidalConfig()
+    q0 = robot.home_qpos()
+    plan, R0 = make_plan(robot, q0, 0.1, 0.25, 0.08, 4)
+    mx = robot.mjx_model
+    d = physics.sense(mx, mjx.make_data(mx).replace(qpos=jnp.asarray(q0)))
+    obs = observe(mx, d, ids)
+    wr = cpm.cp_walk_reference(plan, plan.gait.t_start + 0.15, obs.robot.com[:2], obs.robot.p_foot)
+    ref = CentroidalRef(v_xy=wr.v_xy, z=plan.z0, R_base=jnp.asarray(R0), heading=plan.heading, swing=wr.swing,
+                        p_sw=wr.p_sw, v_sw=wr.v_sw, a_sw=wr.a_sw)
+    last = jnp.linspace(-1.0, 1.0, cfg.n_var)
+    cs = cc.init_state(cfg, jnp.asarray(q0), ids)
+    cs = cs._replace(warm=cs.warm._replace(x=last))
+    solve = cc.solve_qp
+
+    def step(fake):
+        monkeypatch.setattr(cc, "solve_qp", fake)
+        tau, new, _ = cc.centroidal_control(obs, ref, default_gains(), cs, ids, cfg)
+        return np.asarray(tau), np.asarray(new.warm.x)
+
+    given_last = step(lambda *a, **kw: solve(*a, **kw)._replace(x=last))
+    converged = step(solve)
+    for flag in (FLAG_NONFINITE, FLAG_DIVERGED):
+        bad = step(lambda *a, flag=flag, **kw: solve(*a, **kw)._replace(flag=jnp.asarray(flag, jnp.int32),
+                                                                            x=jnp.full(cfg.n_var, 1e30)))
+        np.testing.assert_array_equal(bad[0], given_last[0])
+        np.testing.assert_array_equal(bad[1], np.asarray(last))
+        assert np.all(np.isfinite(bad[0])) and not np.array_equal(bad[0], converged[0])
+
+
 @pytest.mark.slow  # its own 1.5 s closed-loop compile; tests/test_trot_campaign.py's campaign walks this controller
 def test_short_trot_keeps_the_robot_up(robot, tmp_path):
     """Four steps at 0.4 m/s with the exact model and a 20 % too light one (one batch of the shared rollout with
