@@ -30,16 +30,16 @@ FLAG_DIVERGED = 5
 DIVERGED_RATIO = 1e6  # an unconverged solve's primal residual over its warm start's that marks it diverged
 
 BIG = 1e20  # stands for an infinite bound inside the solver
+FIRST_TEST_BLOCKS = 3  # QPSettings.warm_first_test: the first block at most iters + this many blocks
+
+LINSOLVES = ("chol", "inv", "auto")
+KERNELS = ("xla", "fused", "auto")
 
 
 def unusable(flag):
     """Where a result's iterate is not to be applied nor to warm-start a solve: ``flag`` (int array) is
     ``FLAG_NONFINITE`` or ``FLAG_DIVERGED``. Returns a bool array of ``flag``'s shape."""
     return (flag == FLAG_NONFINITE) | (flag == FLAG_DIVERGED)
-FIRST_TEST_BLOCKS = 3  # QPSettings.warm_first_test: the first block at most iters + this many blocks
-
-LINSOLVES = ("chol", "inv", "auto")
-KERNELS = ("xla", "fused", "auto")
 
 
 class QPSettings(NamedTuple):
