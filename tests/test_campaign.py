@@ -258,6 +258,39 @@ def test_regress_update_and_cli(tmp_path, full_run, capsys):
     assert len(compare(dict(base, cells=cells), shifted)) == len(cells)
 
 
+def test_regress_compare_two_campaigns(full_run, tmp_path, capsys):
+    """``regress --compare BEFORE AFTER``: the tiny campaign against itself passes; against a copy with every R
+    x 1.5 (outside the transport's band) or one run failed it fails with the table of what moved; against a copy
+    with every run twice (other repetitions) success rates compare and it passes; a folder that is not a
+    campaign's, or ``--update`` beside it, is a one-line error."""
+    a = full_run[0]
+    df = pd.read_csv(a / "results.csv")
+    n_cells = len(df.groupby(["m", "mu", "d"]))
+
+    def copy(name, table):
+        d = tmp_path / name
+        d.mkdir()
+        shutil.copy(a / "manifest.json", d / "manifest.json")
+        table.to_csv(d / "results.csv", index=False)
+        return str(d)
+
+    assert cli.main(["regress", "--compare", str(a), str(a)]) == 0
+    assert f"all {n_cells} cells" in capsys.readouterr().out
+    assert df.success.all()
+    failed = df.assign(success=[False] + [True] * (len(df) - 1))
+    for name, table, metric, rows in (("r", df.assign(R=df.R * 1.5), "R", n_cells), ("fail", failed, "n_success", 1)):
+        assert cli.main(["regress", "--compare", str(a), copy(name, table)]) == 1
+        out = capsys.readouterr().out
+        assert "REGRESSION" in out and sum(line.split()[3:4] == [metric] for line in out.splitlines()) == rows, out
+    assert cli.main(["regress", "--compare", str(a), copy("twice", pd.concat([df, df]))]) == 0
+    capsys.readouterr()
+    (tmp_path / "empty").mkdir()
+    for args in (["--compare", str(a), str(tmp_path / "empty")], ["--compare", str(a), str(a), "--update"]):
+        assert cli.main(["regress", *args]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and ("manifest.json" in err[0] or "--update" in err[0]), err
+
+
 def test_regress_spec_mismatch_found_before_rerun(tmp_path, monkeypatch, capsys):
     from wbc_jax.campaign import regress
 

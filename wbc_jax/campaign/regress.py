@@ -252,6 +252,62 @@ def run_regress(baseline_dir: str, update: bool = False, gains=None, out: str | 
     return 0, []
 
 
+def _finished_campaign(folder: str) -> tuple:
+    """(results table, the spec's factors, its campaign table) of a finished campaign's folder; InputError naming
+    the file otherwise."""
+    from wbc_jax.analysis.report.inputs import read_results
+
+    man_p = Path(folder) / "manifest.json"
+    try:
+        man = json.loads(read_capped(man_p, what="manifest"))
+        spec = man["spec"] if man.get("command") == "wbc-jax campaign" else None
+    except OSError as e:
+        raise InputError(f"{man_p}: cannot read ({e.strerror or e}); name a finished campaign's folder "
+                         "(wbc-jax campaign --out)") from None
+    except (ValueError, KeyError, TypeError, AttributeError):
+        spec = None
+    if not isinstance(spec, dict) or not isinstance(spec.get("factors"), dict):
+        raise InputError(f"{man_p}: not a campaign's manifest (no spec with factors); name a finished campaign's "
+                         "folder (wbc-jax campaign --out)")
+    _, df = read_results(str(Path(folder) / "results.csv"))
+    factors = [str(f) for f in spec["factors"]]
+    missing = [c for c in factors + ["success"] if c not in df.columns]
+    if missing:
+        raise InputError(f"{Path(folder) / 'results.csv'}: lacks the column(s) {', '.join(missing)}")
+    return df, factors, spec.get("campaign", {})
+
+
+def compare_campaigns(before: str, after: str) -> tuple[int, list]:
+    """``regress --compare BEFORE AFTER``: two finished campaigns' per-cell metric means and success counts,
+    ``after``'s against ``before``'s, with the regress bands of ``before``'s controller
+    (:mod:`wbc_jax.campaign.controllers`; no rounding noise): e.g. a change's GPU campaign against the one before
+    it (GPU runs are not bit-reproducible), or 27,000 runs against 270. Cells: every combination of the factors'
+    levels in ``before``; success counts compare exactly, as rates where the campaigns' repetitions differ. Returns
+    (0 every cell within / 1 some moved, moved rows) and prints the table of what moved.
+
+    Raises:
+        InputError: a folder that is not a finished campaign's, or campaigns of other factors or controllers.
+    """
+    (a, factors, camp), (b, factors_b, camp_b) = _finished_campaign(before), _finished_campaign(after)
+    if factors != factors_b or controllers.info(camp) is not controllers.info(camp_b):
+        raise InputError(f"{after}: factors {factors_b} ({camp_b.get('controller', 'transport')} controller) where "
+                         f"{before} has {factors} ({camp.get('controller', 'transport')}); compare campaigns of one "
+                         "design")
+    bands = controllers.info(camp).regress
+    metrics = tuple(k for k in bands if k in a.columns and k in b.columns)
+    old, new = cell_means(a, factors, metrics), cell_means(b, factors, metrics)
+    if {c["runs"] for c in old} != {c["runs"] for c in new}:  # other repetitions: success rates, not counts
+        for c in old + new:
+            c["n_success"] = c["n_success"] / c["runs"]
+    baseline = dict(tolerance={k: dict(rel=bands[k][0], abs=bands[k][1]) for k in metrics}, cells=old)
+    moved = compare(baseline, new, factors)
+    if moved:
+        _print_moved(moved, factors, Path(before))
+        return 1, moved
+    print(f"regress: all {len(baseline['cells'])} cells of {after} within the tolerance band of {before}")
+    return 0, []
+
+
 def _write_baseline(spec, base_p: Path, baseline: dict | None, cells: list[dict]) -> None:
     """baseline.json from this run's ``cells`` (tolerances kept), with the rounding probes' noise on the CPU."""
     bands = controllers.info(spec.campaign).regress

@@ -183,8 +183,12 @@ def _cmd_tune(args: argparse.Namespace) -> int:
 
 
 def _cmd_regress(args: argparse.Namespace) -> int:
-    from wbc_jax.campaign.regress import run_regress
+    from wbc_jax.campaign.regress import compare_campaigns, run_regress
 
+    if args.compare:
+        if args.update:
+            raise UsageError("--compare takes two campaigns' folders and writes nothing; drop --update")
+        return compare_campaigns(*args.compare)[0]
     code, _ = run_regress(args.baseline, update=args.update)
     return code
 

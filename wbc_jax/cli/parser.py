@@ -186,6 +186,9 @@ def _add_regress(sub) -> argparse.ArgumentParser:
     g.add_argument("--baseline", default="reports/baseline", help="baseline directory with spec.toml and "
                                                                   "baseline.json (default reports/baseline)")
     g.add_argument("--update", action="store_true", help="rewrite baseline.json from this run")
+    g.add_argument("--compare", nargs=2, metavar=("BEFORE", "AFTER"), default=None,
+                   help="instead: compare two finished campaigns' folders (AFTER against BEFORE) with the regress "
+                        "bands of their controller; nothing is rerun (default: none)")
     return g
 
 
