@@ -255,12 +255,13 @@ def run_regress(baseline_dir: str, update: bool = False, gains=None, out: str | 
 def _finished_campaign(folder: str) -> tuple:
     """(results table, the spec's factors, its campaign table) of a finished campaign's folder; InputError naming
     the file otherwise."""
-    from wbc_jax.analysis.report.inputs import read_results
+    from wbc_jax.analysis.report.inputs import MANIFEST_LIMIT, read_results
+    from wbc_jax.campaign.manifest import COMMAND
 
     man_p = Path(folder) / "manifest.json"
     try:
-        man = json.loads(read_capped(man_p, what="manifest"))
-        spec = man["spec"] if man.get("command") == "wbc-jax campaign" else None
+        man = json.loads(read_capped(man_p, MANIFEST_LIMIT, what="manifest"))
+        spec = man["spec"] if man.get("command") == COMMAND else None
     except OSError as e:
         raise InputError(f"{man_p}: cannot read ({e.strerror or e}); name a finished campaign's folder "
                          "(wbc-jax campaign --out)") from None

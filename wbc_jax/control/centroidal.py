@@ -35,7 +35,7 @@ import jax.numpy as jnp
 from wbc_jax.control.centroidal_dynamics import centroidal_terms
 from wbc_jax.control.transport import control_qp_settings
 from wbc_jax.control.transport_qp import ConstraintRows
-from wbc_jax.qp import QPResult, QPSettings, solve_qp, unusable
+from wbc_jax.qp import QPResult, QPSettings, last_usable, solve_qp
 from wbc_jax.runtime.transfer import to_device
 from wbc_jax.spatial import GRAVITY, full_precision, rot_error
 from wbc_jax.types import DynTerms, Observation, RobotIds
@@ -334,16 +334,15 @@ def centroidal_control(obs: Observation, ref: CentroidalRef, gains: CentroidalGa
     J_t = obs.J_tray_top  # (3, nv)
     sw_int = jnp.where(ref.swing[:, None], cs.sw_int + (ref.p_sw - dyn.p_foot) * cfg.dt, 0.0)
     qp = build_qp(dyn_c, J_t, ref, gains, sw_int, cs.q_post, obs.qpos[ids.act_qpos[12:]], ids)
-    res = solve_qp(qp.P, qp.q, qp.A, qp.l, qp.u, warm=cs.warm, settings=cfg.qp)
-    x = jnp.where(unusable(res.flag), cs.warm.x, res.x)  # the warm result's x: the last applied solution
-    tau_qp = qp.A_tau @ x + qp.b_tau  # (34)
+    res = last_usable(solve_qp(qp.P, qp.q, qp.A, qp.l, qp.u, warm=cs.warm, settings=cfg.qp), cs.warm)
+    tau_qp = qp.A_tau @ res.x + qp.b_tau  # (34)
     sw_leg = jnp.concatenate([jnp.repeat(ref.swing, 3), jnp.zeros(6, bool)])
     fb = jnp.concatenate([swing_leg_feedback(dyn, ref, gains, ids), jnp.zeros(6)])
     tau_raw = jnp.where(sw_leg, gains.k_ff * tau_qp, tau_qp) + fb  # (35)
     tmax = jnp.asarray(ids.tau_max)
     tau = jnp.clip(tau_raw, -tmax, tmax)
-    f = x[nv:]
+    f = res.x[nv:]
     tau_grf = -dyn_c.J_foot.reshape(12, nv)[:, jnp.asarray(ids.act_dof)].T @ f
     diag = CentroidalDiag(tau=tau, tau_grf=tau_grf, f=f.reshape(N_FEET, 3), hdot_d=qp.hdot_d, prim_res=res.prim_res,
                           flag=res.flag, iters=res.iters, tau_excess=jnp.max(jnp.abs(tau_raw) - tmax))
-    return tau, cs._replace(warm=res._replace(x=x), sw_int=sw_int), diag
+    return tau, cs._replace(warm=res, sw_int=sw_int), diag

@@ -22,7 +22,7 @@ from wbc_jax.control.transport_qp import (
     planned_object_forces,
 )
 from wbc_jax.control.variants import FULL, Variant
-from wbc_jax.qp import QPResult, QPSettings, empty_factors, solve_qp, unusable
+from wbc_jax.qp import QPResult, QPSettings, empty_factors, last_usable, solve_qp
 from wbc_jax.qp.api import resolve_settings
 from wbc_jax.spatial import GRAVITY, full_precision
 from wbc_jax.types import DynTerms, ObjectModel, Observation, Reference, RobotIds
@@ -184,15 +184,13 @@ def transport_control(obs: Observation, ref: Reference, om: ObjectModel, gains: 
     """
     with jax.named_scope("qp_assemble"):
         observer, qp = assemble(obs, ref, om, gains, cs, ids, cfg, mu_ground)
-    res = solve_qp(qp.P, qp.q, qp.A, qp.l, qp.u, warm=cs.warm,
-                   settings=qp_settings(cfg))
-    x = jnp.where(unusable(res.flag), cs.warm.x, res.x)  # the warm result's x: the last applied solution
-    tau_raw = qp.A_tau @ x + qp.h_a
+    res = last_usable(solve_qp(qp.P, qp.q, qp.A, qp.l, qp.u, warm=cs.warm, settings=qp_settings(cfg)), cs.warm)
+    tau_raw = qp.A_tau @ res.x + qp.h_a
     tmax = jnp.asarray(ids.tau_max)
     tau = jnp.clip(tau_raw, -tmax, tmax)
     # commanded net contact wrench about the CoM, for the observer's next step
-    observer = observer._replace(w_cmd=qp.H_com @ x)
+    observer = observer._replace(w_cmd=qp.H_com @ res.x)
     diag = QPDiag(tau=tau, prim_res=res.prim_res, dual_res=res.dual_res, flag=res.flag,
                   tau_excess=jnp.max(jnp.abs(tau_raw) - tmax), iters=res.iters,
-                  obj_forces=planned_object_forces(x, om.mu, ids.nv_robot, cfg.k))
-    return tau, cs._replace(warm=res._replace(x=x), obs=observer), diag
+                  obj_forces=planned_object_forces(res.x, om.mu, ids.nv_robot, cfg.k))
+    return tau, cs._replace(warm=res, obs=observer), diag

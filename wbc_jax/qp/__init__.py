@@ -7,7 +7,7 @@ rules, termination test and certificates in :mod:`wbc_jax.qp.rules`; the XLA pat
 GPU path in :mod:`wbc_jax.qp.fused` and its kernels (``kernel_*``); active-set polishing in :mod:`wbc_jax.qp.polish`.
 """
 
-from wbc_jax.qp.api import empty_factors, solve_qp
+from wbc_jax.qp.api import empty_factors, last_usable, solve_qp
 from wbc_jax.qp.settings import (
     FLAG_DIVERGED,
     FLAG_DUAL_INFEASIBLE,
@@ -30,6 +30,7 @@ __all__ = [
     "QPResult",
     "QPSettings",
     "empty_factors",
+    "last_usable",
     "solve_qp",
     "unusable",
 ]

@@ -196,6 +196,13 @@ def solve_qp(P, q, A, l, u, *, iters: int | None = None, warm: Any = None,
     return _mark_diverged(_solve_jit(P, q, A, l, u, _warm_tuple(warm, s), iters=it, settings=s), warm, s)
 
 
+def last_usable(res: QPResult, warm: QPResult) -> QPResult:
+    """``res`` with ``x`` the warm result's where ``res`` is :func:`unusable` (a control loop's step applies that,
+    and carries it as the next warm result, whose flag makes the next solve start from zero); flags, residuals
+    and ``z``, ``y`` stay ``res``'s. Shapes: ``res.x``, ``warm.x`` (..., n), flags (...,)."""
+    return res._replace(x=jnp.where(unusable(res.flag)[..., None], warm.x, res.x))
+
+
 def _mark_diverged(res: QPResult, warm: Any, s: QPSettings) -> QPResult:
     """``res`` flagged ``FLAG_DIVERGED`` where it is ``FLAG_MAX_ITER`` with a primal residual above
     ``DIVERGED_RATIO`` times ``max(warm.prim_res, s.eps_abs)``; not after an :func:`unusable` warm result (that
