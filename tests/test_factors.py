@@ -144,6 +144,41 @@ def test_qp_rho_key_default_hash_and_sim():
         check_qp(trot)
 
 
+def test_qp_max_iters_key_caps_the_controllers_solves():
+    """campaign.qp_max_iters: 0 (the controller's 200) by default and hash-neutral there; another value changes the
+    hash and becomes both controllers' QPSettings.max_iters, which caps a real solve: a random QP that needs more
+    than 8 iterations from a cold start converges under the controller's settings and stops at 8, flagged
+    FLAG_MAX_ITER, under qp_max_iters = 8; refused (parsing) below qp_iters and above 1000, one line naming the key."""
+    from wbc_jax.campaign.build import _sim, check_qp, qp_changes
+    from wbc_jax.qp import solve_qp
+    from wbc_jax.qp.settings import FLAG_MAX_ITER
+
+    base = dict(factors=dict(m=[0.2, 0.3], mu=[0.4, 1.0], d=[0.06, 0.1]))
+    s0, s1, s8 = (parse_spec(dict(base, campaign=dict(qp_iters=8, **c)))
+                  for c in ({}, dict(qp_max_iters=0), dict(qp_max_iters=8)))
+    assert s0.hash == s1.hash != s8.hash and "max_iters" not in dict(qp_changes(s0))
+    with pytest.raises(SpecError, match="campaign.qp_max_iters"):
+        parse_spec(dict(base, campaign=dict(qp_max_iters=1001)))
+    with pytest.raises(SpecError, match="campaign.qp_max_iters: = 4 is below campaign.qp_iters = 8"):
+        parse_spec(dict(base, campaign=dict(qp_iters=8, qp_max_iters=4)))
+    trot = parse_spec(dict(campaign=dict(controller="centroidal", scene="flat", qp_max_iters=50),
+                           factors=dict(mass_error=[0.0, 0.1])))
+    check_qp(trot)
+    assert _sim("flat", 4, controller="centroidal", qp=qp_changes(trot)).cfg.qp.max_iters == 50
+    rng = np.random.default_rng(3)
+    n, m = 12, 18
+    G = rng.standard_normal((n, n))
+    P, q, A = G @ G.T + 0.1 * np.eye(n), rng.standard_normal(n), rng.standard_normal((m, n))
+    l, u = -np.abs(rng.standard_normal(m)) * 0.1, np.abs(rng.standard_normal(m)) * 0.1
+    results = []
+    for spec in (s0, s8):
+        qp = _sim("flat", 8, qp=qp_changes(spec)).cfg.qp._replace(eq_rows=0, box_rows=0)
+        results.append(solve_qp(P, q, A, l, u, settings=qp))
+    free, capped = results
+    assert int(free.flag) == 0 and int(free.iters) > 8
+    assert int(capped.flag) == FLAG_MAX_ITER and int(capped.iters) == 8
+
+
 def test_qp_first_test_refused_where_the_qp_refactors(tmp_path, capsys):
     """A centroidal spec whose QP refactors within a control step (qp_iters above its adapt_every) cannot use
     campaign.qp_first_test: `wbc-jax campaign` exits 2 with one line naming the key and writes nothing."""

@@ -112,6 +112,8 @@ CAMPAIGN = {
                       "qp_iters"),
     "qp_alpha": (float, 0.0, 0.0, 1.95, False, "ADMM over-relaxation of the controller's QP; 0 = the controller's"),
     "qp_rho": (float, 0.0, 0.0, 1000.0, False, "ADMM step size rho of the transport controller's QP; 0 = its own"),
+    "qp_max_iters": (int, 0, 0, 1000, False,
+                     "the most ADMM iterations of the controller's QP in a control step; 0 = the controller's (200)"),
     "qp_reuse_factors": (int, 0, 0, 1, False,
                          "1: the transport controller's QP factors every other control step (GPU kernels)"),
     "control_substeps": (int, 1, 1, 10, False,
@@ -181,7 +183,7 @@ _HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_
                                "obj_accel": 0.0, "cone": "scene", "impratio": 0.0, "controller": "transport",
                                "mass_error": 0.0, "walk_seconds": 10.0, "step_time": 0.25, "four_foot": 0.08,
                                "qp_first_test": -1, "qp_alpha": 0.0, "qp_reuse_factors": 0,
-                               "qp_rho": 0.0},
+                               "qp_rho": 0.0, "qp_max_iters": 0},
                  "perturbations": {"push_dir_deg": 0.0}}
 
 
@@ -318,7 +320,7 @@ def _parse_factors(path, raw_f) -> dict:
 
 def _check_fixed(path, camp: dict, pert: dict, factors: dict) -> None:
     """A varied factor's fixed-value key (FactorDef.fixed) must stay at its default; ``push_dir_deg`` needs the
-    push_N factor."""
+    push_N factor; ``qp_max_iters`` is 0 or at least ``qp_iters`` (the fixed iterations come first)."""
     tables = {"campaign": (camp, CAMPAIGN), "perturbations": (pert, PERTURBATIONS)}
     for key in factors:
         table, _, name = factors_mod.factor_def(key).fixed.partition(".")
@@ -328,6 +330,9 @@ def _check_fixed(path, camp: dict, pert: dict, factors: dict) -> None:
     if pert["push_dir_deg"] != PERTURBATIONS["push_dir_deg"][1] and "push_N" not in factors:
         raise spec_error(path, "perturbations.push_dir_deg", "used only with the push_N factor (random pushes have "
                                                            "a random direction)")
+    if 0 < camp["qp_max_iters"] < camp["qp_iters"]:
+        raise spec_error(path, "campaign.qp_max_iters", f"= {camp['qp_max_iters']} is below campaign.qp_iters = "
+                                                        f"{camp['qp_iters']}: use 0 (the controller's 200) or more")
 
 
 def _check_controller(path, camp: dict, factors: dict) -> None:

@@ -46,6 +46,10 @@ CAMPAIGN_MEANING = {
                         "predecessor factored reuses its factors, scaling and rho where no row changed kind (the "
                         "fused GPU kernels, with Warp physics only: with JAX physics the step gains nothing; the XLA "
                         "path, e.g. on a CPU, factors every step)",
+    "qp_max_iters": "`QPSettings.max_iters` of the controller's QP: after `qp_iters`, blocks of 4 more ADMM "
+                    "iterations while unconverged, up to this many in a control step (a solve still unconverged "
+                    "then is applied and flagged `FLAG_MAX_ITER`); 0 keeps the controller's (200); at least "
+                    "`qp_iters`",
     "qp_alpha": "`QPSettings.alpha` of the controller's QP (ADMM over-relaxation, in (0, 2)); 0 keeps the "
                 "controller's (1.6)",
     "qp_rho": "`QPSettings.rho` of the transport controller's QP (its ADMM step size, which it does not adapt: the "
