@@ -10,6 +10,11 @@ kernels under the campaign's settings and each VARIANT (``field=value`` of :clas
 comma-separated); each prints the best of 7 calls after the compile and the mean ADMM iterations. Fixed counts
 (``iters=K,max_iters=0``) give an iteration's cost without the convergence test; the campaign's settings (4
 iterations, then blocks of 4 with a test each) against them give the test's and the block restarts' share.
+A VARIANT ``order:NAME`` solves the same problems under the campaign's settings in another launch order (one
+program per problem, started in order; :func:`launch_order`): ``shuffled`` (random, as a campaign's runs are),
+``longest`` (by each problem's own iterations, longest first: what a perfect prediction gives), ``wk`` (by the
+predecessor's iterations) or ``wk_res`` (that plus the warm start's scaled residuals on the problem), each checked
+equal, problem by problem, to the recorded order's solutions.
 """
 
 import functools
@@ -34,6 +39,28 @@ def record(path: str, k: int) -> None:
     print(f"{len(pick)} of {len(problems['P'])} recorded solves saved to {path}")
 
 
+def launch_order(name: str, f, iters: np.ndarray, batch: int) -> np.ndarray:
+    """(batch,) the problems' launch order ``name`` (module docstring): indices into the repeated problems, whose
+    own iterations are ``iters`` (batch,); ``f``: the recorded arrays (numpy, K problems, repeated to ``batch``)."""
+    if name == "shuffled":
+        return np.random.default_rng(0).permutation(batch)
+    if name == "longest":
+        return np.argsort(-iters, kind="stable")
+    reps = -(-batch // len(f["P"]))
+    rep = {k: np.concatenate([np.asarray(f[k], np.float64)] * reps)[:batch]
+           for k in ("A", "P", "q", "l", "u", "wx", "wy", "wk")}
+    key = rep["wk"]
+    if name == "wk_res":  # the warm start's residuals on this problem, relative to the tolerance (OSQP's scales)
+        Ax = np.einsum("bmn,bn->bm", rep["A"], rep["wx"])
+        prim = np.abs(Ax - np.clip(Ax, rep["l"], rep["u"])).max(1) / (1e-4 + 1e-4 * np.abs(Ax).max(1))
+        dual = np.abs(np.einsum("bnk,bk->bn", rep["P"], rep["wx"]) + rep["q"]
+                      + np.einsum("bmn,bm->bn", rep["A"], rep["wy"])).max(1) / (1e-4 + 1e-4 * np.abs(rep["q"]).max(1))
+        key = key + 4.0 * np.log10(1.0 + np.maximum(prim, dual))
+    elif name != "wk":
+        raise SystemExit(f"qp_kernel_noisy.py: order:{name}: expected shuffled, longest, wk or wk_res")
+    return np.argsort(-key, kind="stable")
+
+
 def main(path: str, batch: int, variants: list[str]) -> None:
     import jax
     import jax.numpy as jnp
@@ -51,7 +78,23 @@ def main(path: str, batch: int, variants: list[str]) -> None:
     def solve(P, q, A, l, u, wx, wz, wy, wrho, wk, s):
         return solve_qp(P, q, A, l, u, warm=QPResult(wx, wy, wz, 0.0, 0.0, 0, wk, wrho), settings=s)
 
+    first = None
     for variant in ["", *variants]:
+        if variant.startswith("order:"):
+            order = launch_order(variant[len("order:"):], f, np.asarray(first.iters), batch)
+            fn = jax.jit(functools.partial(solve, s=base))
+            moved = [d[order] for d in data]
+            out = jax.block_until_ready(fn(*moved))
+            same = all(np.array_equal(np.asarray(a)[order], np.asarray(b)) for a, b in
+                       ((first.x, out.x), (first.iters, out.iters), (first.flag, out.flag)))
+            times = []
+            for _ in range(7):
+                t0 = time.perf_counter()
+                jax.block_until_ready(fn(*moved))
+                times.append(time.perf_counter() - t0)
+            print(f"{variant:36s} {1e3 * min(times):8.3f} ms  solutions {'equal' if same else 'DIFFER'} to the "
+                  "recorded order's", flush=True)
+            continue
         change = {}
         for item in filter(None, variant.split(",")):
             key, value = item.split("=")
@@ -64,6 +107,7 @@ def main(path: str, batch: int, variants: list[str]) -> None:
             t0 = time.perf_counter()
             jax.block_until_ready(fn(*data))
             times.append(time.perf_counter() - t0)
+        first = out if first is None else first
         it, flagged = np.asarray(out.iters), int((np.asarray(out.flag) != 0).sum())
         print(f"{variant or 'campaign settings':36s} {1e3 * min(times):8.3f} ms  iterations mean {it.mean():6.2f} "
               f"p50 {np.median(it):3.0f} p99 {np.percentile(it, 99):3.0f}  flagged {flagged}", flush=True)
