@@ -1,0 +1,85 @@
+"""The iterations kernel's launch order under ``vmap`` (``QPSettings.launch_order="predicted"``).
+
+The fused iterations kernel runs one program per problem, and a batch's programs start in launch order as slots
+free up. Under the campaign's velocity noise most solves stop after 8-12 ADMM iterations but about 1 % run 50 to 200
+(docs/performance.md, the iterations' tail). The batch ends when its last long solve does, so one that starts late
+holds up the whole control step. Started longest-predicted first, the long solves run beside the short ones.
+
+:func:`predicted_length` is the prediction: the predecessor's iterations plus ``check_every`` per decade of the warm
+start's relative residual on the new problem. :func:`launch` calls a kernel either way; :func:`ordered_call` is the
+kernel under ``jax.custom_batching``:
+unbatched it is the plain ``pallas_call``; batched, one ``pallas_call`` over the batch whose program ``i`` reads
+problem ``perm[i]`` (``perm``: the problems by decreasing key) through views of the whole input arrays
+(``ref.at[perm[i]]``: nothing gathered) and writes its own output block ``i``; the outputs, a few vectors per
+problem, are then put back in the batch's order. Each problem's arithmetic is unchanged (in Pallas' CPU
+interpreter equal to float rounding: its XLA compiles the reads through views with other dot kernels). Not yet
+timed on a GPU.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax.experimental import pallas as pl
+
+from wbc_jax.qp.settings import QPSettings
+
+
+def predicted_length(P, q, A, l, u, wx, wy, wk, s: QPSettings):
+    """() the launch key of one warm-started problem, larger for a longer solve: ``wk`` (the predecessor's
+    iterations, () int) plus ``s.check_every`` x log10(1 + r), with r the larger of the warm start's primal and
+    dual residuals (OSQP's, unscaled) each relative to its tolerance ``eps_abs + eps_rel * scale``.
+
+    Args:
+        P: (n, n); q: (n,); A: (m, n); l, u: (m,) finite bounds; wx: (n,), wy: (m,) the warm start.
+    """
+    Ax = A @ wx
+    prim = jnp.max(jnp.abs(Ax - jnp.clip(Ax, l, u))) / (s.eps_abs + s.eps_rel * jnp.max(jnp.abs(Ax)))
+    dual = jnp.max(jnp.abs(P @ wx + q + A.T @ wy)) / (s.eps_abs + s.eps_rel * jnp.max(jnp.abs(q)))
+    return wk.astype(P.dtype) + s.check_every * jnp.log10(1.0 + jnp.maximum(prim, dual))
+
+
+def launch(kernel, out_shape: list, key, ins: tuple, *, interpret: bool, compiler_params, name: str) -> tuple:
+    """``pallas_call(kernel, out_shape)(*ins)`` as a tuple, one program per problem under ``vmap``: in the batch's
+    order where ``key`` is None, else by :func:`ordered_call`."""
+    if key is None:
+        return tuple(pl.pallas_call(kernel, out_shape=out_shape, interpret=interpret,
+                                    compiler_params=compiler_params, name=name)(*ins))
+    return ordered_call(kernel, out_shape, interpret=interpret, compiler_params=compiler_params, name=name)(key, *ins)
+
+
+def ordered_call(kernel, out_shape: list, *, interpret: bool, compiler_params, name: str):
+    """``f(key, *ins) -> outs`` (a tuple): ``pallas_call(kernel, out_shape)(*ins)`` for one problem; under one
+    ``vmap``, one call over the batch whose programs start in order of decreasing ``key`` (module docstring).
+    ``kernel`` takes the inputs' then the outputs' refs of one problem."""
+
+    def one(key, *ins):
+        return tuple(pl.pallas_call(kernel, out_shape=out_shape, interpret=interpret,
+                                    compiler_params=compiler_params, name=name)(*ins))
+
+    f = jax.custom_batching.custom_vmap(one)
+
+    @f.def_vmap
+    def batched(axis_size, in_batched, key, *ins):
+        key, *ins = (x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x))
+                     for x, b in zip((key, *ins), in_batched))
+        perm = jnp.argsort(-key).astype(jnp.int32)
+
+        def whole(shape):
+            return pl.BlockSpec(shape, lambda i, n=len(shape): (0,) * n)
+
+        def own(shape):
+            return pl.BlockSpec((None, *shape), lambda i, n=len(shape): (i,) + (0,) * n)
+
+        def program(perm_ref, *refs):
+            i = perm_ref[pl.program_id(0)]
+            kernel(*(r.at[i] for r in refs[:len(ins)]), *refs[len(ins):])
+
+        res = pl.pallas_call(program, grid=(axis_size,), interpret=interpret, compiler_params=compiler_params,
+                             out_shape=[jax.ShapeDtypeStruct((axis_size,) + o.shape, o.dtype) for o in out_shape],
+                             in_specs=[whole(perm.shape)] + [whole(x.shape) for x in ins],
+                             out_specs=[own(o.shape) for o in out_shape], name=name)(perm, *ins)
+        back = jnp.argsort(perm)  # output block i holds problem perm[i]
+        return tuple(r[back] for r in res), (True,) * len(res)
+
+    return f
