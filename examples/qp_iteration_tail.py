@@ -13,7 +13,7 @@ SLOTS concurrent slots, each lasting FIXED + iterations x TAU us; its makespan w
 campaign's), ordered by their predecessor's iterations (longest first), in perfect longest-first order, and with
 every count capped at 32. The model's constants (SLOTS, TAU, FIXED) are rough guesses for an H200, not fitted: its
 absolute times are not the GPU's, its differences between orders are the point (what ordering or capping could
-save). A CPU takes ~2 min to compile, then ~25 s per simulated second.
+save). On a CPU: minutes.
 """
 
 import heapq

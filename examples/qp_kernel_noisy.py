@@ -13,8 +13,9 @@ iterations, then blocks of 4 with a test each) against them give the test's and 
 A VARIANT ``order:NAME`` solves the same problems under the campaign's settings in another launch order (one
 program per problem, started in order; :func:`launch_order`): ``shuffled`` (random, as a campaign's runs are),
 ``longest`` (by each problem's own iterations, longest first: what a perfect prediction gives), ``wk`` (by the
-predecessor's iterations) or ``wk_res`` (that plus the warm start's scaled residuals on the problem), each checked
-equal, problem by problem, to the recorded order's solutions.
+predecessor's iterations) or ``wk_res`` (the solver's own key, :func:`wbc_jax.qp.kernel_order.predicted_length`:
+that plus the warm start's relative residuals on the problem), each checked equal, problem by problem, to the
+recorded order's solutions.
 """
 
 import functools
@@ -39,24 +40,24 @@ def record(path: str, k: int) -> None:
     print(f"{len(pick)} of {len(problems['P'])} recorded solves saved to {path}")
 
 
-def launch_order(name: str, f, iters: np.ndarray, batch: int) -> np.ndarray:
-    """(batch,) the problems' launch order ``name`` (module docstring): indices into the repeated problems, whose
-    own iterations are ``iters`` (batch,); ``f``: the recorded arrays (numpy, K problems, repeated to ``batch``)."""
+def launch_order(name: str, data: list, iters: np.ndarray, s) -> np.ndarray:
+    """(batch,) the problems' launch order ``name`` (module docstring): indices into ``data`` (the batch's arrays in
+    the order of FIELDS), whose own iterations are ``iters`` (batch,); ``s``: the solver's settings."""
+    import jax
+
+    from wbc_jax.qp.kernel_order import predicted_length
+
+    fields = dict(zip(FIELDS, data))
     if name == "shuffled":
-        return np.random.default_rng(0).permutation(batch)
+        return np.random.default_rng(0).permutation(len(iters))
     if name == "longest":
-        return np.argsort(-iters, kind="stable")
-    reps = -(-batch // len(f["P"]))
-    rep = {k: np.concatenate([np.asarray(f[k], np.float64)] * reps)[:batch]
-           for k in ("A", "P", "q", "l", "u", "wx", "wy", "wk")}
-    key = rep["wk"]
-    if name == "wk_res":  # the warm start's residuals on this problem, relative to the tolerance (OSQP's scales)
-        Ax = np.einsum("bmn,bn->bm", rep["A"], rep["wx"])
-        prim = np.abs(Ax - np.clip(Ax, rep["l"], rep["u"])).max(1) / (1e-4 + 1e-4 * np.abs(Ax).max(1))
-        dual = np.abs(np.einsum("bnk,bk->bn", rep["P"], rep["wx"]) + rep["q"]
-                      + np.einsum("bmn,bm->bn", rep["A"], rep["wy"])).max(1) / (1e-4 + 1e-4 * np.abs(rep["q"]).max(1))
-        key = key + 4.0 * np.log10(1.0 + np.maximum(prim, dual))
-    elif name != "wk":
+        key = iters
+    elif name == "wk":
+        key = np.asarray(fields["wk"])
+    elif name == "wk_res":
+        key = np.asarray(jax.vmap(functools.partial(predicted_length, s=s))(
+            *(fields[k] for k in ("P", "q", "A", "l", "u", "wx", "wy", "wk"))))
+    else:
         raise SystemExit(f"qp_kernel_noisy.py: order:{name}: expected shuffled, longest, wk or wk_res")
     return np.argsort(-key, kind="stable")
 
@@ -81,7 +82,7 @@ def main(path: str, batch: int, variants: list[str]) -> None:
     first = None
     for variant in ["", *variants]:
         if variant.startswith("order:"):
-            order = launch_order(variant[len("order:"):], f, np.asarray(first.iters), batch)
+            order = launch_order(variant[len("order:"):], data, np.asarray(first.iters), base)
             fn = jax.jit(functools.partial(solve, s=base))
             moved = [d[order] for d in data]
             out = jax.block_until_ready(fn(*moved))

@@ -1,19 +1,17 @@
 """The iterations kernel's launch order under ``vmap`` (``QPSettings.launch_order="predicted"``).
 
 The fused iterations kernel runs one program per problem, and a batch's programs start in launch order as slots
-free up. Under the campaign's velocity noise most solves stop after 8-12 ADMM iterations but about 1 % run 50 to 200
+free up. Under the campaign's velocity noise a few solves run many times the typical number of ADMM iterations
 (docs/performance.md, the iterations' tail). The batch ends when its last long solve does, so one that starts late
 holds up the whole control step. Started longest-predicted first, the long solves run beside the short ones.
 
 :func:`predicted_length` is the prediction: the predecessor's iterations plus ``check_every`` per decade of the warm
 start's relative residual on the new problem. :func:`launch` calls a kernel either way; :func:`ordered_call` is the
-kernel under ``jax.custom_batching``:
-unbatched it is the plain ``pallas_call``; batched, one ``pallas_call`` over the batch whose program ``i`` reads
-problem ``perm[i]`` (``perm``: the problems by decreasing key) through views of the whole input arrays
-(``ref.at[perm[i]]``: nothing gathered) and writes its own output block ``i``; the outputs, a few vectors per
-problem, are then put back in the batch's order. Each problem's arithmetic is unchanged (in Pallas' CPU
-interpreter equal to float rounding: its XLA compiles the reads through views with other dot kernels). Not yet
-timed on a GPU.
+kernel under ``jax.custom_batching``: unbatched it is the plain ``pallas_call``; batched, one ``pallas_call`` over
+the batch whose program ``i`` reads problem ``perm[i]`` (``perm``: the problems by decreasing key) through views of
+the whole input arrays (``ref.at[perm[i]]``: nothing gathered) and writes its own output block ``i``; the outputs,
+a few vectors per problem, are then put back in the batch's order. Each problem's arithmetic is unchanged (in
+Pallas' CPU interpreter equal to float rounding: its XLA compiles the reads through views with other dot kernels).
 """
 
 from __future__ import annotations
@@ -54,8 +52,7 @@ def ordered_call(kernel, out_shape: list, *, interpret: bool, compiler_params, n
     ``kernel`` takes the inputs' then the outputs' refs of one problem."""
 
     def one(key, *ins):
-        return tuple(pl.pallas_call(kernel, out_shape=out_shape, interpret=interpret,
-                                    compiler_params=compiler_params, name=name)(*ins))
+        return launch(kernel, out_shape, None, ins, interpret=interpret, compiler_params=compiler_params, name=name)
 
     f = jax.custom_batching.custom_vmap(one)
 

@@ -110,7 +110,7 @@ class QPSettings(NamedTuple):
             (:func:`wbc_jax.qp.kernel_order.predicted_length`), so that a long solve does not start last and hold
             up the batch (docs/performance.md: the iterations' tail). Each problem's arithmetic is the same in any
             order (in Pallas' CPU interpreter equal to float rounding, as its XLA compiles the reads through views
-            with other kernels; on a GPU not yet timed nor compared) (default ``"batch"``).
+            with other kernels) (default ``"batch"``).
     """
 
     iters: int = 100
