@@ -7,15 +7,18 @@
 noise and pushes, the campaign's QP settings) and saves K of its control-step QPs with their warm starts, drawn
 at random (seed 0). On a GPU the K problems are repeated to BATCH and solved from their warm starts by the fused
 kernels under the campaign's settings and each VARIANT (``field=value`` of :class:`wbc_jax.qp.QPSettings`,
-comma-separated); each prints the best of 7 calls after the compile and the mean ADMM iterations. Fixed counts
+comma-separated; a string field as written, e.g. ``launch_order=predicted``); each prints the best of 7 calls
+after the compile, the ADMM iterations and whether its solutions equal the campaign settings'. Fixed counts
 (``iters=K,max_iters=0``) give an iteration's cost without the convergence test; the campaign's settings (4
 iterations, then blocks of 4 with a test each) against them give the test's and the block restarts' share.
 A VARIANT ``order:NAME`` solves the same problems under the campaign's settings in another launch order (one
 program per problem, started in order; :func:`launch_order`): ``shuffled`` (random, as a campaign's runs are),
 ``longest`` (by each problem's own iterations, longest first: what a perfect prediction gives), ``wk`` (by the
 predecessor's iterations) or ``wk_res`` (the solver's own key, :func:`wbc_jax.qp.kernel_order.predicted_length`:
-that plus the warm start's relative residuals on the problem), each checked equal, problem by problem, to the
-recorded order's solutions.
+that plus the warm start's relative residuals on the problem) or ``wk_res_last`` (that key's longest last), each
+checked equal, problem by problem, to the recorded order's solutions. The problems are moved in memory to that
+order, so a layout's effect and the launch order's come together; ``launch_order=predicted`` orders the launches
+alone, the problems left in place.
 """
 
 import functools
@@ -54,12 +57,12 @@ def launch_order(name: str, data: list, iters: np.ndarray, s) -> np.ndarray:
         key = iters
     elif name == "wk":
         key = np.asarray(fields["wk"])
-    elif name == "wk_res":
+    elif name in ("wk_res", "wk_res_last"):
         key = np.asarray(jax.vmap(functools.partial(predicted_length, s=s))(
             *(fields[k] for k in ("P", "q", "A", "l", "u", "wx", "wy", "wk"))))
     else:
-        raise SystemExit(f"qp_kernel_noisy.py: order:{name}: expected shuffled, longest, wk or wk_res")
-    return np.argsort(-key, kind="stable")
+        raise SystemExit(f"qp_kernel_noisy.py: order:{name}: expected shuffled, longest, wk, wk_res or wk_res_last")
+    return np.argsort(key if name == "wk_res_last" else -key, kind="stable")
 
 
 def main(path: str, batch: int, variants: list[str]) -> None:
@@ -99,7 +102,8 @@ def main(path: str, batch: int, variants: list[str]) -> None:
         change = {}
         for item in filter(None, variant.split(",")):
             key, value = item.split("=")
-            change[key] = type(getattr(base, key))(float(value))
+            old = getattr(base, key)
+            change[key] = value if isinstance(old, str) else type(old)(float(value))
         s = base._replace(**change)
         fn = jax.jit(functools.partial(solve, s=s))
         out = jax.block_until_ready(fn(*data))
@@ -110,8 +114,11 @@ def main(path: str, batch: int, variants: list[str]) -> None:
             times.append(time.perf_counter() - t0)
         first = out if first is None else first
         it, flagged = np.asarray(out.iters), int((np.asarray(out.flag) != 0).sum())
+        pairs = ((first.x, out.x), (first.iters, out.iters), (first.flag, out.flag))
+        equal = all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in pairs)
+        same = "" if out is first else f"  solutions {'equal' if equal else 'DIFFER'} to the campaign settings'"
         print(f"{variant or 'campaign settings':36s} {1e3 * min(times):8.3f} ms  iterations mean {it.mean():6.2f} "
-              f"p50 {np.median(it):3.0f} p99 {np.percentile(it, 99):3.0f}  flagged {flagged}", flush=True)
+              f"p50 {np.median(it):3.0f} p99 {np.percentile(it, 99):3.0f}  flagged {flagged}{same}", flush=True)
 
 
 if __name__ == "__main__":

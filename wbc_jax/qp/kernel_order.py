@@ -8,10 +8,11 @@ holds up the whole control step. Started longest-predicted first, the long solve
 :func:`predicted_length` is the prediction: the predecessor's iterations plus ``check_every`` per decade of the warm
 start's relative residual on the new problem. :func:`launch` calls a kernel either way; :func:`ordered_call` is the
 kernel under ``jax.custom_batching``: unbatched it is the plain ``pallas_call``; batched, one ``pallas_call`` over
-the batch whose program ``i`` reads problem ``perm[i]`` (``perm``: the problems by decreasing key) through views of
-the whole input arrays (``ref.at[perm[i]]``: nothing gathered) and writes its own output block ``i``; the outputs,
-a few vectors per problem, are then put back in the batch's order. Each problem's arithmetic is unchanged (in
-Pallas' CPU interpreter equal to float rounding: its XLA compiles the reads through views with other dot kernels).
+the batch whose program ``i`` reads problem ``perm[i]`` (``perm``: the problems by decreasing key) from the whole
+input arrays (:class:`Problem`: every read indexes ``ref[perm[i], ...]``, nothing gathered) and writes its own output
+block ``i``; the outputs, a few vectors per problem, are then put back in the batch's order. Each problem's
+arithmetic is unchanged (in Pallas' CPU interpreter equal to float rounding: its XLA compiles the reads from the
+whole arrays with other dot kernels).
 """
 
 from __future__ import annotations
@@ -35,6 +36,36 @@ def predicted_length(P, q, A, l, u, wx, wy, wk, s: QPSettings):
     prim = jnp.max(jnp.abs(Ax - jnp.clip(Ax, l, u))) / (s.eps_abs + s.eps_rel * jnp.max(jnp.abs(Ax)))
     dual = jnp.max(jnp.abs(P @ wx + q + A.T @ wy)) / (s.eps_abs + s.eps_rel * jnp.max(jnp.abs(q)))
     return wk.astype(P.dtype) + s.check_every * jnp.log10(1.0 + jnp.maximum(prim, dual))
+
+
+class Problem:
+    """Problem ``i`` of a batch-wide input ref ``(batch, *shape)``, read as a kernel reads its own block's ref:
+    ``shape``, ``dtype``, ``p[idx]`` and ``p.at[idx]`` (for ``plgpu.load``) index ``ref[(i, *idx)]``. One indexer per
+    read: Triton's lowering takes no view of a view (``ref.at[i].at[idx]``)."""
+
+    def __init__(self, ref, i):
+        self.ref, self.i = ref, i
+        self.shape, self.dtype = tuple(ref.shape[1:]), ref.dtype
+
+    def index(self, idx) -> tuple:
+        return (self.i, *(idx if isinstance(idx, tuple) else (idx,)))
+
+    def __getitem__(self, idx):
+        return self.ref[self.index(idx)]
+
+    @property
+    def at(self):
+        return _At(self)
+
+
+class _At:
+    """``Problem.at``: ``p.at[idx]`` is the batch ref's ``ref.at[(i, *idx)]``."""
+
+    def __init__(self, p: Problem):
+        self.p = p
+
+    def __getitem__(self, idx):
+        return self.p.ref.at[self.p.index(idx)]
 
 
 def launch(kernel, out_shape: list, key, ins: tuple, *, interpret: bool, compiler_params, name: str) -> tuple:
@@ -70,7 +101,7 @@ def ordered_call(kernel, out_shape: list, *, interpret: bool, compiler_params, n
 
         def program(perm_ref, *refs):
             i = perm_ref[pl.program_id(0)]
-            kernel(*(r.at[i] for r in refs[:len(ins)]), *refs[len(ins):])
+            kernel(*(Problem(r, i) for r in refs[:len(ins)]), *refs[len(ins):])
 
         res = pl.pallas_call(program, grid=(axis_size,), interpret=interpret, compiler_params=compiler_params,
                              out_shape=[jax.ShapeDtypeStruct((axis_size,) + o.shape, o.dtype) for o in out_shape],
