@@ -1,22 +1,14 @@
-"""The tail of the transport QP's ADMM iterations under the campaign's velocity noise, and what it costs a large
-batch: the fused iterations kernel runs one problem per program, so a control step's kernel lasts until its last
-long solve ends, and a long solve that starts late in the launch order extends it.
+"""The tail of the transport QP's ADMM iterations under the campaign's velocity noise.
 
-    python examples/qp_iteration_tail.py [SECONDS] [BATCH ...]      e.g.  6 16384 27000
+    python examples/qp_iteration_tail.py [SECONDS]      e.g.  6
 
 The paper campaign cut to 8 runs (m 0.2 / 0.4, mu 0.4 / 1.0, d 0.06 / 0.10, one repetition, its noise and pushes)
 runs SECONDS (default 6) in the controller's closed loop on this machine (the XLA path on a CPU) while every solve's
 iterations and its predecessor's are recorded (pairs: the callbacks of one control step's runs may come in any
-order). Printed: the iterations' percentiles and tail shares, and a list-scheduling model of the iterations kernel
-at each BATCH (default 16384, 27000): BATCH solves drawn from the recorded ones, programs started in launch order on
-SLOTS concurrent slots, each lasting FIXED + iterations x TAU us; its makespan with the solves in random order (the
-campaign's), ordered by their predecessor's iterations (longest first), in perfect longest-first order, and with
-every count capped at 32. The model's constants (SLOTS, TAU, FIXED) are rough guesses for an H200, not fitted: its
-absolute times are not the GPU's, its differences between orders are the point (what ordering or capping could
-save). On a CPU: minutes.
+order). Printed: the iterations' percentiles and tail shares, and how often a long solve follows a long one.
+On a CPU: minutes.
 """
 
-import heapq
 import sys
 
 import jax
@@ -30,7 +22,6 @@ from wbc_jax.rollout import simulate
 sys.path.insert(0, "examples")
 from qp_settings_study import small_spec  # noqa: E402  (the paper spec cut to 8 runs)
 
-SLOTS, TAU, FIXED = 528, 9.0, 2.0  # programs resident at once (132 SMs x 4), us per iteration, us per program
 CHUNK_S = 0.5
 
 
@@ -57,31 +48,8 @@ def record(seconds: float) -> tuple[np.ndarray, np.ndarray, int]:
     return k, wk, n
 
 
-def makespan(iters: np.ndarray) -> float:
-    """[us] of programs started in order on SLOTS slots, each FIXED + iters x TAU us (greedy list scheduling)."""
-    slots = [0.0] * SLOTS
-    for it in iters:
-        heapq.heappush(slots, heapq.heappop(slots) + FIXED + it * TAU)
-    return max(slots)
-
-
-def model(k: np.ndarray, wk: np.ndarray, batch: int, draws: int = 10, seed: int = 0) -> dict:
-    """Mean makespans [us] over ``draws`` batches of ``batch`` recorded solves (flat ``k``, ``wk``)."""
-    rng = np.random.default_rng(seed)
-    out = {"random order": [], "by predecessor": [], "longest first": [], "capped at 32": []}
-    for _ in range(draws):
-        idx = rng.choice(k.size, batch)
-        it = k[idx]
-        out["random order"].append(makespan(it))
-        out["by predecessor"].append(makespan(it[np.argsort(-wk[idx], kind="stable")]))
-        out["longest first"].append(makespan(np.sort(it)[::-1]))
-        out["capped at 32"].append(makespan(np.minimum(it, 32)))
-    return {name: float(np.mean(v)) for name, v in out.items()}
-
-
 if __name__ == "__main__":
     seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 6.0
-    batches = [int(b) for b in sys.argv[2:]] or [16384, 27000]
     k, wk, n = record(seconds)
     flat, flat_wk = k.astype(float), wk.astype(float)
     p50, p90, p99 = np.percentile(flat, [50, 90, 99])
@@ -90,7 +58,3 @@ if __name__ == "__main__":
           + " / ".join(f"{np.mean(flat > t):.2%}" for t in (32, 48, 64)) + f"; at the cap: {np.sum(flat >= 200)}")
     long = flat > 64
     print(f"of the solves above 64, {np.mean(flat_wk[long] > 64):.0%} have a predecessor above 64")
-    for batch in batches:
-        times = model(flat, flat_wk, batch)
-        print(f"batch {batch}: the iterations kernel's modelled makespan "
-              + ", ".join(f"{name} {t / 1e3:.2f} ms" for name, t in times.items()))

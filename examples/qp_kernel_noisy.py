@@ -7,18 +7,17 @@
 noise and pushes, the campaign's QP settings) and saves K of its control-step QPs with their warm starts, drawn
 at random (seed 0). On a GPU the K problems are repeated to BATCH and solved from their warm starts by the fused
 kernels under the campaign's settings and each VARIANT (``field=value`` of :class:`wbc_jax.qp.QPSettings`,
-comma-separated; a string field as written, e.g. ``launch_order=predicted``); each prints the best of 7 calls
-after the compile, the ADMM iterations and whether its solutions equal the campaign settings'. Fixed counts
+comma-separated; a string field as written); each prints the best of 7 calls after the compile, the ADMM iterations
+and whether its solutions equal the campaign settings'. Fixed counts
 (``iters=K,max_iters=0``) give an iteration's cost without the convergence test; the campaign's settings (4
 iterations, then blocks of 4 with a test each) against them give the test's and the block restarts' share.
 A VARIANT ``order:NAME`` solves the same problems under the campaign's settings in another launch order (one
 program per problem, started in order; :func:`launch_order`): ``shuffled`` (random, as a campaign's runs are),
 ``longest`` (by each problem's own iterations, longest first: what a perfect prediction gives), ``wk`` (by the
-predecessor's iterations) or ``wk_res`` (the solver's own key, :func:`wbc_jax.qp.kernel_order.predicted_length`:
-that plus the warm start's relative residuals on the problem) or ``wk_res_last`` (that key's longest last), each
-checked equal, problem by problem, to the recorded order's solutions. The problems are moved in memory to that
-order, so a layout's effect and the launch order's come together; ``launch_order=predicted`` orders the launches
-alone, the problems left in place.
+predecessor's iterations), ``wk_res`` (:func:`predicted_length`: that plus the warm start's relative residuals on
+the problem) or ``wk_res_last`` (that key's longest last), each checked equal, problem by problem, to the recorded
+order's solutions. The problems are moved in memory to that order, so a layout's effect and the launch order's come
+together (docs/performance.md: on an H200 the layout's).
 """
 
 import functools
@@ -43,12 +42,23 @@ def record(path: str, k: int) -> None:
     print(f"{len(pick)} of {len(problems['P'])} recorded solves saved to {path}")
 
 
+def predicted_length(P, q, A, l, u, wx, wy, wk, s):
+    """() a launch key of one warm-started problem, larger for a longer solve: ``wk`` (the predecessor's
+    iterations) plus ``s.check_every`` x log10(1 + r), r the larger of the warm start's primal and dual residuals
+    (OSQP's, unscaled) each relative to its tolerance ``eps_abs + eps_rel * scale``. P: (n, n); q: (n,); A: (m, n);
+    l, u: (m,) finite; wx: (n,), wy: (m,) the warm start."""
+    import jax.numpy as jnp
+
+    Ax = A @ wx
+    prim = jnp.max(jnp.abs(Ax - jnp.clip(Ax, l, u))) / (s.eps_abs + s.eps_rel * jnp.max(jnp.abs(Ax)))
+    dual = jnp.max(jnp.abs(P @ wx + q + A.T @ wy)) / (s.eps_abs + s.eps_rel * jnp.max(jnp.abs(q)))
+    return wk.astype(P.dtype) + s.check_every * jnp.log10(1.0 + jnp.maximum(prim, dual))
+
+
 def launch_order(name: str, data: list, iters: np.ndarray, s) -> np.ndarray:
     """(batch,) the problems' launch order ``name`` (module docstring): indices into ``data`` (the batch's arrays in
     the order of FIELDS), whose own iterations are ``iters`` (batch,); ``s``: the solver's settings."""
     import jax
-
-    from wbc_jax.qp.kernel_order import predicted_length
 
     fields = dict(zip(FIELDS, data))
     if name == "shuffled":

@@ -179,23 +179,6 @@ def test_qp_max_iters_key_caps_the_controllers_solves():
     assert int(capped.flag) == FLAG_MAX_ITER and int(capped.iters) == 8
 
 
-def test_qp_launch_order_key():
-    """campaign.qp_launch_order: "batch" by default and hash-neutral there; "predicted" changes the hash and becomes
-    the controller's QPSettings.launch_order; another value is refused, one line naming the key."""
-    from wbc_jax.campaign.build import _sim, qp_changes
-    from wbc_jax.campaign.spec import LAUNCH_ORDERS
-    from wbc_jax.qp.settings import LAUNCH_ORDERS as QP_LAUNCH_ORDERS
-
-    base = dict(factors=dict(m=[0.2, 0.3], mu=[0.4, 1.0], d=[0.06, 0.1]))
-    s0, s1, s2 = (parse_spec(dict(base, campaign=c)) for c in ({}, dict(qp_launch_order="batch"),
-                                                                 dict(qp_launch_order="predicted")))
-    assert s0.hash == s1.hash != s2.hash and "launch_order" not in dict(qp_changes(s0))
-    assert _sim("flat", 4, qp=qp_changes(s2)).cfg.qp.launch_order == "predicted"
-    assert LAUNCH_ORDERS == QP_LAUNCH_ORDERS  # the spec's JAX-free copy
-    with pytest.raises(SpecError, match="campaign.qp_launch_order"):
-        parse_spec(dict(base, campaign=dict(qp_launch_order="random")))
-
-
 def test_qp_first_test_refused_where_the_qp_refactors(tmp_path, capsys):
     """A centroidal spec whose QP refactors within a control step (qp_iters above its adapt_every) cannot use
     campaign.qp_first_test: `wbc-jax campaign` exits 2 with one line naming the key and writes nothing."""
