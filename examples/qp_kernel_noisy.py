@@ -1,28 +1,33 @@
 """The fused QP kernels on the campaign's own noisy QPs: a GPU study of where the iterations kernel's time goes.
 
     python examples/qp_kernel_noisy.py --record FILE.npz [K]      (CPU: record K solves, default 1024)
-    python examples/qp_kernel_noisy.py FILE.npz [BATCH] [VARIANT ...]   (GPU; BATCH default 16384)
+    python examples/qp_kernel_noisy.py FILE.npz [BATCH] [VARIANT ...] [--kernels]   (GPU; BATCH default 16384)
 
 ``--record`` runs the paper campaign's first 1.5 s cut to 8 runs (``examples/qp_settings_study.py``: its velocity
 noise and pushes, the campaign's QP settings) and saves K of its control-step QPs with their warm starts, drawn
 at random (seed 0). On a GPU the K problems are repeated to BATCH and solved from their warm starts by the fused
 kernels under the campaign's settings and each VARIANT (``field=value`` of :class:`wbc_jax.qp.QPSettings`,
-comma-separated; a string field as written); each prints the best of 7 calls after the compile, the ADMM iterations
-and whether its solutions equal the campaign settings'. Fixed counts
-(``iters=K,max_iters=0``) give an iteration's cost without the convergence test; the campaign's settings (4
-iterations, then blocks of 4 with a test each) against them give the test's and the block restarts' share.
-A VARIANT ``order:NAME`` solves the same problems under the campaign's settings in another launch order (one
-program per problem, started in order; :func:`launch_order`): ``shuffled`` (random, as a campaign's runs are),
-``longest`` (by each problem's own iterations, longest first: what a perfect prediction gives), ``wk`` (by the
-predecessor's iterations), ``wk_res`` (:func:`predicted_length`: that plus the warm start's relative residuals on
-the problem) or ``wk_res_last`` (that key's longest last), each checked equal, problem by problem, to the recorded
-order's solutions. The problems are moved in memory to that order, so a layout's effect and the launch order's come
-together (docs/performance.md: on an H200 the layout's).
+comma-separated; a string field as written); each prints the best of 7 calls after the compile, the ADMM
+iterations and whether its solutions equal the campaign settings'; ``--kernels`` adds each fused kernel's device
+time (a ``jax.profiler`` trace). Fixed counts (``iters=K,max_iters=0``) give an iteration's cost without the
+convergence test; the campaign's settings against them give the test's and the block restarts' share.
+A VARIANT ``order:NAME`` solves the same problems under the campaign's settings moved in memory to another order
+(one program per problem, started in order; :func:`launch_order`): ``copies`` (each recorded problem's repeats
+side by side), ``shuffled`` (random), ``longest`` (by each problem's own iterations, longest first), ``wk`` (by
+the predecessor's iterations), ``wk_res`` (:func:`predicted_length`: that plus the warm start's relative residuals
+on the problem) or ``wk_res_last`` (that key's longest last), each checked equal, problem by problem, to the
+recorded order's solutions. The repeats make these orders a study of the kernel, not of a campaign's distinct runs
+(docs/performance.md).
 """
 
+import collections
 import functools
+import glob
+import gzip
 import json
+import os
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -55,12 +60,15 @@ def predicted_length(P, q, A, l, u, wx, wy, wk, s):
     return wk.astype(P.dtype) + s.check_every * jnp.log10(1.0 + jnp.maximum(prim, dual))
 
 
-def launch_order(name: str, data: list, iters: np.ndarray, s) -> np.ndarray:
+def launch_order(name: str, data: list, iters: np.ndarray, s, copies: int) -> np.ndarray:
     """(batch,) the problems' launch order ``name`` (module docstring): indices into ``data`` (the batch's arrays in
-    the order of FIELDS), whose own iterations are ``iters`` (batch,); ``s``: the solver's settings."""
+    the order of FIELDS), whose own iterations are ``iters`` (batch,); ``s``: the solver's settings; ``copies``: the
+    number of recorded problems (the batch repeats them)."""
     import jax
 
     fields = dict(zip(FIELDS, data))
+    if name == "copies":
+        return np.argsort(np.arange(len(iters)) % copies, kind="stable")
     if name == "shuffled":
         return np.random.default_rng(0).permutation(len(iters))
     if name == "longest":
@@ -71,11 +79,44 @@ def launch_order(name: str, data: list, iters: np.ndarray, s) -> np.ndarray:
         key = np.asarray(jax.vmap(functools.partial(predicted_length, s=s))(
             *(fields[k] for k in ("P", "q", "A", "l", "u", "wx", "wy", "wk"))))
     else:
-        raise SystemExit(f"qp_kernel_noisy.py: order:{name}: expected shuffled, longest, wk, wk_res or wk_res_last")
+        raise SystemExit(f"qp_kernel_noisy.py: order:{name}: expected copies, shuffled, longest, wk, wk_res or "
+                         "wk_res_last")
     return np.argsort(key if name == "wk_res_last" else -key, kind="stable")
 
 
-def main(path: str, batch: int, variants: list[str]) -> None:
+def timed(fn, args: list, kernels: bool) -> tuple:
+    """``(output, best of 7 calls [ms], {kernel: device ms per call})`` of ``fn(*args)`` after its compile; the
+    kernels' times (the fused solver's ``admm_*``) from a ``jax.profiler`` trace of one more call when ``kernels``."""
+    import jax
+
+    out = jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(7):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    per = collections.Counter()
+    if kernels:
+        with tempfile.TemporaryDirectory() as d:
+            jax.profiler.start_trace(d, create_perfetto_trace=True)
+            jax.block_until_ready(fn(*args))
+            jax.profiler.stop_trace()
+            with gzip.open(sorted(glob.glob(f"{d}/**/*.trace.json.gz", recursive=True))[-1], "rt") as fh:
+                events = json.load(fh)["traceEvents"]
+        gpu = {e["pid"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"
+               and "/device:GPU" in str(e.get("args", {}).get("name", ""))}
+        for e in events:
+            if e.get("ph") == "X" and e.get("pid") in gpu and str(e.get("name", "")).startswith("admm_"):
+                per[e["name"]] += e.get("dur", 0.0) / 1e3
+    return out, 1e3 * min(times), per
+
+
+def kernel_times(per: dict) -> str:
+    """The ``admm_*`` kernels' device times, for a printed line."""
+    return "".join(f"  {k[len('admm_'):]} {v:.3f}" for k, v in sorted(per.items()))
+
+
+def main(path: str, batch: int, variants: list[str], kernels: bool = False) -> None:
     import jax
     import jax.numpy as jnp
 
@@ -84,7 +125,8 @@ def main(path: str, batch: int, variants: list[str]) -> None:
     if jax.default_backend() != "gpu":
         sys.exit("qp_kernel_noisy.py: timing needs a GPU (on a CPU the kernels run in Pallas' interpreter)")
     f = np.load(path)
-    base = QPSettings(**{**json.loads(str(f["settings"])), "linsolve": "inv", "kernel": "fused"})
+    saved = {k: v for k, v in json.loads(str(f["settings"])).items() if k in QPSettings._fields}
+    base = QPSettings(**{**saved, "linsolve": "inv", "kernel": "fused"})
     reps = -(-batch // len(f["P"]))
     data = [jnp.asarray(np.concatenate([f[k]] * reps)[:batch]) for k in FIELDS]
     print(f"{jax.devices()[0].device_kind}, {batch} problems ({len(f['P'])} recorded, repeated)", flush=True)
@@ -95,19 +137,13 @@ def main(path: str, batch: int, variants: list[str]) -> None:
     first = None
     for variant in ["", *variants]:
         if variant.startswith("order:"):
-            order = launch_order(variant[len("order:"):], data, np.asarray(first.iters), base)
+            order = launch_order(variant[len("order:"):], data, np.asarray(first.iters), base, len(f["P"]))
             fn = jax.jit(functools.partial(solve, s=base))
-            moved = [d[order] for d in data]
-            out = jax.block_until_ready(fn(*moved))
+            out, ms, per = timed(fn, [d[order] for d in data], kernels)
             same = all(np.array_equal(np.asarray(a)[order], np.asarray(b)) for a, b in
                        ((first.x, out.x), (first.iters, out.iters), (first.flag, out.flag)))
-            times = []
-            for _ in range(7):
-                t0 = time.perf_counter()
-                jax.block_until_ready(fn(*moved))
-                times.append(time.perf_counter() - t0)
-            print(f"{variant:36s} {1e3 * min(times):8.3f} ms  solutions {'equal' if same else 'DIFFER'} to the "
-                  "recorded order's", flush=True)
+            print(f"{variant:36s} {ms:8.3f} ms  solutions {'equal' if same else 'DIFFER'} to the recorded "
+                  f"order's{kernel_times(per)}", flush=True)
             continue
         change = {}
         for item in filter(None, variant.split(",")):
@@ -115,24 +151,22 @@ def main(path: str, batch: int, variants: list[str]) -> None:
             old = getattr(base, key)
             change[key] = value if isinstance(old, str) else type(old)(float(value))
         s = base._replace(**change)
-        fn = jax.jit(functools.partial(solve, s=s))
-        out = jax.block_until_ready(fn(*data))
-        times = []
-        for _ in range(7):
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(*data))
-            times.append(time.perf_counter() - t0)
+        out, ms, per = timed(jax.jit(functools.partial(solve, s=s)), data, kernels)
         first = out if first is None else first
         it, flagged = np.asarray(out.iters), int((np.asarray(out.flag) != 0).sum())
         pairs = ((first.x, out.x), (first.iters, out.iters), (first.flag, out.flag))
         equal = all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in pairs)
         same = "" if out is first else f"  solutions {'equal' if equal else 'DIFFER'} to the campaign settings'"
-        print(f"{variant or 'campaign settings':36s} {1e3 * min(times):8.3f} ms  iterations mean {it.mean():6.2f} "
-              f"p50 {np.median(it):3.0f} p99 {np.percentile(it, 99):3.0f}  flagged {flagged}{same}", flush=True)
+        print(f"{variant or 'campaign settings':36s} {ms:8.3f} ms  iterations mean {it.mean():6.2f} "
+              f"p50 {np.median(it):3.0f} p99 {np.percentile(it, 99):3.0f}  flagged {flagged}{same}"
+              f"{kernel_times(per)}", flush=True)
 
 
 if __name__ == "__main__":
-    if len(sys.argv) > 1 and sys.argv[1] == "--record":
-        record(sys.argv[2], int(sys.argv[3]) if len(sys.argv) > 3 else 1024)
+    argv = [a for a in sys.argv[1:] if a != "--kernels"]
+    if "--kernels" in sys.argv:  # kernels named in the trace, not by their CUDA graph
+        os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_gpu_enable_command_buffer="
+    if argv and argv[0] == "--record":
+        record(argv[1], int(argv[2]) if len(argv) > 2 else 1024)
     else:
-        main(sys.argv[1], int(sys.argv[2]) if len(sys.argv) > 2 else 16384, sys.argv[3:])
+        main(argv[0], int(argv[1]) if len(argv) > 1 else 16384, argv[2:], "--kernels" in sys.argv)
