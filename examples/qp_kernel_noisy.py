@@ -111,6 +111,13 @@ def timed(fn, args: list, kernels: bool) -> tuple:
     return out, 1e3 * min(times), per
 
 
+def same_solutions(ref, out, order=slice(None)) -> bool:
+    """Whether ``out``'s solutions, flags and iterations equal ``ref``'s bit for bit, ``ref``'s taken in ``order``
+    (the order ``out``'s problems were solved in)."""
+    return all(np.array_equal(np.asarray(a)[order], np.asarray(b))
+               for a, b in ((ref.x, out.x), (ref.iters, out.iters), (ref.flag, out.flag)))
+
+
 def kernel_times(per: dict) -> str:
     """The ``admm_*`` kernels' device times, for a printed line."""
     return "".join(f"  {k[len('admm_'):]} {v:.3f}" for k, v in sorted(per.items()))
@@ -140,8 +147,7 @@ def main(path: str, batch: int, variants: list[str], kernels: bool = False) -> N
             order = launch_order(variant[len("order:"):], data, np.asarray(first.iters), base, len(f["P"]))
             fn = jax.jit(functools.partial(solve, s=base))
             out, ms, per = timed(fn, [d[order] for d in data], kernels)
-            same = all(np.array_equal(np.asarray(a)[order], np.asarray(b)) for a, b in
-                       ((first.x, out.x), (first.iters, out.iters), (first.flag, out.flag)))
+            same = same_solutions(first, out, order)
             print(f"{variant:36s} {ms:8.3f} ms  solutions {'equal' if same else 'DIFFER'} to the recorded "
                   f"order's{kernel_times(per)}", flush=True)
             continue
@@ -154,8 +160,7 @@ def main(path: str, batch: int, variants: list[str], kernels: bool = False) -> N
         out, ms, per = timed(jax.jit(functools.partial(solve, s=s)), data, kernels)
         first = out if first is None else first
         it, flagged = np.asarray(out.iters), int((np.asarray(out.flag) != 0).sum())
-        pairs = ((first.x, out.x), (first.iters, out.iters), (first.flag, out.flag))
-        equal = all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in pairs)
+        equal = same_solutions(first, out)
         same = "" if out is first else f"  solutions {'equal' if equal else 'DIFFER'} to the campaign settings'"
         print(f"{variant or 'campaign settings':36s} {ms:8.3f} ms  iterations mean {it.mean():6.2f} "
               f"p50 {np.median(it):3.0f} p99 {np.percentile(it, 99):3.0f}  flagged {flagged}{same}"
@@ -163,10 +168,10 @@ def main(path: str, batch: int, variants: list[str], kernels: bool = False) -> N
 
 
 if __name__ == "__main__":
-    argv = [a for a in sys.argv[1:] if a != "--kernels"]
-    if "--kernels" in sys.argv:  # kernels named in the trace, not by their CUDA graph
+    argv, kernels = [a for a in sys.argv[1:] if a != "--kernels"], "--kernels" in sys.argv
+    if kernels:  # kernels named in the trace, not by their CUDA graph
         os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_gpu_enable_command_buffer="
     if argv and argv[0] == "--record":
         record(argv[1], int(argv[2]) if len(argv) > 2 else 1024)
     else:
-        main(argv[0], int(argv[1]) if len(argv) > 1 else 16384, argv[2:], "--kernels" in sys.argv)
+        main(argv[0], int(argv[1]) if len(argv) > 1 else 16384, argv[2:], kernels)
