@@ -14,20 +14,18 @@ convergence test; the campaign's settings against them give the test's and the b
 A VARIANT ``order:NAME`` solves the same problems under the campaign's settings moved in memory to another order
 (one program per problem, started in order; :func:`launch_order`): ``copies`` (each recorded problem's repeats
 side by side), ``shuffled`` (random), ``longest`` (by each problem's own iterations, longest first), ``wk`` (by
-the predecessor's iterations), ``wk_res`` (:func:`predicted_length`: that plus the warm start's relative residuals
-on the problem) or ``wk_res_last`` (that key's longest last), each checked equal, problem by problem, to the
-recorded order's solutions. The repeats make these orders a study of the kernel, not of a campaign's distinct runs
-(docs/performance.md).
+the predecessor's iterations), ``predicted`` (the key of ``launch_order=predicted``,
+:func:`wbc_jax.qp.kernel_order.predicted_length`: that plus the warm start's bound violation), ``wk_res``
+(:func:`predicted_length`: the predecessor's iterations plus the warm start's relative residuals on the problem) or
+``wk_res_last`` (that key's longest last), each checked equal, problem by problem, to the recorded order's
+solutions. Record as many problems as BATCH (e.g. ``--record F.npz 8192``) to order distinct problems, as a
+campaign's runs are: repeats add a gain of their own where they sit side by side (docs/performance.md).
 """
 
-import collections
 import functools
-import glob
-import gzip
 import json
 import os
 import sys
-import tempfile
 import time
 
 import numpy as np
@@ -75,12 +73,16 @@ def launch_order(name: str, data: list, iters: np.ndarray, s, copies: int) -> np
         key = iters
     elif name == "wk":
         key = np.asarray(fields["wk"])
+    elif name == "predicted":
+        from wbc_jax.qp.kernel_order import predicted_length as viol_key
+
+        key = np.asarray(jax.vmap(functools.partial(viol_key, s=s))(*(fields[k] for k in ("l", "u", "wz", "wk"))))
     elif name in ("wk_res", "wk_res_last"):
         key = np.asarray(jax.vmap(functools.partial(predicted_length, s=s))(
             *(fields[k] for k in ("P", "q", "A", "l", "u", "wx", "wy", "wk"))))
     else:
-        raise SystemExit(f"qp_kernel_noisy.py: order:{name}: expected copies, shuffled, longest, wk, wk_res or "
-                         "wk_res_last")
+        raise SystemExit(f"qp_kernel_noisy.py: order:{name}: expected copies, shuffled, longest, wk, predicted, "
+                         "wk_res or wk_res_last")
     return np.argsort(key if name == "wk_res_last" else -key, kind="stable")
 
 
@@ -95,19 +97,11 @@ def timed(fn, args: list, kernels: bool) -> tuple:
         t0 = time.perf_counter()
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - t0)
-    per = collections.Counter()
+    per = {}
     if kernels:
-        with tempfile.TemporaryDirectory() as d:
-            jax.profiler.start_trace(d, create_perfetto_trace=True)
-            jax.block_until_ready(fn(*args))
-            jax.profiler.stop_trace()
-            with gzip.open(sorted(glob.glob(f"{d}/**/*.trace.json.gz", recursive=True))[-1], "rt") as fh:
-                events = json.load(fh)["traceEvents"]
-        gpu = {e["pid"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"
-               and "/device:GPU" in str(e.get("args", {}).get("name", ""))}
-        for e in events:
-            if e.get("ph") == "X" and e.get("pid") in gpu and str(e.get("name", "")).startswith("admm_"):
-                per[e["name"]] += e.get("dur", 0.0) / 1e3
+        from wbc_jax.bench.trace import kernel_durations, profiled_call
+
+        per = kernel_durations(profiled_call(fn, args)[0], prefix="admm_")
     return out, 1e3 * min(times), per
 
 

@@ -17,7 +17,7 @@ from wbc_jax.errors import SpecError
 # the spec hashes checkpoints and regress baselines are keyed on: new keys at their defaults must not change them
 # (a changed default that changes the behaviour, e.g. qp_iters or com_plan, changes them on purpose)
 PAPER_HASHES = {
-    "sweeps/paper_campaign.toml": "6c80b53cea620d58f3d69d08bd8421249c89604bf0e208149edc751a54b04e75",
+    "sweeps/paper_campaign.toml": "3501d5692d4940bfb38de032d01421970031d4450b540da37fcf05e4d1e8d431",
     "sweeps/paper_exact.toml": "5d461b6e9beeed1a757197d656952316ad1b7272628b1bbeeab74079d7f40379",
     "sweeps/quick.toml": "b8310fc2f2f5e793797a3ec48062571166a24698a54f63fe8d6efe9f3465889c",
     "reports/baseline/spec.toml": "654ac4b816ec9952866d7c292c7b7f16465bda8ef005664d4b52627da5172bdf",
@@ -177,6 +177,23 @@ def test_qp_max_iters_key_caps_the_controllers_solves():
     free, capped = results
     assert int(free.flag) == 0 and int(free.iters) > 8
     assert int(capped.flag) == FLAG_MAX_ITER and int(capped.iters) == 8
+
+
+def test_qp_launch_order_key():
+    """campaign.qp_launch_order: "batch" by default and hash-neutral there; "predicted" changes the hash and becomes
+    the controller's QPSettings.launch_order; another value is refused, one line naming the key."""
+    from wbc_jax.campaign.build import _sim, qp_changes
+    from wbc_jax.campaign.spec import LAUNCH_ORDERS
+    from wbc_jax.qp.settings import LAUNCH_ORDERS as QP_LAUNCH_ORDERS
+
+    base = dict(factors=dict(m=[0.2, 0.3], mu=[0.4, 1.0], d=[0.06, 0.1]))
+    s0, s1, s2 = (parse_spec(dict(base, campaign=c)) for c in ({}, dict(qp_launch_order="batch"),
+                                                                 dict(qp_launch_order="predicted")))
+    assert s0.hash == s1.hash != s2.hash and "launch_order" not in dict(qp_changes(s0))
+    assert _sim("flat", 4, qp=qp_changes(s2)).cfg.qp.launch_order == "predicted"
+    assert LAUNCH_ORDERS == QP_LAUNCH_ORDERS  # the spec's JAX-free copy
+    with pytest.raises(SpecError, match="campaign.qp_launch_order"):
+        parse_spec(dict(base, campaign=dict(qp_launch_order="random")))
 
 
 def test_qp_first_test_refused_where_the_qp_refactors(tmp_path, capsys):

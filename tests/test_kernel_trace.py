@@ -53,6 +53,19 @@ def test_device_ops_prefers_gpu_process():
     assert [o[0] for o in kt.device_ops(dict(traceEvents=events))] == ["fusion.2"]
 
 
+def test_kernel_durations_sum_gpu_kernels_by_name():
+    """Only the GPU process's complete events with the prefix count, summed per name, in ms (the trace's us)."""
+    events = [dict(ph="M", name="process_name", pid=2, args=dict(name="/device:GPU:0")),
+              dict(ph="X", name="admm_iterations", pid=2, ts=0.0, dur=1500.0),
+              dict(ph="X", name="admm_iterations", pid=2, ts=2000.0, dur=500.0),
+              dict(ph="X", name="admm_factor", pid=2, ts=3000.0, dur=250.0),
+              dict(ph="X", name="fusion.4", pid=2, ts=4000.0, dur=9.0),
+              dict(ph="X", name="admm_iterations", pid=1, ts=0.0, dur=7000.0)]
+    assert kt.gpu_pids(events) == {2}
+    assert kt.kernel_durations(events, prefix="admm_") == {"admm_iterations": 2.0, "admm_factor": 0.25}
+    assert kt.kernel_durations(events)["fusion.4"] == pytest.approx(0.009)
+
+
 def test_gpu_module_name_is_not_a_scope_path():
     """GPU traces carry tf_op "XlaModule:" (no scope path): the HLO's op_name must attribute the op (otherwise
     every GPU op falls into 'other')."""

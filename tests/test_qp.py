@@ -510,6 +510,61 @@ def test_warm_first_test_tests_after_the_predecessors_iterations():
                      settings=s._replace(**bad))
 
 
+def test_predicted_launch_order_changes_no_result():
+    """QPSettings.launch_order='predicted' (the fused iterations kernel's programs started longest-predicted first,
+    reading their problems through views of the batch's arrays; Pallas interpreter, float64) gives the batch
+    order's iterations and flags, and its iterate to float rounding (the interpreter's XLA compiles a kernel body
+    that reads through views with other dot kernels: last bits, ~1e-13), for one batch axis and for two; the 6
+    warm-started problems need different iteration counts and the predicted order is not the batch's."""
+    from wbc_jax.qp.kernel_order import predicted_length
+
+    b = pr.make_batch(3, 6, "wbc")
+    bp = pr.QPProblem(*pr.perturb(b, 4, WARM_PERTURBATION), b.x, b.y, b.f)
+    s = control_qp_settings(10, eq_rows=EXACT_ROWS, eps_abs=1e-6, eps_rel=1e-6, linsolve="inv", max_iters=200,
+                            check_every=10, kernel="fused", warm_first_test=0)
+    with jax.enable_x64(True):
+        data, data_p = ([jnp.asarray(a, jnp.float64) for a in p[:5]] for p in (b, bp))
+        cold = solve_qp(*data, settings=s._replace(kernel="xla"))
+        key = jax.vmap(functools.partial(predicted_length, s=s))(data_p[3], data_p[4], cold.z, cold.iters)
+        runs = {}
+        for order in ("batch", "predicted"):
+            runs[order] = solve_qp(*data_p, warm=cold, settings=s._replace(launch_order=order))
+            two = jax.tree_util.tree_map(lambda a: a.reshape((2, 3) + a.shape[1:]), (data_p, cold))
+            runs[order + "2"] = solve_qp(*two[0], warm=two[1], settings=s._replace(launch_order=order))
+    it = np.asarray(runs["batch"].iters)
+    assert len(np.unique(it)) > 1 and np.any(np.argsort(-np.asarray(key), kind="stable") != np.arange(6))
+    for a, c in ((runs["batch"], runs["predicted"]), (runs["batch2"], runs["predicted2"])):
+        for name in ("flag", "iters"):
+            np.testing.assert_array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(c, name)), name)
+        for name in ("x", "y", "z", "prim_res", "dual_res", "rho"):
+            ref, got = np.asarray(getattr(a, name)), np.asarray(getattr(c, name))
+            assert np.max(np.abs(ref - got)) <= 1e-11 * np.max(np.abs(ref)), name
+    two, one = np.asarray(runs["predicted2"].x).reshape(6, -1), np.asarray(runs["batch"].x)
+    assert np.max(np.abs(two - one)) <= 1e-11 * np.max(np.abs(one))  # the two axes' problems in their places
+    with pytest.raises(ValueError, match="launch_order"):
+        solve_qp(*data, settings=s._replace(launch_order="random"))
+
+
+def test_ordered_call_puts_outputs_back_in_batch_order():
+    """kernel_order.ordered_call under vmap (Pallas interpreter): program i reads problem perm[i], and each output
+    lands in its problem's place, in the key's order (wave 0) and in the batch's (the batch within one wave); the
+    key puts the problems out of the batch's order, so a misplaced output would show."""
+    from wbc_jax.qp.kernel_order import ordered_call
+
+    def kernel(x_ref, c_ref, o_ref):
+        o_ref[...] = x_ref[...] * c_ref[...] + jnp.sum(x_ref[...])
+
+    x = jnp.arange(24.0).reshape(6, 4)
+    c = jnp.array([2.0, -1.0, 0.5, 3.0])  # shared by every problem (not batched)
+    key = jnp.array([0.0, 5.0, 1.0, 9.0, 2.0, 7.0])
+    want = x * c + jnp.sum(x, axis=1, keepdims=True)
+    for wave in (0, 6):
+        f = ordered_call(kernel, [jax.ShapeDtypeStruct((4,), x.dtype)], interpret=True, compiler_params=None,
+                         name="t", wave=wave)
+        (got,) = jax.vmap(f, in_axes=(0, 0, None))(key, x, c)
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+
+
 @pytest.mark.slow  # the Pallas interpreter's compiles
 def test_warm_first_test_fused_equals_xla():
     """QPSettings.warm_first_test in the fused kernels (Pallas interpreter, float64) gives the XLA path's

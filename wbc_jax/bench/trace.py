@@ -119,21 +119,53 @@ def stage_of(op_name: str) -> str:
     return best
 
 
+def gpu_pids(events: list) -> set:
+    """The process ids of a Perfetto/Chrome trace's GPU devices (``process_name`` metadata ``/device:GPU:*``)."""
+    return {e["pid"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"
+            and "/device:GPU" in str(e.get("args", {}).get("name", ""))}
+
+
+def kernel_durations(events: list, prefix: str = "") -> dict[str, float]:
+    """{kernel name: summed device time [ms]} of the GPU events whose name starts with ``prefix``."""
+    gpu, out = gpu_pids(events), {}
+    for e in events:
+        name = str(e.get("name", ""))
+        if e.get("ph") == "X" and e.get("pid") in gpu and name.startswith(prefix):
+            out[name] = out.get(name, 0.0) + float(e.get("dur", 0.0)) / 1e3
+    return out
+
+
+def profiled_call(fn, args, log_dir: str | None = None) -> tuple[list, float]:
+    """One call of ``fn(*args)`` under ``jax.profiler``: (the Perfetto trace's events, the call's wall time [s]).
+    ``log_dir`` keeps the raw trace there. RuntimeError when the profiler wrote no trace."""
+    with tempfile.TemporaryDirectory() as td:
+        d = log_dir or td
+        jax.profiler.start_trace(d, create_perfetto_trace=True)
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        wall = time.perf_counter() - t0
+        jax.profiler.stop_trace()
+        files = sorted(glob.glob(os.path.join(d, "**", "*.trace.json.gz"), recursive=True), key=os.path.getmtime)
+        if not files:
+            raise RuntimeError(f"jax.profiler wrote no Perfetto trace under {d}")
+        with gzip.open(files[-1], "rt") as fh:
+            return json.load(fh)["traceEvents"], wall
+
+
 def device_ops(trace: dict) -> list[tuple[str, float, float, str]]:
     """Device op events of a Perfetto/Chrome trace: (hlo_op, start [us], duration [us], scope path or '').
 
     GPU kernels when the trace has a GPU device process, else the XLA CPU thunks (loop and call ops left out).
     """
     events = trace["traceEvents"] if isinstance(trace, dict) else trace
-    gpu_pids = {e["pid"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"
-                and "/device:GPU" in str(e.get("args", {}).get("name", ""))}
+    gpu = gpu_pids(events)
     out = []
     for e in events:
         if e.get("ph") != "X":
             continue
         a = e.get("args") or {}
         op = a.get("hlo_op")
-        if not op or (gpu_pids and e.get("pid") not in gpu_pids) or str(op).startswith(_CONTAINERS):
+        if not op or (gpu and e.get("pid") not in gpu) or str(op).startswith(_CONTAINERS):
             continue
         tf_op = str(a.get("tf_op", ""))  # a scope path on the CPU; on a GPU only "XlaModule:" (then the HLO's wins)
         out.append((str(op), float(e.get("ts", 0.0)), float(e.get("dur", 0.0)), tf_op if "/" in tf_op else ""))
@@ -198,18 +230,7 @@ def trace_call(f, args, n_steps: int, log_dir: str | None = None) -> dict:
     hlo = compiled.as_text()
     paths, sources = op_paths(hlo), op_sources(hlo)
     jax.block_until_ready(compiled(*args))
-    with tempfile.TemporaryDirectory() as td:
-        d = log_dir or td
-        jax.profiler.start_trace(d, create_perfetto_trace=True)
-        t0 = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        wall = time.perf_counter() - t0
-        jax.profiler.stop_trace()
-        files = sorted(glob.glob(os.path.join(d, "**", "*.trace.json.gz"), recursive=True), key=os.path.getmtime)
-        if not files:
-            raise RuntimeError(f"jax.profiler wrote no Perfetto trace under {d}")
-        with gzip.open(files[-1], "rt") as fh:
-            trace = json.load(fh)
+    trace, wall = profiled_call(compiled, args, log_dir)
     ops = device_ops(trace)
     return summarize(ops, paths, wall, n_steps, sources)
 

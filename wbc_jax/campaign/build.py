@@ -89,16 +89,16 @@ def sensing_of(spec: Spec) -> str:
 
 
 def qp_changes(spec: Spec) -> tuple:
-    """The spec's changes to its controller's QP settings (``campaign.qp_first_test``, ``campaign.qp_alpha``,
-    ``campaign.qp_rho``, ``campaign.qp_max_iters``, ``campaign.qp_reuse_factors``) as sorted ``(QPSettings field,
-    value)`` pairs (hashable: part of the Sim's cache key). ``campaign.qp_reuse_factors`` only with Warp physics,
-    where it makes the step faster: with MJX's JAX physics the step gains nothing (docs/performance.md)."""
+    """The spec's changes to its controller's QP settings (``campaign.qp_first_test``, ``qp_alpha``, ``qp_rho``,
+    ``qp_max_iters``, ``qp_launch_order``, ``qp_reuse_factors``) as sorted ``(QPSettings field, value)`` pairs
+    (hashable: part of the Sim's cache key); ``qp_reuse_factors`` only with Warp physics (docs/performance.md)."""
     c = spec.campaign
     reuse = c["qp_reuse_factors"] and backend_of(spec) == "warp"
     return tuple(sorted({"warm_first_test": c["qp_first_test"],
                          **({"alpha": c["qp_alpha"]} if c["qp_alpha"] > 0 else {}),
                          **({"rho": c["qp_rho"]} if c["qp_rho"] > 0 else {}),
                          **({"max_iters": c["qp_max_iters"]} if c["qp_max_iters"] > 0 else {}),
+                         **({"launch_order": c["qp_launch_order"]} if c["qp_launch_order"] != "batch" else {}),
                          **({"reuse_factors": True} if reuse else {})}.items()))
 
 

@@ -114,6 +114,8 @@ CAMPAIGN = {
     "qp_rho": (float, 0.0, 0.0, 1000.0, False, "ADMM step size rho of the transport controller's QP; 0 = its own"),
     "qp_max_iters": (int, 0, 0, 1000, False,
                      "the most ADMM iterations of the controller's QP in a control step; 0 = the controller's (200)"),
+    "qp_launch_order": (str, "batch", None, None, False,
+                        '"batch" or "predicted": the order the QP\'s iteration programs start in (GPU kernels)'),
     "qp_reuse_factors": (int, 0, 0, 1, False,
                          "1: the transport controller's QP factors every other control step (GPU kernels)"),
     "control_substeps": (int, 1, 1, 10, False,
@@ -174,6 +176,7 @@ COM_PLANS = ("spline", "zmp")  # wbc_jax.planner.transport.COM_PLANS (not import
 CONES = ("scene", "pyramidal", "elliptic")  # MuJoCo's opt.cone, or the scene file's
 CONTROLLER_NAMES = tuple(controllers_mod.CONTROLLERS)  # wbc_jax.rollout.controllers.CONTROLLERS (JAX-free copy)
 BACKENDS = ("auto", "jax", "warp")  # wbc_jax.physics.backend.BACKENDS (not imported here: spec loading stays JAX-free)
+LAUNCH_ORDERS = ("batch", "predicted")  # wbc_jax.qp.settings.LAUNCH_ORDERS (not imported, as above)
 # keys added after specs were first hashed: left out of Spec.hash at these values (the behaviour from before the key
 # existed), so existing baselines and checkpoints stay valid; a default unlike its neutral value (com_plan "zmp")
 # changes the hash of every spec that omits the key, as the behaviour changed
@@ -183,7 +186,7 @@ _HASH_NEUTRAL = {"campaign": {"control_substeps": 1, "backend": "auto", "solver_
                                "obj_accel": 0.0, "cone": "scene", "impratio": 0.0, "controller": "transport",
                                "mass_error": 0.0, "walk_seconds": 10.0, "step_time": 0.25, "four_foot": 0.08,
                                "qp_first_test": -1, "qp_alpha": 0.0, "qp_reuse_factors": 0,
-                               "qp_rho": 0.0, "qp_max_iters": 0},
+                               "qp_rho": 0.0, "qp_max_iters": 0, "qp_launch_order": "batch"},
                  "perturbations": {"push_dir_deg": 0.0}}
 
 
@@ -362,7 +365,7 @@ def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
     camp = checked_table(path, "campaign", data.get("campaign", {}), CAMPAIGN)
     for key, allowed in (("backend", BACKENDS), ("scene", SCENES), ("variant", tuple(VARIANTS)),
                          ("terrain", TERRAINS), ("com_plan", COM_PLANS), ("sensing", SENSING), ("cone", CONES),
-                         ("controller", CONTROLLER_NAMES)):
+                         ("controller", CONTROLLER_NAMES), ("qp_launch_order", LAUNCH_ORDERS)):
         if camp[key] not in allowed:
             raise spec_error(path, f"campaign.{key}", f"= {camp[key]!r}: expected one of {', '.join(allowed)}")
     if "factors" not in data:

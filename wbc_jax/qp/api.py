@@ -37,6 +37,7 @@ from wbc_jax.qp.settings import (
     FLAG_DIVERGED,
     FLAG_MAX_ITER,
     KERNELS,
+    LAUNCH_ORDERS,
     LINSOLVES,
     QPResult,
     QPSettings,
@@ -131,6 +132,8 @@ def resolve_settings(s: QPSettings, iters: int, dtype, backend: str) -> QPSettin
         raise ValueError(f"iters must be >= 1, got {iters}")
     if s.kernel not in KERNELS:
         raise ValueError(f"QPSettings.kernel must be one of {KERNELS}, not {s.kernel!r}")
+    if s.launch_order not in LAUNCH_ORDERS:
+        raise ValueError(f"QPSettings.launch_order must be one of {LAUNCH_ORDERS}, not {s.launch_order!r}")
     one_factor = s.adapt_every == 0 or s.adapt_every >= iters
     f32 = jnp.dtype(dtype) == jnp.float32
     auto_kernel = s.kernel == "auto"

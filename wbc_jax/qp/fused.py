@@ -36,6 +36,7 @@ from wbc_jax.qp import rules
 from wbc_jax.qp.kernel_factor import factor_kernel, factor_or_keep_kernel
 from wbc_jax.qp.kernel_iterate import iterate_kernel
 from wbc_jax.qp.kernel_layout import Dims, Factors, no_sync, pow2
+from wbc_jax.qp.kernel_order import launch, one_wave, predicted_length
 from wbc_jax.qp.kernel_prepare import prepare_kernel, stage_shapes
 from wbc_jax.qp.settings import QPResult, QPSettings
 
@@ -60,7 +61,11 @@ def solve_fused(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     if s.reuse_factors:
         old = warm[5] if warm is not None and warm[5] is not None else empty_factors(n, m, s, dt)
         rho = jnp.where(old.fresh, jnp.asarray(old.rho_s, dt), rho)
-    return fused_solve(P, A, q, l, u, wx, wz, wy, rho, first, old, s=s, iters=iters, warm=warm is not None)
+    key = None
+    if s.launch_order == "predicted" and warm is not None:
+        wk = jnp.zeros((), jnp.int32) if warm[4] is None else warm[4]
+        key = predicted_length(l, u, wz, wk, s)
+    return fused_solve(P, A, q, l, u, wx, wz, wy, rho, first, old, key, s=s, iters=iters, warm=warm is not None)
 
 
 def _dims(n: int, m: int, s: QPSettings) -> Dims:
@@ -120,8 +125,8 @@ def _compiler_params(interpret: bool, num_warps: int, factor_warps: int):
 
 
 @functools.partial(jax.jit, static_argnames=("s", "iters", "warm", "num_warps", "factor_warps"))
-def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, *, s: QPSettings, iters: int, warm: bool,
-                num_warps: int = 2, factor_warps: int = 2) -> QPResult:
+def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, key=None, *, s: QPSettings, iters: int,
+                warm: bool, num_warps: int = 2, factor_warps: int = 2) -> QPResult:
     """One QP solved by the three kernels.
 
     Args:
@@ -137,6 +142,7 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, *, s: QPSe
             they are ``fresh`` the problem is scaled by their scaling (and ``rho`` should be theirs), and where its
             rows' kinds are theirs too the factorization keeps them (its program writes nothing); the result
             carries the factors used, ``fresh`` where this solve factored.
+        key: None, or () the problem's launch key under ``vmap`` (``s.launch_order``, :mod:`~.kernel_order`).
         s: the solver's settings; iters: the fixed iterations; warm: start from ``wx, wz, wy``.
         num_warps, factor_warps: Triton warps per program of the preparation and iterations kernels, and of the
             factorization kernel.
@@ -190,10 +196,10 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, *, s: QPSe
     extra = [] if first is None else [jnp.reshape(first, (1,)).astype(jnp.int32)]
     with jax.named_scope("qp_iterations"):
         i1 = jax.ShapeDtypeStruct((1,), jnp.int32)
-        x, z, y, flag, k, prim, dual, rho_out = pl.pallas_call(
-            kern, out_shape=[sd(n), sd(m), sd(m), i1, i1, sd(1), sd(1), sd(1)], interpret=interpret,
-            compiler_params=params, name="admm_iterations",
-        )(*jax.tree_util.tree_leaves(st), *factors, *lb, *ub, *extra)
+        x, z, y, flag, k, prim, dual, rho_out = launch(
+            kern, [sd(n), sd(m), sd(m), i1, i1, sd(1), sd(1), sd(1)], key,
+            (*jax.tree_util.tree_leaves(st), *factors, *lb, *ub, *extra), interpret=interpret, compiler_params=params,
+            name="admm_iterations", wave=0 if interpret else one_wave(num_warps))
     carried = None
     if given:
         carried = Factors(*factors, st.D, st.Ei, st.scal[0], st.rho, st.kd, kinds, st.scal[1], ~keep)

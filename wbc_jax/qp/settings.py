@@ -34,6 +34,7 @@ FIRST_TEST_BLOCKS = 3  # QPSettings.warm_first_test: the first block at most ite
 
 LINSOLVES = ("chol", "inv", "auto")
 KERNELS = ("xla", "fused", "auto")
+LAUNCH_ORDERS = ("batch", "predicted")
 
 
 def unusable(flag):
@@ -104,6 +105,12 @@ class QPSettings(NamedTuple):
             solve then factors again, so every other solve of a control loop factors. The step is residual-based
             (the factors precondition it), so the solution and the convergence test are the current problem's,
             but it can diverge where the problem moved far from theirs (``FLAG_DIVERGED``) (default False).
+        launch_order: fused kernels under ``vmap``, warm-started: the order the iterations kernel's programs (one
+            per problem) start in. ``"batch"``: the batch's; ``"predicted"``: the problems predicted longest first
+            (:func:`wbc_jax.qp.kernel_order.predicted_length`), so that a long solve does not start last and hold
+            up the batch (docs/performance.md: the iterations' tail). Each problem's arithmetic is the same in any
+            order (in Pallas' CPU interpreter equal to float rounding, as its XLA compiles the reads through views
+            with other kernels) (default ``"batch"``).
     """
 
     iters: int = 100
@@ -135,6 +142,7 @@ class QPSettings(NamedTuple):
     warm_first_test: int = -1
     kernel: str = "xla"
     reuse_factors: bool = False
+    launch_order: str = "batch"
 
 
 class QPResult(NamedTuple):
