@@ -38,9 +38,9 @@ def one_wave(num_warps: int) -> int:
 def predicted_length(l, u, wz, wk, s: QPSettings):
     """() the launch key of one warm-started problem, larger for a longer solve: ``wk`` (the predecessor's
     iterations, () int) plus ``s.check_every`` x log10(1 + v), with v the warm start's largest bound violation on the
-    new problem, max |wz - clip(wz, l, u)|, relative to the tolerance ``eps_abs + eps_rel * max |wz|``. The
-    velocity noise moves the bounds of the rows it enters; the warm start's dual residual predicts no better
-    (docs/performance.md).
+    new problem, max |wz - clip(wz, l, u)|, relative to the tolerance ``eps_abs + eps_rel * max |wz|``: O(m), no
+    matrix read (a key from the warm start's residuals, which reads P and A, cost the campaign's step more than the
+    order saved; docs/performance.md).
 
     Args:
         l, u: (m,) the new problem's bounds (infinite where a row has none); wz: (m,) the warm start's A x.
