@@ -2,7 +2,7 @@
 
 The fused iterations kernel runs one program per problem, and a batch's programs start in launch order as slots
 free up. Under the campaign's velocity noise a few solves run many times the typical number of ADMM iterations
-(docs/performance.md, the iterations' tail). The batch ends when its last long solve does, so one that starts late
+(docs/performance.md, the launch order). The batch ends when its last long solve does, so one that starts late
 holds up the whole control step. Started longest-predicted first, the long solves run beside the short ones.
 
 :func:`predicted_length` is the prediction, from vectors only (no matrix is read): the predecessor's iterations plus

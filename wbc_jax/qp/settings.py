@@ -108,9 +108,10 @@ class QPSettings(NamedTuple):
         launch_order: fused kernels under ``vmap``, warm-started: the order the iterations kernel's programs (one
             per problem) start in. ``"batch"``: the batch's; ``"predicted"``: the problems predicted longest first
             (:func:`wbc_jax.qp.kernel_order.predicted_length`), so that a long solve does not start last and hold
-            up the batch (docs/performance.md: the iterations' tail). Each problem's arithmetic is the same in any
-            order (in Pallas' CPU interpreter equal to float rounding, as its XLA compiles the reads through views
-            with other kernels) (default ``"batch"``).
+            up the batch (docs/performance.md: the launch order); a batch that the device runs in one wave
+            (:func:`~wbc_jax.qp.kernel_order.one_wave`) keeps the batch's. Each problem's arithmetic is the same in
+            any order (in Pallas' CPU interpreter equal to float rounding, as its XLA compiles the reads through
+            views with other kernels) (default ``"batch"``).
     """
 
     iters: int = 100

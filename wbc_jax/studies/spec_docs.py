@@ -53,7 +53,7 @@ CAMPAIGN_MEANING = {
     "qp_launch_order": "`QPSettings.launch_order` of the controller's QP on the fused GPU kernels: `\"batch\"` "
                        "(the runs' order) or `\"predicted\"` (the iterations kernel's programs started longest-"
                        "predicted first, so that a long solve does not start last; the same arithmetic per problem; "
-                       "docs/performance.md, the iterations' tail); the XLA path ignores it",
+                       "docs/performance.md, the launch order); the XLA path ignores it",
     "qp_alpha": "`QPSettings.alpha` of the controller's QP (ADMM over-relaxation, in (0, 2)); 0 keeps the "
                 "controller's (1.6)",
     "qp_rho": "`QPSettings.rho` of the transport controller's QP (its ADMM step size, which it does not adapt: the "
