@@ -16,7 +16,7 @@ A VARIANT ``order:NAME`` solves the same problems under the campaign's settings 
 side by side), ``shuffled`` (random), ``longest`` (by each problem's own iterations, longest first), ``wk`` (by
 the predecessor's iterations), ``predicted`` (the key of ``launch_order=predicted``,
 :func:`wbc_jax.qp.kernel_order.predicted_length`: that plus the warm start's bound violation), ``wk_res``
-(:func:`predicted_length`: the predecessor's iterations plus the warm start's relative residuals on the problem) or
+(:func:`residual_length`: the predecessor's iterations plus the warm start's relative residuals on the problem) or
 ``wk_res_last`` (that key's longest last), each checked equal, problem by problem, to the recorded order's
 solutions. Record as many problems as BATCH (e.g. ``--record F.npz 8192``) to order distinct problems, as a
 campaign's runs are: repeats add a gain of their own where they sit side by side (docs/performance.md).
@@ -45,7 +45,7 @@ def record(path: str, k: int) -> None:
     print(f"{len(pick)} of {len(problems['P'])} recorded solves saved to {path}")
 
 
-def predicted_length(P, q, A, l, u, wx, wy, wk, s):
+def residual_length(P, q, A, l, u, wx, wy, wk, s):
     """() a launch key of one warm-started problem, larger for a longer solve: ``wk`` (the predecessor's
     iterations) plus ``s.check_every`` x log10(1 + r), r the larger of the warm start's primal and dual residuals
     (OSQP's, unscaled) each relative to its tolerance ``eps_abs + eps_rel * scale``. P: (n, n); q: (n,); A: (m, n);
@@ -74,11 +74,12 @@ def launch_order(name: str, data: list, iters: np.ndarray, s, copies: int) -> np
     elif name == "wk":
         key = np.asarray(fields["wk"])
     elif name == "predicted":
-        from wbc_jax.qp.kernel_order import predicted_length as viol_key
+        from wbc_jax.qp.kernel_order import predicted_length
 
-        key = np.asarray(jax.vmap(functools.partial(viol_key, s=s))(*(fields[k] for k in ("l", "u", "wz", "wk"))))
-    elif name in ("wk_res", "wk_res_last"):
         key = np.asarray(jax.vmap(functools.partial(predicted_length, s=s))(
+            *(fields[k] for k in ("l", "u", "wz", "wk"))))
+    elif name in ("wk_res", "wk_res_last"):
+        key = np.asarray(jax.vmap(functools.partial(residual_length, s=s))(
             *(fields[k] for k in ("P", "q", "A", "l", "u", "wx", "wy", "wk"))))
     else:
         raise SystemExit(f"qp_kernel_noisy.py: order:{name}: expected copies, shuffled, longest, wk, predicted, "

@@ -24,7 +24,7 @@ from jax.experimental import pallas as pl
 from wbc_jax.qp.settings import QPSettings
 
 REGISTERS_PER_SM = 65536  # 32-bit registers of one streaming multiprocessor (sm_80 and sm_90)
-REGISTERS_PER_THREAD = 255  # the most a thread holds: the iterations kernel's own count
+REGISTERS_PER_THREAD = 255  # the most a thread can hold; one_wave counts a program as using them all
 
 
 def one_wave(num_warps: int) -> int:
