@@ -7,57 +7,48 @@ The spec is built as a campaign builds it; its runs are repeated to BATCH (run i
 start state) and stepped by the campaign's own chunk program and by its ``no_noise`` ablation
 (:mod:`wbc_jax.bench.campaign_step`), STEPS control steps per call; with a second spec VERSUS, by each spec's own
 chunk program instead (e.g. a spec and its variant with one key changed). Each program is compiled, called once, timed
-once, then called once under ``jax.profiler``; the device trace's kernels are summed by name. Prints, per program,
-the wall time, the ADMM iterations per control step and its 20 largest kernels (ms per control step, share of the
-kernels' time), then the 20 largest differences between the two programs.
+once, then called once under ``jax.profiler``; the device trace's kernels are summed by name
+(:func:`wbc_jax.bench.trace.kernel_durations`), and so is the device's idle time before each kernel
+(:func:`wbc_jax.bench.trace.idle_before`). Prints, per program, the wall time, the ADMM iterations per control step,
+its 20 largest kernels (ms per control step, share of the kernels' time) and the kernels the device waited longest
+for, then the 20 largest differences between the two programs in each.
 """
 
-import collections
 import sys
-import tempfile
 import time
-from pathlib import Path
 
 import jax
-from jax.profiler import ProfileData
 
 from wbc_jax.bench.campaign_step import compiled_chunk, fresh_state, repeated
 from wbc_jax.bench.rollout import qp_iterations
+from wbc_jax.bench.trace import idle_before, kernel_durations, profiled_call
 from wbc_jax.campaign.build import LOG_EVERY, build
 from wbc_jax.campaign.spec import load_spec
 from wbc_jax.rollout.batch import chunk_args
 
-
-def kernel_times(trace_dir: Path) -> collections.Counter:
-    """{kernel name: device ns} summed over the GPU streams of the one profile under ``trace_dir``."""
-    xplane = next(trace_dir.rglob("*.xplane.pb"))
-    total = collections.Counter()
-    for plane in ProfileData.from_file(str(xplane)).planes:
-        if not plane.name.startswith("/device:GPU"):
-            continue
-        for line in plane.lines:
-            if "Stream" in line.name:
-                for event in line.events:
-                    total[event.name] += event.duration_ns
-    return total
+TOP_IDLE = 10  # kernels listed by the device's idle time before them
 
 
-def profile(program, args, n_ctl: int, state0, name: str, where: Path, label: str) -> collections.Counter:
-    """A first call of the compiled ``program``, a timed call, a call profiled into ``where / name``; prints its
-    figures under ``label`` and returns its kernel times (:func:`kernel_times`)."""
+def profile(program, args, n_ctl: int, state0, label: str) -> tuple[dict, dict]:
+    """A first call of the compiled ``program``, a timed call, a call under ``jax.profiler``; prints its figures
+    under ``label`` and returns its kernel times and the device's idle time before each kernel ({name: ms} each,
+    :func:`wbc_jax.bench.trace.kernel_durations`, :func:`~wbc_jax.bench.trace.idle_before`)."""
     out = jax.block_until_ready(program(*args))
     t0 = time.perf_counter()
     jax.block_until_ready(program(*args))
     wall = time.perf_counter() - t0
-    with jax.profiler.trace(str(where / name)):
-        jax.block_until_ready(program(*args))
-    kernels = kernel_times(where / name)
+    events = profiled_call(program, args)[0]
+    kernels, idle = kernel_durations(events), idle_before(events)
     busy = sum(kernels.values())
-    print(f"== {label}: {1e3 * wall / n_ctl:.3f} ms per control step wall, {busy / 1e6 / n_ctl:.3f} ms of kernels; "
-          f"ADMM iterations per control step {qp_iterations(state0, out[0], n_ctl):.2f}")
-    for name, ns in kernels.most_common(20):
-        print(f"  {ns / 1e6 / n_ctl:8.4f} ms  {100 * ns / busy:5.1f} %  {name[:100]}")
-    return kernels
+    print(f"== {label}: {1e3 * wall / n_ctl:.3f} ms per control step wall, {busy / n_ctl:.3f} ms of kernels, "
+          f"{sum(idle.values()) / n_ctl:.3f} ms idle between them; ADMM iterations per control step "
+          f"{qp_iterations(state0, out[0], n_ctl):.2f}")
+    for name, ms in sorted(kernels.items(), key=lambda kv: -kv[1])[:20]:
+        print(f"  {ms / n_ctl:8.4f} ms  {100 * ms / busy:5.1f} %  {name[:100]}")
+    print("  idle before (ms per control step):")
+    for name, ms in sorted(idle.items(), key=lambda kv: -kv[1])[:TOP_IDLE]:
+        print(f"  {ms / n_ctl:8.4f} ms  {name[:100]}")
+    return kernels, idle
 
 
 def programs(spec_path: str, batch: int, n_logs: int, ablations: tuple[str, ...]):
@@ -79,13 +70,12 @@ def main(spec_path: str, batch: int, steps: int, versus: str | None = None) -> N
     else:
         labels = ("campaign", versus)
         progs = programs(spec_path, batch, n_logs, ("campaign",)) + programs(versus, batch, n_logs, ("campaign",))
-    with tempfile.TemporaryDirectory() as tmp:
-        runs = {label: profile(fn, args, n_ctl, state0, f"run{i}", Path(tmp), label)
-                for i, (label, (fn, args, state0)) in enumerate(zip(labels, progs))}
-    a, c = (runs[label] for label in labels)
-    print(f"== campaign minus {labels[1]} (ms per control step)")
-    for name in sorted(set(a) | set(c), key=lambda k: -abs(a[k] - c[k]))[:20]:
-        print(f"  {(a[name] - c[name]) / 1e6 / n_ctl:+8.4f}  {name[:100]}")
+    runs = {label: profile(fn, args, n_ctl, state0, label) for label, (fn, args, state0) in zip(labels, progs)}
+    for part, title in ((0, "kernels"), (1, "idle before each kernel")):
+        a, c = (runs[label][part] for label in labels)
+        print(f"== campaign minus {labels[1]}: {title} (ms per control step)")
+        for name in sorted(set(a) | set(c), key=lambda k: -abs(a.get(k, 0.0) - c.get(k, 0.0)))[:20]:
+            print(f"  {(a.get(name, 0.0) - c.get(name, 0.0)) / n_ctl:+8.4f}  {name[:100]}")
 
 
 if __name__ == "__main__":

@@ -66,6 +66,18 @@ def test_kernel_durations_sum_gpu_kernels_by_name():
     assert kt.kernel_durations(events)["fusion.4"] == pytest.approx(0.009)
 
 
+def test_idle_before_charges_each_gap_to_the_kernel_after_it():
+    """Hand-computed gaps: 0.5 ms before the second kernel, none where a kernel starts inside an earlier one's span,
+    0.25 ms after the longest span so far (not the last event's end); another process's events ignored."""
+    events = [dict(ph="M", name="process_name", pid=2, args=dict(name="/device:GPU:0")),
+              dict(ph="X", name="a", pid=2, ts=0.0, dur=1000.0),
+              dict(ph="X", name="b", pid=2, ts=1500.0, dur=2000.0),  # gap 500 us after a
+              dict(ph="X", name="c", pid=2, ts=2000.0, dur=100.0),  # inside b: no gap
+              dict(ph="X", name="b", pid=2, ts=3750.0, dur=10.0),  # 250 us after b's end at 3500
+              dict(ph="X", name="a", pid=1, ts=9000.0, dur=1.0)]
+    assert kt.idle_before(events) == {"b": pytest.approx(0.75)}
+
+
 def test_gpu_module_name_is_not_a_scope_path():
     """GPU traces carry tf_op "XlaModule:" (no scope path): the HLO's op_name must attribute the op (otherwise
     every GPU op falls into 'other')."""

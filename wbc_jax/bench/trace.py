@@ -135,6 +135,23 @@ def kernel_durations(events: list, prefix: str = "") -> dict[str, float]:
     return out
 
 
+def idle_before(events) -> dict[str, float]:
+    """{kernel name: summed device idle time [ms] just before it starts}: the GPU events of
+    :func:`kernel_durations` (each GPU process on its own) in start order; a gap is the time from the latest end so
+    far to the next event's start, charged to that event's name (what the device waited to start: a launch, a
+    loop's host round trip, a host callback)."""
+    gpu, out = gpu_pids(events), {}
+    for pid in gpu:
+        kern = sorted((float(e.get("ts", 0.0)), float(e.get("dur", 0.0)), str(e.get("name", "")))
+                      for e in events if e.get("ph") == "X" and e.get("pid") == pid)
+        end = None
+        for ts, dur, name in kern:
+            if end is not None and ts > end:
+                out[name] = out.get(name, 0.0) + (ts - end) / 1e3
+            end = ts + dur if end is None else max(end, ts + dur)
+    return out
+
+
 def profiled_call(fn, args, log_dir: str | None = None) -> tuple[list, float]:
     """One call of ``fn(*args)`` under ``jax.profiler``: (the Perfetto trace's events, the call's wall time [s]).
     ``log_dir`` keeps the raw trace there. RuntimeError when the profiler wrote no trace."""
