@@ -11,7 +11,10 @@ once, then called once under ``jax.profiler``; the device trace's kernels are su
 (:func:`wbc_jax.bench.trace.kernel_durations`), and so is the device's idle time before each kernel
 (:func:`wbc_jax.bench.trace.idle_before`). Prints, per program, the wall time, the ADMM iterations per control step,
 its 20 largest kernels (ms per control step, share of the kernels' time) and the kernels the device waited longest
-for, then the 20 largest differences between the two programs in each.
+for, then the 20 largest differences between the two programs in each. Kernels that MuJoCo Warp runs inside its
+constraint solver's conditional loop after ``set_conditional_if_handle_kernel`` may be missing from the trace: their
+time then shows as idle before the loop's next listed kernel (``examples/physics_solver_cap.py`` counts the loop's
+iterations).
 """
 
 import sys
@@ -21,7 +24,7 @@ import jax
 
 from wbc_jax.bench.campaign_step import compiled_chunk, fresh_state, repeated
 from wbc_jax.bench.rollout import qp_iterations
-from wbc_jax.bench.trace import idle_before, kernel_durations, profiled_call
+from wbc_jax.bench.trace import gpu_pids, idle_before, kernel_durations, profiled_call
 from wbc_jax.campaign.build import LOG_EVERY, build
 from wbc_jax.campaign.spec import load_spec
 from wbc_jax.rollout.batch import chunk_args
@@ -39,9 +42,11 @@ def profile(program, args, n_ctl: int, state0, label: str) -> tuple[dict, dict]:
     wall = time.perf_counter() - t0
     events = profiled_call(program, args)[0]
     kernels, idle = kernel_durations(events), idle_before(events)
-    busy = sum(kernels.values())
-    print(f"== {label}: {1e3 * wall / n_ctl:.3f} ms per control step wall, {busy / n_ctl:.3f} ms of kernels, "
-          f"{sum(idle.values()) / n_ctl:.3f} ms idle between them; ADMM iterations per control step "
+    busy, gpu = sum(kernels.values()), gpu_pids(events)
+    launches = sum(1 for e in events if e.get("ph") == "X" and e.get("pid") in gpu)
+    print(f"== {label}: {1e3 * wall / n_ctl:.3f} ms per control step wall, {busy / n_ctl:.3f} ms of kernels "
+          f"({launches / n_ctl:.1f} launches), {sum(idle.values()) / n_ctl:.3f} ms idle between them; "
+          f"ADMM iterations per control step "
           f"{qp_iterations(state0, out[0], n_ctl):.2f}")
     for name, ms in sorted(kernels.items(), key=lambda kv: -kv[1])[:20]:
         print(f"  {ms / n_ctl:8.4f} ms  {100 * ms / busy:5.1f} %  {name[:100]}")

@@ -110,14 +110,26 @@ def test_qp_iterations_per_step_by_hand():
     assert campaign_step.qp_iterations(state([4, 8]), state([44, 128]), steps=10) == pytest.approx((4 + 12) / 2)
 
 
+def test_solver_cap_share_by_hand():
+    """Two runs, 50 physics steps apart: 5 and 0 more capped steps -> 5 / (2 x 50)."""
+    from types import SimpleNamespace
+
+    def state(caps):
+        return SimpleNamespace(acc=SimpleNamespace(n_solver_cap=np.asarray(caps, np.int32)))
+
+    assert campaign_step.solver_cap_share(state([3, 7]), state([8, 7]), physics_steps=50) == pytest.approx(0.05)
+
+
 def test_batch_figures_by_hand():
     """Batch 10, 100 env-steps per call, two states: rates from the summed times; shares of the campaign's time."""
     first = dict(campaign=5.0, no_clearance=4.0, no_monitors=4.0, no_noise=3.0, physics=1.0)
     times = dict(campaign=[1.0, 3.0], no_clearance=[0.9, 2.7], no_monitors=[0.8, 2.4], no_noise=[0.5, 1.5],
                  physics=[0.5, 0.5])
-    row = campaign_step.batch_figures(first, times, batch=10, n_env=100, iters=dict(campaign=[6.0, 10.0]))
+    counts = dict(campaign=dict(qp_iters_per_step=[6.0, 10.0], solver_cap_share=[0.0, 0.5]))
+    row = campaign_step.batch_figures(first, times, batch=10, n_env=100, counts=counts)
     assert row["noise_share"] == pytest.approx(0.5)
     assert row["campaign_qp_iters_per_step"] == pytest.approx(8.0)
+    assert row["campaign_solver_cap_share"] == pytest.approx(0.25)
     assert row["campaign_steps_per_s"] == pytest.approx(10 * 100 * 2 / 4.0)
     assert row["campaign_steps_per_s_by_state"] == pytest.approx([1000.0, 1000.0 / 3.0])
     assert row["campaign_compile_s"] == pytest.approx(5.0 - 2.0)
@@ -141,6 +153,7 @@ def test_campaign_step_bench_end_to_end(tmp_path):
     (row,) = step["batches"]
     assert row["batch"] == 3 and row["campaign_steps_per_s"] > 0 and len(row["campaign_steps_per_s_by_state"]) == 2
     assert {"clearance_share", "monitors_share", "physics_share"} <= set(row)
+    assert row["campaign_solver_cap_share"] == 0.0  # MJX's JAX solver reports no iteration count
     bench_wbc = got["batches"][0]["wbc_steps_per_s"]
     assert row["ratio_to_bench_wbc"] == pytest.approx(row["campaign_steps_per_s"] / bench_wbc)
     assert np.isfinite(row["no_monitors_steps_per_s"])
@@ -154,6 +167,7 @@ def test_time_batch_compiles_once_and_times_every_state(monkeypatch):
     monkeypatch.setattr(campaign_step, "compiled_chunk", lambda sim, b, n_logs, name: (
         lambda *args: (calls.append((name, args[1].i)), (args[1], None))[1]))
     monkeypatch.setattr(campaign_step, "qp_iterations", lambda before, after, steps: 4.0)
+    monkeypatch.setattr(campaign_step, "solver_cap_share", lambda before, after, steps: 0.5 if steps == 20 else None)
     monkeypatch.setattr(campaign_step, "physics_only_fn", lambda b, n_env: (
         lambda model, d: calls.append(("physics", d))))
 
@@ -162,8 +176,9 @@ def test_time_batch_compiles_once_and_times_every_state(monkeypatch):
         state = SimpleNamespace(i=i, d=i)
         return SimpleNamespace(model=None, state=state, plan=None, om=None, gains=None, push=None, mu_ground=None)
 
-    first, times, iters = campaign_step._time_batch(None, batch_at, 3, 1, campaign_step.ABLATIONS, 20)
-    assert set(iters) == set(campaign_step.ABLATIONS) - {"no_monitors"} and all(v == [4.0] * 3 for v in iters.values())
+    first, times, counts = campaign_step._time_batch(None, batch_at, 3, 1, campaign_step.ABLATIONS, 20)
+    assert set(counts) == set(campaign_step.ABLATIONS) - {"no_monitors"}
+    assert all(v == dict(qp_iters_per_step=[4.0] * 3, solver_cap_share=[0.5] * 3) for v in counts.values())
     assert made == [0, 1, 2] and set(first) == {*campaign_step.ABLATIONS, "physics"}
     assert all(len(t) == 3 for t in times.values())
     timed = calls[len(first):]  # after each program's first call
@@ -183,3 +198,4 @@ def test_campaign_step_bench_warp_batch_larger_than_the_spec(tmp_path):
                      str(out)]) == 0
     (row,) = json.loads(out.read_text())["campaign_step"]["batches"]
     assert row["batch"] == 12 and row["campaign_steps_per_s"] > 0 and "monitors_share" not in row
+    assert 0.0 <= row["campaign_solver_cap_share"] <= 1.0  # Warp counts its solver's iterations

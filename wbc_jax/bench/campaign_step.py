@@ -12,14 +12,17 @@ up to ``snapshots`` states spread over the horizon. At every requested batch siz
   folded (their computations drop out; the step count still advances, so the velocity noise still changes every
   step);
 * ``no_noise``: the campaign's Sim without the controller's velocity noise (``Sim.sensor_noise`` off): what the
-  noise costs, mostly the ADMM iterations it adds to the warm-started QP;
+  noise costs: the ADMM iterations it adds to the warm-started QP and, on Warp, the physics' constraint-solver
+  iterations (under the noisy torques some runs' solves stop at ``opt.iterations``, and Warp's solver loop runs
+  until the batch's last world has converged);
 * ``physics``: plain ``mjx.step`` calls on the same batch (``wbc_jax.bench.rollout.physics_only_fn``).
 
 Each ablation is the campaign's Sim with ``monitors`` or ``sensor_noise`` changed (:func:`ablation_sim`), its
 chunk program compiled and timed like the campaign's. Shares are
 1 - (ablated program's time / the campaign program's time). Each timed call also gives the QP's mean ADMM
-iterations per control step (``Accum.sum_qp_iters``: runs that have failed, frozen, count none; not for
-``no_monitors``, which does not fold them).
+iterations per control step (``Accum.sum_qp_iters``: runs that have failed, frozen, count none) and the share of
+physics steps whose constraint solve stopped at the cap (``Accum.n_solver_cap``, Warp only); not for ``no_monitors``,
+which does not fold them.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from wbc_jax.bench.rollout import physics_only_fn, qp_iterations, run_bench, timed
+from wbc_jax.bench.rollout import physics_only_fn, qp_iterations, run_bench, solver_cap_share, timed
 from wbc_jax.campaign.build import LOG_EVERY, build, with_backend
 from wbc_jax.campaign.spec import load_spec
 from wbc_jax.rollout import make_chunk_fn, runs
@@ -116,8 +119,9 @@ def fresh_state(sim, b, batch: int):
 def _time_batch(sim, batch_at, n_states: int, n_logs: int, ablations, n_env: int):
     """Each ablation's program and physics alone: compiled with its first call (on state 0), then timed once per
     state, alternated; ``batch_at(i)`` gives the batch from state i (made when needed: one at a time in memory).
-    Returns ({name: first call [s]}, {name: [s per state]}, {program name: [mean QP iterations per step, per
-    state]}; no_monitors, which does not count them, left out)."""
+    Returns ({name: first call [s]}, {name: [s per state]}, {program name: {"qp_iters_per_step": [mean QP
+    iterations per control step, per state], "solver_cap_share": [:func:`~wbc_jax.bench.rollout.solver_cap_share`,
+    per state]}}; no_monitors, which does not fold its control-rate counts, left out)."""
     b0 = batch_at(0)
     first, programs = {}, {}
     for name in ablations:
@@ -128,26 +132,29 @@ def _time_batch(sim, batch_at, n_states: int, n_logs: int, ablations, n_env: int
     phys = physics_only_fn(b0, n_env)
     first["physics"] = timed(phys, b0.model, b0.state.d)[1]
     times = {name: [] for name in first}
-    iters = {name: [] for name in programs if name != "no_monitors"}  # its control-rate fold (sum_qp_iters) is off
+    counts = {name: dict(qp_iters_per_step=[], solver_cap_share=[]) for name in programs if name != "no_monitors"}
     for i in range(n_states):
         b = b0 if i == 0 else batch_at(i)
         for name, f in programs.items():
             (state, _), wall = timed(f, *chunk_args(b))
             times[name].append(wall)
-            if name in iters:
-                iters[name].append(qp_iterations(b.state, state, n_logs * LOG_EVERY))
+            if name in counts:
+                counts[name]["qp_iters_per_step"].append(qp_iterations(b.state, state, n_logs * LOG_EVERY))
+                counts[name]["solver_cap_share"].append(solver_cap_share(b.state, state, n_env))
         times["physics"].append(timed(phys, b.model, b.state.d)[1])
         del b
-    return first, times, iters
+    return first, times, counts
 
 
-def batch_figures(first: dict, times: dict, batch: int, n_env: int, iters: dict | None = None) -> dict:
+def batch_figures(first: dict, times: dict, batch: int, n_env: int, counts: dict | None = None) -> dict:
     """Figures of one batch size from :func:`_time_batch`'s timings: env-steps per second of each program over all
-    states (total env-steps / total time), per state, its compile time (first call less the median call), and the shares
-    of the campaign program's time: physics alone, clearance, monitors (1 - ablated / campaign)."""
+    states (total env-steps / total time), per state, its compile time (first call less the median call), the shares
+    of the campaign program's time: physics alone, clearance, monitors (1 - ablated / campaign), and each program's
+    counts (``counts``: {name: {key: per state}}) as ``{name}_{key}``, their mean over the states."""
     row = dict(batch=batch)
-    for name, per_state in (iters or {}).items():
-        row[f"{name}_qp_iters_per_step"] = float(np.mean(per_state))
+    for name, per_key in (counts or {}).items():
+        for key, per_state in per_key.items():
+            row[f"{name}_{key}"] = float(np.mean(per_state))
     total = {name: float(np.sum(t)) for name, t in times.items()}
     for name, t in times.items():
         row[f"{name}_steps_per_s"] = batch * n_env * len(t) / total[name]
@@ -193,13 +200,15 @@ def run_campaign_step(spec, batches, steps: int = 200, snapshots: int = 3, break
         def batch_at(i, fresh=fresh, B=B):
             return repeated(built.batch, steps_walk.states[i], fresh, B)
 
-        first, times, iters = _time_batch(sim, batch_at, len(steps_walk.states), n_logs, names, n_env)
-        row = batch_figures(first, times, B, n_env, iters)
+        first, times, counts = _time_batch(sim, batch_at, len(steps_walk.states), n_logs, names, n_env)
+        row = batch_figures(first, times, B, n_env, counts)
         out["batches"].append(row)
         shares = "".join(f", {k.split('_')[0]} {row[k]:.1%}" for k in ("clearance_share", "monitors_share",
                                                                        "noise_share") if k in row)
         shares += "; QP iterations per step " + ", ".join(
             f"{k.rsplit('_qp_iters_per_step')[0]} {v:.1f}" for k, v in row.items() if k.endswith("_qp_iters_per_step"))
+        shares += "; physics steps at the constraint solver's cap " + ", ".join(
+            f"{k.rsplit('_solver_cap_share')[0]} {v:.1%}" for k, v in row.items() if k.endswith("_solver_cap_share"))
         print(f"{device} campaign step ({spec.campaign['name']}, {sim.robot.backend}:{sim.sensing}) batch {B:6d}: "
               f"{row['campaign_steps_per_s']:12.0f} env-steps per s from t = "
               f"{', '.join(f'{t:g}' for t in steps_walk.times_s)} s; physics alone {row['physics_steps_per_s']:12.0f}"

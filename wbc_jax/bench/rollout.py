@@ -104,6 +104,15 @@ def qp_iterations(before, after, steps: int) -> float:
     return float(np.mean(done)) / steps
 
 
+def solver_cap_share(before, after, physics_steps: int) -> float:
+    """Share of the runs' physics steps between RunStates ``before`` and ``after`` (``physics_steps`` apart) whose
+    constraint solve stopped at ``opt.iterations`` (``Accum.n_solver_cap``; MuJoCo Warp only: MJX's JAX solver
+    reports no count, so 0). Warp's solver loop runs until the batch's last world has converged: one capped world
+    holds every world's step at the cap's iterations."""
+    capped = np.asarray(after.acc.n_solver_cap, np.float64) - np.asarray(before.acc.n_solver_cap, np.float64)
+    return float(np.mean(capped)) / physics_steps
+
+
 def _physics_and_wbc(sim, b, n_env: int, timer, rounds: int) -> _Timings:
     """Physics only and physics + WBC on batch ``b``, timed with ``timer`` (:func:`timed` or
     :func:`_timed_together`): each called once (the call that compiles), then ``rounds`` rounds of one physics call
