@@ -155,6 +155,7 @@ def test_campaign_step_bench_end_to_end(tmp_path):
     assert {"clearance_share", "monitors_share", "physics_share"} <= set(row)
     assert row["campaign_solver_cap_share"] == 0.0  # MJX's JAX solver reports no iteration count
     bench_wbc = got["batches"][0]["wbc_steps_per_s"]
+    assert got["batches"][0]["solver_cap_share"] == 0.0  # the bench's physics + WBC row; JAX: no count
     assert row["ratio_to_bench_wbc"] == pytest.approx(row["campaign_steps_per_s"] / bench_wbc)
     assert np.isfinite(row["no_monitors_steps_per_s"])
 

@@ -67,7 +67,8 @@ def test_kernel_durations_sum_gpu_kernels_by_name():
 
 
 def test_idle_before_charges_each_gap_to_the_kernel_after_it():
-    """Hand-computed gaps: 0.5 ms before the second kernel, none where a kernel starts inside an earlier one's span,
+    """Hand-computed gaps (by the kernel after them, and by the kernels before and after: idle_between): 0.5 ms
+    before the second kernel, none where a kernel starts inside an earlier one's span,
     0.25 ms after the longest span so far (not the last event's end); another process's events ignored."""
     events = [dict(ph="M", name="process_name", pid=2, args=dict(name="/device:GPU:0")),
               dict(ph="X", name="a", pid=2, ts=0.0, dur=1000.0),
@@ -76,6 +77,7 @@ def test_idle_before_charges_each_gap_to_the_kernel_after_it():
               dict(ph="X", name="b", pid=2, ts=3750.0, dur=10.0),  # 250 us after b's end at 3500
               dict(ph="X", name="a", pid=1, ts=9000.0, dur=1.0)]
     assert kt.idle_before(events) == {"b": pytest.approx(0.75)}
+    assert kt.idle_between(events) == {("a", "b"): pytest.approx(0.5), ("b", "b"): pytest.approx(0.25)}
 
 
 def test_gpu_module_name_is_not_a_scope_path():

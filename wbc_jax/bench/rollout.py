@@ -95,6 +95,7 @@ class _Timings(NamedTuple):
     physics_s: np.ndarray  # (rounds,) physics-only calls
     wbc_s: np.ndarray  # (rounds,) physics + WBC calls
     qp_iters_per_step: float  # the QP's mean ADMM iterations per control step in a physics + WBC call
+    solver_cap_share: float  # its share of physics steps at the constraint solver's cap (solver_cap_share)
 
 
 def qp_iterations(before, after, steps: int) -> float:
@@ -122,7 +123,8 @@ def _physics_and_wbc(sim, b, n_env: int, timer, rounds: int) -> _Timings:
     c_phys = timer(f_phys, b.model, b.state.d)[1]
     (state, _), c_wbc = timer(f_wbc, *args)
     t = np.array([(timer(f_phys, b.model, b.state.d)[1], timer(f_wbc, *args)[1]) for _ in range(rounds)])
-    return _Timings(c_phys, c_wbc, t[:, 0], t[:, 1], qp_iterations(b.state, state, sim.log_every))
+    return _Timings(c_phys, c_wbc, t[:, 0], t[:, 1], qp_iterations(b.state, state, sim.log_every),
+                    solver_cap_share(b.state, state, n_env))
 
 
 def round_figures(t_phys, t_wbc, batch: int, n_env: int, steps: int) -> dict:
@@ -172,15 +174,17 @@ def _time_one_device(case: _Case, row: dict):
     WBC call [s], the base of the speed-ups)."""
     B, rounds = case.batch, case.rounds
     b = random_batch(case.sim, B)
-    c_phys, c_wbc, phys_rounds, wbc_rounds, qp_iters = _physics_and_wbc(case.sim, b, case.n_env, timed, rounds)
+    c_phys, c_wbc, phys_rounds, wbc_rounds, qp_iters, caps = _physics_and_wbc(case.sim, b, case.n_env, timed, rounds)
     t_phys, t_wbc = float(np.median(phys_rounds)), float(np.median(wbc_rounds))
     row.update(round_figures(phys_rounds, wbc_rounds, B, case.n_env, case.steps), peak_device_bytes=_peak_bytes(),
-               compile_physics_s=c_phys - t_phys, compile_wbc_s=c_wbc - t_wbc, qp_iters_per_step=qp_iters)
+               compile_physics_s=c_phys - t_phys, compile_wbc_s=c_wbc - t_wbc, qp_iters_per_step=qp_iters,
+               solver_cap_share=caps)
     lo, hi = row["non_physics_ms_per_step_range"]
     print(f"{case.device} {case.label:4s} batch {B:6d}: physics {row['physics_steps_per_s']:12.0f} steps/s   "
           f"physics+WBC {row['wbc_steps_per_s']:12.0f} steps/s   ratio {row['ratio']:.3f}   everything but "
           f"physics {row['non_physics_ms_per_step']:.3f} ms per control step ({rounds} rounds: {lo:.3f} to "
-          f"{hi:.3f}), QP iterations per step {qp_iters:.1f}   compile {row['compile_wbc_s']:.1f} s"
+          f"{hi:.3f}), QP iterations per step {qp_iters:.1f}, physics steps at the solver's cap {caps:.1%}   "
+          f"compile {row['compile_wbc_s']:.1f} s"
           + (f"   peak memory {row['peak_device_bytes'] / 2**30:.2f} GiB" if row["peak_device_bytes"] else ""),
           flush=True)
     return b, t_wbc

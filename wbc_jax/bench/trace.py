@@ -137,25 +137,36 @@ def kernel_durations(events: list, prefix: str = "") -> dict[str, float]:
 
 def _sweep(spans):
     """Spans ``(start, end, tag)`` in start order: ``(tag, idle time before it, time it adds to the union of the
-    spans so far)`` each, in the spans' units (the first span has no idle time before it)."""
-    end = -np.inf
+    spans so far, the tag of the span that ended latest so far)`` each, in the spans' units (the first span has no
+    idle time before it, and None before it)."""
+    end, last = -np.inf, None
     for a, b, tag in sorted(spans, key=lambda s: (s[0], s[1])):
-        yield tag, (max(0.0, a - end) if end > -np.inf else 0.0), max(0.0, b - max(a, end))
-        end = max(end, b)
+        yield tag, (max(0.0, a - end) if end > -np.inf else 0.0), max(0.0, b - max(a, end)), last
+        if b > end:
+            end, last = b, tag
 
 
-def idle_before(events) -> dict[str, float]:
-    """{kernel name: summed device idle time [ms] just before it starts}: the GPU events of
+def idle_between(events) -> dict[tuple[str, str], float]:
+    """{(kernel before, kernel after): summed device idle time [ms] between them}: the GPU events of
     :func:`kernel_durations` (each GPU process on its own) in start order; a gap is the time from the latest end so
-    far to the next event's start, charged to that event's name (what the device waited to start: a launch, a
-    loop's host round trip, a host callback)."""
+    far (the kernel before: the one that ended then) to the next event's start (the kernel after: what the device
+    waited to start: a launch, a loop's host round trip, a host callback, or work the trace does not list)."""
     out = {}
     for pid in gpu_pids(events):
         spans = ((float(e.get("ts", 0.0)), float(e.get("ts", 0.0)) + float(e.get("dur", 0.0)), str(e.get("name", "")))
                  for e in events if e.get("ph") == "X" and e.get("pid") == pid)
-        for name, gap, _ in _sweep(spans):
+        for name, gap, _, before in _sweep(spans):
             if gap > 0.0:
-                out[name] = out.get(name, 0.0) + gap / 1e3
+                out[(before, name)] = out.get((before, name), 0.0) + gap / 1e3
+    return out
+
+
+def idle_before(events) -> dict[str, float]:
+    """{kernel name: summed device idle time [ms] just before it starts}: :func:`idle_between` summed over the
+    kernels before."""
+    out = {}
+    for (_, name), ms in idle_between(events).items():
+        out[name] = out.get(name, 0.0) + ms
     return out
 
 
@@ -228,7 +239,7 @@ def summarize(ops, paths: dict[str, str], wall_s: float, n_steps: int, sources: 
     busy_us = sum(v[1] for v in per.values())
     wall_us = 1e6 * wall_s
     # device time covered by at least one op (ops on several streams may overlap)
-    covered = sum(c for _, _, c in _sweep((ts, ts + dur, None) for _, ts, dur, _ in ops))
+    covered = sum(c for _, _, c, _ in _sweep((ts, ts + dur, None) for _, ts, dur, _ in ops))
     stages = {k: dict(ops_per_step=v[0] / n_steps, device_us_per_step=v[1] / n_steps,
                       share_of_wall=v[1] / wall_us if wall_us > 0 else float("nan")) for k, v in per.items()}
     heavy = sorted(top.items(), key=lambda kv: -kv[1][1])[:TOP_OPS]
