@@ -47,8 +47,7 @@ def profile(program, args, n_ctl: int, state0, label: str) -> tuple[dict, dict]:
     launches = sum(1 for e in events if e.get("ph") == "X" and e.get("pid") in gpu)
     print(f"== {label}: {1e3 * wall / n_ctl:.3f} ms per control step wall, {busy / n_ctl:.3f} ms of kernels "
           f"({launches / n_ctl:.1f} launches), {sum(idle.values()) / n_ctl:.3f} ms idle between them; "
-          f"ADMM iterations per control step "
-          f"{qp_iterations(state0, out[0], n_ctl):.2f}")
+          f"ADMM iterations per control step {qp_iterations(state0, out[0], n_ctl):.2f}")
     for name, ms in sorted(kernels.items(), key=lambda kv: -kv[1])[:20]:
         print(f"  {ms / n_ctl:8.4f} ms  {100 * ms / busy:5.1f} %  {name[:100]}")
     print("  idle between kernels (ms per control step):")

@@ -3,14 +3,14 @@
     python examples/physics_solver_cap.py [SPEC] [BATCH] [CHUNKS]
         (defaults: sweeps/paper_campaign.toml 16384 12; MuJoCo Warp physics, so a GPU)
 
-The spec is built as a campaign builds it, its runs repeated to BATCH (run i is the spec's run i mod n), and
-stepped from the start state by the campaign's chunk program and by its ``no_noise`` ablation
+The spec is built as a campaign builds it, its runs repeated to BATCH (run i is the spec's run i mod n), and stepped
+from the start state by the campaign's chunk program and by its ``no_noise`` ablation
 (:mod:`wbc_jax.bench.campaign_step`), CHUNKS calls of 20 control steps each, every call continuing from the last.
 After each call it reads MuJoCo Warp's per-world iteration count of the last physics step (``solver_niter``: its
 batch maximum and mean, the share of worlds at ``opt.iterations``) and the runs' physics steps whose solve stopped
-at that cap during the call (``Accum.n_solver_cap``). Warp's solver loop runs until the batch's last world has
-converged, so the batch maximum is the number of iterations every world's step pays for. It prints them per program
-with the wall time per control step of calls 2..CHUNKS.
+at that cap during the call (``Accum.n_solver_cap``, :func:`wbc_jax.bench.rollout.solver_cap_share`). Warp's solver
+loop runs until the batch's last world has converged, so the batch maximum is the number of iterations every world's
+step pays for. It prints them per program with the wall time per control step of calls 2..CHUNKS.
 """
 
 import sys
@@ -20,6 +20,7 @@ import jax
 import numpy as np
 
 from wbc_jax.bench.campaign_step import compiled_chunk, fresh_state, repeated
+from wbc_jax.bench.rollout import solver_cap_share
 from wbc_jax.campaign.build import LOG_EVERY, build
 from wbc_jax.campaign.spec import load_spec
 from wbc_jax.rollout.batch import chunk_args
@@ -39,9 +40,9 @@ def main(spec_path: str, batch: int, chunks: int) -> None:
             t0 = time.perf_counter()
             state = jax.block_until_ready(program(*args))[0]
             wall += (time.perf_counter() - t0) if i else 0.0
-            capped = np.sum(np.asarray(state.acc.n_solver_cap, np.int64) - np.asarray(args[1].acc.n_solver_cap))
+            per_ctl = batch * solver_cap_share(args[1], state, LOG_EVERY)  # runs' capped steps per control step
             niter = np.asarray(state.d._impl.solver_niter).ravel()
-            rows.append((niter.max(), niter.mean(), np.mean(niter >= cap), capped / LOG_EVERY))
+            rows.append((niter.max(), niter.mean(), np.mean(niter >= cap), per_ctl))
             args[1] = state
         r = np.array(rows, float)
         print(f"== {name}: last physics step's iterations, batch max per call {r[:, 0].astype(int).tolist()}, "

@@ -205,10 +205,9 @@ def run_campaign_step(spec, batches, steps: int = 200, snapshots: int = 3, break
         out["batches"].append(row)
         shares = "".join(f", {k.split('_')[0]} {row[k]:.1%}" for k in ("clearance_share", "monitors_share",
                                                                        "noise_share") if k in row)
-        shares += "; QP iterations per step " + ", ".join(
-            f"{k.rsplit('_qp_iters_per_step')[0]} {v:.1f}" for k, v in row.items() if k.endswith("_qp_iters_per_step"))
-        shares += "; physics steps at the constraint solver's cap " + ", ".join(
-            f"{k.rsplit('_solver_cap_share')[0]} {v:.1%}" for k, v in row.items() if k.endswith("_solver_cap_share"))
+        for title, key, fmt in (("QP iterations per step", "_qp_iters_per_step", ".1f"),
+                                ("physics steps at the constraint solver's cap", "_solver_cap_share", ".1%")):
+            shares += f"; {title} " + ", ".join(f"{k[:-len(key)]} {v:{fmt}}" for k, v in row.items() if k.endswith(key))
         print(f"{device} campaign step ({spec.campaign['name']}, {sim.robot.backend}:{sim.sensing}) batch {B:6d}: "
               f"{row['campaign_steps_per_s']:12.0f} env-steps per s from t = "
               f"{', '.join(f'{t:g}' for t in steps_walk.times_s)} s; physics alone {row['physics_steps_per_s']:12.0f}"

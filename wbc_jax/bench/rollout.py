@@ -98,11 +98,16 @@ class _Timings(NamedTuple):
     solver_cap_share: float  # its share of physics steps at the constraint solver's cap (solver_cap_share)
 
 
+def _counted(before, after, field: str) -> np.ndarray:
+    """Per run, what accumulator ``field`` (``Accum``) counted between RunStates ``before`` and ``after``
+    (float64)."""
+    return np.asarray(getattr(after.acc, field), np.float64) - np.asarray(getattr(before.acc, field), np.float64)
+
+
 def qp_iterations(before, after, steps: int) -> float:
     """Mean ADMM iterations per control step over the runs between RunStates ``before`` and ``after``, ``steps``
     control steps apart (``Accum.sum_qp_iters``; a run that has failed, frozen, counts none)."""
-    done = np.asarray(after.acc.sum_qp_iters, np.float64) - np.asarray(before.acc.sum_qp_iters, np.float64)
-    return float(np.mean(done)) / steps
+    return float(np.mean(_counted(before, after, "sum_qp_iters"))) / steps
 
 
 def solver_cap_share(before, after, physics_steps: int) -> float:
@@ -110,8 +115,7 @@ def solver_cap_share(before, after, physics_steps: int) -> float:
     constraint solve stopped at ``opt.iterations`` (``Accum.n_solver_cap``; MuJoCo Warp only: MJX's JAX solver
     reports no count, so 0). Warp's solver loop runs until the batch's last world has converged: one capped world
     holds every world's step at the cap's iterations."""
-    capped = np.asarray(after.acc.n_solver_cap, np.float64) - np.asarray(before.acc.n_solver_cap, np.float64)
-    return float(np.mean(capped)) / physics_steps
+    return float(np.mean(_counted(before, after, "n_solver_cap"))) / physics_steps
 
 
 def _physics_and_wbc(sim, b, n_env: int, timer, rounds: int) -> _Timings:
