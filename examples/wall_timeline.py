@@ -2,13 +2,14 @@
 
     python examples/wall_timeline.py [--every 0.01] [--bin 0.2] [--samples FILE] campaign --spec SPEC --out DIR
 
-The command runs in this process (``wbc_jax.cli.main``) while a thread reads the main thread's stack every
-``--every`` seconds (``sys._current_frames``). Each sample is named by the innermost frame of the ``wbc_jax`` package
-(module path and function), prefixed ``import`` while Python imports a module below it. The samples are grouped in
-bins of ``--bin`` seconds, each bin named by its most frequent name, and consecutive bins of one name merged: the
-printed stretches (start, end, name) are the phases of the command's wall time, waits included (a device call, a
-thread joined), which a profiler of CPU time (``cProfile``) attributes to whatever holds the interpreter meanwhile.
-Times are from the start of this script. ``--samples FILE`` also writes every sample (time, name, innermost frame).
+The command runs in this process as the console script runs it (``wbc_jax.cli.run``) while a thread reads the main
+thread's stack every ``--every`` seconds (``sys._current_frames``). Each sample is named by the innermost frame of
+the ``wbc_jax`` package (module path and function), prefixed ``import`` while Python imports a module below it. The
+samples are grouped in bins of ``--bin`` seconds, each bin named by its most frequent name, and consecutive bins of
+one name merged: the printed stretches (start, end, name) are the phases of the command's wall time, waits included
+(a device call, a thread joined), which a profiler of CPU time (``cProfile``) attributes to whatever holds the
+interpreter meanwhile. Times are from the start of this script. ``--samples FILE`` also writes every sample (time,
+name, innermost frame).
 """
 
 from __future__ import annotations
@@ -41,14 +42,14 @@ def phases(samples: list[tuple[float, str]], bin_s: float) -> list[tuple[float, 
     bins: dict[int, Counter] = {}
     for t, name in samples:
         bins.setdefault(int(t / bin_s), Counter())[name] += 1
-    out: list[list] = []
+    runs: list[list] = []  # [first bin, last bin, name]
     for b in sorted(bins):
         name = bins[b].most_common(1)[0][0]
-        if out and out[-1][2] == name and abs(out[-1][1] - b * bin_s) < 1e-9:
-            out[-1][1] = (b + 1) * bin_s
+        if runs and runs[-1][2] == name and runs[-1][1] == b - 1:
+            runs[-1][1] = b
         else:
-            out.append([b * bin_s, (b + 1) * bin_s, name])
-    return [tuple(p) for p in out]
+            runs.append([b, b, name])
+    return [(first * bin_s, (last + 1) * bin_s, name) for first, last, name in runs]
 
 
 def main() -> None:
@@ -68,20 +69,24 @@ def main() -> None:
                 samples.append((time.perf_counter() - t0, *frame_name(frame)))
             time.sleep(args.every)
 
-    threading.Thread(target=sample, name="wall-timeline", daemon=True).start()
-    from wbc_jax.cli import main as wbc_jax_main
+    def report():  # an exit handler: once the command has returned and its threads have ended
+        stop.set()
+        print(f"\nwbc-jax {' '.join(command)}: {time.perf_counter() - t0:.2f} s; the main thread's phases (bins of "
+              f"{args.bin} s):")
+        for start, end, name in phases([(t, name) for t, name, _ in samples], args.bin):
+            print(f"{start:8.1f} {end:8.1f} s {end - start:7.1f} s  {name}")
+        if args.samples:
+            with open(args.samples, "w") as f:
+                f.writelines(f"{t:.3f}\t{name}\t{inner}\n" for t, name, inner in samples)
 
-    code = wbc_jax_main(command)
-    stop.set()
-    end = time.perf_counter() - t0
-    print(f"\nwbc-jax {' '.join(command)}: exit {code}, {end:.2f} s; the main thread's phases (bins of {args.bin} s):")
-    for start, stop_s, name in phases([(t, name) for t, name, _ in samples], args.bin):
-        print(f"{start:8.1f} {stop_s:8.1f} s {stop_s - start:7.1f} s  {name}")
-    if args.samples:
-        with open(args.samples, "w") as f:
-            f.writelines(f"{t:.3f}\t{name}\t{inner}\n" for t, name, inner in samples)
-    sys.stdout.flush()
-    os._exit(code)  # as the console script: no interpreter teardown (wbc_jax.cli.run)
+    threading.Thread(target=sample, name="wall-timeline", daemon=True).start()
+    import atexit
+
+    from wbc_jax.cli import run
+
+    atexit.register(report)
+    sys.argv = ["wbc-jax", *command]
+    run()  # the console script: the command, its threads joined, the exit handlers, then the process ends
 
 
 if __name__ == "__main__":
