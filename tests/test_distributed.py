@@ -17,6 +17,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -25,7 +26,7 @@ from jax._src import cache_key
 
 from wbc_jax import cli
 from wbc_jax.errors import InputError
-from wbc_jax.rollout.distributed import DEFAULT_PORT, Layout, first_host, resolve
+from wbc_jax.rollout.distributed import DEFAULT_PORT, Layout, first_host, resolve, shared_gpu
 
 TIMEOUT_S = 900  # three processes compile at once on 2 cores
 
@@ -72,6 +73,49 @@ def test_bad_settings_are_one_line_errors(kw, env, expect):
     with pytest.raises(InputError) as e:
         resolve(**kw, env=env)
     assert expect in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_gpu_shared_by_two_processes_is_named():
+    """Two processes of one host on one GPU (NCCL would fail at the first collective with "Duplicate GPU detected"):
+    the first such GPU (its PCI bus id) and its processes named in one line; the same bus id on two hosts, or
+    different bus ids, are no conflict; processes without GPUs (CPU runs) none."""
+    a, b = "0000:60:00.0", "0000:61:00.0"
+    assert shared_gpu({0: ("h1", [a]), 1: ("h1", [b]), 2: ("h2", [a]), 3: ("h2", [b])}) is None
+    assert shared_gpu({0: ("h1", []), 1: ("h1", [])}) is None
+    msg = shared_gpu({0: ("h1", [a, b]), 1: ("h2", [a]), 2: ("h1", ["0000:62:00.0", b])})
+    assert msg.startswith(f"processes 0 and 2 both use the GPU at PCI bus {b} of host h1: give each process its own")
+    assert "--local-device-ids" in msg and "\n" not in msg
+    assert shared_gpu({1: ("h1", [a]), 0: ("h1", [a])}).startswith("processes 0 and 1 ")
+
+
+def test_own_gpus_checked_through_the_store(monkeypatch):
+    """check_own_gpus: this process's GPUs' bus ids (from the CUDA driver, here a stand-in for devices 0 and 1)
+    published, every process's read back; process 1 of one host on the same bus id is an InputError, on another
+    none, and the check runs once per process; a GPU whose bus id the driver does not give is left out."""
+    import jax
+
+    from wbc_jax.rollout import distributed
+
+    class Dev(NamedTuple):
+        platform: str
+        local_hardware_id: int
+
+    store = {"wbc-jax/gpus/1": json.dumps([socket.gethostname(), ["0000:61:00.0"]])}
+    monkeypatch.setattr(distributed, "share", store.__setitem__)
+    monkeypatch.setattr(distributed, "shared", lambda key, timeout_s: store[key])
+    monkeypatch.setattr(distributed, "_ACTIVE", Layout("h:1", 2, 0, (1,), "flags"))
+    monkeypatch.setattr(distributed, "_bus_id", {0: "0000:60:00.0", 1: "0000:61:00.0"}.get)
+    monkeypatch.setattr(jax, "local_devices", lambda: [Dev("gpu", 1)])
+    monkeypatch.setattr(distributed, "_GPUS_CHECKED", False)
+    with pytest.raises(InputError, match="processes 0 and 1 both use the GPU at PCI bus 0000:61:00.0 of host"):
+        distributed.check_own_gpus()
+    assert json.loads(store["wbc-jax/gpus/0"])[1] == ["0000:61:00.0"]
+    distributed.check_own_gpus()  # once per process: no second exchange
+    monkeypatch.setattr(distributed, "_GPUS_CHECKED", False)
+    monkeypatch.setattr(jax, "local_devices", lambda: [Dev("gpu", 0), Dev("gpu", 7), Dev("cpu", 1)])
+    store.pop("wbc-jax/gpus/0")
+    distributed.check_own_gpus()
+    assert json.loads(store["wbc-jax/gpus/0"])[1] == ["0000:60:00.0"]
 
 
 def test_bad_flags_cli_exit_2_nothing_written(tmp_path, capsys, tiny_spec):

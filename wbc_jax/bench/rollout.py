@@ -253,6 +253,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
     n_env = steps * substeps  # env-steps per run per timed call
     rows = []
     n_proc, writer = jax.process_count(), distributed.is_writer()
+    distributed.check_own_gpus()  # before the first collective: each process its own GPUs
     for k, B in [(k, B) for k in backends for B in batches]:
         sim, backend, sensing = _make_case(k, scene, qs, substeps, steps)
         row = dict(device=device, backend=backend, sensing=sensing, scene=sim.robot.path.name, batch=B, steps=steps,

@@ -19,14 +19,17 @@ error, so that no process waits for a partner that has left.
 
 from __future__ import annotations
 
+import json
 import os
 import re
-from typing import Mapping, NamedTuple
+import socket
+from typing import Mapping, NamedTuple, Sequence
 
 from wbc_jax.errors import InputError, WbcJaxError
 
 DEFAULT_PORT = 12355  # coordinator port when only the host is known (SLURM)
 MESSAGE_BYTES = 4096  # longest error message :func:`agree` carries to the other processes
+HOST_WAIT_S = 24 * 3600.0  # longest a process waits at a host barrier or for a shared value (a partner's chunk)
 
 
 class Layout(NamedTuple):
@@ -40,6 +43,7 @@ class Layout(NamedTuple):
 
 
 _ACTIVE: Layout | None = None
+_GPUS_CHECKED = False  # check_own_gpus has run in this process
 
 
 def _int(text, what: str, lo: int, hi: int | None = None) -> int:
@@ -197,16 +201,77 @@ def layout_record() -> dict:
                 devices=[dict(id=d.id, process=d.process_index, kind=d.device_kind) for d in jax.devices()])
 
 
+def shared_gpu(owners: Mapping[int, tuple[str, Sequence[str]]]) -> str | None:
+    """The first GPU that two processes of one host both use, as a one-line error message; None when none does.
+
+    Args:
+        owners: process index -> (its host's name, the PCI bus ids of the GPUs it uses). A GPU is known by its bus
+            id, as NCCL knows it: ``CUDA_VISIBLE_DEVICES`` and device numbers differ between processes (a cluster's
+            per-task device isolation shows every task its GPU as device 0).
+    """
+    seen: dict[tuple[str, str], int] = {}
+    for p in sorted(owners):
+        host, gpus = owners[p]
+        for g in gpus:
+            q = seen.setdefault((host, str(g)), p)
+            if q != p:
+                return (f"processes {q} and {p} both use the GPU at PCI bus {g} of host {host}: give each process "
+                        "its own GPUs (--local-device-ids, or CUDA_VISIBLE_DEVICES per process)")
+    return None
+
+
+def _bus_id(ordinal: int) -> str | None:
+    """The PCI bus id (``"0000:60:00.0"``) of this process's CUDA device ``ordinal`` from the CUDA driver, or None
+    where the driver cannot tell."""
+    import ctypes
+
+    try:
+        cuda = ctypes.CDLL("libcuda.so.1")
+        dev, buf = ctypes.c_int(), ctypes.create_string_buffer(64)
+        ok = (cuda.cuInit(0) == 0 and cuda.cuDeviceGet(ctypes.byref(dev), int(ordinal)) == 0
+              and cuda.cuDeviceGetPCIBusId(buf, 64, dev) == 0)
+    except (OSError, AttributeError):  # no CUDA driver here
+        return None
+    return buf.value.decode() if ok and buf.value else None
+
+
+def _physical_gpus() -> list[str]:
+    """The PCI bus ids of this process's GPUs (:func:`shared_gpu`); empty without GPUs, a GPU whose id the driver
+    does not give left out."""
+    import jax
+
+    ids = [_bus_id(d.local_hardware_id) for d in jax.local_devices()
+           if d.platform == "gpu" and d.local_hardware_id is not None]
+    return [i for i in ids if i is not None]
+
+
+def check_own_gpus(timeout_s: float = HOST_WAIT_S) -> None:
+    """Raise an :class:`InputError` (:func:`shared_gpu`'s message) in every process where two processes of one host
+    use the same GPU, before their first device collective, which would fail inside NCCL ("Duplicate GPU
+    detected"). Host-side, through the coordination service; once per process (later calls return at once);
+    nothing with one process. Every process must call it (:func:`agree` does, first)."""
+    global _GPUS_CHECKED
+    if _ACTIVE is None or _GPUS_CHECKED:
+        return
+    share(f"wbc-jax/gpus/{_ACTIVE.process_id}", json.dumps([socket.gethostname(), _physical_gpus()]))
+    owners = {p: tuple(json.loads(shared(f"wbc-jax/gpus/{p}", timeout_s))) for p in range(_ACTIVE.num_processes)}
+    _GPUS_CHECKED = True
+    message = shared_gpu(owners)
+    if message is not None:
+        raise InputError(message)
+
+
 def agree(error: WbcJaxError | None) -> None:
     """Raise process 0's user error (None: none) in every process.
 
     Single process: raises ``error`` if given. Several: a collective (every process must call it at the same
-    point); process 0's message reaches the others, which raise it as a WbcJaxError.
+    point), after :func:`check_own_gpus`; process 0's message reaches the others, which raise it as a WbcJaxError.
     """
     if _ACTIVE is None:
         if error is not None:
             raise error
         return
+    check_own_gpus()
     import numpy as np
     from jax.experimental import multihost_utils
 
@@ -219,10 +284,6 @@ def agree(error: WbcJaxError | None) -> None:
         raise error
     if got[0]:
         raise WbcJaxError(bytes(got[1:]).rstrip(b"\0").decode(errors="replace"))
-
-
-
-HOST_WAIT_S = 24 * 3600.0  # longest a process waits at a host barrier or for a shared value (a partner's chunk)
 
 
 def _client():
