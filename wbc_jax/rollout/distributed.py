@@ -14,7 +14,8 @@ switched on: without them a CPU computation cannot span processes). ``jax.device
 every process; a campaign spreads its run axis over all of them (:func:`wbc_jax.rollout.sharding.run_mesh`), every
 process builds the same batch (the design is deterministic), and only :func:`is_writer` (process 0) writes.
 :func:`agree` makes a user error found by process 0 alone (its output folder, its checkpoint) every process's
-error, so that no process waits for a partner that has left.
+error, so that no process waits for a partner that has left; before its first collective it stops a run where two
+processes of one host share a GPU (:func:`check_own_gpus`), which NCCL cannot serve.
 """
 
 from __future__ import annotations
