@@ -156,22 +156,33 @@ def test_diverged_solve_is_not_applied(setup, monkeypatch):
     last = jnp.linspace(-1.0, 1.0, sim.cfg.n_var)
     cs = st.cs._replace(warm=st.cs.warm._replace(x=last))
     solve = tc.solve_qp
+    # one program for every case (traced once): the solve's flag set to ``flag`` where ``flag >= 0``, its x replaced
+    # by ``x`` everywhere where ``fill``, by the last step's solution where ``as_last``
+    box = {}
 
-    def step(flag, x):
-        def fake(*a, **kw):
-            res = solve(*a, **kw)
-            return res._replace(flag=jnp.asarray(flag, res.flag.dtype), x=jnp.full_like(res.x, x) if x else res.x)
-        monkeypatch.setattr(tc, "solve_qp", fake)
+    def fake(*a, **kw):
+        res = solve(*a, **kw)
+        flag, x, fill, as_last = box["args"]
+        out_x = jnp.where(fill, jnp.full_like(res.x, x), jnp.where(as_last, last, res.x))
+        return res._replace(flag=jnp.where(flag >= 0, flag.astype(res.flag.dtype), res.flag), x=out_x)
+
+    @jax.jit
+    def control(flag, x, fill, as_last):
+        box["args"] = (flag, x, fill, as_last)
         tau, new, _ = tc.transport_control(obs, ref, _take0(b.om), _take0(b.gains), cs, robot.ids, sim.cfg)
-        return np.asarray(tau), np.asarray(new.obs.w_cmd), np.asarray(new.warm.x)
+        return tau, new.obs.w_cmd, new.warm.x
 
-    converged = step(0, 0)
-    monkeypatch.setattr(tc, "solve_qp", lambda *a, **kw: solve(*a, **kw)._replace(x=last))
-    given_last = tc.transport_control(obs, ref, _take0(b.om), _take0(b.gains), cs, robot.ids, sim.cfg)
+    monkeypatch.setattr(tc, "solve_qp", fake)
+
+    def step(flag, x=0.0, fill=False, as_last=False):
+        return [np.asarray(v) for v in control(jnp.int32(flag), jnp.float32(x), jnp.bool_(fill), jnp.bool_(as_last))]
+
+    converged = step(0)
+    given_last = step(-1, as_last=True)
     for flag in (FLAG_NONFINITE, FLAG_DIVERGED):
-        diverged = step(flag, 1e30)
-        np.testing.assert_array_equal(diverged[0], np.asarray(given_last[0]))
-        np.testing.assert_array_equal(diverged[1], np.asarray(given_last[1].obs.w_cmd))
+        diverged = step(flag, 1e30, fill=True)
+        np.testing.assert_array_equal(diverged[0], given_last[0])
+        np.testing.assert_array_equal(diverged[1], given_last[1])
         np.testing.assert_array_equal(diverged[2], np.asarray(last))
         assert np.all(np.isfinite(diverged[0])) and not np.array_equal(converged[0], diverged[0])
 
