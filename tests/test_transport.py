@@ -156,23 +156,19 @@ def test_diverged_solve_is_not_applied(setup, monkeypatch):
     last = jnp.linspace(-1.0, 1.0, sim.cfg.n_var)
     cs = st.cs._replace(warm=st.cs.warm._replace(x=last))
     solve = tc.solve_qp
-    # one program for every case (traced once): the solve's flag set to ``flag`` where ``flag >= 0``, its x replaced
-    # by ``x`` everywhere where ``fill``, by the last step's solution where ``as_last``
-    box = {}
-
-    def fake(*a, **kw):
-        res = solve(*a, **kw)
-        flag, x, fill, as_last = box["args"]
-        out_x = jnp.where(fill, jnp.full_like(res.x, x), jnp.where(as_last, last, res.x))
-        return res._replace(flag=jnp.where(flag >= 0, flag.astype(res.flag.dtype), res.flag), x=out_x)
 
     @jax.jit
     def control(flag, x, fill, as_last):
-        box["args"] = (flag, x, fill, as_last)
+        """One program for every case (traced once): the solve's flag set to ``flag`` where ``flag >= 0``, its x
+        replaced by ``x`` everywhere where ``fill``, by the last step's solution where ``as_last``."""
+        def fake(*a, **kw):
+            res = solve(*a, **kw)
+            out_x = jnp.where(fill, jnp.full_like(res.x, x), jnp.where(as_last, last, res.x))
+            return res._replace(flag=jnp.where(flag >= 0, flag.astype(res.flag.dtype), res.flag), x=out_x)
+
+        monkeypatch.setattr(tc, "solve_qp", fake)
         tau, new, _ = tc.transport_control(obs, ref, _take0(b.om), _take0(b.gains), cs, robot.ids, sim.cfg)
         return tau, new.obs.w_cmd, new.warm.x
-
-    monkeypatch.setattr(tc, "solve_qp", fake)
 
     def step(flag, x=0.0, fill=False, as_last=False):
         return [np.asarray(v) for v in control(jnp.int32(flag), jnp.float32(x), jnp.bool_(fill), jnp.bool_(as_last))]
