@@ -224,26 +224,37 @@ def test_unusable_solve_is_not_applied(robot, monkeypatch):
     q0 = robot.home_qpos()
     plan, R0 = make_plan(robot, q0, 0.1, 0.25, 0.08, 4)
     mx = robot.mjx_model
-    d = physics.sense(mx, mjx.make_data(mx).replace(qpos=jnp.asarray(q0)))
-    obs = observe(mx, d, ids)
-    wr = cpm.cp_walk_reference(plan, plan.gait.t_start + 0.15, obs.robot.com[:2], obs.robot.p_foot)
-    ref = CentroidalRef(v_xy=wr.v_xy, z=plan.z0, R_base=jnp.asarray(R0), heading=plan.heading, swing=wr.swing,
-                        p_sw=wr.p_sw, v_sw=wr.v_sw, a_sw=wr.a_sw)
     last = jnp.linspace(-1.0, 1.0, cfg.n_var)
     cs = cc.init_state(cfg, jnp.asarray(q0), ids)
     cs = cs._replace(warm=cs.warm._replace(x=last))
     solve = cc.solve_qp
 
-    def step(fake):
+    @jax.jit
+    def control(flag, x, fill, as_last):
+        """One program for every case (traced once; the state sensed inside it, not op by op): the solve's flag
+        set to ``flag`` where ``flag >= 0``, its x replaced by ``x`` everywhere where ``fill``, by the last step's
+        solution where ``as_last``."""
+        def fake(*a, **kw):
+            res = solve(*a, **kw)
+            out_x = jnp.where(fill, jnp.full_like(res.x, x), jnp.where(as_last, last, res.x))
+            return res._replace(flag=jnp.where(flag >= 0, flag.astype(res.flag.dtype), res.flag), x=out_x)
+
+        d = physics.sense(mx, mjx.make_data(mx).replace(qpos=jnp.asarray(q0)))
+        obs = observe(mx, d, ids)
+        wr = cpm.cp_walk_reference(plan, plan.gait.t_start + 0.15, obs.robot.com[:2], obs.robot.p_foot)
+        ref = CentroidalRef(v_xy=wr.v_xy, z=plan.z0, R_base=jnp.asarray(R0), heading=plan.heading, swing=wr.swing,
+                            p_sw=wr.p_sw, v_sw=wr.v_sw, a_sw=wr.a_sw)
         monkeypatch.setattr(cc, "solve_qp", fake)
         tau, new, _ = cc.centroidal_control(obs, ref, default_gains(), cs, ids, cfg)
-        return np.asarray(tau), np.asarray(new.warm.x)
+        return tau, new.warm.x
 
-    given_last = step(lambda *a, **kw: solve(*a, **kw)._replace(x=last))
-    converged = step(solve)
+    def step(flag, x=0.0, fill=False, as_last=False):
+        return [np.asarray(v) for v in control(jnp.int32(flag), jnp.float32(x), jnp.bool_(fill), jnp.bool_(as_last))]
+
+    given_last = step(-1, as_last=True)
+    converged = step(-1)
     for flag in (FLAG_NONFINITE, FLAG_DIVERGED):
-        bad = step(lambda *a, flag=flag, **kw: solve(*a, **kw)._replace(flag=jnp.asarray(flag, jnp.int32),
-                                                                            x=jnp.full(cfg.n_var, 1e30)))
+        bad = step(flag, 1e30, fill=True)
         np.testing.assert_array_equal(bad[0], given_last[0])
         np.testing.assert_array_equal(bad[1], np.asarray(last))
         assert np.all(np.isfinite(bad[0])) and not np.array_equal(bad[0], converged[0])

@@ -151,21 +151,22 @@ def test_diverged_solve_is_not_applied(setup, monkeypatch):
 
     robot, sim, b = setup
     m, st = _take0(b.model, b.in_axes), _take0(b.state)
-    d = physics.sense(m, st.d)
-    obs, ref = observe(m, d, robot.ids), reference(_take0(b.plan), d.time, st.p_lift)
     last = jnp.linspace(-1.0, 1.0, sim.cfg.n_var)
     cs = st.cs._replace(warm=st.cs.warm._replace(x=last))
     solve = tc.solve_qp
 
     @jax.jit
     def control(flag, x, fill, as_last):
-        """One program for every case (traced once): the solve's flag set to ``flag`` where ``flag >= 0``, its x
-        replaced by ``x`` everywhere where ``fill``, by the last step's solution where ``as_last``."""
+        """One program for every case (traced once; the state sensed inside it, not op by op): the solve's flag
+        set to ``flag`` where ``flag >= 0``, its x replaced by ``x`` everywhere where ``fill``, by the last step's
+        solution where ``as_last``."""
         def fake(*a, **kw):
             res = solve(*a, **kw)
             out_x = jnp.where(fill, jnp.full_like(res.x, x), jnp.where(as_last, last, res.x))
             return res._replace(flag=jnp.where(flag >= 0, flag.astype(res.flag.dtype), res.flag), x=out_x)
 
+        d = physics.sense(m, st.d)
+        obs, ref = observe(m, d, robot.ids), reference(_take0(b.plan), d.time, st.p_lift)
         monkeypatch.setattr(tc, "solve_qp", fake)
         tau, new, _ = tc.transport_control(obs, ref, _take0(b.om), _take0(b.gains), cs, robot.ids, sim.cfg)
         return tau, new.obs.w_cmd, new.warm.x
