@@ -8,6 +8,7 @@ import numpy as np
 import osqp
 import pytest
 import scipy.sparse as sp
+from test_transport import solve_stand_in  # the unusable-solve tests' stand-in for the QP solve
 
 from wbc_jax.control.centroidal import CentroidalRef, build_qp, default_gains, scaled_model
 from wbc_jax.control.centroidal_dynamics import centroidal_terms
@@ -231,20 +232,14 @@ def test_unusable_solve_is_not_applied(robot, monkeypatch):
 
     @jax.jit
     def control(flag, x, fill, as_last):
-        """One program for every case (traced once; the state sensed inside it, not op by op): the solve's flag
-        set to ``flag`` where ``flag >= 0``, its x replaced by ``x`` everywhere where ``fill``, by the last step's
-        solution where ``as_last``."""
-        def fake(*a, **kw):
-            res = solve(*a, **kw)
-            out_x = jnp.where(fill, jnp.full_like(res.x, x), jnp.where(as_last, last, res.x))
-            return res._replace(flag=jnp.where(flag >= 0, flag.astype(res.flag.dtype), res.flag), x=out_x)
-
+        """One program for every case (traced once; the state sensed inside it, not op by op), the solve changed
+        by ``test_transport.solve_stand_in``."""
         d = physics.sense(mx, mjx.make_data(mx).replace(qpos=jnp.asarray(q0)))
         obs = observe(mx, d, ids)
         wr = cpm.cp_walk_reference(plan, plan.gait.t_start + 0.15, obs.robot.com[:2], obs.robot.p_foot)
         ref = CentroidalRef(v_xy=wr.v_xy, z=plan.z0, R_base=jnp.asarray(R0), heading=plan.heading, swing=wr.swing,
                             p_sw=wr.p_sw, v_sw=wr.v_sw, a_sw=wr.a_sw)
-        monkeypatch.setattr(cc, "solve_qp", fake)
+        monkeypatch.setattr(cc, "solve_qp", solve_stand_in(solve, last, flag, x, fill, as_last))
         tau, new, _ = cc.centroidal_control(obs, ref, default_gains(), cs, ids, cfg)
         return tau, new.warm.x
 

@@ -141,6 +141,18 @@ def test_object_wrench_is_no_lever_for_the_com_row(setup, qp_at):
     np.testing.assert_allclose(q[ib], q_hand, rtol=2e-3, atol=2e-3 * np.abs(q_hand).max())
 
 
+def solve_stand_in(solve, last, flag, x, fill, as_last):
+    """The QP solve ``solve`` with its result changed (all arguments traced scalars but ``last``): its flag set to
+    ``flag`` where ``flag >= 0``, its x replaced by ``x`` everywhere where ``fill``, by ``last`` (the last step's
+    solution) where ``as_last``."""
+    def fake(*a, **kw):
+        res = solve(*a, **kw)
+        out_x = jnp.where(fill, jnp.full_like(res.x, x), jnp.where(as_last, last, res.x))
+        return res._replace(flag=jnp.where(flag >= 0, flag.astype(res.flag.dtype), res.flag), x=out_x)
+
+    return fake
+
+
 def test_diverged_solve_is_not_applied(setup, monkeypatch):
     """A control step whose QP solve is unusable (FLAG_NONFINITE or FLAG_DIVERGED; its iterate 1e30) applies the
     last step's solution: the torques and the observer's commanded wrench equal those of the same step given that
@@ -157,17 +169,11 @@ def test_diverged_solve_is_not_applied(setup, monkeypatch):
 
     @jax.jit
     def control(flag, x, fill, as_last):
-        """One program for every case (traced once; the state sensed inside it, not op by op): the solve's flag
-        set to ``flag`` where ``flag >= 0``, its x replaced by ``x`` everywhere where ``fill``, by the last step's
-        solution where ``as_last``."""
-        def fake(*a, **kw):
-            res = solve(*a, **kw)
-            out_x = jnp.where(fill, jnp.full_like(res.x, x), jnp.where(as_last, last, res.x))
-            return res._replace(flag=jnp.where(flag >= 0, flag.astype(res.flag.dtype), res.flag), x=out_x)
-
+        """One program for every case (traced once; the state sensed inside it, not op by op), the solve changed
+        by :func:`solve_stand_in`."""
         d = physics.sense(m, st.d)
         obs, ref = observe(m, d, robot.ids), reference(_take0(b.plan), d.time, st.p_lift)
-        monkeypatch.setattr(tc, "solve_qp", fake)
+        monkeypatch.setattr(tc, "solve_qp", solve_stand_in(solve, last, flag, x, fill, as_last))
         tau, new, _ = tc.transport_control(obs, ref, _take0(b.om), _take0(b.gains), cs, robot.ids, sim.cfg)
         return tau, new.obs.w_cmd, new.warm.x
 
