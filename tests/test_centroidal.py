@@ -8,7 +8,7 @@ import numpy as np
 import osqp
 import pytest
 import scipy.sparse as sp
-from test_transport import solve_stand_in  # the unusable-solve tests' stand-in for the QP solve
+from test_transport import run_case, solve_stand_in  # the unusable-solve tests' QP stand-in and its cases
 
 from wbc_jax.control.centroidal import CentroidalRef, build_qp, default_gains, scaled_model
 from wbc_jax.control.centroidal_dynamics import centroidal_terms
@@ -233,7 +233,7 @@ def test_unusable_solve_is_not_applied(robot, monkeypatch):
     @jax.jit
     def control(flag, x, fill, as_last):
         """One program for every case (traced once; the state sensed inside it, not op by op), the solve changed
-        by ``test_transport.solve_stand_in``."""
+        by ``test_transport.solve_stand_in``; a case runs through ``test_transport.run_case``."""
         d = physics.sense(mx, mjx.make_data(mx).replace(qpos=jnp.asarray(q0)))
         obs = observe(mx, d, ids)
         wr = cpm.cp_walk_reference(plan, plan.gait.t_start + 0.15, obs.robot.com[:2], obs.robot.p_foot)
@@ -243,13 +243,10 @@ def test_unusable_solve_is_not_applied(robot, monkeypatch):
         tau, new, _ = cc.centroidal_control(obs, ref, default_gains(), cs, ids, cfg)
         return tau, new.warm.x
 
-    def step(flag, x=0.0, fill=False, as_last=False):
-        return [np.asarray(v) for v in control(jnp.int32(flag), jnp.float32(x), jnp.bool_(fill), jnp.bool_(as_last))]
-
-    given_last = step(-1, as_last=True)
-    converged = step(-1)
+    given_last = run_case(control, -1, as_last=True)
+    converged = run_case(control, -1)
     for flag in (FLAG_NONFINITE, FLAG_DIVERGED):
-        bad = step(flag, 1e30, fill=True)
+        bad = run_case(control, flag, 1e30, fill=True)
         np.testing.assert_array_equal(bad[0], given_last[0])
         np.testing.assert_array_equal(bad[1], np.asarray(last))
         assert np.all(np.isfinite(bad[0])) and not np.array_equal(bad[0], converged[0])

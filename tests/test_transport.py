@@ -153,6 +153,12 @@ def solve_stand_in(solve, last, flag, x, fill, as_last):
     return fake
 
 
+def run_case(control, flag, x=0.0, fill=False, as_last=False):
+    """One case of a jitted ``control(flag, x, fill, as_last)`` built on :func:`solve_stand_in` (the arguments as
+    its traced scalars; ``flag`` -1 keeps the solve's own), the outputs as numpy arrays."""
+    return [np.asarray(v) for v in control(jnp.int32(flag), jnp.float32(x), jnp.bool_(fill), jnp.bool_(as_last))]
+
+
 def test_diverged_solve_is_not_applied(setup, monkeypatch):
     """A control step whose QP solve is unusable (FLAG_NONFINITE or FLAG_DIVERGED; its iterate 1e30) applies the
     last step's solution: the torques and the observer's commanded wrench equal those of the same step given that
@@ -170,20 +176,17 @@ def test_diverged_solve_is_not_applied(setup, monkeypatch):
     @jax.jit
     def control(flag, x, fill, as_last):
         """One program for every case (traced once; the state sensed inside it, not op by op), the solve changed
-        by :func:`solve_stand_in`."""
+        by :func:`solve_stand_in`; a case runs through :func:`run_case`."""
         d = physics.sense(m, st.d)
         obs, ref = observe(m, d, robot.ids), reference(_take0(b.plan), d.time, st.p_lift)
         monkeypatch.setattr(tc, "solve_qp", solve_stand_in(solve, last, flag, x, fill, as_last))
         tau, new, _ = tc.transport_control(obs, ref, _take0(b.om), _take0(b.gains), cs, robot.ids, sim.cfg)
         return tau, new.obs.w_cmd, new.warm.x
 
-    def step(flag, x=0.0, fill=False, as_last=False):
-        return [np.asarray(v) for v in control(jnp.int32(flag), jnp.float32(x), jnp.bool_(fill), jnp.bool_(as_last))]
-
-    converged = step(0)
-    given_last = step(-1, as_last=True)
+    converged = run_case(control, 0)
+    given_last = run_case(control, -1, as_last=True)
     for flag in (FLAG_NONFINITE, FLAG_DIVERGED):
-        diverged = step(flag, 1e30, fill=True)
+        diverged = run_case(control, flag, 1e30, fill=True)
         np.testing.assert_array_equal(diverged[0], given_last[0])
         np.testing.assert_array_equal(diverged[1], given_last[1])
         np.testing.assert_array_equal(diverged[2], np.asarray(last))
