@@ -15,14 +15,12 @@ and for each row the expected longest of 270 solves drawn at random (``longest o
 
 import sys
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.qp import QPResult, solve_qp
 
 sys.path.insert(0, "examples")
-from qp_settings_study import FIELDS, iterations, record, small_spec  # noqa: E402
+from qp_settings_study import iterations, over_problems, record, small_spec  # noqa: E402
 
 GRID = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
 STIFF, LONG = 4.0, 25  # the rule's rho and its threshold on the predecessor's iterations
@@ -40,8 +38,7 @@ def restarted(problems: dict, settings, it0: np.ndarray) -> np.ndarray:
         r2 = solve_qp(P, q, A, l, u, warm=QPResult(r1.x, r1.y, r1.z, 0.0, 0.0, 0, 0, r1.rho), settings=settings)
         return r1.rho, r2.iters
 
-    rho, it = (np.asarray(a) for a in jax.jit(jax.vmap(one))(*(jnp.asarray(problems[k], jnp.float32)
-                                                              for k in FIELDS[:9])))
+    rho, it = over_problems(one, problems)
     wrho = np.asarray(problems["wrho"])
     again = (it0 > RESTART) & (np.abs(rho - wrho) > 1e-6 * np.abs(wrho))
     return np.where(again, RESTART + REFACTOR + it, it0)

@@ -99,6 +99,13 @@ def record(spec_path: Path, change: str = ""):
     return out, qp
 
 
+def over_problems(one, problems: dict) -> tuple:
+    """``one(P, q, A, l, u, wx, wz, wy, wrho)`` (one recorded problem and its warm start, float32) over every recorded
+    problem (``jit`` of ``vmap``): its outputs as host arrays with a leading axis over the solves."""
+    out = jax.jit(jax.vmap(one))(*(jnp.asarray(problems[k], jnp.float32) for k in FIELDS[:9]))
+    return tuple(np.asarray(a) for a in out)
+
+
 def iterations(problems: dict, settings, rho=None):
     """(iterations (N,), flags (N,)) of every recorded problem solved from its warm start under ``settings``."""
     def one(P, q, A, l, u, wx, wz, wy, wrho):
@@ -106,8 +113,7 @@ def iterations(problems: dict, settings, rho=None):
         res = solve_qp(P, q, A, l, u, warm=QPResult(wx, wy, wz, 0.0, 0.0, 0, 0, warm_rho), settings=settings)
         return res.iters, res.flag
 
-    it, flag = jax.jit(jax.vmap(one))(*(jnp.asarray(problems[k], jnp.float32) for k in FIELDS[:9]))
-    return np.asarray(it), np.asarray(flag)
+    return over_problems(one, problems)
 
 
 def _reused_solve(s, schur_fresh, old_rho, current_ae, cur, old):
