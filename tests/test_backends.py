@@ -144,6 +144,37 @@ def test_short_loaded_walk_agrees_between_backends(walks):
     assert np.all(np.asarray(ws.acc.n_steps) == np.asarray(js.acc.n_steps))
 
 
+def test_warp_split_step_equals_mjx_forward_then_step(walks):
+    """Warp: ``sense`` (MuJoCo Warp's ``step1`` through MJX's generated call) of a view with noisy velocities and
+    ``finish`` (the rest of ``step``, the constraint rows made again with the true velocities) against MJX's own
+    calls, ``mjx.forward`` of the view then ``mjx.step`` of it with the true velocities, from the Warp walk's final
+    state: what the controller reads of the view, and the step's state and sensors, bit for bit."""
+    sim, b, st, _ = walks["warp"]
+    mjx = physics.mjx
+    read = ("xpos", "xmat", "subtree_com", "site_xpos", "site_xmat", "geom_xpos", "geom_xmat", "cvel", "cdof",
+            "cdof_dot", "qfrc_bias")
+
+    def both(m, d, noise):
+        ds, view = physics.sense_with_view(m, d, d.qvel + noise)
+        ref_view = mjx.forward(m, d.replace(qvel=d.qvel + noise))
+        ref = mjx.step(m, ref_view.replace(qvel=d.qvel))
+        mine = physics.finish(m, ds, d.ctrl)
+        pick = ("time", "qpos", "qvel", "qacc_warmstart", "sensordata")
+        return ([getattr(view, k) for k in read] + [mass_matrix(m, view)], [getattr(mine, k) for k in pick],
+                [getattr(ref_view, k) for k in read] + [mass_matrix(m, ref_view)], [getattr(ref, k) for k in pick])
+
+    d = b.state.d.replace(**{k: jax.numpy.asarray(getattr(st.d, k)) for k in ("qpos", "qvel", "ctrl",
+                                                                             "qacc_warmstart")})
+    noise = 0.05 * jax.random.normal(jax.random.PRNGKey(0), d.qvel.shape)
+    view, step, ref_view, ref = jax.device_get(jax.jit(jax.vmap(both, in_axes=(b.in_axes, 0, 0)))(b.model, d, noise))
+    assert np.all(ref[0] > np.asarray(d.time))  # a step was taken
+    exact = jax.device_get(jax.jit(jax.vmap(physics.sense, in_axes=(b.in_axes, 0)))(b.model, d))
+    assert np.abs(view[read.index("qfrc_bias")] - exact.qfrc_bias).max() > 1e-6  # the noise reached the view
+    assert np.abs(ref[4]).max() > 0  # the step's contact sensors hold forces
+    for got, want in zip(view + step, ref_view + ref):
+        np.testing.assert_array_equal(got, want)
+
+
 def test_delayed_sensing_reads_the_last_steps_start(walks):
     """Sensing "delayed": the data's derived fields after a step are Warp's forward pass of the state ``prev``
     records (the step's start), so the controller's view is that state, consistently; the walk agrees with the
@@ -154,7 +185,7 @@ def test_delayed_sensing_reads_the_last_steps_start(walks):
     assert np.max(np.abs(qpos - np.asarray(st.d.qpos))) > 1e-5  # the robot moved in that step (the test can fail)
     d = b.state.d.replace(qpos=jax.numpy.asarray(qpos), qvel=jax.numpy.asarray(qvel),
                           ctrl=jax.numpy.asarray(st.d.ctrl))
-    fwd = jax.device_get(jax.jit(jax.vmap(physics.sense, in_axes=(b.in_axes, 0)))(b.model, d))
+    fwd = jax.device_get(jax.jit(jax.vmap(physics.mjx.forward, in_axes=(b.in_axes, 0)))(b.model, d))
     np.testing.assert_allclose(np.asarray(st.d.xpos), fwd.xpos, atol=1e-6)
     np.testing.assert_allclose(np.asarray(st.d.sensordata), fwd.sensordata, atol=1e-4, rtol=1e-4)
     _, _, ws, wr = walks["warp"]

@@ -38,7 +38,7 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     cone = "scene"             # MuJoCo's friction cone of every contact: "scene" (the scene file's: pyramidal),
     impratio = 0.0             # "pyramidal" or "elliptic"; impratio: frictional-to-normal impedance ratio (0: the
                                # scene's, 10); both for studies of the contact law (wbc_jax.studies.s_cause)
-    sensing = "auto"           # Warp: "exact" (a forward call gives the controller the current state) or "delayed"
+    sensing = "auto"           # Warp: "exact" (a sensing call gives the controller the current state) or "delayed"
                                # (it reads what Warp's step left: the state one physics step old; one call fewer);
                                # "auto": delayed on Warp (same statistics, measured), exact on JAX
     controller = "transport"   # "transport" (the object-transport WBC; metrics R, T, S) or "centroidal" (the
@@ -143,7 +143,7 @@ CAMPAIGN = {
                  'line)'),
     "sensing": (str, "auto", None, None, False,
                 '"auto" (delayed on Warp, exact on JAX), "exact" or "delayed" (Warp only: the controller reads the '
-                'state one physics step old and Warp\'s forward call is saved; wbc_jax.rollout.config.SENSING)'),
+                'state one physics step old and Warp\'s sensing call is saved; wbc_jax.rollout.config.SENSING)'),
     "controller": (str, "transport", None, None, False,
                    '"transport" (object transport; R, T, S) or "centroidal" (the capture-point trot; speed, CP error, '
                    'attitude)'),

@@ -1,21 +1,18 @@
 """MJX physics on either backend, split so the controller reads fresh kinematics once per control step.
 
 Two MJX implementations (``Robot(backend=...)``): **JAX** (``impl="jax"``, any device, the CPU path) and **Warp**
-(``impl="warp"``, MuJoCo Warp kernels called through XLA; NVIDIA GPUs, and the CPU for tests). Warp runs only
-``forward`` and ``step``, so on Warp :func:`sense` is ``mjx.forward`` (the whole forward pass, constraint solve
-with the held torques included) and :func:`finish` is ``mjx.step`` with the new torques: two Warp calls per control
-step, both exact (the controller reads the state it acts on, no delay; ``sensing = "delayed"`` drops the first,
-``wbc_jax.rollout.config.resolve_sensing``). :func:`resolve_backend` turns "auto" into Warp on a CUDA GPU with
-warp-lang installed (the same campaign statistics as JAX in less time), else JAX; on the CPU "auto" stays JAX
-(MuJoCo Warp's CPU path is for tests).
-
-JAX backend: ``mjx.step`` = forward (position, velocity, actuation, acceleration, constraint solve) + integrate.
-:func:`sense` runs the position and velocity stages; the controller reads M, bias forces,
-Jacobians and contacts from its output; :func:`finish` completes that same forward pass with the
-controller's torques and integrates: one physics step. A control period of ``n_substeps`` physics steps
-(zero-order hold: ``ctrl`` and ``xfrc_applied`` stay as set) is :func:`finish` followed by
-``n_substeps - 1`` plain ``mjx.step`` calls in a ``lax.scan`` (:func:`advance`; the rollout runs its own scan
-that also samples its physics-rate monitors after every step, ``wbc_jax.rollout.step.physics_period``).
+(``impl="warp"``, MuJoCo Warp kernels called through XLA; NVIDIA GPUs, and the CPU for tests). :func:`sense` runs
+the forward pass's position and velocity stages (the controller reads M, bias forces, Jacobians and contacts from
+its output); :func:`finish` completes that forward pass with the controller's torques and integrates: one physics
+step, both exact (the controller reads the state it acts on; on Warp ``sensing = "delayed"`` drops :func:`sense`,
+``wbc_jax.rollout.config.resolve_sensing``). MJX calls only Warp's ``forward`` and ``step`` through XLA, so on Warp
+both are MJX's own generated calls running other MuJoCo Warp functions (:func:`_mjx_warp_call`): ``step1``, then
+the rest of ``step`` (the constraint rows made again with the true velocities); the same arithmetic as
+``mjx.forward`` then ``mjx.step``. A control period of ``n_substeps`` physics steps (``ctrl`` and ``xfrc_applied``
+held) is :func:`finish` then ``n_substeps - 1`` plain ``mjx.step`` calls in a ``lax.scan`` (:func:`advance`; the
+rollout's own scan also samples its physics-rate monitors, ``wbc_jax.rollout.step.physics_period``).
+:func:`resolve_backend` turns "auto" into Warp on a CUDA GPU with warp-lang installed (the same campaign statistics
+as JAX in less time), else JAX; on the CPU "auto" stays JAX (MuJoCo Warp's CPU path is for tests).
 
 After any of these steps, ``d.contact`` (and ``efc_force``) belong to the positions at the *start* of that
 step (collision runs before integration): after :func:`finish` they are the sensed ``d``'s contacts.
@@ -25,10 +22,13 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import io
+import types
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 with contextlib.redirect_stdout(io.StringIO()):
@@ -141,9 +141,8 @@ def size_contact_list(d, axes, n_runs: int):
 
 
 STATE_FIELDS = ("time", "qpos", "qvel", "act", "qacc_warmstart", "history", "plugin_state")
-"""The fields of mjx.Data a physics step reads that it does not recompute (the integrated state and the solver's
-warm start); every other field is derived from them (and the inputs ``ctrl``, ``xfrc_applied``, which the rollout
-sets every step)."""
+"""The fields of mjx.Data a physics step reads that it does not recompute (the integrated state, the solver's warm
+start); every other field is derived from them and the inputs ``ctrl``, ``xfrc_applied`` (set every step)."""
 
 
 def freeze(ok, new, old):
@@ -194,9 +193,10 @@ def reports_solver_cap(robot) -> bool:
 
 
 def sense(m, d):
-    """The forward pass's position- and velocity-dependent stages (JAX), or the whole forward pass (Warp)."""
+    """The forward pass's position and velocity stages: MJX ``fwd_position`` + ``fwd_velocity`` (JAX), MuJoCo
+    Warp's ``step1`` (Warp, :func:`_warp_stages`); the later stages are left to :func:`finish`."""
     if is_warp(d):
-        return mjx.forward(m, d)
+        return _warp_stages()(m, d)
     d = mjx.fwd_position(m, d)
     return mjx.fwd_velocity(m, d)
 
@@ -206,32 +206,35 @@ def sense_with_view(m, d, qvel_seen=None):
     hence kinematics and contacts, exact; None: the view is the sensed data itself).
 
     Returns:
-        (sensed d, view). JAX: the view recomputes only the velocity stage. Warp: one forward pass of the view;
-        the sensed d is the view with the true velocities put back (what the rollout reads from it is
-        position-level, and :func:`finish` recomputes the rest), so noise costs no second Warp call.
+        (sensed d, view). JAX: the view recomputes the velocity stage. Warp: one :func:`sense` call on the view;
+        the sensed d is the view with the true velocities put back (:func:`finish` recomputes what depends on them).
     """
     if qvel_seen is None:
         d = sense(m, d)
         return d, d
     if is_warp(d):
-        view = mjx.forward(m, d.replace(qvel=qvel_seen))
+        view = sense(m, d.replace(qvel=qvel_seen))
         return view.replace(qvel=d.qvel), view
     d = sense(m, d)
     return d, mjx.fwd_velocity(m, d.replace(qvel=qvel_seen))
 
 
-def finish(m, d, ctrl):
-    """One physics step from a sensed ``d``: finish its forward pass with ``ctrl`` and integrate.
+def finish(m, d, ctrl, sensed: bool = True):
+    """One physics step from ``d``: finish its forward pass with ``ctrl`` and integrate.
 
     Args:
-        m: mjx.Model; d: mjx.Data returned by :func:`sense`; ctrl: (nu,) actuator torques [N m].
+        m: mjx.Model; d: mjx.Data; ctrl: (nu,) actuator torques [N m]; sensed: ``d``'s position stage is
+            :func:`sense`'s of its positions (Warp then skips it, :func:`_warp_finish`; False, delayed sensing:
+            ``mjx.step``).
 
     Returns:
         mjx.Data one timestep later (``ctrl`` kept, contacts and constraint forces of the step's start).
     """
     d = d.replace(ctrl=ctrl)
     if is_warp(d):
-        return mjx.step(m, d)
+        split = sensed and not int(m.opt.enableflags) & mujoco.mjtEnableBit.mjENBL_SLEEP and int(
+            m.opt.integrator) in (mujoco.mjtIntegrator.mjINT_EULER, mujoco.mjtIntegrator.mjINT_IMPLICITFAST)
+        return _warp_finish()(m, d) if split else mjx.step(m, d)
     d = mjx.fwd_actuation(m, d)
     d = mjx.fwd_acceleration(m, d)
     d = mjx.solve(m, d)
@@ -255,7 +258,74 @@ def advance(m, d, ctrl, n_substeps: int = 1):
     return hold(m, finish(m, d, ctrl), n_substeps - 1)
 
 
-# ---- the package's only reads of MJX internals (``mujoco.mjx._src``, ``Data._impl``, ``Option._impl``)
+# ---- the package's only reads of MJX internals (``mujoco.mjx._src``, ``Data._impl``, ``Option._impl``, MuJoCo Warp)
+
+
+def _mjx_warp_call(kind: str, body):
+    """MJX's generated XLA call of MuJoCo Warp's ``kind`` ("forward" or "step", ``mujoco.mjx.warp.forward``: its
+    arguments, in-place outputs, batching) running ``body(m, d)`` (Warp Model, Data) instead, with argument holders
+    and an FFI target of its own. Outputs ``body`` does not write keep their inputs (in place) or are unset."""
+    from mujoco.mjx.warp import ffi
+    from mujoco.mjx.warp import forward as mjxw
+
+    def clone(fn, **names):  # fn with module globals replaced
+        out = types.FunctionType(fn.__code__, dict(fn.__globals__, **names), fn.__name__, fn.__defaults__)
+        out.__annotations__ = dict(fn.__annotations__)
+        return out
+
+    held = {k: type(v)(**{f.name: None for f in dataclasses.fields(v) if f.init})
+            for k, v in vars(mjxw).items() if k in ("_m", "_d", "_o", "_c", "_e", "_cb")}
+    shim = clone(getattr(mjxw, f"_{kind}_shim").__wrapped__, mjwarp=types.SimpleNamespace(**{kind: body}), **held)
+    impl = clone(getattr(mjxw, f"_{kind}_jax_impl"), **{f"_{kind}_shim": ffi.format_args_for_warp(shim)})
+
+    @jax.custom_batching.custom_vmap
+    @ffi.marshal_jax_warp_callable
+    def call(m, d):
+        return impl(m, d)
+
+    call.def_vmap(ffi.marshal_custom_vmap(lambda _, batched, m, d: (call(m, d), batched[1])))
+    return call
+
+
+@functools.cache
+def _warp_stages():
+    """MuJoCo Warp's ``step1`` (position and velocity stages, their sensors) as one XLA call like ``mjx.forward``;
+    the later stages' pure outputs (actuator forces, constraint forces and states) zeroed."""
+    from mujoco.mjx.third_party import mujoco_warp as mjwarp
+
+    def stages(m, d):
+        mjwarp.step1(m, d)
+        for a in (d.act_dot, d.actuator_force, d.efc.force, d.efc.Ma, d.efc.state):
+            a.zero_()
+
+    return _mjx_warp_call("forward", stages)
+
+
+@functools.cache
+def _warp_finish():
+    """What MuJoCo Warp's ``step`` computes after the position stage (Euler or implicitfast integrator, no
+    sleeping), as one XLA call batched like ``mjx.step``: the constraint rows made again (their reference
+    accelerations use the velocities, which the sensed data may have seen with noise), then ``forward`` from its
+    velocity stage on, then the integrator."""
+    from mujoco.mjx.third_party import mujoco_warp as mjwarp
+    from mujoco.mjx.third_party.mujoco_warp._src import constraint, sensor, smooth, solver
+    from mujoco.mjx.third_party.mujoco_warp._src import forward as fwd
+
+    def finish(m, d):
+        constraint.make_constraint(m, d)
+        fwd.fwd_velocity(m, d)
+        sensor.sensor_vel(m, d)
+        fwd._energy_vel(m, d)
+        fwd.fwd_actuation(m, d)
+        fwd.fwd_acceleration(m, d, factorize=True)
+        solver.solve(m, d)
+        if m.opt.run_rne_postconstraint or (not m.opt.disableflags & mjwarp.DisableBit.SENSOR
+                                            and m.sensor_rne_postconstraint):
+            smooth.rne_postconstraint(m, d)
+        sensor.sensor_acc(m, d, skip_rne_postconstraint=True)
+        (fwd.euler if m.opt.integrator == mjwarp.IntegratorType.EULER else fwd.implicit)(m, d)
+
+    return _mjx_warp_call("step", finish)
 
 
 def put_model(mj_model, impl: str, device):

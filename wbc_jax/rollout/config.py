@@ -12,14 +12,14 @@ from wbc_jax.rollout.controllers import controller_class
 from wbc_jax.runtime.static import ByValue
 
 SENSING = ("auto", "exact", "delayed")
-"""What the controller reads on the Warp backend (:func:`resolve_sensing`; "auto": "delayed" on Warp with one
-physics step per control step, else "exact"). "exact": a ``forward`` call (Warp) computes the kinematics, mass
-matrix, bias forces, contacts and sensors of the current state before the controller acts (two Warp calls per
-control step). "delayed": no such call; the controller reads the fields Warp's ``step`` left, which belong to the
-state at the start of that step, so the controller sees the state one physics step (1 ms) old and its torques act
-on the current one; control-rate metrics and the log are taken at that (consistent) older state; with sensor noise,
-the noise reaches the velocities the controller reads but not its bias forces (computed by the step with the true
-velocities)."""
+"""What the controller reads on the Warp backend (:func:`resolve_sensing`; "auto": "delayed" on Warp with one physics
+step per control step, else "exact"). "exact": Warp's position and velocity stages (``sense``) give the controller the
+kinematics, mass matrix, bias forces and contacts of the current state before it acts, and the step after it skips them
+(two Warp calls per control step, one forward pass). "delayed": no such call; the controller reads the fields Warp's
+``step`` left, which belong to the state at the start of that step, so the controller sees the state one physics step
+(1 ms) old and its torques act on the current one; control-rate metrics and the log are taken at that (consistent) older
+state; with sensor noise, the noise reaches the velocities the controller reads but not its bias forces (computed by the
+step with the true velocities)."""
 MONITORS = ("all", "no_clearance", "finite_only")  # Sim.monitors: what the rollout measures besides the physics
 
 
@@ -36,7 +36,7 @@ def resolve_sensing(sensing: str, backend: str, n_substeps: int = 1) -> str:
         return "delayed" if backend == "warp" and n_substeps == 1 else "exact"
     if sensing == "delayed" and (backend != "warp" or n_substeps != 1):
         raise ValueError(f"sensing = 'delayed' needs the Warp backend and one physics step per control step (got "
-                         f"backend {backend!r}, {n_substeps} substeps): it drops Warp's forward call, which the "
+                         f"backend {backend!r}, {n_substeps} substeps): it drops Warp's sensing call, which the "
                          f"JAX backend does not make")
     return sensing
 
@@ -61,7 +61,7 @@ class Sim(ByValue):
     foot_slots: np.ndarray
     obj_slots: np.ndarray
     sensor_noise: bool = False  # the controller sees qvel + noise (Push.qvel_noise_std); costs a velocity pass
-    sensing: str = "exact"  # "exact" (Warp: a forward call for the controller) or "delayed" (:data:`SENSING`)
+    sensing: str = "exact"  # "exact" (Warp: a sensing call before the controller) or "delayed" (:data:`SENSING`)
     monitors: str = "all"  # :data:`MONITORS`: "all" (every run); "no_clearance" (clearance +inf) and "finite_only"
     #                        (physics-rate monitors zero but `finite`, control-rate metrics only counted) exist for
     #                        `bench rollout --campaign`, which times what the monitors cost

@@ -167,14 +167,14 @@ def physics_period(sim: Sim, m, obj_model: ObjectModel, d, tau, acc: Accum):
     into ``acc``.
 
     Args:
-        d: sensed mjx.Data (``wbc_jax.physics.backend.sense``) with the period's ``xfrc_applied``; tau: (nu,) [N m];
-        acc: the run's Accum before the period.
+        d: sensed mjx.Data (``wbc_jax.physics.backend.sense``; with delayed sensing the run's last state) with the
+            period's ``xfrc_applied``; tau: (nu,) [N m]; acc: the run's Accum before the period.
 
     Returns:
         (mjx.Data n_substeps physics steps later, Accum with the physics-rate fields updated, () bool: every step
         of the period finite).
     """
-    d1 = physics.finish(m, d, tau)
+    d1 = physics.finish(m, d, tau, sensed=sim.sensing != "delayed")
     monitors = substep_monitors(sim, m, obj_model, tau, d, d1)
     in_win = in_window(acc, sim.dt_control)  # the whole period is in the window or out of it
     carry = (d1, fold_physics_step(acc, monitors, in_win, sim.dt_physics), monitors.finite)
