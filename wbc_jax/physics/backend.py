@@ -96,13 +96,10 @@ def data_axes(robot, d):
     of ``d``'s structure with 0 where a leaf has the run axis first and None where the runs share it.
 
     JAX: every leaf is per run. Warp: the contact list (``naconmax`` slots shared by the batch, each tagged with
-    its run) and its counters (``nacon``, ``ncollision``) have no run axis; ``vmap`` passes them through whole.
-    They are scratch: every ``step`` rebuilds them from the runs' states (the rollout reads contacts through the
-    contact sensors, per run). Sharding places them whole on every device (each device's runs use part of the
-    list), and taking or padding runs leaves them as they are (``wbc_jax.rollout.runs``).
-
-    Found, not listed: the leaves whose first dimension follows the vmapped size when ``d``'s own
-    :func:`make_data` is vmapped over 2 and over 3 runs (shapes only, nothing is computed).
+    its run) and its counters (``nacon``, ``ncollision``) have no run axis: scratch every ``step`` rebuilds (the
+    rollout reads contacts through the contact sensors), placed whole on every device, left as they are when runs
+    are taken or padded (``wbc_jax.rollout.runs``). Found, not listed: the leaves whose first dimension follows the
+    vmapped size when :func:`make_data` is vmapped over 2 and over 3 runs (shapes only).
     """
     if not is_warp(d):
         return jax.tree_util.tree_map(lambda _: 0, d)
@@ -117,10 +114,9 @@ def data_axes(robot, d):
 def size_contact_list(d, axes, n_runs: int):
     """(``d``, ``axes``) with Warp's shared contact list sized for a batch of ``n_runs`` runs, as :func:`make_data`
     sizes it (``n_runs x NACON_PER_RUN`` slots; ``naconmax``, ``naccdmax`` with it): ``d`` a batched mjx.Data whose
-    runs were taken from another batch (run axes ``axes``: :func:`data_axes`). The list is scratch that every step
-    rebuilds, so it is cut (a block of a larger batch: kernels launched over every slot do no work for slots its
-    runs never fill) or grown with zeros (more runs than the batch it came from: the runs' contacts would not fit,
-    Warp drops them and reports a broadphase or narrowphase overflow). JAX (no shared list): unchanged."""
+    runs were taken from another batch (run axes ``axes``: :func:`data_axes`). The list is scratch every step
+    rebuilds, so it is cut (a block of a larger batch) or grown with zeros (more runs: their contacts would not fit,
+    and Warp would report an overflow). JAX (no shared list): unchanged."""
     if not is_warp(d):
         return d, axes
     impl, slots = d._impl, NACON_PER_RUN * max(int(n_runs), 1)
@@ -201,6 +197,12 @@ def sense(m, d):
     return mjx.fwd_velocity(m, d)
 
 
+def initial(m, d):
+    """A run's first data: :func:`sense` (JAX), ``mjx.forward`` (Warp: every field, and its first call compiles the
+    step's kernels ahead, ``wbc_jax.physics.warp_kernels``)."""
+    return mjx.forward(m, d) if is_warp(d) else sense(m, d)
+
+
 def sense_with_view(m, d, qvel_seen=None):
     """:func:`sense` of ``d``, and the controller's view of it with generalized velocities ``qvel_seen`` (positions,
     hence kinematics and contacts, exact; None: the view is the sensed data itself).
@@ -262,9 +264,8 @@ def advance(m, d, ctrl, n_substeps: int = 1):
 
 
 def _mjx_warp_call(kind: str, body):
-    """MJX's generated XLA call of MuJoCo Warp's ``kind`` ("forward" or "step", ``mujoco.mjx.warp.forward``: its
-    arguments, in-place outputs, batching) running ``body(m, d)`` (Warp Model, Data) instead, with argument holders
-    and an FFI target of its own. Outputs ``body`` does not write keep their inputs (in place) or are unset."""
+    """MJX's generated XLA call of MuJoCo Warp's ``kind`` ("forward" or "step", ``mujoco.mjx.warp.forward``) running
+    ``body(m, d)`` (Warp Model, Data) instead, with its own argument holders and FFI target."""
     from mujoco.mjx.warp import ffi
     from mujoco.mjx.warp import forward as mjxw
 
@@ -303,10 +304,9 @@ def _warp_stages():
 
 @functools.cache
 def _warp_finish():
-    """What MuJoCo Warp's ``step`` computes after the position stage (Euler or implicitfast integrator, no
-    sleeping), as one XLA call batched like ``mjx.step``: the constraint rows made again (their reference
-    accelerations use the velocities, which the sensed data may have seen with noise), then ``forward`` from its
-    velocity stage on, then the integrator."""
+    """MuJoCo Warp's ``step`` after the position stage (Euler or implicitfast, no sleeping) as one XLA call like
+    ``mjx.step``: the constraint rows made again (their reference accelerations use the velocities, which the sensed
+    data may have seen with noise), ``forward`` from its velocity stage on, the integrator."""
     from mujoco.mjx.third_party import mujoco_warp as mjwarp
     from mujoco.mjx.third_party.mujoco_warp._src import constraint, sensor, smooth, solver
     from mujoco.mjx.third_party.mujoco_warp._src import forward as fwd
