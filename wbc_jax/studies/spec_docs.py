@@ -81,11 +81,11 @@ CAMPAIGN_MEANING = {
                 "at the start of every footstep, one cubic per support phase, so that the cart-table ZMP stays on the "
                 "stance pair's line in two-foot support; the default, as in the paper: docs/method.md, \"ZMP-based "
                 "CoM replanning\")",
-    "sensing": "what the controller reads on the Warp backend: `exact` (a Warp `forward` call gives it the current "
-               "state: two Warp calls per control step) or `delayed` (it reads the fields Warp's `step` left, which "
-               "belong to the state one physics step old: one call per step; needs `backend = \"warp\"` and "
-               "`control_substeps = 1`); `auto`: `delayed` where it applies, else `exact` (the same statistics, less "
-               "wall time: docs/performance.md)",
+    "sensing": "what the controller reads on the Warp backend: `exact` (Warp's position and velocity stages give it "
+               "the current state: two Warp calls, one forward pass per control step) or `delayed` (it reads the "
+               "fields Warp's `step` left, which belong to the state one physics step old: one call per step; needs "
+               "`backend = \"warp\"` and `control_substeps = 1`); `auto`: `delayed` where it applies, else `exact` "
+               "(the same statistics, less wall time: docs/performance.md)",
     "controller": "the controller every run uses: `transport` (the object-transport WBC on the object-path plan; "
                   "metrics R, T, S) or `centroidal` (the centroidal-momentum WBC on a capture-point trot; metrics "
                   "speed, CP error, attitude, torque, foot slip: see \"The centroidal controller\" below)",
