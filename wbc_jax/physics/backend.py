@@ -306,9 +306,9 @@ def _warp_stages():
 def _warp_finish():
     """MuJoCo Warp's ``step`` after the position stage (Euler or implicitfast, no sleeping) as one XLA call like
     ``mjx.step``: the constraint rows made again (their reference accelerations use the velocities, which the sensed
-    data may have seen with noise), ``forward`` from its velocity stage on, the integrator."""
+    data may have seen with noise), the velocity stage, then ``step2`` (actuation to the integrator)."""
     from mujoco.mjx.third_party import mujoco_warp as mjwarp
-    from mujoco.mjx.third_party.mujoco_warp._src import constraint, sensor, smooth, solver
+    from mujoco.mjx.third_party.mujoco_warp._src import constraint, sensor
     from mujoco.mjx.third_party.mujoco_warp._src import forward as fwd
 
     def finish(m, d):
@@ -316,14 +316,7 @@ def _warp_finish():
         fwd.fwd_velocity(m, d)
         sensor.sensor_vel(m, d)
         fwd._energy_vel(m, d)
-        fwd.fwd_actuation(m, d)
-        fwd.fwd_acceleration(m, d, factorize=True)
-        solver.solve(m, d)
-        if m.opt.run_rne_postconstraint or (not m.opt.disableflags & mjwarp.DisableBit.SENSOR
-                                            and m.sensor_rne_postconstraint):
-            smooth.rne_postconstraint(m, d)
-        sensor.sensor_acc(m, d, skip_rne_postconstraint=True)
-        (fwd.euler if m.opt.integrator == mjwarp.IntegratorType.EULER else fwd.implicit)(m, d)
+        mjwarp.step2(m, d)
 
     return _mjx_warp_call("step", finish)
 
