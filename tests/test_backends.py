@@ -148,7 +148,9 @@ def test_warp_split_step_equals_mjx_forward_then_step(walks):
     """Warp: ``sense`` (MuJoCo Warp's ``step1`` through MJX's generated call) of a view with noisy velocities and
     ``finish`` (the rest of ``step``, the constraint rows made again with the true velocities) against MJX's own
     calls, ``mjx.forward`` of the view then ``mjx.step`` of it with the true velocities, from the Warp walk's final
-    state: what the controller reads of the view, and the step's state and sensors, bit for bit."""
+    state: what the controller reads of the view, and the step's state and sensors, bit for bit; and exact sensing's
+    first data (``initial``, MJX's forward call running MuJoCo Warp's ``forward``) against ``mjx.forward``, every
+    field."""
     sim, b, st, _ = walks["warp"]
     mjx = physics.mjx
     read = ("xpos", "xmat", "subtree_com", "site_xpos", "site_xmat", "geom_xpos", "geom_xmat", "cvel", "cdof",
@@ -160,8 +162,11 @@ def test_warp_split_step_equals_mjx_forward_then_step(walks):
         ref = mjx.step(m, ref_view.replace(qvel=d.qvel))
         mine = physics.finish(m, ds, d.ctrl)
         pick = ("time", "qpos", "qvel", "qacc_warmstart", "sensordata")
-        return ([getattr(view, k) for k in read] + [mass_matrix(m, view)], [getattr(mine, k) for k in pick],
-                [getattr(ref_view, k) for k in read] + [mass_matrix(m, ref_view)], [getattr(ref, k) for k in pick])
+        first = physics.initial(m, d, sensed=True)  # exact sensing's first data: MJX's forward call of its own
+        return ([getattr(view, k) for k in read] + [mass_matrix(m, view)] + jax.tree.leaves(first),
+                [getattr(mine, k) for k in pick],
+                [getattr(ref_view, k) for k in read] + [mass_matrix(m, ref_view)] + jax.tree.leaves(mjx.forward(m, d)),
+                [getattr(ref, k) for k in pick])
 
     d = b.state.d.replace(**{k: jax.numpy.asarray(getattr(st.d, k)) for k in ("qpos", "qvel", "ctrl",
                                                                              "qacc_warmstart")})

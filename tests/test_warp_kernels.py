@@ -53,6 +53,27 @@ def test_the_skipped_pass_finds_the_launched_modules_and_changes_nothing():
     np.testing.assert_array_equal(a.numpy(), np.full(4, 6.0))
 
 
+def test_a_first_forward_walks_the_split_step_only_in_a_skipped_pass(monkeypatch):
+    """Exact sensing's first forward pass (``backend.initial(..., sensed=True)``): in the skipped pass of its first
+    call it also walks the split step's two functions, so the kernels they launch are found with the forward's;
+    when the call itself runs, the forward alone."""
+    import types
+
+    from wbc_jax.physics import backend
+
+    calls = []
+    monkeypatch.setattr(backend, "_mjwarp", lambda: types.SimpleNamespace(forward=lambda m, d: calls.append("fwd")))
+    monkeypatch.setattr(backend, "_step1", lambda a, b: (calls.append("step1"), _step(a, b, 7.0)))
+    monkeypatch.setattr(backend, "_step_rest", lambda a, b: calls.append("rest"))
+    a, b = _arrays()
+    found = warp_kernels.launched_modules(backend._forward, (a, b), "cpu")
+    assert calls == ["fwd", "step1", "rest"]
+    assert _scale_kernel(7.0).module in found  # launched by the split step only
+    np.testing.assert_array_equal(b.numpy(), np.full(4, 2.0))  # nothing ran
+    backend._forward(a, b)
+    assert calls == ["fwd", "step1", "rest", "fwd"]
+
+
 def test_a_first_call_compiles_ahead_then_runs_and_a_failing_pass_leaves_the_call_as_it_was(capsys):
     ahead = warp_kernels.CompileAhead(workers=2)
     first = warp_kernels._FirstCall(_step, ahead)

@@ -4,15 +4,11 @@ Two MJX implementations (``Robot(backend=...)``): **JAX** (``impl="jax"``, any d
 (``impl="warp"``, MuJoCo Warp kernels called through XLA; NVIDIA GPUs, and the CPU for tests). :func:`sense` runs
 the forward pass's position and velocity stages (the controller reads M, bias forces, Jacobians and contacts from
 its output); :func:`finish` completes that forward pass with the controller's torques and integrates: one physics
-step, both exact (the controller reads the state it acts on; on Warp ``sensing = "delayed"`` drops :func:`sense`,
-``wbc_jax.rollout.config.resolve_sensing``). MJX calls only Warp's ``forward`` and ``step`` through XLA, so on Warp
-both are MJX's own generated calls running other MuJoCo Warp functions (:func:`_mjx_warp_call`): ``step1``, then
-the rest of ``step`` (the constraint rows made again with the true velocities); the same arithmetic as
-``mjx.forward`` then ``mjx.step``. A control period of ``n_substeps`` physics steps (``ctrl`` and ``xfrc_applied``
-held) is :func:`finish` then ``n_substeps - 1`` plain ``mjx.step`` calls in a ``lax.scan`` (:func:`advance`; the
-rollout's own scan also samples its physics-rate monitors, ``wbc_jax.rollout.step.physics_period``).
-:func:`resolve_backend` turns "auto" into Warp on a CUDA GPU with warp-lang installed (the same campaign statistics
-as JAX in less time), else JAX; on the CPU "auto" stays JAX (MuJoCo Warp's CPU path is for tests).
+step, both exact (on Warp ``sensing = "delayed"`` drops :func:`sense`, ``wbc_jax.rollout.config.resolve_sensing``).
+On Warp both are MJX's own generated XLA calls running other MuJoCo Warp functions (:func:`_mjx_warp_call`):
+``step1``, then the rest of ``step``; the same arithmetic as ``mjx.forward`` then ``mjx.step``. A control period
+of ``n_substeps`` physics steps is :func:`finish` then ``n_substeps - 1`` plain ``mjx.step`` calls
+(:func:`advance`). :func:`resolve_backend` turns "auto" into Warp on a CUDA GPU with warp-lang installed, else JAX.
 
 After any of these steps, ``d.contact`` (and ``efc_force``) belong to the positions at the *start* of that
 step (collision runs before integration): after :func:`finish` they are the sensed ``d``'s contacts.
@@ -24,6 +20,7 @@ import contextlib
 import dataclasses
 import functools
 import io
+import threading
 import types
 
 import jax
@@ -93,14 +90,9 @@ _DATA_AXES: dict = {}
 
 def data_axes(robot, d):
     """The run axes of ``d``, a batched mjx.Data of ``robot``'s backend (``vmap`` of :func:`make_data`): a pytree
-    of ``d``'s structure with 0 where a leaf has the run axis first and None where the runs share it.
-
-    JAX: every leaf is per run. Warp: the contact list (``naconmax`` slots shared by the batch, each tagged with
-    its run) and its counters (``nacon``, ``ncollision``) have no run axis: scratch every ``step`` rebuilds (the
-    rollout reads contacts through the contact sensors), placed whole on every device, left as they are when runs
-    are taken or padded (``wbc_jax.rollout.runs``). Found, not listed: the leaves whose first dimension follows the
-    vmapped size when :func:`make_data` is vmapped over 2 and over 3 runs (shapes only).
-    """
+    of ``d``'s structure, 0 where a leaf has the run axis first, None where the runs share it (Warp: the contact
+    list and its counters, scratch every ``step`` rebuilds, placed whole on every device and left as they are when
+    runs are taken or padded). Found from the shapes of :func:`make_data` vmapped over 2 and 3 runs."""
     if not is_warp(d):
         return jax.tree_util.tree_map(lambda _: 0, d)
     n_runs = int(d._impl.naconmax) // NACON_PER_RUN
@@ -112,11 +104,9 @@ def data_axes(robot, d):
 
 
 def size_contact_list(d, axes, n_runs: int):
-    """(``d``, ``axes``) with Warp's shared contact list sized for a batch of ``n_runs`` runs, as :func:`make_data`
-    sizes it (``n_runs x NACON_PER_RUN`` slots; ``naconmax``, ``naccdmax`` with it): ``d`` a batched mjx.Data whose
-    runs were taken from another batch (run axes ``axes``: :func:`data_axes`). The list is scratch every step
-    rebuilds, so it is cut (a block of a larger batch) or grown with zeros (more runs: their contacts would not fit,
-    and Warp would report an overflow). JAX (no shared list): unchanged."""
+    """(``d``, ``axes``) with Warp's shared contact list sized for ``n_runs`` runs as :func:`make_data` sizes it:
+    ``d`` a batched mjx.Data (run axes ``axes``, :func:`data_axes`) whose runs were taken from another batch. The
+    list is scratch every step rebuilds: cut, or grown with zeros (else more runs' contacts would overflow it)."""
     if not is_warp(d):
         return d, axes
     impl, slots = d._impl, NACON_PER_RUN * max(int(n_runs), 1)
@@ -142,22 +132,17 @@ start); every other field is derived from them and the inputs ``ctrl``, ``xfrc_a
 
 
 def freeze(ok, new, old):
-    """``new`` with its :data:`STATE_FIELDS` taken from ``old`` where ``ok`` is False (per run, under ``vmap``).
-
-    A run whose step went non-finite keeps its last finite state, so its next step recomputes every derived field
-    (contacts included) from that state and cannot fill Warp's shared contact list with garbage; the derived fields
-    ``new`` holds belong to the step's start (``old``'s state) on both backends. Cheaper than ``Data.where`` over
-    every field: Warp's ``step`` updates its data in place, so each field of ``old`` still read after it would be
-    copied first.
-    """
+    """``new`` with its :data:`STATE_FIELDS` taken from ``old`` where ``ok`` is False (per run, under ``vmap``): a
+    run whose step went non-finite keeps its last finite state, so its next step recomputes every derived field from
+    it (Warp's shared contact list gets no garbage). Cheaper than ``Data.where`` over every field (Warp's in-place
+    ``step`` would copy each field of ``old`` still read)."""
     return new.replace(**{f: jnp.where(ok, getattr(new, f), getattr(old, f)) for f in STATE_FIELDS
                           if hasattr(new, f)})
 
 
 def overflow(d) -> jax.Array:
-    """() bool: this step's contacts or constraint rows may not all fit (Warp: the broad phase's candidate pairs or
-    the shared contact list reached its ``naconmax`` slots, or this run's rows reached ``njmax``); always False on
-    JAX (fixed slots)."""
+    """() bool: this step's contacts or constraint rows may not all fit (Warp: candidate pairs or listed contacts
+    reached ``naconmax``, or this run's rows ``njmax``); always False on JAX (fixed slots)."""
     if not is_warp(d):
         return jnp.bool_(False)
     i = d._impl
@@ -167,10 +152,8 @@ def overflow(d) -> jax.Array:
 
 def solver_capped(m, d) -> jax.Array:
     """() bool: the physics step that produced ``d`` ended its constraint solve at the iteration cap
-    (``opt.iterations``, 4 in the shipped scenes) instead of at its tolerance. Warp counts the solver's iterations
-    in ``solver_niter``; counted per run (``Accum.n_solver_cap``), since Warp's console warning for it is switched
-    off (``wbc_jax.robot.model``). MJX's JAX solver does not report its count (its ``solver_niter`` stays 0): False
-    there, and :func:`reports_solver_cap` says so."""
+    (``opt.iterations``) instead of at its tolerance (Warp's ``solver_niter``; counted per run, ``Accum.n_solver_cap``,
+    its console warning being off). MJX's JAX solver does not count: False (:func:`reports_solver_cap`)."""
     if not is_warp(d):
         return jnp.bool_(False)
     return d._impl.solver_niter >= m.opt.iterations
@@ -197,10 +180,28 @@ def sense(m, d):
     return mjx.fwd_velocity(m, d)
 
 
-def initial(m, d):
-    """A run's first data: :func:`sense` (JAX), ``mjx.forward`` (Warp: every field, and its first call compiles the
-    step's kernels ahead, ``wbc_jax.physics.warp_kernels``)."""
-    return mjx.forward(m, d) if is_warp(d) else sense(m, d)
+def initial(m, d, sensed: bool = False):
+    """A run's first data: :func:`sense` (JAX), ``mjx.forward`` (Warp: every field; its first call compiles the
+    step's kernels ahead, ``wbc_jax.physics.warp_kernels``). ``sensed`` (exact sensing): on Warp the same forward
+    pass through MJX's generated call whose skipped pass (:func:`skipped_pass`) also walks :func:`sense` and
+    :func:`finish`, so their own kernels (the mass matrix's separate factor and solve) compile ahead too."""
+    if not is_warp(d):
+        return sense(m, d)
+    return _warp_forward()(m, d) if sensed and _splits(m) else mjx.forward(m, d)
+
+
+_PASS = threading.local()  # on: this thread runs a skipped pass (skipped_pass)
+
+
+@contextlib.contextmanager
+def skipped_pass():
+    """Marks this thread's MuJoCo Warp calls as a pass whose kernel launches are skipped, run to find the kernels a
+    call launches (``wbc_jax.physics.warp_kernels.launched_modules``)."""
+    _PASS.on = True
+    try:
+        yield
+    finally:
+        _PASS.on = False
 
 
 def sense_with_view(m, d, qvel_seen=None):
@@ -234,9 +235,7 @@ def finish(m, d, ctrl, sensed: bool = True):
     """
     d = d.replace(ctrl=ctrl)
     if is_warp(d):
-        split = sensed and not int(m.opt.enableflags) & mujoco.mjtEnableBit.mjENBL_SLEEP and int(
-            m.opt.integrator) in (mujoco.mjtIntegrator.mjINT_EULER, mujoco.mjtIntegrator.mjINT_IMPLICITFAST)
-        return _warp_finish()(m, d) if split else mjx.step(m, d)
+        return _warp_finish()(m, d) if sensed and _splits(m) else mjx.step(m, d)
     d = mjx.fwd_actuation(m, d)
     d = mjx.fwd_acceleration(m, d)
     d = mjx.solve(m, d)
@@ -288,44 +287,55 @@ def _mjx_warp_call(kind: str, body):
     return call
 
 
-@functools.cache
-def _warp_stages():
-    """MuJoCo Warp's ``step1`` (position and velocity stages, their sensors) as one XLA call like ``mjx.forward``;
-    the later stages' pure outputs (actuator forces, constraint forces and states) zeroed."""
-    from mujoco.mjx.third_party import mujoco_warp as mjwarp
-
-    def stages(m, d):
-        mjwarp.step1(m, d)
-        for a in (d.act_dot, d.actuator_force, d.efc.force, d.efc.Ma, d.efc.state):
-            a.zero_()
-
-    return _mjx_warp_call("forward", stages)
+def _splits(m) -> bool:
+    """Warp: :func:`finish` runs the rest of ``step`` after :func:`sense` (Euler or implicitfast, no sleeping)."""
+    euler_like = (mujoco.mjtIntegrator.mjINT_EULER, mujoco.mjtIntegrator.mjINT_IMPLICITFAST)
+    return not int(m.opt.enableflags) & mujoco.mjtEnableBit.mjENBL_SLEEP and int(m.opt.integrator) in euler_like
 
 
-@functools.cache
-def _warp_finish():
-    """MuJoCo Warp's ``step`` after the position stage (Euler or implicitfast, no sleeping) as one XLA call like
-    ``mjx.step``: the constraint rows made again (their reference accelerations use the velocities, which the sensed
-    data may have seen with noise), the velocity stage, then ``step2`` (actuation to the integrator)."""
-    from mujoco.mjx.third_party import mujoco_warp as mjwarp
-    from mujoco.mjx.third_party.mujoco_warp._src import constraint, sensor
-    from mujoco.mjx.third_party.mujoco_warp._src import forward as fwd
+def _mjwarp():
+    from mujoco.mjx.third_party import mujoco_warp
 
-    def finish(m, d):
-        constraint.make_constraint(m, d)
-        fwd.fwd_velocity(m, d)
-        sensor.sensor_vel(m, d)
-        fwd._energy_vel(m, d)
-        mjwarp.step2(m, d)
+    return mujoco_warp
 
-    return _mjx_warp_call("step", finish)
+
+def _step1(m, d):
+    """MuJoCo Warp's ``step1`` (position and velocity stages, their sensors); the later stages' pure outputs
+    (actuator forces, constraint forces and states) zeroed."""
+    _mjwarp().step1(m, d)
+    for a in (d.act_dot, d.actuator_force, d.efc.force, d.efc.Ma, d.efc.state):
+        a.zero_()
+
+
+def _step_rest(m, d):
+    """MuJoCo Warp's ``step`` after the position stage: the constraint rows made again (their reference
+    accelerations use the velocities, which the sensed data may have seen with noise), the velocity stage, then
+    ``step2`` (actuation to the integrator)."""
+    from mujoco.mjx.third_party.mujoco_warp._src import constraint, forward, sensor
+
+    constraint.make_constraint(m, d)
+    forward.fwd_velocity(m, d)
+    sensor.sensor_vel(m, d)
+    forward._energy_vel(m, d)
+    _mjwarp().step2(m, d)
+
+
+def _forward(m, d):
+    """MuJoCo Warp's ``forward``; in a skipped pass also :func:`_step1` and :func:`_step_rest` (launches skipped)."""
+    _mjwarp().forward(m, d)
+    if getattr(_PASS, "on", False):
+        _step1(m, d)
+        _step_rest(m, d)
+
+
+_warp_stages = functools.cache(lambda: _mjx_warp_call("forward", _step1))  # sense, as one call like mjx.forward
+_warp_finish = functools.cache(lambda: _mjx_warp_call("step", _step_rest))  # finish, as one call like mjx.step
+_warp_forward = functools.cache(lambda: _mjx_warp_call("forward", _forward))  # initial(sensed=True)
 
 
 def put_model(mj_model, impl: str, device):
-    """``mjx.put_model`` on ``device``; a Warp model (``impl == "warp"``) does not print "solver/linesearch
-    iterations limit reached": the scenes cap the constraint solver at ``opt.iterations`` on purpose (fixed cost
-    per step), so reaching it is normal. Capacity overflows (contacts, constraint rows) still print, and the rollout
-    fails the runs they touch."""
+    """``mjx.put_model`` on ``device``; a Warp model does not print "solver/linesearch iterations limit reached"
+    (the scenes cap the solver at ``opt.iterations`` on purpose; :func:`solver_capped` counts it); overflows do."""
     if impl != "warp":
         return mjx.put_model(mj_model, device=device)
     from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
@@ -367,13 +377,10 @@ def slot_forces(m, d, slots) -> jax.Array:
 
 
 def slot_geoms_static(mjx_model) -> np.ndarray | None:
-    """(ncon, 2) geom ids of MJX's contact slots (JAX backend), from the model alone: MJX's collision driver runs one
-    collision function per group of geom pairs (``collision_driver._geom_groups``: by geom types, mesh and condim),
-    repeats each group's rows by the function's contact count and concatenates the groups by ascending condim, in
-    the groups' order. None where that layout is not static (a broad phase: ``max_geom_pairs`` or
-    ``max_contact_points`` set) or does not add up to the model's contact count;
-    :func:`wbc_jax.physics.contacts.compiled_contact_geoms` reads it from a compiled step instead (a test compares
-    the two)."""
+    """(ncon, 2) geom ids of MJX's contact slots (JAX backend) from the model alone, as MJX's collision driver lays
+    them out (one function per group of geom pairs, ``_geom_groups``; each group's rows repeated by its contact
+    count; groups by ascending condim). None where that is not static (a broad phase) or does not add up
+    (:func:`wbc_jax.physics.contacts.compiled_contact_geoms` reads a compiled step instead; a test compares them)."""
     from mujoco.mjx._src import collision_driver as cd
 
     if cd._numeric(mjx_model, "max_geom_pairs") > -1 or cd._numeric(mjx_model, "max_contact_points") > -1:

@@ -77,7 +77,7 @@ def launched_modules(func, args: tuple, device) -> dict:
     inside a graph capture (on a GPU, on a side stream) whose graph is dropped unlaunched, so none of its launches,
     copies, fills and allocations run; the launches of those modules are skipped (Warp's ``launch`` returns when its
     module does not load); a module used otherwise (an occupancy query) and Warp's own load at once. Other threads
-    load modules as usual meanwhile. Raises what ``func`` raises."""
+    load modules as usual meanwhile. ``func`` runs inside ``backend.skipped_pass()``. Raises what ``func`` raises."""
     import warp as wp
     from warp._src import context
 
@@ -103,7 +103,8 @@ def launched_modules(func, args: tuple, device) -> dict:
         with scope:
             wp.capture_begin(force_module_load=False, **where)
             try:
-                func(*args)
+                with backend.skipped_pass():  # a run's first forward pass walks the split step too (backend.initial)
+                    func(*args)
             finally:
                 wp.capture_end(**where)  # the graph is dropped, never launched
     finally:

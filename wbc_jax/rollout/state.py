@@ -99,7 +99,7 @@ def init_state(sim: Sim, m, qpos0, qvel0=None, n_runs: int = 1) -> RunState:
     d = physics.make_data(sim.robot, n_runs).replace(qpos=qpos0)
     if qvel0 is not None:
         d = d.replace(qvel=qvel0)
-    d = physics.initial(m, d)
+    d = physics.initial(m, d, sensed=sim.sensing != "delayed")
     dyn = dyn_terms(m, d, ids)
     acc = init_accum(dyn.p_base[2])
     prev = (d.qpos, d.qvel, d.time) if sim.sensing == "delayed" else None
