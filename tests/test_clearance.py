@@ -372,3 +372,28 @@ def test_broad_phase_non_finite_pose_and_empty_scene(at_poses):
                                                                      ((3,), float)]))
     none = CL.bounded_min_clearance(empty, mjx.make_data(robot.mjx_model))
     assert float(none.distance) == np.inf and int(none.pair) == -1 and float(none.bound) == np.inf
+
+
+def test_pairs_at_once_equal_one_pair_at_a_time_bit_for_bit(at_poses):
+    """Each primitive and bound on a kind's pairs at once (``_over_pairs``: the pairs on the components' last axis)
+    gives the bits ``jax.vmap`` over the pairs gives, at the named poses, 200 random ones and the NaN pose."""
+    robot, _, pairs, poses, Q, _ = at_poses
+    Q = jnp.asarray(np.concatenate([Q[:len(poses) + 200], Q[-1:]]))
+
+    def per_kind(over):
+        def one(qp):
+            d = mjx.kinematics(robot.mjx_model, mjx.make_data(robot.mjx_model).replace(qpos=qp))
+            out = {}
+            for k, name in enumerate(CL.KINDS):
+                args = CL._kind_inputs(pairs, d, np.where(pairs.kind == k)[0])
+                for fn in (CL._FNS[name], CL._BOUNDS.get(name)):
+                    if fn is not None and len(args[0]):
+                        out[fn.__name__] = CL._over_pairs(fn, args) if over else jax.vmap(fn)(*args)
+            return out
+        return jax.device_get(jax.jit(jax.vmap(one))(Q))
+
+    at_once, one_by_one = per_kind(True), per_kind(False)
+    assert set(at_once) == {"capsule_plane", "capsule_box", "box_plane", "box_box", "capsule_box_bound",
+                            "box_box_bound"}, set(at_once)
+    for name, v in one_by_one.items():
+        np.testing.assert_array_equal(at_once[name], v, err_msg=name)

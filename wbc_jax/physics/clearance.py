@@ -127,14 +127,27 @@ def _build_pairs(m: mujoco.MjModel, ids) -> ClearancePairs:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# primitives (one pair; vmapped over the pairs of a kind). A point or vector is a 3-tuple of arrays (its components)
-# and a box's half-sizes a 3-tuple too, every candidate point is its own expression and minima are taken pairwise,
-# so a kind's whole distance is elementwise arithmetic that XLA fuses into one GPU kernel (no stacked candidates,
-# no concatenation, no reduction over a short axis).
+# primitives (one pair, or the pairs of a kind at once: :func:`_over_pairs`). A point or vector is a 3-tuple of
+# arrays (its components) and a box's half-sizes a 3-tuple too, every candidate point is its own expression and
+# minima are taken pairwise, so a kind's whole distance is elementwise arithmetic that XLA fuses into one GPU kernel
+# (no stacked candidates, no concatenation, no reduction over a short axis).
 
 def _v(p):
     """The components of a (3,) array (or of the leading axis of a (3, ...) array)."""
     return (p[0], p[1], p[2])
+
+
+def _lead(c, like):
+    """A constant (k,) array of candidates shaped to lead ``like``'s axes: (k, 1, ...), so that it broadcasts against
+    a batch of pairs (their components' shape) and a reduction over axis 0 is over the candidates."""
+    return np.reshape(c, (-1,) + (1,) * jnp.ndim(like))
+
+
+def _over_pairs(fn, args):
+    """(n,) ``fn`` (a primitive) of ``n`` pairs at once: ``args`` with the pairs on axis 0 (as
+    :func:`_kind_inputs` gives them) moved to the last axis, so that a component ``p[0]`` or ``M[i, j]`` holds every
+    pair's. The same elementwise arithmetic as ``jax.vmap(fn)``, traced without a batching level."""
+    return fn(*(jnp.moveaxis(a, 0, -1) for a in args))
 
 
 def _col(M, j):
@@ -250,15 +263,16 @@ def box_box(pos, R, size, bpos, bR, bsize):
     s, h = _v(size), _v(bsize)
 
     def in_b(C):  # Rab (C * s) for the rows of a constant (k, 3) array C of unit-box points: (k,) components
-        return tuple(sum(Rab[i][j] * (C[:, j] * s[j]) for j in range(3)) for i in range(3))
+        return tuple(sum(Rab[i][j] * (_lead(C[:, j], s[j]) * s[j]) for j in range(3)) for i in range(3))
 
     # separated (module docstring): A's vertices against B, B's vertices against A, and each edge of A at its
     # points nearest B's 12 edge lines (A's 8 vertices and 12 edges as axes of length 8 and 12)
     e0, e1 = _CORNERS[_EDGE_ENDS[:, 0]], _CORNERS[_EDGE_ENDS[:, 1]]  # (12, 3) each
-    d = _sub(tuple(_CORNERS[:, i] * h[i] for i in range(3)), t)  # B's vertices - A's centre, (8,) each (B's frame)
+    d = _sub(tuple(_lead(_CORNERS[:, i], h[i]) * h[i] for i in range(3)), t)  # B's vertices - A's centre (B's frame)
     vb = tuple(_dot(d, a) for a in axes)  # in A's frame
-    sep = jnp.minimum(jnp.minimum(jnp.min(box_sdf(_add(t, in_b(_CORNERS)), h)), jnp.min(box_sdf(vb, s))),
-                      jnp.min(_edge_lines_min(_add(t, in_b(e0)), in_b(e1 - e0), h)))
+    sep = jnp.minimum(jnp.minimum(jnp.min(box_sdf(_add(t, in_b(_CORNERS)), h), axis=0),
+                                  jnp.min(box_sdf(vb, s), axis=0)),
+                      jnp.min(_edge_lines_min(_add(t, in_b(e0)), in_b(e1 - e0), h), axis=0))
 
     def gap(L):  # separating-axis gap along L (B's frame), times |L|
         return (jnp.abs(_dot(L, t)) - sum(jnp.abs(L[i]) * h[i] for i in range(3))
@@ -299,7 +313,7 @@ def pair_distances(pairs: ClearancePairs, d) -> jax.Array:
     for k, name in enumerate(KINDS):
         sel = np.where(pairs.kind == k)[0]
         if sel.size:
-            out.append(jax.vmap(_FNS[name])(*_kind_inputs(pairs, d, sel)))
+            out.append(_over_pairs(_FNS[name], _kind_inputs(pairs, d, sel)))
     if not out:
         return jnp.zeros((0,))
     return jnp.concatenate(out)
@@ -361,12 +375,12 @@ def bounded_min_clearance(pairs: ClearancePairs, d) -> Clearance:
         args, idx = _kind_inputs(pairs, d, sel), jnp.asarray(sel, jnp.int32)
         n_exact = CANDIDATES.get(name, sel.size)
         if n_exact < sel.size:
-            lower = jax.vmap(_BOUNDS[name])(*args)
+            lower = _over_pairs(_BOUNDS[name], args)
             neg, pick = jax.lax.top_k(-lower, n_exact + 1)
             bounds.append(-neg[n_exact])
             bad = bad | jnp.any(jnp.isnan(lower))
             args, idx = tuple(a[pick[:n_exact]] for a in args), idx[pick[:n_exact]]
-        dist.append(jax.vmap(_FNS[name])(*args))
+        dist.append(_over_pairs(_FNS[name], args))
         index.append(idx)
     if not dist:
         return Clearance(jnp.full((), jnp.inf), jnp.full((), -1, jnp.int32), jnp.full((), jnp.inf))
