@@ -198,3 +198,24 @@ def test_states_and_program_compiles_in_the_first_calls_window(monkeypatch):
     assert program == "program" and seconds >= 0 and ahead.beside is None
     assert events == [("lower", "MainThread"), ("step", True), ("compile", "beside-warp"), ("step", False)], events
     np.testing.assert_array_equal(np.asarray(made.batch.state), np.full(4, 22.0))
+
+
+def test_the_source_digest_is_read_before_the_pool_starts(monkeypatch):
+    """start_preload reads the package's source digest before its threads generate code (file reads on the main
+    thread wait behind them for the interpreter lock)."""
+    import jax
+
+    from wbc_jax.runtime import aot
+
+    seen = []
+
+    class Recorder:
+        def __init__(self, workers, device):
+            seen.append((aot._SRC_DIGEST, workers, device))
+
+    monkeypatch.setattr(aot, "_SRC_DIGEST", None)
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    monkeypatch.setattr(warp_kernels, "Preload", Recorder)
+    monkeypatch.setattr(warp_kernels.CompileAhead, "install", lambda self: self)
+    assert isinstance(warp_kernels.start_preload("warp", 3), Recorder)
+    assert seen == [(aot.source_digest(), 3, "cuda:0")]

@@ -29,6 +29,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable
 
 from wbc_jax.physics import backend  # MJX imports MuJoCo Warp, which declares its kernels
+from wbc_jax.runtime import aot
 
 # the MuJoCo Warp modules a step launches that exist at import; the others (SDF collision, islands, derivatives,
 # rendering, ...) compile at the first call of a model that uses them, by CompileAhead
@@ -262,12 +263,17 @@ class _FirstCall:
 def start_preload(backend: str, workers: int | None = None) -> Preload | None:
     """A :class:`Preload` of MuJoCo Warp's step modules on this process's first local GPU with ``workers`` threads
     (None: the CPU count), and a :class:`CompileAhead` installed for the model's own kernels, when ``backend`` is
-    ``"warp"`` and JAX runs on a GPU; None otherwise (on a CPU, Warp's kernels compile on first use)."""
+    ``"warp"`` and JAX runs on a GPU; None otherwise (on a CPU, Warp's kernels compile on first use).
+
+    The package's source digest (:func:`wbc_jax.runtime.aot.source_digest`, the setup's cache keys) is read first:
+    while the pool generates code, the main thread waits for the interpreter lock after each call that releases it,
+    and the digest's ~150 file reads then took seconds instead of milliseconds."""
     import jax
 
     workers = (os.cpu_count() or 1) if workers is None else workers
     if backend != "warp" or jax.default_backend() != "gpu" or workers <= 0:
         return None
+    aot.source_digest()
     # this process's GPU (one process per GPU: --local-device-ids), as Warp numbers the visible devices
     pre = Preload(workers, f"cuda:{jax.local_devices()[0].local_hardware_id or 0}")
     pre.ahead = CompileAhead(workers, pre).install()
