@@ -262,7 +262,7 @@ def box_box(pos, R, size, bpos, bR, bsize):
     t = _in_frame(_v(pos), _v(bpos), bR)  # A's centre in B's frame
     s, h = _v(size), _v(bsize)
 
-    def in_b(C):  # Rab (C * s) for the rows of a constant (k, 3) array C of unit-box points: (k,) components
+    def in_b(C):  # Rab (C * s) for the rows of a constant (k, 3) array C of unit-box points: (k, ...) components
         return tuple(sum(Rab[i][j] * (_lead(C[:, j], s[j]) * s[j]) for j in range(3)) for i in range(3))
 
     # separated (module docstring): A's vertices against B, B's vertices against A, and each edge of A at its
