@@ -265,9 +265,9 @@ def start_preload(backend: str, workers: int | None = None) -> Preload | None:
     (None: the CPU count), and a :class:`CompileAhead` installed for the model's own kernels, when ``backend`` is
     ``"warp"`` and JAX runs on a GPU; None otherwise (on a CPU, Warp's kernels compile on first use).
 
-    The package's source digest (:func:`wbc_jax.runtime.aot.source_digest`, the setup's cache keys) is read first:
-    while the pool generates code, the main thread waits for the interpreter lock after each call that releases it,
-    and the digest's ~150 file reads then took seconds instead of milliseconds."""
+    The package's source digest (:func:`wbc_jax.runtime.aot.source_digest`, the setup's cache keys) is read before
+    the pool starts: while the pool generates code, each call of the main thread that releases the interpreter lock
+    (each of the digest's file reads) waits to take it back."""
     import jax
 
     workers = (os.cpu_count() or 1) if workers is None else workers
