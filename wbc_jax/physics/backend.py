@@ -98,7 +98,7 @@ def data_axes(robot, d):
     n_runs = int(d._impl.naconmax) // NACON_PER_RUN
     key = (robot, n_runs)  # Robots hash by value
     if key not in _DATA_AXES:
-        two, three = (jax.eval_shape(jax.vmap(lambda _: make_data(robot, n_runs)), jnp.zeros(k)) for k in (2, 3))
+        two, three = (jax.eval_shape(jax.vmap(lambda _: make_data(robot, n_runs)), np.zeros(k)) for k in (2, 3))
         _DATA_AXES[key] = jax.tree_util.tree_map(lambda a, b: 0 if a.shape != b.shape else None, two, three)
     return _DATA_AXES[key]
 

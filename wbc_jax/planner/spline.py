@@ -121,7 +121,7 @@ def cubic_path(waypoints, times, v0=None, vf=None) -> CubicPath:
     spline = CubicSpline(t, w, bc_type=((1, v0), (1, vf)))
     # scipy: c[m, k] multiplies (t - x_k)**(3 - m)
     coef = np.transpose(spline.c[::-1], (1, 0, 2))  # (K-1, 4, 3)
-    return CubicPath(jnp.asarray(t), jnp.asarray(coef))
+    return CubicPath(to_device(t), to_device(coef))
 
 
 def waypoint_times(waypoints, speed, t0=0.0):

@@ -29,9 +29,10 @@ import numpy as np
 from wbc_jax.planner.apf import APFParams, overhead, plan_dip
 from wbc_jax.planner.gait import PAIRS, GaitParams, foot_stance_time, gait_phase
 from wbc_jax.planner.scene_geometry import clear_of_edges, leg_geometry, scene_geometry, start_pose, terrain_height
-from wbc_jax.planner.spline import CubicPath, cubic_path, eval_path, max_abs_accel_z, path_end_time, straight_path
+from wbc_jax.planner.spline import CubicPath, cubic_path, eval_path, max_abs_accel_z, straight_path
 from wbc_jax.planner.swing import swing_reference
 from wbc_jax.planner.zmp import preview_com_xy
+from wbc_jax.runtime.transfer import to_device
 from wbc_jax.types import Reference
 
 GRAVITY = 9.81
@@ -118,7 +119,7 @@ def _landing_samples(plan, t):
 
 def _ground(terrain, xy) -> np.ndarray:
     """Ground height under (..., 2) points [m] (host-side)."""
-    return np.asarray(_terrain_height(jnp.asarray(terrain, float), jnp.asarray(xy, float)))
+    return np.asarray(_terrain_height(to_device(terrain, float), to_device(xy, float)))
 
 
 def _check_options(terrain, com_plan):
@@ -131,11 +132,11 @@ def _check_options(terrain, com_plan):
 def _make_plan(robot, qpos0, path: CubicPath, gait: GaitParams, swing_height, t_ramp, com_dip_share,
                terrain, heading, com_plan="zmp") -> TransportPlan:
     p_obj, com, feet, R_obj, R_base, hips = start_pose(robot, qpos0)
-    gait = gait._replace(t_stop=float(path_end_time(path)))
+    gait = gait._replace(t_stop=float(np.asarray(path.t_knots)[-1]))
     foot_off = feet.copy()
     foot_off[:, :2] -= com[:2]
     foot_off[:, 2] -= _ground(terrain, feet[:, :2])  # height above the ground
-    f = lambda x: jnp.asarray(x, float)  # noqa: E731
+    f = lambda x: to_device(x, float)  # noqa: E731
     plan = TransportPlan(
         obj_path=path, com_offset=f(com - p_obj), R_obj=f(R_obj), R_base=f(R_base), foot_offset=f(foot_off),
         gait=GaitParams(*(f(x) for x in gait)), swing_height=f(swing_height), t_ramp=f(t_ramp),
@@ -143,7 +144,7 @@ def _make_plan(robot, qpos0, path: CubicPath, gait: GaitParams, swing_height, t_
         foot_clear=f(robot.ids.foot_radius + EDGE_MARGIN), heading=f(heading[:2] / np.linalg.norm(heading[:2])),
         hip_offset=f(hips - com), leg=f(leg_geometry(robot)),
     )
-    plan = plan._replace(landing=jnp.asarray(landing_table(plan)))
+    plan = plan._replace(landing=to_device(landing_table(plan)))
     return plan._replace(com_xy=zmp_com_path(plan)) if com_plan == "zmp" else plan
 
 
@@ -167,8 +168,8 @@ def straight_plan(robot, qpos0: np.ndarray, distance: float = 3.4, speed: float 
 def _time_law(length: float, speed: float, t0: float, ramp: float):
     """Knot-time function s -> t of the rest-to-rest speed profile of :func:`straight_path` (numpy)."""
     prof = _straight_path(np.zeros(3), np.array([length, 0.0, 0.0]), speed, t0, ramp)
-    t = np.linspace(t0, float(path_end_time(prof)), 20001)
-    s = np.asarray(_path_samples(prof, jnp.asarray(t))[0][:, 0])
+    t = np.linspace(t0, float(np.asarray(prof.t_knots)[-1]), 20001)
+    s = np.asarray(_path_samples(prof, to_device(t))[0])[:, 0]
     s = np.maximum.accumulate(s)
     return lambda q: np.interp(q, s, t)
 
@@ -210,7 +211,7 @@ def course_plan(robot, qpos0: np.ndarray, side: float, distance: float = 3.4, sp
     path = cubic_path(wp, times)
     # checks on the spline actually used
     t = np.linspace(times[0], times[-1], max(int(distance / 0.005), 2))
-    p = np.asarray(_path_samples(path, jnp.asarray(t))[0])
+    p = np.asarray(_path_samples(path, to_device(t))[0])
     under = overhead(geo.obstacles, p[:, :2], apf.footprint)
     clearance = float(np.min(under - (p[:, 2:3] + side / 2.0))) if under.size else np.inf
     if clearance < 0.5 * apf.margin:
@@ -255,7 +256,7 @@ def landing_table(plan: TransportPlan) -> np.ndarray:
     (its touchdown time, hence everything it depends on, is fixed for the swing), up to float rounding."""
     ts, tw, t0, _ = (float(x) for x in plan.gait)
     t_mid = t0 + (ts + tw) * np.arange(max(_n_stepped(plan), 1)) + ts + 0.5 * tw
-    return np.asarray(_landing_samples(plan, jnp.asarray(t_mid)))
+    return np.asarray(_landing_samples(plan, to_device(t_mid)))
 
 
 def landing_at(plan: TransportPlan, g):
@@ -306,14 +307,14 @@ def zmp_com_path(plan: TransportPlan) -> CubicPath:
     tau = (np.arange(ZMP_SAMPLES) + 0.5) / ZMP_SAMPLES * T[:, None]  # (M, ns)
 
     def com(tt: float) -> np.ndarray:
-        return np.asarray(_com_samples(plan, jnp.asarray([tt]))[0][0])
+        return np.asarray(_com_samples(plan, to_device([tt]))[0])[0]
 
-    c_p, _, c_a = (np.asarray(x) for x in _com_samples(plan, jnp.asarray(t_phase[:, None] + tau).reshape(-1)))
+    c_p, _, c_a = (np.asarray(x) for x in _com_samples(plan, to_device((t_phase[:, None] + tau).reshape(-1))))
     c_p, c_a = c_p.reshape(tau.shape + (3,)), c_a.reshape(tau.shape + (3,))
     # footholds: every foot's landing of footstep k's swing, the start's before
     land = np.asarray(plan.landing)  # (n_step, 4, 3)
     c0 = com(t0)
-    feet = np.asarray(plan.foot_offset[:, :2]) + c0[:2]
+    feet = np.asarray(plan.foot_offset)[:, :2] + c0[:2]
     feet = np.concatenate([feet, _ground(plan.terrain, feet)[:, None]], 1)
     line_n, line_c = np.zeros((len(T), 2)), np.zeros(len(T))
     kz = np.empty(tau.shape)
@@ -335,7 +336,7 @@ def zmp_com_path(plan: TransportPlan) -> CubicPath:
     x_end = np.stack([com(starts[-1] + H)[:2], np.zeros(2), np.zeros(2)])
     coef = preview_com_xy(x0, T, list(c_p[..., :2]), list(kz), line_n, line_c, two_foot, list(tau),
                           horizon=ZMP_HORIZON, x_end=x_end)
-    return CubicPath(jnp.asarray(np.append(t_phase, t_phase[-1] + T[-1])), jnp.asarray(coef))
+    return CubicPath(to_device(np.append(t_phase, t_phase[-1] + T[-1])), to_device(coef))
 
 
 def reference(plan: TransportPlan, t, p_lift, contact=None, p_foot=None) -> Reference:

@@ -131,7 +131,7 @@ class TransportController(Controller, ByValue):
     def finalize(self, sim, acc, state, p_goal, mu, n, course: bool) -> dict:
         """:func:`wbc_jax.metrics.paper.finalize` of a batch's final ``state`` (``acc``: its Accum on the host,
         first ``n`` runs), ``p_goal`` (B, 3) the object's goal [m], ``mu`` (n or B,) tray friction."""
-        p_obj = np.asarray(state.d.xpos[:, sim.robot.ids.obj_body])
+        p_obj = np.asarray(state.d.xpos)[:, sim.robot.ids.obj_body]
         p_goal = np.asarray(p_goal)
         if n is not None:
             p_obj, p_goal = p_obj[:n], p_goal[:n]
