@@ -117,14 +117,18 @@ def start_backend() -> threading.Thread:
     """Start JAX's default backend (the device's client: on a GPU the CUDA context and its memory pool) in a daemon
     thread, so that it starts while this process goes on importing MJX and MuJoCo Warp (Python, seconds).
 
+    The thread also makes the first transfer (one scalar): XLA sets up a GPU's memory pool at a device's first
+    allocation, which would otherwise be the main thread's first transfer, after the imports.
+
     Call after :func:`configure` and after ``jax.distributed.initialize`` (both must precede the backend). An error
     starting the backend is left to the main thread: its first use of a device raises it there. Returns the thread.
     """
     import jax
+    import numpy as np
 
     def start():
         try:
-            jax.devices()
+            jax.device_put(np.zeros((), np.float32), jax.local_devices()[0]).block_until_ready()
         except Exception:  # noqa: BLE001  (raised again where the main thread first uses a device)
             pass
 
