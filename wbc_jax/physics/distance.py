@@ -230,7 +230,7 @@ def box_box(pos, R, size, bpos, bR, bsize):
 
 
 PRIMITIVES = {"capsule_plane": capsule_plane, "capsule_box": capsule_box, "sphere_plane": sphere_plane,
-        "sphere_box": sphere_box, "box_plane": box_plane, "box_box": box_box}
+              "sphere_box": sphere_box, "box_plane": box_plane, "box_box": box_box}
 
 
 # ---------------------------------------------------------------------------------------------------------------
