@@ -31,6 +31,7 @@ import numpy as np
 from jax.experimental import multihost_utils
 
 from wbc_jax.bench.qp_audit import variants as variants_named
+from wbc_jax.campaign.regress import compare_campaigns
 from wbc_jax.campaign.runner import run_in_fresh_process
 from wbc_jax.campaign.spec import load_spec
 from wbc_jax.control.transport import TransportConfig, control_qp_settings
@@ -237,9 +238,8 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         qp: control-loop ADMM variant name (``wbc_jax.bench.qp_audit.variants``, e.g. ``"it20_a0"``); None:
             ``iters`` iterations with the control loop's default settings.
         rounds: timed rounds per batch (module docstring); the figures are their medians.
-        campaign: a campaign spec (e.g. ``sweeps/paper_campaign.toml``) also run end to end, twice, in fresh
-            processes sharing a new compilation cache (:func:`campaign_cold_warm`): wall time, compile and setup
-            times cold and warm.
+        campaign: a campaign spec (e.g. ``sweeps/paper_campaign.toml``) also run end to end, twice, in new
+            processes with new caches (:func:`campaign_cold_warm`): a fresh machine's first run and a warm run.
 
     Returns:
         dict: device, ``batches`` (one row per batch size) and ``campaign`` (None without ``campaign``); also written
@@ -279,25 +279,36 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
     return out
 
 
+FRESH_MACHINE_CACHES = {"WBC_JAX_CACHE": "jax", "WARP_CACHE_PATH": "warp", "CUDA_CACHE_PATH": "cuda"}
+
+
 def campaign_cold_warm(spec: str) -> dict:
-    """Run ``wbc-jax campaign --spec SPEC --no-report`` twice, each in a fresh process, with a new (empty)
-    compilation cache shared by both: the first run compiles everything, the second loads it
-    (``wbc_jax.runtime.aot`` and the persistent cache). Prints and returns, per run, the manifest's wall time,
-    import / setup / compile estimate [s], rollout env steps per second and successes."""
+    """Run ``wbc-jax campaign --spec SPEC`` (the whole command, with its report) twice, each in a new process,
+    with every cache a run can fill new and empty before the first (JAX's compilation and the plans in
+    ``WBC_JAX_CACHE``, MuJoCo Warp's kernels in ``WARP_CACHE_PATH``, the CUDA driver's in ``CUDA_CACHE_PATH``) and
+    shared by both: the first is a fresh machine's first run (but for its first disk reads), the second a warm one.
+    Prints and returns, per run, the process's wall time [s] (``process_s``: start to exit, measured here) and the
+    manifest's wall time, import / setup / compile estimate [s], rollout env steps per second and successes; and
+    whether the warm run's cell means lie within the fresh one's regress bands (``regress --compare``).
+
+    Raises:
+        WbcJaxError: a run failed (the end of its stderr).
+    """
     keys = ("wall_s_total", "wall_s_rollout", "import_s", "setup_s", "compile_s_estimate", "env_steps_per_s",
             "n_success", "n_runs")
     out = dict(spec=str(spec))
     with tempfile.TemporaryDirectory() as td:
+        caches = {var: str(Path(td) / "caches" / name) for var, name in FRESH_MACHINE_CACHES.items()}
         for label in ("cold", "warm"):
-            run = run_in_fresh_process(spec, Path(td) / label, WBC_JAX_CACHE=str(Path(td) / "cache"))
+            t0 = time.perf_counter()
+            run = run_in_fresh_process(spec, Path(td) / label, report=True, **caches)
             man = json.loads((run / "manifest.json").read_text())
-            out[label] = {k: man.get(k) for k in keys}
-            m = out[label]
-            print(f"campaign {spec}, {label} compilation cache: wall {m['wall_s_total']:.1f} s (import "
-                  f"{m['import_s']:.1f} s, setup {m['setup_s']:.1f} s, compile about "
-                  f"{m['compile_s_estimate'] or 0:.1f} s, rollout {m['wall_s_rollout']:.1f} s, "
-                  f"{m['env_steps_per_s']:,.0f} env steps/s), "
-                  f"{m['n_success']}/{m['n_runs']} runs succeed", flush=True)
+            m = out[label] = {"process_s": time.perf_counter() - t0, **{k: man.get(k) for k in keys}}
+            print(f"campaign {spec}, {label} caches: the whole command {m['process_s']:.1f} s (manifest: wall "
+                  f"{m['wall_s_total']:.1f} s, import {m['import_s']:.1f} s, setup {m['setup_s']:.1f} s, compile "
+                  f"about {m['compile_s_estimate'] or 0:.1f} s, rollout {m['wall_s_rollout']:.1f} s, "
+                  f"{m['env_steps_per_s']:,.0f} env steps/s), {m['n_success']}/{m['n_runs']} runs succeed", flush=True)
+        out["warm_within_cold_bands"] = compare_campaigns(str(Path(td) / "cold"), str(Path(td) / "warm"))[0] == 0
     return out
 
 

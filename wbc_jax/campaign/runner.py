@@ -389,11 +389,11 @@ def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guar
             saver.join()
 
 
-def run_in_fresh_process(spec_path, out: Path, **env) -> Path:
-    """``wbc-jax campaign --spec SPEC --out OUT --no-report`` in a new Python process (environment variables
-    ``env`` set on top of this one's); returns OUT. A failed run raises WbcJaxError with the end of its stderr."""
-    r = subprocess.run([sys.executable, "-m", "wbc_jax", "campaign", "--spec", str(spec_path), "--out", str(out),
-                        "--no-report"], env=dict(os.environ, **env), capture_output=True, text=True)
+def run_in_fresh_process(spec_path, out: Path, report: bool = False, **env) -> Path:
+    """``wbc-jax campaign --spec SPEC --out OUT`` (``--no-report`` unless ``report``) in a new Python process (``env``
+    set on top of this one's environment); returns OUT. A failed run raises WbcJaxError with the end of its stderr."""
+    cmd = [sys.executable, "-m", "wbc_jax", "campaign", "--spec", str(spec_path), "--out", str(out)]
+    r = subprocess.run(cmd + ["--no-report"] * (not report), env={**os.environ, **env}, capture_output=True, text=True)
     if r.returncode != 0:
         extra = " ".join(f"{k}={v}" for k, v in env.items())
         raise WbcJaxError(f"campaign {spec_path} ({extra}) failed: {r.stderr.strip()[-800:]}")

@@ -111,9 +111,11 @@ def _add_bench(sub) -> argparse.ArgumentParser:
     b.add_argument("--breakdown", default=None, help="rollout --campaign: comma-separated batch sizes at which the "
                                                      "step is also timed without clearance and without monitors "
                                                      "(default: every --batches size)")
-    b.add_argument("--cold-warm", action="store_true", help="rollout --campaign: also run the spec end to end twice "
-                                                            "in fresh processes with a new compilation cache (wall "
-                                                            "time, compile cold and warm)")
+    b.add_argument("--cold-warm", action="store_true", help="rollout --campaign: also run the whole campaign command "
+                                                            "twice, each a new process, with JAX's, Warp's and CUDA's "
+                                                            "caches new and empty before the first: a fresh machine's "
+                                                            "wall time, then a warm one's, and their regress "
+                                                            "comparison")
     b.add_argument("--warmup", type=float, default=0.0,
                    help="trace: simulated seconds run untraced first, so that the traced steps come from the walk "
                         "(default 0: the first standing steps)")
