@@ -138,6 +138,7 @@ BAD_INPUTS = [
     ("bench_backend", ["bench", "rollout", "--backend", "bullet"], "--backend 'bullet'"),
     ("bench_sensing", ["bench", "rollout", "--backend", "jax:delayed"], "sensing = 'delayed' needs the Warp backend"),
     ("bench_rounds", ["bench", "rollout", "--rounds", "0"], "--rounds 0: expected an integer >= 1"),
+    ("bench_cold_warm_alone", ["bench", "rollout", "--cold-warm"], "--cold-warm: expected with rollout --campaign"),
     ("campaign_spec_sensing", ["campaign", "--spec", "sensing.toml", "--out", "new_s"],
      "campaign.sensing: = 'late': expected one of auto, exact, delayed"),
     ("campaign_spec_delayed_jax", ["campaign", "--spec", "delayed.toml", "--out", "new_d"],

@@ -24,6 +24,9 @@ def bench_args(args: argparse.Namespace) -> list[int] | None:
     for flag in ("steps", "iters", "substeps", "rounds"):
         if getattr(args, flag) is not None and getattr(args, flag) < 1:
             raise InputError(f"--{flag} {getattr(args, flag)}: expected an integer >= 1")
+    if args.cold_warm and (args.what != "rollout" or args.campaign is None):
+        raise InputError("--cold-warm: expected with rollout --campaign SPEC (the spec's campaign run fresh, then "
+                         "warm)")
     if args.qp is not None:
         from wbc_jax.bench.qp_audit import variants
 
