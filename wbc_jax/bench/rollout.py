@@ -224,7 +224,7 @@ def _time_sharded(case: _Case, row: dict, b, t_wbc: float) -> None:
 
 
 def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30, json_path: str | None = None,
-              scene: str = "flat", qp: str | None = None, substeps: int = 1, campaign: str | None = None,
+              scene: str = "flat", qp: str | None = None, substeps: int = 1, cold_warm: dict | None = None,
               backends=("jax",), rounds: int = 5):
     """Physics-only and physics + WBC env steps per second per batch size (see module docstring).
 
@@ -238,15 +238,13 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         qp: control-loop ADMM variant name (``wbc_jax.bench.qp_audit.variants``, e.g. ``"it20_a0"``); None:
             ``iters`` iterations with the control loop's default settings.
         rounds: timed rounds per batch (module docstring); the figures are their medians.
-        campaign: a campaign spec (e.g. ``sweeps/paper_campaign.toml``) also run end to end, twice, in new
-            processes with new caches (:func:`campaign_cold_warm`): a fresh machine's first run and a warm run.
+        cold_warm: :func:`campaign_cold_warm`'s result, run before this process took a device: kept in the
+            result and the JSON as ``campaign``.
 
     Returns:
         dict: device, ``batches`` (one row per batch size) and ``campaign`` (None without ``campaign``); also written
         to ``json_path``.
     """
-    if campaign is not None:
-        load_spec(campaign)  # a bad spec fails here (file, key, range), before any timing
     qs = variants_named([qp])[qp] if qp else control_qp_settings(iters)
     iters = qs.iters
     device = jax.devices()[0].device_kind
@@ -272,7 +270,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
         elif jax.device_count() > 1:
             _time_sharded(case, row, b, t_wbc)
         rows.append(row)
-    out = dict(device=device, batches=rows, campaign=campaign_cold_warm(campaign) if campaign and writer else None)
+    out = dict(device=device, batches=rows, campaign=cold_warm)
     if json_path and writer:
         with open(json_path, "w") as fh:
             json.dump(out, fh, indent=2)
@@ -283,7 +281,8 @@ FRESH_MACHINE_CACHES = {"WBC_JAX_CACHE": "jax", "WARP_CACHE_PATH": "warp", "CUDA
 
 
 def campaign_cold_warm(spec: str) -> dict:
-    """Run ``wbc-jax campaign --spec SPEC`` (the whole command, with its report) twice, each in a new process,
+    """Run ``wbc-jax campaign --spec SPEC`` (the whole command, with its report) twice, each in a new process (call
+    it before this process holds a GPU: the runs' memory pools take most of its memory, as a user's run does),
     with every cache a run can fill new and empty before the first (JAX's compilation and the plans in
     ``WBC_JAX_CACHE``, MuJoCo Warp's kernels in ``WARP_CACHE_PATH``, the CUDA driver's in ``CUDA_CACHE_PATH``) and
     shared by both: the first is a fresh machine's first run (but for its first disk reads), the second a warm one.
@@ -294,6 +293,7 @@ def campaign_cold_warm(spec: str) -> dict:
     Raises:
         WbcJaxError: a run failed (the end of its stderr).
     """
+    load_spec(spec)  # a bad spec fails here (file, key, range), before anything runs
     keys = ("wall_s_total", "wall_s_rollout", "import_s", "setup_s", "compile_s_estimate", "env_steps_per_s",
             "n_success", "n_runs")
     out = dict(spec=str(spec))

@@ -45,6 +45,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     sizes = checks.bench_args(args)
     if args.json is not None:  # before anything is measured: a result never overwrites a file by surprise
         check_file_target(args.json, "--json", force=args.force)
+    cold_warm = None
+    if args.cold_warm:  # first: the runs are whole processes, each taking the GPU's memory as a user's run does
+        from wbc_jax.bench.rollout import campaign_cold_warm
+
+        cold_warm = campaign_cold_warm(args.campaign)
     _join_processes(args)  # rollout: one process per device (wbc_jax.bench.rollout)
     import jax
 
@@ -60,7 +65,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         backends = tuple(x for x in args.backend.split(",") if x)
         batches = sizes or ((1, 4) if args.quick else CPU_BATCHES["rollout"] if cpu else (1, 1024, 4096, 16384))
         kw = dict(batches=batches, steps=args.steps, iters=args.iters, json_path=args.json, scene=args.scene,
-                  qp=args.qp, substeps=args.substeps, campaign=args.campaign if args.cold_warm else None,
+                  qp=args.qp, substeps=args.substeps, cold_warm=cold_warm,
                   backends=backends, rounds=args.rounds or (3 if cpu else 5))
         if args.campaign is None:
             run_rollout_bench(**kw)
