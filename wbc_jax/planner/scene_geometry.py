@@ -224,7 +224,7 @@ def clear_of_edges(terrain, xy, direction, clearance, hip=None, foot_z=None, leg
         leg = jnp.asarray(leg)
         # the hip anywhere between its plan and hip_drop below (the clearance is not monotone in the drop: a lower
         # hip bends the knee more): checked at the plan, half-way and the full drop
-        hips_sz = [jnp.stack([hip[:2] @ u, hip[2] - f * hip_drop]) for f in (0.0, 0.5, 1.0)]
+        hips_sz = jnp.stack([jnp.stack([hip[:2] @ u, hip[2] - f * hip_drop]) for f in (0.0, 0.5, 1.0)])[:, None]
     for b in range(terrain.shape[0]):
         lo, hi = terrain[b, 0, :2], terrain[b, 1, :2]
         e_in, e_out = jnp.sort(jnp.array([lo @ u, hi @ u]))
@@ -243,16 +243,17 @@ def clear_of_edges(terrain, xy, direction, clearance, hip=None, foot_z=None, leg
             """Landing at sc (beyond the edge) clears it with the shin."""
             ground = terrain_height(terrain, sc[..., None] * u + c * across)
             foot = jnp.stack([sc, ground + foot_z], axis=-1)
-            worst = jnp.min(jnp.stack([shin_clearance(h, foot, edge, leg) for h in hips_sz]), axis=0)
+            worst = jnp.min(shin_clearance(hips_sz, foot, edge, leg), axis=0)  # over the three hips
             return (sc >= e_out + clearance) & (worst >= margin)
 
         reach_out = e_out + leg[2] + leg[3]  # beyond this the shank cannot be over the edge
         considered = in_lane & (s > box_side) & (s < reach_out)
         cand = e_out + clearance + CANDIDATE_STEP * jnp.arange(int(np.ceil(CANDIDATE_SPAN / CANDIDATE_STEP)))
-        good = ok(cand) & (cand < reach_out)
+        ok_cand_s = ok(jnp.concatenate([cand, s[None]]))  # the candidates and the foothold itself, at once
+        good = ok_cand_s[:-1] & (cand < reach_out)
         gap = jnp.where(good, jnp.abs(cand - s), jnp.inf)
         best = cand[jnp.argmin(gap)]
         best_gap = jnp.min(gap)
         moved = jnp.where(best_gap < s - box_side, best, box_side)
-        s = jnp.where(considered & ~ok(s), moved, s)
+        s = jnp.where(considered & ~ok_cand_s[-1], moved, s)
     return s * u + c * across
