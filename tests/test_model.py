@@ -252,3 +252,40 @@ def test_max_pair_contacts_by_geom_types():
     m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_NATIVECCD)
     assert max_pair_contacts(m, [(g["box"], g["box2"])]) == 8
     assert max_pair_contacts(m, [(g["plane"], g["box"])]) == 4
+
+
+def test_zero_stages_are_off_only_where_mujoco_c_computes_zeros(robot):
+    """``robot.sensors.zero_stages``: the transport scene (no joint stiffness or damping, no friction loss, no
+    gravity compensation, no fluid) gets springs, dampers and friction loss off, and MuJoCo C steps the scene with
+    them off exactly as with them on (0.3 s from home with a push and random torques: qpos, qvel, qacc equal bit for
+    bit); one damped joint keeps springs and dampers on, one joint with friction loss keeps friction loss on."""
+    from wbc_jax.robot.sensors import zero_stages
+
+    D = mujoco.mjtDisableBit
+    passive, friction = int(D.mjDSBL_SPRING) | int(D.mjDSBL_DAMPER), int(D.mjDSBL_FRICTIONLOSS)
+    base = robot.mj_model
+    assert zero_stages(base) == passive | friction
+    if physics.warp_available():  # the Warp scene is compiled with them off
+        assert Robot("transport", backend="warp").mj_model.opt.disableflags & (passive | friction) == passive | friction
+
+    def roll(m):
+        d = mujoco.MjData(m)
+        mujoco.mj_resetDataKeyframe(m, d, robot.ids.key_home)
+        rng = np.random.default_rng(0)
+        for k in range(300):
+            d.ctrl[:] = rng.uniform(-5.0, 5.0, m.nu)
+            d.xfrc_applied[robot.ids.trunk_body, :3] = [20.0, 10.0, 0.0] if k < 100 else 0.0
+            mujoco.mj_step(m, d)
+        return [d.qpos.copy(), d.qvel.copy(), d.qacc.copy(), d.qfrc_passive.copy()]
+
+    off = mujoco.MjModel.from_xml_path(str(robot.path))
+    off.opt.disableflags |= zero_stages(off)
+    for a, b in zip(roll(base), roll(off)):
+        np.testing.assert_array_equal(a, b)
+
+    damped = mujoco.MjModel.from_xml_path(str(robot.path))
+    damped.dof_damping[7] = 0.5
+    assert zero_stages(damped) == friction
+    rough = mujoco.MjModel.from_xml_path(str(robot.path))
+    rough.dof_frictionloss[7] = 0.1
+    assert zero_stages(rough) == passive

@@ -38,10 +38,10 @@ NACON_PER_RUN = 32  # Warp: contacts listed per run on average (the list is shar
 NJMAX_PER_CONTACT = 4  # constraint rows of one pyramidal condim-3 contact
 
 # MuJoCo Warp's import-time kernel modules that a forward step of a rigid-body model with contacts launches
-# (kinematics, passive forces, sensors, constraints, the solver, and MJX's FFI glue): what
-# wbc_jax.physics.warp_kernels compiles ahead, while a campaign's setup runs
+# (kinematics, sensors, constraints, the solver, and MJX's FFI glue; not the passive forces, which the scenes turn
+# off where they are zero: wbc_jax.robot.sensors.zero_stages): what wbc_jax.physics.warp_kernels compiles ahead
 WARP_STEP_MODULES = tuple(f"mujoco.mjx.third_party.mujoco_warp._src.{name}" for name in (
-    "forward", "smooth", "passive", "sensor", "constraint", "solver", "support")) + ("mujoco.mjx.warp.ffi",)
+    "forward", "smooth", "sensor", "constraint", "solver", "support")) + ("mujoco.mjx.warp.ffi",)
 
 
 def warp_available() -> bool:

@@ -5,7 +5,9 @@ ground pair and per wall pair ``found`` and ``dist``; added to the scene's spec 
 
 The Warp scene also disables native CCD (``mjDSBL_NATIVECCD``): MuJoCo Warp then collides box-box pairs with its
 ``box_box`` primitive (up to 8 contacts, like MuJoCo C's ``mjc_BoxBox``) instead of its convex GJK/EPA kernel,
-whose compile is a fresh machine's longest (the shipped scenes' box-box pairs: robot boxes vs the wall's).
+whose compile is a fresh machine's longest (the shipped scenes' box-box pairs: robot boxes vs the wall's). And it
+disables the stages that compute only zeros for the scene (:func:`zero_stages`: passive forces, friction loss), whose
+kernels MuJoCo Warp would otherwise launch every physics step; the physics is the same.
 
 MuJoCo Warp matches each sensor against the contact list in slots of ``contact_sensor_maxmatch`` contacts per run
 and sensor (64 by default, from the model's numeric of that name), filled and sorted every physics step. The scene
@@ -62,6 +64,21 @@ class ContactSensors:
         return np.concatenate([self.obj, self.nonfoot, self.wall])
 
 
+def zero_stages(model: mujoco.MjModel) -> int:
+    """``mjtDisableBit`` flags of the stages that give only zeros for ``model``: springs and dampers (and with both
+    off MuJoCo skips the passive stage, gravity compensation and fluid forces included) where no joint or tendon
+    has stiffness or damping, no body gravity compensation and the medium no density or viscosity; friction loss
+    where no dof or tendon has any. 0 where each stage has something to compute."""
+    bits = 0
+    none = lambda *xs: all(not np.any(np.asarray(x)) for x in xs)  # noqa: E731
+    if none(model.jnt_stiffness, model.dof_damping, model.tendon_stiffness, model.tendon_damping,
+            model.body_gravcomp, model.opt.density, model.opt.viscosity) and model.nflex == 0:
+        bits |= int(mujoco.mjtDisableBit.mjDSBL_SPRING) | int(mujoco.mjtDisableBit.mjDSBL_DAMPER)
+    if none(model.dof_frictionloss, model.tendon_frictionloss):
+        bits |= int(mujoco.mjtDisableBit.mjDSBL_FRICTIONLOSS)
+    return bits
+
+
 def max_pair_contacts(model: mujoco.MjModel, pairs, primitive_boxes: bool | None = None) -> int:
     """The most contacts MuJoCo Warp gives any of the geom pairs ``pairs`` ((k, 2) geom ids of ``model``): 1 for a
     sphere, 2 for a capsule vs a plane or box, 4 for a box vs a plane or box (8 for two boxes on the box_box
@@ -90,6 +107,7 @@ def with_contact_sensors(path: Path, base: mujoco.MjModel, ids) -> tuple[mujoco.
     """
     spec = mujoco.MjSpec.from_file(str(path))
     spec.option.disableflags |= _NATIVECCD  # box-box pairs on MuJoCo Warp's box_box primitive (module docstring)
+    spec.option.disableflags |= zero_stages(base)  # no launches for stages that compute zeros (module docstring)
     g1, g2 = base.pair_geom1, base.pair_geom2
     for p in np.concatenate([ids.foot_pair.ravel(), ids.obj_pair]).astype(int):
         for g in (g1[p], g2[p]):
