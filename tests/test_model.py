@@ -258,7 +258,8 @@ def test_zero_stages_are_off_only_where_mujoco_c_computes_zeros(robot):
     """``robot.sensors.zero_stages``: the transport scene (no joint stiffness or damping, no friction loss, no
     gravity compensation, no fluid) gets springs, dampers and friction loss off, and MuJoCo C steps the scene with
     them off exactly as with them on (0.3 s from home with a push and random torques: qpos, qvel, qacc equal bit for
-    bit); one damped joint keeps springs and dampers on, one joint with friction loss keeps friction loss on."""
+    bit); one damped joint keeps springs and dampers on, one joint with friction loss keeps friction loss on, and
+    either stage, turned off there, would change the motion."""
     from wbc_jax.robot.sensors import zero_stages
 
     D = mujoco.mjtDisableBit
@@ -283,9 +284,11 @@ def test_zero_stages_are_off_only_where_mujoco_c_computes_zeros(robot):
     for a, b in zip(roll(base), roll(off)):
         np.testing.assert_array_equal(a, b)
 
-    damped = mujoco.MjModel.from_xml_path(str(robot.path))
-    damped.dof_damping[7] = 0.5
-    assert zero_stages(damped) == friction
-    rough = mujoco.MjModel.from_xml_path(str(robot.path))
-    rough.dof_frictionloss[7] = 0.1
-    assert zero_stages(rough) == passive
+    for field, kept in (("dof_damping", passive), ("dof_frictionloss", friction)):
+        m = mujoco.MjModel.from_xml_path(str(robot.path))
+        getattr(m, field)[7] = 0.5
+        assert zero_stages(m) == (passive | friction) & ~kept, field
+        cut = mujoco.MjModel.from_xml_path(str(robot.path))
+        getattr(cut, field)[7] = 0.5
+        cut.opt.disableflags |= kept  # what zero_stages keeps on does act here
+        assert np.abs(roll(m)[0] - roll(cut)[0]).max() > 1e-3, field

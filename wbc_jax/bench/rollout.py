@@ -242,7 +242,7 @@ def run_bench(batches=(1, 1024, 4096, 16384), steps: int = 200, iters: int = 30,
             result and the JSON as ``campaign``.
 
     Returns:
-        dict: device, ``batches`` (one row per batch size) and ``campaign`` (None without ``campaign``); also written
+        dict: device, ``batches`` (one row per batch size) and ``campaign`` (``cold_warm``); also written
         to ``json_path``.
     """
     qs = variants_named([qp])[qp] if qp else control_qp_settings(iters)

@@ -64,15 +64,20 @@ class ContactSensors:
         return np.concatenate([self.obj, self.nonfoot, self.wall])
 
 
+_SPRING_DAMPER_FIELDS = ("jnt_stiffness", "jnt_stiffnesspoly", "dof_damping", "dof_dampingpoly", "tendon_stiffness",
+                         "tendon_stiffnesspoly", "tendon_damping", "tendon_dampingpoly", "body_gravcomp")
+
+
 def zero_stages(model: mujoco.MjModel) -> int:
     """``mjtDisableBit`` flags of the stages that give only zeros for ``model``: springs and dampers (and with both
-    off MuJoCo skips the passive stage, gravity compensation and fluid forces included) where no joint or tendon
-    has stiffness or damping, no body gravity compensation and the medium no density or viscosity; friction loss
-    where no dof or tendon has any. 0 where each stage has something to compute."""
-    bits = 0
+    off MuJoCo skips the passive stage, gravity compensation and fluid forces included) where no joint, dof or
+    tendon has stiffness or damping (linear or polynomial), no body gravity compensation, no flex, and the
+    medium no density or viscosity; friction loss where no dof or tendon has any. 0 where each stage has something
+    to compute; a field this MuJoCo lacks counts as zero."""
     none = lambda *xs: all(not np.any(np.asarray(x)) for x in xs)  # noqa: E731
-    if none(model.jnt_stiffness, model.dof_damping, model.tendon_stiffness, model.tendon_damping,
-            model.body_gravcomp, model.opt.density, model.opt.viscosity) and model.nflex == 0:
+    bits = 0
+    if (none(*(getattr(model, f, 0) for f in _SPRING_DAMPER_FIELDS), model.opt.density, model.opt.viscosity)
+            and model.nflex == 0):
         bits |= int(mujoco.mjtDisableBit.mjDSBL_SPRING) | int(mujoco.mjtDisableBit.mjDSBL_DAMPER)
     if none(model.dof_frictionloss, model.tendon_frictionloss):
         bits |= int(mujoco.mjtDisableBit.mjDSBL_FRICTIONLOSS)
