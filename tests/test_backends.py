@@ -26,6 +26,7 @@ from wbc_jax.physics.observe import mass_matrix  # noqa: E402
 from wbc_jax.planner.gait import GaitParams
 from wbc_jax.robot import scenario  # noqa: E402
 from wbc_jax.robot.model import Robot  # noqa: E402
+from wbc_jax.robot.sensors import DIST  # noqa: E402
 from wbc_jax.rollout import final_results, make_sim, simulate  # noqa: E402
 from wbc_jax.rollout.batch import prepare_batch  # noqa: E402
 
@@ -334,8 +335,8 @@ def test_box_box_pairs_on_the_primitive_as_mujoco_c():
     boxes = [i for i, p in enumerate(wall) if mj.geom_type[mj.pair_geom1[p]] == mj.geom_type[mj.pair_geom2[p]] == box]
     touching = [i for i in boxes if mine[i]]
     assert len(touching) == 2 and max(len(mine[i]) for i in touching) > 4  # tray and cube, more than 4 points
-    np.testing.assert_allclose(sd[robot.sensors.wall[touching] + 1], [min(c.dist for c in mine[i]) for i in touching],
-                               atol=2e-6)
+    nearest = [min(c.dist for c in mine[i]) for i in touching]
+    np.testing.assert_allclose(sd[robot.sensors.wall[touching] + DIST], nearest, atol=2e-6)
     assert not bool(np.asarray(over)[0])
 
 

@@ -38,6 +38,7 @@ import mujoco
 import numpy as np
 
 from wbc_jax.physics import backend as physics
+from wbc_jax.robot.sensors import DIST as SENSOR_DIST
 from wbc_jax.runtime import aot
 
 CONTACT_DIST = 1e-3  # [m] a foot closer than this to the floor or terrain counts as touching; an object sphere
@@ -101,9 +102,10 @@ def sim_indices(robot) -> ContactIndices:
 
 
 def _sensor_dist(d, adr):
-    """Distance field of contact sensors whose values are (found, dist): +inf where nothing was found."""
+    """Distance field of contact sensors (``wbc_jax.robot.sensors``: found, force, dist): +inf where nothing was
+    found."""
     sd = d.sensordata
-    return jnp.where(sd[adr] > 0, sd[adr + 1], jnp.inf)
+    return jnp.where(sd[adr] > 0, sd[adr + SENSOR_DIST], jnp.inf)
 
 
 def _slot_dist(d, slots):

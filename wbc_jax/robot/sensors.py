@@ -1,7 +1,9 @@
 """The MJCF contact sensors the Warp backend reads (:mod:`wbc_jax.physics.contacts` explains why).
 
-Per object contact sphere its contact with the tray (``found``, contact-frame ``force``, ``dist``), per non-foot
-ground pair and per wall pair ``found`` and ``dist``; added to the scene's spec before it is compiled.
+Per object contact sphere its contact with the tray, per non-foot ground pair and per wall pair: ``found``,
+contact-frame ``force``, ``dist`` (at :data:`DIST`), the same fields for every sensor, so that all are of one stage
+(acceleration: the force needs it) and MuJoCo Warp matches and sorts them in one pass a step instead of one per
+stage; added to the scene's spec before it is compiled.
 
 The Warp scene also disables native CCD (``mjDSBL_NATIVECCD``): MuJoCo Warp then collides box-box pairs with its
 ``box_box`` primitive (up to 8 contacts, like MuJoCo C's ``mjc_BoxBox``) instead of its convex GJK/EPA kernel,
@@ -27,6 +29,7 @@ import numpy as np
 from wbc_jax.errors import SceneError
 
 _FOUND, _FORCE, _DIST = 0, 1, 3  # bits of mjtConDataField: found, force (3), dist
+DIST = 4  # offset of ``dist`` in every contact sensor's values (found, force (3), dist)
 _MINDIST = 1  # mjtConReduce: the nearest contact first
 _NATIVECCD = int(mujoco.mjtDisableBit.mjDSBL_NATIVECCD)  # MuJoCo Warp: box-box pairs on the box_box primitive
 _DIST_TYPES = (int(mujoco.mjtGeom.mjGEOM_SPHERE), int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_BOX))
@@ -43,14 +46,14 @@ WARP_MAXMATCH = 64  # MuJoCo Warp's contact_sensor_maxmatch without the numeric
 
 @dataclass(frozen=True, eq=False)
 class ContactSensors:
-    """Addresses in ``sensordata`` of the contact sensors (see the module docstring); each sensor's values start
-    with ``found`` (number of matching contacts), then its fields in MuJoCo's order (force (3), dist).
+    """Addresses in ``sensordata`` of the contact sensors (see the module docstring); each sensor's values are
+    ``found`` (number of matching contacts), force (3, contact frame, normal first) [N], dist [m] (at :data:`DIST`).
 
     Attributes:
-        obj: (4,) per object contact sphere vs the tray: found, force (3, contact frame, normal first) [N], dist.
-        nonfoot: (k,) per non-foot robot part vs ground pair (``RobotIds.nonfoot_floor_pair`` order): found, dist.
+        obj: (4,) per object contact sphere vs the tray.
+        nonfoot: (k,) per non-foot robot part vs ground pair (``RobotIds.nonfoot_floor_pair`` order).
         nonfoot_geoms: (k, 2) the geom ids of each of those pairs.
-        wall: (w,) per wall pair (``RobotIds.wall_pair`` order): found, dist.
+        wall: (w,) per wall pair (``RobotIds.wall_pair`` order).
     """
 
     obj: np.ndarray
@@ -134,9 +137,8 @@ def with_contact_sensors(path: Path, base: mujoco.MjModel, ids) -> tuple[mujoco.
         s.intprm[2] = 1
         return name
 
-    names = {"obj": [add(f"wbc_obj{i}", (_FORCE, _DIST), g1[p], g2[p]) for i, p in enumerate(ids.obj_pair)],
-             "nonfoot": [add(f"wbc_nonfoot{i}", (_DIST,), g1[p], g2[p]) for i, p in enumerate(ids.nonfoot_floor_pair)],
-             "wall": [add(f"wbc_wall{i}", (_DIST,), g1[p], g2[p]) for i, p in enumerate(ids.wall_pair)]}
+    names = {key: [add(f"wbc_{key}{i}", (_FORCE, _DIST), g1[p], g2[p]) for i, p in enumerate(pairs)]
+             for key, pairs in (("obj", ids.obj_pair), ("nonfoot", ids.nonfoot_floor_pair), ("wall", ids.wall_pair))}
     sensed = np.concatenate([ids.obj_pair, ids.nonfoot_floor_pair, ids.wall_pair]).astype(int)
     maxmatch = max_pair_contacts(base, np.stack([g1[sensed], g2[sensed]], axis=1), primitive_boxes=True)
     if "contact_sensor_maxmatch" not in [n.name for n in spec.numerics]:
