@@ -24,15 +24,16 @@ def bench_args(args: argparse.Namespace) -> list[int] | None:
     for flag in ("steps", "iters", "substeps", "rounds"):
         if getattr(args, flag) is not None and getattr(args, flag) < 1:
             raise InputError(f"--{flag} {getattr(args, flag)}: expected an integer >= 1")
-    if args.cold_warm and (args.what != "rollout" or args.campaign is None):
-        raise InputError("--cold-warm: expected with rollout --campaign SPEC (the spec's campaign run fresh, then "
-                         "warm)")
-    from wbc_jax.rollout import distributed
+    if args.cold_warm:
+        from wbc_jax.rollout import distributed
 
-    if args.cold_warm and distributed.resolve(args.coordinator, args.num_processes, args.process_id,
-                                              args.local_device_ids) is not None:
-        raise InputError("--cold-warm: expected in a one-process bench (its runs are one-GPU campaigns); drop "
-                         "--coordinator / --num-processes")
+        if args.what != "rollout" or args.campaign is None:
+            raise InputError("--cold-warm: expected with rollout --campaign SPEC (the spec's campaign run fresh, then "
+                             "warm)")
+        if distributed.resolve(args.coordinator, args.num_processes, args.process_id,
+                               args.local_device_ids) is not None:
+            raise InputError("--cold-warm: expected in a one-process bench (its runs are one-GPU campaigns); drop "
+                             "--coordinator / --num-processes")
     if args.qp is not None:
         from wbc_jax.bench.qp_audit import variants
 

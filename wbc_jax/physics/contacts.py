@@ -39,6 +39,7 @@ import numpy as np
 
 from wbc_jax.physics import backend as physics
 from wbc_jax.robot.sensors import DIST as SENSOR_DIST
+from wbc_jax.robot.sensors import FORCE as SENSOR_FORCE
 from wbc_jax.runtime import aot
 
 CONTACT_DIST = 1e-3  # [m] a foot closer than this to the floor or terrain counts as touching; an object sphere
@@ -165,7 +166,7 @@ def object_contacts(sim, m, d) -> tuple[jax.Array, jax.Array]:
     if sim.robot.backend == "warp":
         sd, a = d.sensordata, sim.obj_slots
         found = sd[a] > 0
-        f = jnp.stack([sd[a + 1], sd[a + 2], sd[a + 3]], axis=1)
+        f = jnp.stack([sd[a + SENSOR_FORCE + k] for k in range(3)], axis=1)
         return jnp.where(found[:, None], f, 0.0), _pair_distances(sim, m, d, sim.robot.ids.obj_pair)
 
     return contact_forces(m, d, sim.obj_slots), _slot_dist(d, sim.obj_slots)

@@ -224,6 +224,7 @@ def clear_of_edges(terrain, xy, direction, clearance, hip=None, foot_z=None, leg
         leg = jnp.asarray(leg)
         # the hip anywhere between its plan and hip_drop below (the clearance is not monotone in the drop: a lower
         # hip bends the knee more): checked at the plan, half-way and the full drop
+        # (3, 1, 2): the three hips on a leading axis, broadcast against the landings checked at once
         hips_sz = jnp.stack([jnp.stack([hip[:2] @ u, hip[2] - f * hip_drop]) for f in (0.0, 0.5, 1.0)])[:, None]
     for b in range(terrain.shape[0]):
         lo, hi = terrain[b, 0, :2], terrain[b, 1, :2]

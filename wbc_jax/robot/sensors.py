@@ -29,7 +29,7 @@ import numpy as np
 from wbc_jax.errors import SceneError
 
 _FOUND, _FORCE, _DIST = 0, 1, 3  # bits of mjtConDataField: found, force (3), dist
-DIST = 4  # offset of ``dist`` in every contact sensor's values (found, force (3), dist)
+FORCE, DIST = 1, 4  # offsets of ``force`` (3 values) and ``dist`` in every contact sensor's values (found first)
 _MINDIST = 1  # mjtConReduce: the nearest contact first
 _NATIVECCD = int(mujoco.mjtDisableBit.mjDSBL_NATIVECCD)  # MuJoCo Warp: box-box pairs on the box_box primitive
 _DIST_TYPES = (int(mujoco.mjtGeom.mjGEOM_SPHERE), int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_BOX))
@@ -47,7 +47,8 @@ WARP_MAXMATCH = 64  # MuJoCo Warp's contact_sensor_maxmatch without the numeric
 @dataclass(frozen=True, eq=False)
 class ContactSensors:
     """Addresses in ``sensordata`` of the contact sensors (see the module docstring); each sensor's values are
-    ``found`` (number of matching contacts), force (3, contact frame, normal first) [N], dist [m] (at :data:`DIST`).
+    ``found`` (number of matching contacts), force (3, contact frame, normal first) [N] (at :data:`FORCE`), dist [m]
+    (at :data:`DIST`).
 
     Attributes:
         obj: (4,) per object contact sphere vs the tray.
