@@ -186,6 +186,36 @@ def test_time_batch_compiles_once_and_times_every_state(monkeypatch):
     assert timed == [(name, i) for i in range(3) for name in (*campaign_step.ABLATIONS, "physics")]
 
 
+def test_time_batch_rounds_alternate_and_keep_the_median(monkeypatch):
+    """With ``rounds`` = 3 every program is called three times per state, alternated with the others round by round;
+    each state's time is the median of its three walls, and the counts are read once per state."""
+    from types import SimpleNamespace
+
+    calls, walls = [], iter(float(w * w) for w in range(1, 1000))  # squares: a median is not a mean
+    monkeypatch.setattr(campaign_step, "compiled_chunk", lambda sim, b, n_logs, name: (
+        lambda *args: (calls.append((name, args[1].i)), (args[1], None))[1]))
+    monkeypatch.setattr(campaign_step, "qp_iterations", lambda before, after, steps: 4.0)
+    monkeypatch.setattr(campaign_step, "solver_cap_share", lambda before, after, steps: 0.5)
+    monkeypatch.setattr(campaign_step, "physics_only_fn", lambda b, n_env: (
+        lambda model, d: calls.append(("physics", d))))
+    monkeypatch.setattr(campaign_step, "timed", lambda f, *args: (f(*args), next(walls)))
+
+    def batch_at(i):
+        state = SimpleNamespace(i=i, d=i)
+        return SimpleNamespace(model=None, state=state, plan=None, om=None, gains=None, push=None, mu_ground=None)
+
+    names = (*campaign_step.ABLATIONS, "physics")
+    first, times, counts = campaign_step._time_batch(None, batch_at, 2, 1, campaign_step.ABLATIONS, 20, rounds=3)
+    k = len(names)
+    assert calls[k:] == [(name, i) for i in range(2) for _ in range(3) for name in names]
+    # the n-th wall handed out is n**2, in call order; 1 went to physics alone's first call (the programs' first
+    # calls, which compile, are timed by the clock); the median of a state's three is its second round's
+    for j, name in enumerate(names):
+        for i in range(2):
+            assert times[name][i] == float((2 + j + k * (3 * i + 1)) ** 2)
+    assert all(v == dict(qp_iters_per_step=[4.0] * 2, solver_cap_share=[0.5] * 2) for v in counts.values())
+
+
 @pytest.mark.slow
 @needs_warp
 def test_campaign_step_bench_warp_batch_larger_than_the_spec(tmp_path):

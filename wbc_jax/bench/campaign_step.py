@@ -17,12 +17,12 @@ up to ``snapshots`` states spread over the horizon. At every requested batch siz
   until the batch's last world has converged);
 * ``physics``: plain ``mjx.step`` calls on the same batch (``wbc_jax.bench.rollout.physics_only_fn``).
 
-Each ablation is the campaign's Sim with ``monitors`` or ``sensor_noise`` changed (:func:`ablation_sim`), its
-chunk program compiled and timed like the campaign's. Shares are
-1 - (ablated program's time / the campaign program's time). Each timed call also gives the QP's mean ADMM
-iterations per control step (``Accum.sum_qp_iters``: runs that have failed, frozen, count none) and the share of
-physics steps whose constraint solve stopped at the cap (``Accum.n_solver_cap``, Warp only); not for ``no_monitors``,
-which does not fold them.
+Each ablation is the campaign's Sim with ``monitors`` or ``sensor_noise`` changed (:func:`ablation_sim`), its chunk
+program compiled and timed like the campaign's: ``--rounds`` calls per state, alternated with the other programs,
+the median kept. Shares are 1 - (ablated program's time / the campaign program's time). Each state's first round
+also gives the QP's mean ADMM iterations per control step (``Accum.sum_qp_iters``: runs that have failed, frozen,
+count none) and the share of physics steps whose constraint solve stopped at the cap (``Accum.n_solver_cap``, Warp
+only); not for ``no_monitors``, which does not fold them.
 """
 
 from __future__ import annotations
@@ -116,10 +116,11 @@ def fresh_state(sim, b, batch: int):
     return jax.jit(init)(runs.take(b.model, rows, b.in_axes), b.state.d.qpos[rows], b.state.d.qvel[rows])
 
 
-def _time_batch(sim, batch_at, n_states: int, n_logs: int, ablations, n_env: int):
-    """Each ablation's program and physics alone: compiled with its first call (on state 0), then timed once per
-    state, alternated; ``batch_at(i)`` gives the batch from state i (made when needed: one at a time in memory).
-    Returns ({name: first call [s]}, {name: [s per state]}, {program name: {"qp_iters_per_step": [mean QP
+def _time_batch(sim, batch_at, n_states: int, n_logs: int, ablations, n_env: int, rounds: int = 1):
+    """Each ablation's program and physics alone: compiled with its first call (on state 0), then timed ``rounds``
+    times per state, alternated, the median kept; ``batch_at(i)`` gives the batch from state i (made when needed:
+    one at a time in memory). Returns ({name: first call [s]}, {name: [median s per state]}, {program name:
+    {"qp_iters_per_step": [mean QP
     iterations per control step, per state], "solver_cap_share": [:func:`~wbc_jax.bench.rollout.solver_cap_share`,
     per state]}}; no_monitors, which does not fold its control-rate counts, left out)."""
     b0 = batch_at(0)
@@ -135,13 +136,17 @@ def _time_batch(sim, batch_at, n_states: int, n_logs: int, ablations, n_env: int
     counts = {name: dict(qp_iters_per_step=[], solver_cap_share=[]) for name in programs if name != "no_monitors"}
     for i in range(n_states):
         b = b0 if i == 0 else batch_at(i)
-        for name, f in programs.items():
-            (state, _), wall = timed(f, *chunk_args(b))
-            times[name].append(wall)
-            if name in counts:
-                counts[name]["qp_iters_per_step"].append(qp_iterations(b.state, state, n_logs * LOG_EVERY))
-                counts[name]["solver_cap_share"].append(solver_cap_share(b.state, state, n_env))
-        times["physics"].append(timed(phys, b.model, b.state.d)[1])
+        walls = {name: [] for name in first}
+        for r in range(rounds):
+            for name, f in programs.items():
+                (state, _), wall = timed(f, *chunk_args(b))
+                walls[name].append(wall)
+                if name in counts and r == 0:
+                    counts[name]["qp_iters_per_step"].append(qp_iterations(b.state, state, n_logs * LOG_EVERY))
+                    counts[name]["solver_cap_share"].append(solver_cap_share(b.state, state, n_env))
+            walls["physics"].append(timed(phys, b.model, b.state.d)[1])
+        for name, w in walls.items():
+            times[name].append(float(np.median(w)))
         del b
     return first, times, counts
 
@@ -169,14 +174,16 @@ def batch_figures(first: dict, times: dict, batch: int, n_env: int, counts: dict
     return row
 
 
-def run_campaign_step(spec, batches, steps: int = 200, snapshots: int = 3, breakdown=None) -> dict:
+def run_campaign_step(spec, batches, steps: int = 200, snapshots: int = 3, breakdown=None,
+                      rounds: int = 1) -> dict:
     """The campaign's step at each batch size (module docstring).
 
     Args:
         spec: a loaded, validated Spec (``wbc_jax.campaign.spec.load_spec``; backend as the campaign resolves it).
         batches: batch sizes; steps: control steps per timed call (rounded to whole logged intervals of LOG_EVERY);
         snapshots: states spread over the horizon that each program is timed from; breakdown: batch sizes at which
-        the ablations are timed too (None: every one).
+        the ablations are timed too (None: every one); rounds: timed calls per program and state, alternated, the
+        median kept.
 
     Returns:
         dict: spec, backend, sensing, runs of the spec, the walk (the spec's batch in the campaign's chunks: wall
@@ -200,7 +207,7 @@ def run_campaign_step(spec, batches, steps: int = 200, snapshots: int = 3, break
         def batch_at(i, fresh=fresh, B=B):
             return repeated(built.batch, steps_walk.states[i], fresh, B)
 
-        first, times, counts = _time_batch(sim, batch_at, len(steps_walk.states), n_logs, names, n_env)
+        first, times, counts = _time_batch(sim, batch_at, len(steps_walk.states), n_logs, names, n_env, rounds)
         row = batch_figures(first, times, B, n_env, counts)
         out["batches"].append(row)
         shares = "".join(f", {k.split('_')[0]} {row[k]:.1%}" for k in ("clearance_share", "monitors_share",
@@ -228,7 +235,8 @@ def run_bench_with_campaign(spec_path: str, batches, steps: int = 200, snapshots
     """
     spec = with_backend(load_spec(spec_path), spec_backend)  # a bad spec fails here, before any timing
     out = run_bench(batches=batches, steps=steps, **bench)
-    out["campaign_step"] = step = run_campaign_step(spec, batches, steps, snapshots, breakdown)
+    out["campaign_step"] = step = run_campaign_step(spec, batches, steps, snapshots, breakdown,
+                                                    bench.get("rounds", 1))
     bench_rows = {(r["batch"], r["backend"]): r for r in out["batches"]}
     for row in step["batches"]:
         ref = bench_rows.get((row["batch"], step["backend"]))

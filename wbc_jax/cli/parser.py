@@ -84,7 +84,8 @@ def _add_bench(sub) -> argparse.ArgumentParser:
                                                    "on an accelerator, 1,4,16 on a CPU)")
     b.add_argument("--steps", type=int, default=200, help="rollout: control steps per timed call")
     b.add_argument("--rounds", type=int, default=None, help="rollout: timed rounds per batch, each a physics-only "
-                   "and a physics + WBC call; the figures are the rounds' medians (default 5; 3 on a CPU)")
+                   "and a physics + WBC call (with --campaign also each program's calls per state); the figures "
+                   "are the rounds' medians (default 5; 3 on a CPU)")
     b.add_argument("--iters", type=int, default=4, help="rollout: ADMM iterations per control step before the "
                                                          "convergence checks (the control loop's default: 4)")
     b.add_argument("--qp", default=None, help="rollout: control-loop ADMM variant it<N>[_a<K>][_b<B>][_rho<R>][_r<R>]"
