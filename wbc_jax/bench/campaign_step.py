@@ -120,9 +120,9 @@ def _time_batch(sim, batch_at, n_states: int, n_logs: int, ablations, n_env: int
     """Each ablation's program and physics alone: compiled with its first call (on state 0), then timed ``rounds``
     times per state, alternated, the median kept; ``batch_at(i)`` gives the batch from state i (made when needed:
     one at a time in memory). Returns ({name: first call [s]}, {name: [median s per state]}, {program name:
-    {"qp_iters_per_step": [mean QP
-    iterations per control step, per state], "solver_cap_share": [:func:`~wbc_jax.bench.rollout.solver_cap_share`,
-    per state]}}; no_monitors, which does not fold its control-rate counts, left out)."""
+    {"qp_iters_per_step": [mean QP iterations per control step, per state], "solver_cap_share":
+    [:func:`~wbc_jax.bench.rollout.solver_cap_share`, per state]}}; no_monitors, which does not fold its
+    control-rate counts, left out)."""
     b0 = batch_at(0)
     first, programs = {}, {}
     for name in ablations:
@@ -223,7 +223,8 @@ def run_campaign_step(spec, batches, steps: int = 200, snapshots: int = 3, break
 
 
 def run_bench_with_campaign(spec_path: str, batches, steps: int = 200, snapshots: int = 3, breakdown=None,
-                            spec_backend: str | None = None, json_path: str | None = None, **bench) -> dict:
+                            spec_backend: str | None = None, json_path: str | None = None, rounds: int = 5,
+                            **bench) -> dict:
     """``bench rollout --campaign SPEC``: the campaign's step (:func:`run_campaign_step`) next to the bench's
     physics-only and physics + WBC rows at the same batch sizes (``wbc_jax.bench.rollout.run_bench`` with
     ``bench``'s keyword arguments), in one process, with each batch's ratio campaign step / bench physics + WBC
@@ -231,12 +232,12 @@ def run_bench_with_campaign(spec_path: str, batches, steps: int = 200, snapshots
 
     Args:
         spec_path: the campaign spec (validated before anything is timed); spec_backend: its ``campaign.backend``
-            replaced (None: the spec's); json_path: where the dict is written (None: not written).
+            replaced (None: the spec's); json_path: where the dict is written (None: not written); rounds: the
+            bench's timed rounds and the campaign step's calls per program and state, medians kept.
     """
     spec = with_backend(load_spec(spec_path), spec_backend)  # a bad spec fails here, before any timing
-    out = run_bench(batches=batches, steps=steps, **bench)
-    out["campaign_step"] = step = run_campaign_step(spec, batches, steps, snapshots, breakdown,
-                                                    bench.get("rounds", 1))
+    out = run_bench(batches=batches, steps=steps, rounds=rounds, **bench)
+    out["campaign_step"] = step = run_campaign_step(spec, batches, steps, snapshots, breakdown, rounds)
     bench_rows = {(r["batch"], r["backend"]): r for r in out["batches"]}
     for row in step["batches"]:
         ref = bench_rows.get((row["batch"], step["backend"]))
