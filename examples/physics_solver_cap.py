@@ -1,7 +1,8 @@
 """How many constraint-solver iterations the physics runs in a campaign, with and without the velocity noise.
 
-    python examples/physics_solver_cap.py [SPEC] [BATCH] [CHUNKS]
-        (defaults: sweeps/paper_campaign.toml 16384 12; MuJoCo Warp physics, so a GPU)
+    python examples/physics_solver_cap.py [SPEC] [BATCH] [CHUNKS] [TOLERANCE]
+        (defaults: sweeps/paper_campaign.toml 16384 12, the scene's ``opt.tolerance``; MuJoCo Warp physics: the
+        spec's ``campaign.backend = "warp"``, or a GPU)
 
 The spec is built as a campaign builds it, its runs repeated to BATCH (run i is the spec's run i mod n), and stepped
 from the start state by the campaign's chunk program and by its ``no_noise`` ablation
@@ -26,14 +27,17 @@ from wbc_jax.campaign.spec import load_spec
 from wbc_jax.rollout.batch import chunk_args
 
 
-def main(spec_path: str, batch: int, chunks: int) -> None:
+def main(spec_path: str, batch: int, chunks: int, tolerance: float | None = None) -> None:
     built = build(load_spec(spec_path))
+    if tolerance is not None:  # the constraint solver's convergence tolerance instead of the scene's
+        built = built._replace(batch=built.batch._replace(
+            model=built.batch.model.tree_replace({"opt.tolerance": tolerance})))
     if built.sim.robot.backend != "warp":
         sys.exit("physics_solver_cap.py: needs MuJoCo Warp physics (MJX's JAX solver reports no iteration count)")
     cap = built.sim.robot.mj_model.opt.iterations
     b = repeated(built.batch, built.batch.state, fresh_state(built.sim, built.batch, batch), batch)
     print(f"{jax.devices()[0].device_kind}: {spec_path}, batch {batch}, {chunks} calls of {LOG_EVERY} control steps; "
-          f"constraint solver cap {cap} iterations", flush=True)
+          f"constraint solver cap {cap} iterations, tolerance {built.batch.model.opt.tolerance:g}", flush=True)
     for name in ("campaign", "no_noise"):
         program, args, rows, wall = compiled_chunk(built.sim, b, 1, name), list(chunk_args(b)), [], 0.0
         for i in range(chunks):
@@ -53,4 +57,5 @@ def main(spec_path: str, batch: int, chunks: int) -> None:
 
 if __name__ == "__main__":
     main(sys.argv[1] if len(sys.argv) > 1 else "sweeps/paper_campaign.toml",
-         int(sys.argv[2]) if len(sys.argv) > 2 else 16384, int(sys.argv[3]) if len(sys.argv) > 3 else 12)
+         int(sys.argv[2]) if len(sys.argv) > 2 else 16384, int(sys.argv[3]) if len(sys.argv) > 3 else 12,
+         float(sys.argv[4]) if len(sys.argv) > 4 else None)

@@ -374,6 +374,26 @@ def test_huge_spec_with_allow_large_says_what_it_is_doing(tmp_path, monkeypatch,
     assert "setting up 1,000,000 runs (--allow-large): design, plans and initial states first" in out, out
 
 
+def test_memory_estimate_holds_the_chunk_programs_measured_memory():
+    """check_size's estimate per run (RUN_BYTES with one logged sample, LOG_SAMPLE_BYTES per further one) holds what
+    XLA's memory analysis of the tiny spec's compiled chunk program gives per run (arguments, outputs, temporaries).
+    How generous it is for the shipped specs: ``examples/campaign_memory.py`` (docs/performance.md)."""
+    import jax
+
+    from wbc_jax.campaign.build import build
+    from wbc_jax.campaign.size import LOG_SAMPLE_BYTES, RUN_BYTES
+    from wbc_jax.campaign.spec import load_spec
+    from wbc_jax.rollout import make_chunk_fn
+    from wbc_jax.rollout.batch import chunk_args
+
+    built = build(load_spec(TINY))
+    b, n, logs = built.batch, len(built.design.m), built.logs_per_chunk
+    ma = jax.jit(make_chunk_fn(built.sim, logs, b.in_axes)).lower(*chunk_args(b)).compile().memory_analysis()
+    measured = (ma.argument_size_in_bytes + ma.output_size_in_bytes + ma.temp_size_in_bytes) / n
+    estimate = RUN_BYTES + (logs - 1) * LOG_SAMPLE_BYTES
+    assert measured <= estimate, (measured, estimate)
+
+
 def test_demo_warns_that_warp_on_a_cpu_is_slow(tmp_path, monkeypatch, capsys):
     from wbc_jax.physics.backend import warp_available
     from wbc_jax.studies import demo

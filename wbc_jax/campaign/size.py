@@ -10,11 +10,15 @@ import numpy as np
 from wbc_jax.campaign.build import LOG_EVERY
 from wbc_jax.campaign.spec import Spec
 from wbc_jax.errors import LimitError
+from wbc_jax.robot.model import load_mj_model, scene_path
 
-# memory estimate of a batched rollout, per run [bytes]: state, model, plan and QP workspace, plus the logged samples
-# of one chunk; deliberately generous round numbers (not measured), only meant to stop batches that cannot fit
-RUN_BYTES = 4 << 20
-LOG_SAMPLE_BYTES = 64 << 10
+# memory estimate of a batched rollout, per run [bytes]: the chunk program's arguments, outputs and temporaries (state,
+# model, plan, the QP's and the physics' workspaces) with one logged sample, and each further sample of a chunk. About
+# twice what `python examples/campaign_memory.py SPEC` measures for the shipped specs on either physics
+# (docs/performance.md): a margin for MuJoCo Warp's own buffers and other specs, not so much that a batch which fits
+# is refused
+RUN_BYTES = 1 << 20
+LOG_SAMPLE_BYTES = 1 << 10
 
 
 def n_runs_of(spec: Spec) -> int:
@@ -31,13 +35,18 @@ def check_size(spec: Spec, allow_large: bool = False) -> None:
     """
     c = spec.campaign
     n = n_runs_of(spec)
-    samples = max(1.0, c["chunk_seconds"] / (0.002 * c["control_substeps"] * LOG_EVERY))  # 2 ms physics step
+    samples = max(1.0, c["chunk_seconds"] / (_timestep(c) * c["control_substeps"] * LOG_EVERY))
     need = n * (RUN_BYTES + samples * LOG_SAMPLE_BYTES)
     avail = _available_memory()
     if avail and need > avail and not allow_large:
         raise LimitError(f"{spec.path}: {n:,} runs need about {need / 2**30:,.1f} GiB, "
                          f"{avail / 2**30:,.1f} GiB available; fewer levels or reps, a smaller "
                          "campaign.chunk_seconds, or --allow-large to try anyway")
+
+
+def _timestep(campaign: dict) -> float:
+    """The physics timestep [s] of a spec's ``campaign`` table: its scene's ``opt.timestep``."""
+    return float(load_mj_model(scene_path(campaign["scene"])).opt.timestep)
 
 
 def _available_memory() -> int | None:
