@@ -358,10 +358,13 @@ def test_spec_with_a_byte_order_mark_loads(tmp_path):
 
 
 def test_huge_spec_with_allow_large_says_what_it_is_doing(tmp_path, monkeypatch, capsys):
-    """A million-run spec with --allow-large: a line says the setup comes first, before the design is built."""
+    """A million-run spec with --allow-large: a line says the setup comes first, before the design is built, and the
+    memory estimate: per run RUN_BYTES and LOG_SAMPLE_BYTES for each of a 2 s chunk's 100 samples (the transport
+    scene's 1 ms step x 20 control steps per sample)."""
     from test_reliability import HUGE_SPEC
 
     from wbc_jax.campaign import runner
+    from wbc_jax.campaign.size import LOG_SAMPLE_BYTES, RUN_BYTES
 
     def stop(*a, **k):
         raise WbcJaxError("stopped before the design")
@@ -372,6 +375,7 @@ def test_huge_spec_with_allow_large_says_what_it_is_doing(tmp_path, monkeypatch,
     assert cli.main(["campaign", "--spec", str(spec), "--out", str(tmp_path / "big"), "--allow-large"]) == 2
     out = capsys.readouterr().out
     assert "setting up 1,000,000 runs (--allow-large): design, plans and initial states first" in out, out
+    assert f"; about {1e6 * (RUN_BYTES + 100 * LOG_SAMPLE_BYTES) / 2**30:,.1f} GiB" in out, out
 
 
 def test_memory_estimate_holds_the_chunk_programs_measured_memory():

@@ -16,7 +16,7 @@ import jax
 from wbc_jax.campaign import checkpoint
 from wbc_jax.campaign.build import qp_changes
 from wbc_jax.campaign.manifest import COMMAND
-from wbc_jax.campaign.size import check_size, n_runs_of
+from wbc_jax.campaign.size import check_size, memory_need, n_runs_of
 from wbc_jax.campaign.spec import Spec
 from wbc_jax.errors import CheckpointError, OutputError, WbcJaxError
 from wbc_jax.io_utils import check_out_dir, claim_out_dir
@@ -76,7 +76,8 @@ def _check_resume_backend(ck: Path, meta: dict | None, identity: dict, backend_f
 
 def notes(spec: Spec, physics_backend: str, allow_large: bool) -> list[str]:
     """Lines to print before the build: Warp physics on a CPU is slow; the QP's factors are kept with Warp physics
-    only; a large campaign's setup takes a while."""
+    only; a large campaign's setup takes a while, and its memory estimate
+    (:func:`wbc_jax.campaign.size.memory_need`)."""
     out = []
     if physics_backend == "warp" and jax.default_backend() == "cpu":
         out.append("warning: physics backend 'warp' on a CPU: MuJoCo Warp's kernels run on the CPU here, many "
@@ -87,5 +88,8 @@ def notes(spec: Spec, physics_backend: str, allow_large: bool) -> list[str]:
     n = n_runs_of(spec)
     if n >= LARGE_RUNS or allow_large:
         large = " (--allow-large)" if allow_large else ""
-        out.append(f"setting up {n:,} runs{large}: design, plans and initial states first, then the first chunk")
+        need, avail = memory_need(spec)
+        memory = f"; about {need / 2**30:,.1f} GiB" + (f" of {avail / 2**30:,.1f} GiB available" if avail else "")
+        out.append(f"setting up {n:,} runs{large}: design, plans and initial states first, then the first chunk"
+                   + memory)
     return out

@@ -26,20 +26,23 @@ def n_runs_of(spec: Spec) -> int:
     return int(np.prod([len(v) for v in spec.factors.values()])) * spec.reps
 
 
+def memory_need(spec: Spec) -> tuple[float, int | None]:
+    """(the batch's memory estimate [bytes]: runs x (RUN_BYTES + a chunk's log samples x LOG_SAMPLE_BYTES), the
+    available memory [bytes] or None where unknown: :func:`_available_memory`)."""
+    c = spec.campaign
+    samples = max(1.0, c["chunk_seconds"] / (_timestep(c) * c["control_substeps"] * LOG_EVERY))
+    return n_runs_of(spec) * (RUN_BYTES + samples * LOG_SAMPLE_BYTES), _available_memory()
+
+
 def check_size(spec: Spec, allow_large: bool = False) -> None:
     """Refuse a campaign whose batch would not fit in memory (an estimate, before the design is built).
 
     Raises:
-        LimitError: runs x (RUN_BYTES + a chunk's log samples x LOG_SAMPLE_BYTES) exceeds the available memory,
-            unless ``allow_large``.
+        LimitError: the estimate (:func:`memory_need`) exceeds the available memory, unless ``allow_large``.
     """
-    c = spec.campaign
-    n = n_runs_of(spec)
-    samples = max(1.0, c["chunk_seconds"] / (_timestep(c) * c["control_substeps"] * LOG_EVERY))
-    need = n * (RUN_BYTES + samples * LOG_SAMPLE_BYTES)
-    avail = _available_memory()
+    need, avail = memory_need(spec)
     if avail and need > avail and not allow_large:
-        raise LimitError(f"{spec.path}: {n:,} runs need about {need / 2**30:,.1f} GiB, "
+        raise LimitError(f"{spec.path}: {n_runs_of(spec):,} runs need about {need / 2**30:,.1f} GiB, "
                          f"{avail / 2**30:,.1f} GiB available; fewer levels or reps, a smaller "
                          "campaign.chunk_seconds, or --allow-large to try anyway")
 
