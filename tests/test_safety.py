@@ -398,6 +398,28 @@ def test_memory_estimate_holds_the_chunk_programs_measured_memory():
     assert measured <= estimate, (measured, estimate)
 
 
+def test_memory_check_counts_a_devices_share_of_the_runs(tmp_path, monkeypatch):
+    """Runs split over accelerators: each device's estimate is its ceil(n / parts) runs, and a refusal names the
+    share; CPU devices share the host's memory and count as one."""
+    from test_reliability import HUGE_SPEC
+
+    from wbc_jax.campaign import size
+    from wbc_jax.campaign.spec import load_spec
+    from wbc_jax.errors import LimitError
+
+    path = tmp_path / "huge.toml"
+    path.write_text(HUGE_SPEC)
+    spec = load_spec(path)
+    per_run = size.RUN_BYTES + 100 * size.LOG_SAMPLE_BYTES  # a 2 s chunk: 100 samples of 20 control steps of 1 ms
+    monkeypatch.setattr(size, "_available_memory", lambda: 300_000 * per_run)
+    assert size.memory_need(spec, 4)[0] == 1_000_000 * per_run  # the CPU: one memory
+    monkeypatch.setattr(size.jax, "default_backend", lambda: "gpu")
+    assert size.memory_need(spec, 4)[0] == 250_000 * per_run
+    size.check_size(spec, parts=4)  # 250,000 runs on each device fit
+    with pytest.raises(LimitError, match=r"1,000,000 runs \(333,334 on each of 3 devices\) need about"):
+        size.check_size(spec, parts=3)
+
+
 def test_demo_warns_that_warp_on_a_cpu_is_slow(tmp_path, monkeypatch, capsys):
     from wbc_jax.physics.backend import warp_available
     from wbc_jax.studies import demo

@@ -16,7 +16,7 @@ import jax
 from wbc_jax.campaign import checkpoint
 from wbc_jax.campaign.build import qp_changes
 from wbc_jax.campaign.manifest import COMMAND
-from wbc_jax.campaign.size import check_size, memory_need, n_runs_of
+from wbc_jax.campaign.size import check_size, memory_need, n_runs_of, own_memories
 from wbc_jax.campaign.spec import Spec
 from wbc_jax.errors import CheckpointError, OutputError, WbcJaxError
 from wbc_jax.io_utils import check_out_dir, claim_out_dir
@@ -27,8 +27,9 @@ LARGE_RUNS = 20_000  # from this many runs the setup (design, plans, initial sta
 
 
 def check_outputs(spec: Spec, out, identity: dict, *, resume: bool, force: bool, allow_large: bool,
-                  inputs: tuple, backend_flag: str | None) -> tuple[Path | None, Path | None]:
-    """Process 0's output folder and checkpoint folder (None elsewhere), claimed and checked with the spec's size.
+                  inputs: tuple, backend_flag: str | None, parts: int = 1) -> tuple[Path | None, Path | None]:
+    """Process 0's output folder and checkpoint folder (None elsewhere), claimed and checked with the spec's size
+    (``parts``: the devices the runs are split over, :func:`wbc_jax.campaign.size.memory_need`).
 
     Raises:
         OutputError: DIR in use, unusable, or a checkpoint of finished chunks without ``resume`` or ``force``.
@@ -47,7 +48,7 @@ def check_outputs(spec: Spec, out, identity: dict, *, resume: bool, force: bool,
                 checkpoint.read_meta(ck, identity, checkpoint.n_chunks_hint(ck))
             elif meta is not None and not force:
                 raise OutputError(_unfinished(out, ck, meta))
-        check_size(spec, allow_large)
+        check_size(spec, allow_large, parts)
     except WbcJaxError as e:
         problem = e
     distributed.agree(problem)
@@ -74,7 +75,7 @@ def _check_resume_backend(ck: Path, meta: dict | None, identity: dict, backend_f
                           f"{identity['backend']!r} ({now}); resume with --backend {made}, or start over with --force")
 
 
-def notes(spec: Spec, physics_backend: str, allow_large: bool) -> list[str]:
+def notes(spec: Spec, physics_backend: str, allow_large: bool, parts: int = 1) -> list[str]:
     """Lines to print before the build: Warp physics on a CPU is slow; the QP's factors are kept with Warp physics
     only; a large campaign's setup takes a while, and its memory estimate
     (:func:`wbc_jax.campaign.size.memory_need`)."""
@@ -88,8 +89,9 @@ def notes(spec: Spec, physics_backend: str, allow_large: bool) -> list[str]:
     n = n_runs_of(spec)
     if n >= LARGE_RUNS or allow_large:
         large = " (--allow-large)" if allow_large else ""
-        need, avail = memory_need(spec)
-        memory = f"; about {need / 2**30:,.1f} GiB" + (f" of {avail / 2**30:,.1f} GiB available" if avail else "")
+        need, avail = memory_need(spec, parts)
+        memory = (f"; about {need / 2**30:,.1f} GiB" + (" per device" if own_memories(parts) > 1 else "")
+                  + (f" of {avail / 2**30:,.1f} GiB available" if avail else ""))
         out.append(f"setting up {n:,} runs{large}: design, plans and initial states first, then the first chunk"
                    + memory)
     return out

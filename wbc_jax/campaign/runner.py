@@ -332,22 +332,22 @@ def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guar
     spec_path = r["spec_path"] if r["spec_path"] is not None else default_spec_path(has_accelerator())
     if distributed.is_writer():
         stage(f"reading the spec {spec_path} and checking the output folder")
-    spec = load_spec(spec_path)
-    spec = with_backend(spec, r["backend"])
+    spec = with_backend(load_spec(spec_path), r["backend"])
     physics_backend = backend_of(spec)
     sensing_of(spec)  # a bad combination fails here, before anything is written
     check_qp(spec)
     gains_mod.check_design(spec, r["gains"])
     identity = run_identity(spec, r["gains"], backend=physics_backend)
     status.writer = distributed.is_writer()
+    sp = choose(physics_backend)  # several devices: each steps its own runs (wbc_jax.rollout.spread)
     out_p, ck = preflight.check_outputs(spec, r["out"], identity, resume=r["resume"], force=r["force"],
-                                        allow_large=r["allow_large"], inputs=r["inputs"], backend_flag=r["backend"])
+                                        allow_large=r["allow_large"], inputs=r["inputs"], backend_flag=r["backend"],
+                                        parts=sp.parts)
     status.ckpt = ck
     status.saved, status.n_chunks = kept(ck)
-    for line in preflight.notes(spec, physics_backend, r["allow_large"]) if status.writer else []:
+    for line in preflight.notes(spec, physics_backend, r["allow_large"], sp.parts) if status.writer else []:
         print(line, flush=True)
     preload = warp_kernels.start_preload(physics_backend)  # Warp's kernels compile while the batch is built
-    sp = choose(physics_backend)  # several devices: each steps its own runs (wbc_jax.rollout.spread)
     # Warp on one device, from the start: the chunk program is traced from the batch's shapes, then compiled while
     # the initial states' first MuJoCo Warp call compiles the model's kernels (build.states_and_program)
     ahead = physics_backend == "warp" and sp.mode == "one" and status.saved == 0

@@ -26,25 +26,35 @@ def n_runs_of(spec: Spec) -> int:
     return int(np.prod([len(v) for v in spec.factors.values()])) * spec.reps
 
 
-def memory_need(spec: Spec) -> tuple[float, int | None]:
-    """(the batch's memory estimate [bytes]: runs x (RUN_BYTES + a chunk's log samples x LOG_SAMPLE_BYTES), the
-    available memory [bytes] or None where unknown: :func:`_available_memory`)."""
+def memory_need(spec: Spec, parts: int = 1) -> tuple[float, int | None]:
+    """(a device's memory estimate [bytes]: its ``ceil(runs / parts)`` runs x (RUN_BYTES + a chunk's log samples x
+    LOG_SAMPLE_BYTES), the available memory [bytes] or None where unknown: :func:`_available_memory`). ``parts``:
+    the devices the runs are split over (``Spread.parts``); CPU devices share the host's memory and count as one."""
     c = spec.campaign
     samples = max(1.0, c["chunk_seconds"] / (_timestep(c) * c["control_substeps"] * LOG_EVERY))
-    return n_runs_of(spec) * (RUN_BYTES + samples * LOG_SAMPLE_BYTES), _available_memory()
+    runs = -(-n_runs_of(spec) // own_memories(parts))
+    return runs * (RUN_BYTES + samples * LOG_SAMPLE_BYTES), _available_memory()
 
 
-def check_size(spec: Spec, allow_large: bool = False) -> None:
+def check_size(spec: Spec, allow_large: bool = False, parts: int = 1) -> None:
     """Refuse a campaign whose batch would not fit in memory (an estimate, before the design is built).
 
     Raises:
-        LimitError: the estimate (:func:`memory_need`) exceeds the available memory, unless ``allow_large``.
+        LimitError: the estimate (:func:`memory_need`, a device's share of ``parts``) exceeds the available memory,
+            unless ``allow_large``.
     """
-    need, avail = memory_need(spec)
+    need, avail = memory_need(spec, parts)
     if avail and need > avail and not allow_large:
-        raise LimitError(f"{spec.path}: {n_runs_of(spec):,} runs need about {need / 2**30:,.1f} GiB, "
+        k = own_memories(parts)
+        share = f" ({-(-n_runs_of(spec) // k):,} on each of {k} devices)" if k > 1 else ""
+        raise LimitError(f"{spec.path}: {n_runs_of(spec):,} runs{share} need about {need / 2**30:,.1f} GiB, "
                          f"{avail / 2**30:,.1f} GiB available; fewer levels or reps, a smaller "
                          "campaign.chunk_seconds, or --allow-large to try anyway")
+
+
+def own_memories(parts: int) -> int:
+    """The number of separate memories ``parts`` devices have: ``parts`` on accelerators, 1 on the CPU."""
+    return max(1, int(parts)) if jax.default_backend() != "cpu" else 1
 
 
 def _timestep(campaign: dict) -> float:

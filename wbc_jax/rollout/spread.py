@@ -78,6 +78,11 @@ class Spread:
     process: int = 0
     processes: int = 1
 
+    @property
+    def parts(self) -> int:
+        """The number of devices the runs are split over (each steps ``ceil(n / parts)`` of an n-run batch)."""
+        return self.processes if self.mode == "blocks" else self.mesh.size if self.mode == "mesh" else 1
+
     def describe(self) -> str:
         """" x N ..." after a device name for the console ("" on one device)."""
         if self.mode == "blocks":
