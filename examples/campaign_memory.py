@@ -6,8 +6,9 @@ Builds the spec as a campaign does and compiles its chunk program (:func:`wbc_ja
 this machine's device: with one logged sample and with a chunk's samples. XLA's memory analysis of each gives the
 bytes of the program's arguments (state, model, plan, gains), outputs (the state and the logs) and temporaries (the
 QP's and the physics' workspaces); per run, and per further logged sample, they are what
-:func:`wbc_jax.campaign.size.check_size` estimates with ``RUN_BYTES`` and ``LOG_SAMPLE_BYTES``. MuJoCo Warp's
-buffers outside XLA's (its kernels' own scratch) are not counted.
+:func:`wbc_jax.campaign.size.check_size` estimates with ``RUN_BYTES`` and ``LOG_SAMPLE_BYTES``, and the arguments
+what it estimates with ``INPUT_BYTES`` for a run that another device steps. MuJoCo Warp's buffers outside XLA's
+(its kernels' own scratch) are not counted.
 """
 
 import sys
@@ -15,7 +16,7 @@ import sys
 import jax
 
 from wbc_jax.campaign import build as B
-from wbc_jax.campaign.size import LOG_SAMPLE_BYTES, RUN_BYTES
+from wbc_jax.campaign.size import INPUT_BYTES, LOG_SAMPLE_BYTES, RUN_BYTES
 from wbc_jax.campaign.spec import load_spec
 from wbc_jax.rollout import make_chunk_fn
 from wbc_jax.rollout.batch import chunk_args
@@ -44,6 +45,8 @@ def main(path: str, backend: str | None) -> None:
           f"{RUN_BYTES / per_run:.1f}x)")
     print(f"per further sample and run: {per_sample:.0f} B (estimate {LOG_SAMPLE_BYTES} B"
           + (f", {LOG_SAMPLE_BYTES / per_sample:.1f}x)" if per_sample > 0 else ")"))
+    print(f"a run's inputs (the arguments): {one[0] / n / 1024:.1f} KiB (estimate {INPUT_BYTES / 1024:.0f} KiB, "
+          f"{INPUT_BYTES * n / one[0]:.1f}x)")
 
 
 if __name__ == "__main__":

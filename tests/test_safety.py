@@ -380,12 +380,13 @@ def test_huge_spec_with_allow_large_says_what_it_is_doing(tmp_path, monkeypatch,
 
 def test_memory_estimate_holds_the_chunk_programs_measured_memory():
     """check_size's estimate per run (RUN_BYTES with one logged sample, LOG_SAMPLE_BYTES per further one) holds what
-    XLA's memory analysis of the tiny spec's compiled chunk program gives per run (arguments, outputs, temporaries).
-    How generous it is for the shipped specs: ``examples/campaign_memory.py`` (docs/performance.md)."""
+    XLA's memory analysis of the tiny spec's compiled chunk program gives per run (arguments, outputs, temporaries),
+    and INPUT_BYTES its arguments per run. How generous they are for the shipped specs:
+    ``examples/campaign_memory.py`` (docs/performance.md)."""
     import jax
 
     from wbc_jax.campaign.build import build
-    from wbc_jax.campaign.size import LOG_SAMPLE_BYTES, RUN_BYTES
+    from wbc_jax.campaign.size import INPUT_BYTES, LOG_SAMPLE_BYTES, RUN_BYTES
     from wbc_jax.campaign.spec import load_spec
     from wbc_jax.rollout import make_chunk_fn
     from wbc_jax.rollout.batch import chunk_args
@@ -396,11 +397,13 @@ def test_memory_estimate_holds_the_chunk_programs_measured_memory():
     measured = (ma.argument_size_in_bytes + ma.output_size_in_bytes + ma.temp_size_in_bytes) / n
     estimate = RUN_BYTES + (logs - 1) * LOG_SAMPLE_BYTES
     assert measured <= estimate, (measured, estimate)
+    assert ma.argument_size_in_bytes / n <= INPUT_BYTES, ma.argument_size_in_bytes / n
 
 
 def test_memory_check_counts_a_devices_share_of_the_runs(tmp_path, monkeypatch):
-    """Runs split over accelerators: each device's estimate is its ceil(n / parts) runs, and a refusal names the
-    share; CPU devices share the host's memory and count as one."""
+    """Runs split over accelerators: each device's estimate is its ceil(n / parts) runs and the other runs' inputs
+    (the whole batch stays on each process's device), and a refusal names the share; CPU devices share the host's
+    memory and count as one."""
     from test_reliability import HUGE_SPEC
 
     from wbc_jax.campaign import size
@@ -411,11 +414,13 @@ def test_memory_check_counts_a_devices_share_of_the_runs(tmp_path, monkeypatch):
     path.write_text(HUGE_SPEC)
     spec = load_spec(path)
     per_run = size.RUN_BYTES + 100 * size.LOG_SAMPLE_BYTES  # a 2 s chunk: 100 samples of 20 control steps of 1 ms
-    monkeypatch.setattr(size, "_available_memory", lambda: 300_000 * per_run)
+    four = 250_000 * per_run + 750_000 * size.INPUT_BYTES
+    three = 333_334 * per_run + 666_666 * size.INPUT_BYTES
+    monkeypatch.setattr(size, "_available_memory", lambda: (four + three) // 2)
     assert size.memory_need(spec, 4)[0] == 1_000_000 * per_run  # the CPU: one memory
     monkeypatch.setattr(size.jax, "default_backend", lambda: "gpu")
-    assert size.memory_need(spec, 4)[0] == 250_000 * per_run
-    size.check_size(spec, parts=4)  # 250,000 runs on each device fit
+    assert size.memory_need(spec, 4)[0] == four
+    size.check_size(spec, parts=4)
     with pytest.raises(LimitError, match=r"1,000,000 runs \(333,334 on each of 3 devices\) need about"):
         size.check_size(spec, parts=3)
 

@@ -19,6 +19,10 @@ from wbc_jax.robot.model import load_mj_model, scene_path
 # is refused
 RUN_BYTES = 1 << 20
 LOG_SAMPLE_BYTES = 1 << 10
+# the whole batch stays on each process's first device (the Job's built batch) while its share runs: a run that
+# another device steps still holds its inputs there (model, state, plan, gains: the program's arguments), about
+# twice the measured arguments
+INPUT_BYTES = 256 << 10
 
 
 def n_runs_of(spec: Spec) -> int:
@@ -27,13 +31,15 @@ def n_runs_of(spec: Spec) -> int:
 
 
 def memory_need(spec: Spec, parts: int = 1) -> tuple[float, int | None]:
-    """(a device's memory estimate [bytes]: its ``ceil(runs / parts)`` runs x (RUN_BYTES + a chunk's log samples x
-    LOG_SAMPLE_BYTES), the available memory [bytes] or None where unknown: :func:`_available_memory`). ``parts``:
-    the devices the runs are split over (``Spread.parts``); CPU devices share the host's memory and count as one."""
+    """(a device's memory estimate [bytes], the available memory [bytes] or None where unknown:
+    :func:`_available_memory`). The estimate: the ``ceil(n / parts)`` runs the device steps x (RUN_BYTES + a chunk's
+    log samples x LOG_SAMPLE_BYTES), the batch's other runs x INPUT_BYTES. ``parts``: the devices the n runs are
+    split over (``Spread.parts``); CPU devices share the host's memory and count as one."""
     c = spec.campaign
     samples = max(1.0, c["chunk_seconds"] / (_timestep(c) * c["control_substeps"] * LOG_EVERY))
-    runs = -(-n_runs_of(spec) // own_memories(parts))
-    return runs * (RUN_BYTES + samples * LOG_SAMPLE_BYTES), _available_memory()
+    n = n_runs_of(spec)
+    own = -(-n // own_memories(parts))
+    return own * (RUN_BYTES + samples * LOG_SAMPLE_BYTES) + (n - own) * INPUT_BYTES, _available_memory()
 
 
 def check_size(spec: Spec, allow_large: bool = False, parts: int = 1) -> None:
