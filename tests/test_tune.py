@@ -152,6 +152,16 @@ def test_bad_tune_spec_cli_exit_2_nothing_written(tmp_path, capsys):
     assert not out.exists() and sorted(f.name for f in tmp_path.iterdir()) == ["ok.toml", "ref.toml", "tune.toml"]
 
 
+def test_a_rollout_call_too_large_for_memory_is_refused_before_compiling(tmp_path, capsys):
+    """A million runs per rollout call (``--batch``): one line naming tune.batch and --batch with the campaign's
+    memory estimate (wbc_jax.campaign.size), exit 2, nothing written."""
+    out = tmp_path / "out"
+    assert cli.main(["tune", "--spec", str(_write(tmp_path, TINY)), "--out", str(out), "--batch", "1000000"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "tune.batch: 1,000,000 runs per rollout call need about" in err[0], err
+    assert "--batch" in err[0] and not out.exists()
+
+
 @pytest.mark.parametrize("text, key, expect", [
     ("[gains]\nkp_cmo = 1.0\n", "gains.kp_cmo", "unknown leaf"),
     ("[gains]\nkp_com = [1.0, 2.0]\n", "gains.kp_com", "list of 3 numbers"),

@@ -30,14 +30,15 @@ def n_runs_of(spec: Spec) -> int:
     return int(np.prod([len(v) for v in spec.factors.values()])) * spec.reps
 
 
-def memory_need(spec: Spec, parts: int = 1) -> tuple[float, int | None]:
+def memory_need(spec: Spec, parts: int = 1, runs: int | None = None) -> tuple[float, int | None]:
     """(a device's memory estimate [bytes], the available memory [bytes] or None where unknown:
     :func:`_available_memory`). The estimate: the ``ceil(n / parts)`` runs the device steps x (RUN_BYTES + a chunk's
     log samples x LOG_SAMPLE_BYTES), the batch's other runs x INPUT_BYTES. ``parts``: the devices the n runs are
-    split over (``Spread.parts``); CPU devices share the host's memory and count as one."""
+    split over (``Spread.parts``); CPU devices share the host's memory and count as one. ``runs``: n, a batch of the
+    spec's runs (None: the spec's n, :func:`n_runs_of`)."""
     c = spec.campaign
     samples = max(1.0, c["chunk_seconds"] / (_timestep(c) * c["control_substeps"] * LOG_EVERY))
-    n = n_runs_of(spec)
+    n = n_runs_of(spec) if runs is None else int(runs)
     own = -(-n // own_memories(parts))
     return own * (RUN_BYTES + samples * LOG_SAMPLE_BYTES) + (n - own) * INPUT_BYTES, _available_memory()
 

@@ -55,7 +55,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.campaign.build import backend_of, has_accelerator, sensing_of, with_backend
-from wbc_jax.errors import WbcJaxError
+from wbc_jax.campaign.size import memory_need
+from wbc_jax.errors import LimitError, WbcJaxError
 from wbc_jax.io_utils import check_out_dir
 from wbc_jax.rollout import distributed
 from wbc_jax.rollout.runs import take
@@ -106,6 +107,21 @@ def _batch_size(spec: TuneSpec, runs: int) -> int:
     return max(1, runs) if has_accelerator() else CPU_BATCH
 
 
+def _check_memory(spec: TuneSpec, ev) -> None:
+    """Refuse a rollout call whose ``ev.size`` runs would not fit in a device's memory (the campaign's estimate,
+    :func:`wbc_jax.campaign.size.memory_need`), before anything is compiled.
+
+    Raises:
+        LimitError: naming ``tune.batch`` and ``--batch``.
+    """
+    need, avail = memory_need(spec.campaign, ev.spread.parts, runs=ev.size)
+    if avail and need > avail:
+        auto = " (0: a round's runs at once)" if spec.tune["batch"] == 0 else ""
+        raise LimitError(f"{spec.path}: tune.batch{auto}: {ev.size:,} runs per rollout call need about "
+                         f"{need / 2**30:,.1f} GiB, {avail / 2**30:,.1f} GiB available; a smaller tune.batch or "
+                         "--batch")
+
+
 def _with_backend(spec: TuneSpec, backend: str | None) -> TuneSpec:
     """``spec`` with ``campaign.backend`` of its tuning and confirmation campaigns replaced (``--backend``),
     each checked against its sensing setting; unchanged for None."""
@@ -142,6 +158,7 @@ def _prepare(spec_path, out, candidates, rounds, batch, force, backend) -> Tunin
     evc = Evaluator(spec.confirm_campaign, None, 1) if spec.confirm_campaign is not None else None
     # one shape for the search and the confirmation (one compilation when both use the same campaign settings)
     ev.size = _batch_size(spec, max(search.C * ev.n, (1 + spec.confirm["top"]) * evc.n if evc else 2 * ev.n))
+    _check_memory(spec, ev)
     if evc is not None:
         evc.size = ev.size
     return Tuning(spec, space, search, ev, evc, _plan(spec, search, ev, evc), writer)
