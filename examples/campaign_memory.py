@@ -2,31 +2,28 @@
 
     python examples/campaign_memory.py SPEC [BACKEND]   (BACKEND: jax or warp; default the spec's)
 
-Builds the spec as a campaign does and compiles its chunk program (:func:`wbc_jax.rollout.make_chunk_fn`) twice on
-this machine's device: with one logged sample and with a chunk's samples. XLA's memory analysis of each gives the
-bytes of the program's arguments (state, model, plan, gains), outputs (the state and the logs) and temporaries (the
-QP's and the physics' workspaces); per run, and per further logged sample, they are what
-:func:`wbc_jax.campaign.size.check_size` estimates with ``RUN_BYTES`` and ``LOG_SAMPLE_BYTES``, and the arguments
-what it estimates with ``INPUT_BYTES`` for a run that another device steps. MuJoCo Warp's buffers outside XLA's
-(its kernels' own scratch) are not counted.
+Builds the spec as a campaign does and compiles its chunk program
+(:func:`wbc_jax.bench.campaign_step.compiled_chunk`) twice on this machine's device: with one logged sample and with
+a chunk's samples. XLA's memory analysis of each gives the bytes of the program's arguments (state, model, plan,
+gains), outputs (the state and the logs) and temporaries (the QP's and the physics' workspaces); per run, and per
+further logged sample, they are what :func:`wbc_jax.campaign.size.check_size` estimates with ``RUN_BYTES`` and
+``LOG_SAMPLE_BYTES``, and the arguments what it estimates with ``INPUT_BYTES`` for a run that another device steps.
+MuJoCo Warp's buffers outside XLA's (its kernels' own scratch) are not counted.
 """
 
 import sys
 
 import jax
 
+from wbc_jax.bench.campaign_step import compiled_chunk
 from wbc_jax.campaign import build as B
 from wbc_jax.campaign.size import INPUT_BYTES, LOG_SAMPLE_BYTES, RUN_BYTES
 from wbc_jax.campaign.spec import load_spec
-from wbc_jax.rollout import make_chunk_fn
-from wbc_jax.rollout.batch import chunk_args
 
 
 def program_bytes(built: B.Built, n_logs: int) -> tuple[int, int, int]:
     """(arguments, outputs, temporaries) [bytes] of ``built``'s chunk program with ``n_logs`` logged samples."""
-    b = built.batch
-    compiled = jax.jit(make_chunk_fn(built.sim, n_logs, b.in_axes)).lower(*chunk_args(b)).compile()
-    ma = compiled.memory_analysis()
+    ma = compiled_chunk(built.sim, built.batch, n_logs).memory_analysis()
     return ma.argument_size_in_bytes, ma.output_size_in_bytes, ma.temp_size_in_bytes
 
 

@@ -383,17 +383,14 @@ def test_memory_estimate_holds_the_chunk_programs_measured_memory():
     XLA's memory analysis of the tiny spec's compiled chunk program gives per run (arguments, outputs, temporaries),
     and INPUT_BYTES its arguments per run. How generous they are for the shipped specs:
     ``examples/campaign_memory.py`` (docs/performance.md)."""
-    import jax
-
+    from wbc_jax.bench.campaign_step import compiled_chunk
     from wbc_jax.campaign.build import build
     from wbc_jax.campaign.size import INPUT_BYTES, LOG_SAMPLE_BYTES, RUN_BYTES
     from wbc_jax.campaign.spec import load_spec
-    from wbc_jax.rollout import make_chunk_fn
-    from wbc_jax.rollout.batch import chunk_args
 
     built = build(load_spec(TINY))
-    b, n, logs = built.batch, len(built.design.m), built.logs_per_chunk
-    ma = jax.jit(make_chunk_fn(built.sim, logs, b.in_axes)).lower(*chunk_args(b)).compile().memory_analysis()
+    n, logs = len(built.design.m), built.logs_per_chunk
+    ma = compiled_chunk(built.sim, built.batch, logs).memory_analysis()
     measured = (ma.argument_size_in_bytes + ma.output_size_in_bytes + ma.temp_size_in_bytes) / n
     estimate = RUN_BYTES + (logs - 1) * LOG_SAMPLE_BYTES
     assert measured <= estimate, (measured, estimate)
