@@ -22,7 +22,7 @@ import warp as wp
 
 from wbc_jax.campaign import build
 from wbc_jax.campaign.spec import load_spec
-from wbc_jax.physics.backend import NACON_PER_RUN, NJMAX_PER_CONTACT
+from wbc_jax.physics.backend import make_data
 
 LAUNCHES: list[tuple[str, tuple, str]] = []  # (kernel, dims, "l" or "t<block>")
 
@@ -43,7 +43,8 @@ def main() -> None:
     worlds = int(sys.argv[3]) if len(sys.argv) > 3 else 4
     built, _ = build.build_ahead(build.with_backend(spec, "warp"))
     mjm = built.sim.robot.mj_model
-    default = NJMAX_PER_CONTACT * NACON_PER_RUN + 2 * mjm.njnt
+    warp = make_data(built.sim.robot, worlds)._impl  # the campaign's capacities for a batch of this size
+    default = int(warp.njmax)
     capacities = [int(x) for x in sys.argv[2].split(",")] if len(sys.argv) > 2 else [default]
     mjd = mujoco.MjData(mjm)
     mjd.qpos[:] = np.asarray(build.initial_configuration(built.sim.robot, built.design)[0])[0]
@@ -54,9 +55,9 @@ def main() -> None:
     from mujoco.mjx.third_party import mujoco_warp as mjw  # after the spec's checks: warp-lang is installed
 
     wp.launch, wp.launch_tiled = recording(wp.launch, "l"), recording(wp.launch_tiled, "t")
+    m = mjw.put_model(mjm)
     for njmax in capacities:
-        m = mjw.put_model(mjm)
-        d = mjw.put_data(mjm, mjd, nworld=worlds, naconmax=NACON_PER_RUN * worlds, njmax=njmax)
+        d = mjw.put_data(mjm, mjd, nworld=worlds, naconmax=int(warp.naconmax), njmax=njmax)
         mjw.step(m, d)  # the first call compiles and loads the modules
         LAUNCHES.clear()
         mjw.step(m, d)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import jax
@@ -39,7 +40,7 @@ def memory_need(spec: Spec, parts: int = 1, runs: int | None = None) -> tuple[fl
     c = spec.campaign
     samples = max(1.0, c["chunk_seconds"] / (_timestep(c) * c["control_substeps"] * LOG_EVERY))
     n = n_runs_of(spec) if runs is None else int(runs)
-    own = -(-n // own_memories(parts))
+    own = own_runs(n, parts)
     return own * (RUN_BYTES + samples * LOG_SAMPLE_BYTES) + (n - own) * INPUT_BYTES, _available_memory()
 
 
@@ -52,9 +53,9 @@ def check_size(spec: Spec, allow_large: bool = False, parts: int = 1) -> None:
     """
     need, avail = memory_need(spec, parts)
     if avail and need > avail and not allow_large:
-        k = own_memories(parts)
-        share = f" ({-(-n_runs_of(spec) // k):,} on each of {k} devices)" if k > 1 else ""
-        raise LimitError(f"{spec.path}: {n_runs_of(spec):,} runs{share} need about {need / 2**30:,.1f} GiB, "
+        n, k = n_runs_of(spec), own_memories(parts)
+        share = f" ({own_runs(n, parts):,} on each of {k} devices)" if k > 1 else ""
+        raise LimitError(f"{spec.path}: {n:,} runs{share} need about {need / 2**30:,.1f} GiB, "
                          f"{avail / 2**30:,.1f} GiB available; fewer levels or reps, a smaller "
                          "campaign.chunk_seconds, or --allow-large to try anyway")
 
@@ -64,9 +65,20 @@ def own_memories(parts: int) -> int:
     return max(1, int(parts)) if jax.default_backend() != "cpu" else 1
 
 
+def own_runs(n: int, parts: int) -> int:
+    """The runs of an ``n``-run batch one device steps: ``ceil(n / own_memories(parts))``."""
+    return -(-int(n) // own_memories(parts))
+
+
 def _timestep(campaign: dict) -> float:
     """The physics timestep [s] of a spec's ``campaign`` table: its scene's ``opt.timestep``."""
-    return float(load_mj_model(scene_path(campaign["scene"])).opt.timestep)
+    return _scene_timestep(str(scene_path(campaign["scene"])))
+
+
+@functools.lru_cache(maxsize=8)
+def _scene_timestep(path: str) -> float:
+    """``opt.timestep`` [s] of the scene file ``path`` (compiled once per process)."""
+    return float(load_mj_model(path).opt.timestep)
 
 
 def _available_memory() -> int | None:
