@@ -22,18 +22,19 @@ fi
 # group until none is left, so both cores of a 2-core CI machine stay busy to the end (most of the time is
 # single-threaded XLA compilation; one process of the whole suite also made XLA's CPU compiler abort). The groups
 # share the persistent compilation cache. A group's files run in one process so that the programs they share are
-# traced once (test_campaign's tiny campaign, reused by test_replay, test_window, test_sharding and test_tune; the
-# flat-scene chunk program of test_transport and test_backends' JAX walk; the transport scene's sensing pass of
-# test_clearance and test_model; test_factors' tiny campaign, reused by test_freeze); the longest groups come first,
-# test_backends' group first of all (it compiles MuJoCo Warp's CPU kernels, which the later Warp tests load from
-# the kernel cache), then the files that compile little, longest first (the report's figures and subprocesses, then
-# `light2`, then `light`, the shortest), so the two workers end close together. A test file in no group runs in a
-# group of its own, before `light2` and `light`. A group that selects a test marked `llvm_default` compiles at LLVM's
-# default level, the others at -O0 (tests/conftest.py); by default that is `light` alone (test_qp_fma).
+# traced once (test_campaign's tiny campaign, reused by test_replay, test_window, test_sharding, test_tune and
+# test_plugin; the flat-scene chunk program of test_transport and test_backends' JAX walk; the transport scene's
+# sensing pass of test_clearance and test_model; test_factors' tiny campaign, reused by test_freeze); the longest
+# groups come first, test_backends' group first of all (it compiles MuJoCo Warp's CPU kernels, which the later Warp
+# tests load from the kernel cache), then the files that compile little, longest first (the report's figures and
+# subprocesses, then `light2`, then `light`, the shortest), so the two workers end close together. A test file in no
+# group runs in a group of its own, before `light2` and `light`. A group that selects a test marked `llvm_default`
+# compiles at LLVM's default level, the others at -O0 (tests/conftest.py); by default that is `light` alone
+# (test_qp_fma).
 # Each group prints a line when it ends; the outputs follow, in group order, at the end.
 groups=(
   "transport backends"
-  "campaign replay window sharding tune"
+  "campaign replay window sharding tune plugin"
   "substeps factors freeze"
   "course clearance model metrics"
   "qp"

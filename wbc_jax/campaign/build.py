@@ -22,6 +22,7 @@ import numpy as np
 
 from wbc_jax.campaign.design import Design, design
 from wbc_jax.campaign.spec import BACKENDS, Spec
+from wbc_jax.campaign.spec_controller import plugin_of
 from wbc_jax.errors import SpecError
 from wbc_jax.runtime import aot
 from wbc_jax.runtime.transfer import to_device
@@ -56,8 +57,7 @@ def has_accelerator() -> bool:
 
 
 def backend_of(spec: Spec) -> str:
-    """The spec's physics backend, "auto" resolved for this machine
-    (:func:`wbc_jax.physics.backend.resolve_backend`)."""
+    """The spec's physics backend, "auto" resolved here (:func:`wbc_jax.physics.backend.resolve_backend`)."""
     from wbc_jax.physics.backend import resolve_backend
 
     try:
@@ -129,23 +129,23 @@ def check_qp(spec: Spec) -> None:
 
 
 def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, backend: str = "jax",
-         solver_iterations: int = 0, sensing: str = "exact", controller: str = "transport", qp: tuple = ()):
-    """The (cached) Sim of a scene: ``controller`` with ``iters`` ADMM iterations and its QP settings changed by
-    ``qp`` (:func:`qp_changes`), control period ``substeps`` x the scene's timestep."""
+         solver_iterations: int = 0, sensing: str = "exact", controller: str = "transport", qp: tuple = (),
+         plugin: tuple = ()):
+    """The (cached) Sim of a scene: ``controller`` (or its ``plugin``: :func:`plugin_of`) with ``iters`` ADMM
+    iterations and its QP changed by ``qp`` (:func:`qp_changes`), control period ``substeps`` x the timestep."""
     from wbc_jax.control.centroidal import CentroidalConfig, centroidal_qp_settings
     from wbc_jax.control.transport import TransportConfig, control_qp_settings
     from wbc_jax.robot.model import Robot
     from wbc_jax.rollout import make_sim
 
-    key = (scene, iters, sensor_noise, substeps, backend, solver_iterations, sensing, controller, qp)
+    key = (scene, iters, sensor_noise, substeps, backend, solver_iterations, sensing, controller, qp, plugin)
     if key not in _SIMS:
         robot = Robot(scene, backend=backend, solver_iterations=solver_iterations)
         dt = float(robot.mj_model.opt.timestep) * substeps
-        cfg = (TransportConfig(dt=dt, qp=control_qp_settings(iters)._replace(**dict(qp)))
-               if controller == "transport"
+        cfg = (TransportConfig(dt=dt, qp=control_qp_settings(iters)._replace(**dict(qp))) if controller == "transport"
                else CentroidalConfig(qp=centroidal_qp_settings(iters)._replace(**dict(qp)), dt=dt))
         _SIMS[key] = make_sim(robot, cfg, n_substeps=substeps, log_every=LOG_EVERY, sensor_noise=sensor_noise,
-                              sensing=sensing, controller=controller)
+                              sensing=sensing, controller=controller, plugin=plugin)
     return _SIMS[key]
 
 
@@ -161,9 +161,8 @@ def chunk_fn(sim, in_axes, n_logs: int, mesh=None, state_axes=0):
     if key not in _FNS:  # jit, with the lowered program kept on disk for the next process (wbc_jax.runtime.aot)
         # (vmap takes the Warp data whole: MJX batches its shared contact list itself)
         fn = make_chunk_fn(sim, n_logs, in_axes)
-        _FNS[key] = (aot.cached_jit("chunk", fn, aot.describe(sim, in_axes, n_logs),
-                                     exportable=sim.robot.backend != "warp") if mesh is None
-                     else over_runs(fn, mesh, (in_axes, state_axes, 0, 0, 0, 0, 0), (state_axes, 0)))
+        _FNS[key] = (over_runs(fn, mesh, (in_axes, state_axes, 0, 0, 0, 0, 0), (state_axes, 0)) if mesh is not None
+                     else aot.cached_jit("chunk", fn, aot.describe(sim, in_axes, n_logs), exportable=sim.exportable))
     return _FNS[key]
 
 
@@ -262,7 +261,8 @@ def _build(spec: Spec, gains, states: bool) -> tuple[Built, Callable[[], Built] 
     dz = design(spec)
     transport = c["controller"] == "transport"
     sim = _sim(contact_scene(c), c["qp_iters"], bool(np.any(dz.qvel_noise_std > 0)), c["control_substeps"],
-               backend_of(spec), c["solver_iterations"], sensing_of(spec), c["controller"], qp_changes(spec))
+               backend_of(spec), c["solver_iterations"], sensing_of(spec), c["controller"], qp_changes(spec),
+               plugin_of(spec))
     qpos0, qvel0 = initial_configuration(sim.robot, dz)
     gains = run_gains(gains, dz) if transport else centroidal_gains(gains, dz)
     b = prepare_batch(sim, dz.m, dz.mu, dz.d, gains=gains, plan_kwargs=_plan_kwargs(c), qpos0=qpos0, qvel0=qvel0,
@@ -282,7 +282,7 @@ def _build(spec: Spec, gains, states: bool) -> tuple[Built, Callable[[], Built] 
 
     def finish(state):
         state = with_metric_window(state, t_end)
-        return with_variant(state, Variant(*dz.variant.T)) if transport else state
+        return with_variant(state, Variant(*dz.variant.T), sim.controller) if transport else state
 
     b = b._replace(push=push, state=finish(b.state))  # shapes stay shapes (Packed._replace, placed_like)
     built = Built(sim, dz, b, planned_s, *chunk_plan(c, sim.dt_control, planned_s))

@@ -203,7 +203,8 @@ def campaign_manifest(spec: Spec, built, df, summary: Summary, timing: Timing, *
     ok = df.success
     return dict(
         command=COMMAND, spec_path=str(spec.path), spec_hash=spec.hash, spec_file_sha256=spec.text_sha256,
-        spec=spec.canonical(), default_gains=gains is None, gains_hash=identity["gains_hash"], versions=versions(),
+        spec=spec.canonical(), **({"plugin_sha256": spec.plugin_sha256} if spec.plugin else {}),
+        default_gains=gains is None, gains_hash=identity["gains_hash"], versions=versions(),
         git_commit=git_commit(), git_commits=sorted({s["git_commit"] for s in sessions if s.get("git_commit")}),
         sessions=sessions,
         physics_backend=identity["backend"], sensing=sensing, device=device_record(),

@@ -1,6 +1,6 @@
 """Campaign specs (``sweeps/*.toml``): loading with stdlib ``tomllib`` and validation.
 
-A spec has up to four tables (every key optional except ``factors``; an example with the paper specs' values below;
+A spec has up to five tables (every key optional except ``factors``; an example with the paper specs' values below;
 every key's default, unit and range: ``docs/specs.md``, generated from the key tables ``CAMPAIGN``, ``FACTORS``,
 ``PERTURBATIONS`` and ``ANALYSIS`` by :mod:`wbc_jax.studies.spec_docs`)::
 
@@ -73,6 +73,9 @@ every key's default, unit and range: ``docs/specs.md``, generated from the key t
     order = 2                  # highest ANOVA interaction order
     alpha = 0.05
 
+    [plugin]                   # optional: a subclass of the controller from outside the package, its own fields
+    class = "examples.torque_lag:TorqueLag"   # (wbc_jax.campaign.spec_controller)
+
 The design table of a spec (one row per run, its seed and perturbations): :mod:`wbc_jax.campaign.design`.
 """
 
@@ -88,6 +91,7 @@ from pathlib import Path
 from wbc_jax.campaign import controllers as controllers_mod
 from wbc_jax.campaign import factors as factors_mod
 from wbc_jax.campaign.design import Design, design  # noqa: F401  (a spec's design table, re-exported)
+from wbc_jax.campaign.spec_controller import check_controller, parse_plugin
 from wbc_jax.control.variants import VARIANTS
 from wbc_jax.errors import InputError, SpecError
 from wbc_jax.io_utils import read_capped
@@ -200,6 +204,8 @@ class Spec:
     perturbations: dict
     text_sha256: str = field(default="")
     analysis: dict = field(default_factory=lambda: {k: v[1] for k, v in ANALYSIS.items()})
+    plugin: dict = field(default_factory=dict)  # [plugin] (wbc_jax.campaign.spec_controller); {}: none
+    plugin_sha256: str = ""  # its module file's sha256 (in the hash)
 
     @property
     def reps(self) -> int:
@@ -207,15 +213,16 @@ class Spec:
 
     def canonical(self) -> dict:
         return dict(campaign=self.campaign, factors=self.factors, perturbations=self.perturbations,
-                    analysis=self.analysis)
+                    analysis=self.analysis, **({"plugin": self.plugin} if self.plugin else {}))
 
     def hashed(self) -> dict:
-        """:meth:`canonical` less ``analysis`` and the keys of ``_HASH_NEUTRAL`` that are at their neutral value."""
+        """:meth:`canonical` less ``analysis`` and the keys of ``_HASH_NEUTRAL`` that are at their neutral value,
+        with a plug-in's module sha256."""
         out = self.canonical()
         del out["analysis"]
         for table, keys in _HASH_NEUTRAL.items():
             out[table] = {k: v for k, v in out[table].items() if not (k in keys and v == keys[k])}
-        return out
+        return dict(out, plugin_sha256=self.plugin_sha256) if self.plugin else out
 
     @property
     def hash(self) -> str:
@@ -338,30 +345,11 @@ def _check_fixed(path, camp: dict, pert: dict, factors: dict) -> None:
                                                         f"{camp['qp_iters']}: use 0 (the controller's 200) or more")
 
 
-def _check_controller(path, camp: dict, factors: dict) -> None:
-    """The factors and keys of the spec's controller: a factor it cannot vary, or a key of the other one away
-    from its default, is an error; the centroidal trot's four-foot support is shorter than its half-cycle."""
-    name = camp["controller"]
-    for key in factors:
-        if not controllers_mod.may_vary(name, key):
-            allowed = [f for f in factors_mod.REGISTRY if controllers_mod.may_vary(name, f)]
-            raise spec_error(path, f"factors.{key}", f"not a factor of controller {name!r}; expected one of "
-                                                     f"{', '.join(allowed)}")
-    own = (("mass_error", "walk_seconds", "step_time", "four_foot") if name == "transport"
-           else ("distance", "variant", "terrain", "com_plan", "obj_accel"))
-    for key in own:
-        if camp[key] != CAMPAIGN[key][1]:
-            raise spec_error(path, f"campaign.{key}", f"= {camp[key]!r}: not used by controller {name!r}; leave it out")
-    if name == "centroidal" and not camp["four_foot"] < camp["step_time"]:
-        raise spec_error(path, "campaign.four_foot", f"= {camp['four_foot']}: expected < campaign.step_time "
-                                                     f"({camp['step_time']})")
-
-
 def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
     """Validate a spec dict (as read by tomllib). Raises SpecError naming ``path``, the key and the range."""
-    unknown = sorted(set(data) - {"campaign", "factors", "perturbations", "analysis"})
+    unknown = sorted(set(data) - {"campaign", "factors", "perturbations", "analysis", "plugin"})
     if unknown:
-        raise spec_error(path, unknown[0], "unknown table; expected campaign, factors, perturbations, analysis")
+        raise spec_error(path, unknown[0], "unknown table; expected campaign, factors, perturbations, analysis, plugin")
     camp = checked_table(path, "campaign", data.get("campaign", {}), CAMPAIGN)
     for key, allowed in (("backend", BACKENDS), ("scene", SCENES), ("variant", tuple(VARIANTS)),
                          ("terrain", TERRAINS), ("com_plan", COM_PLANS), ("sensing", SENSING), ("cone", CONES),
@@ -373,10 +361,11 @@ def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
     factors = _parse_factors(path, data["factors"])
     pert = checked_table(path, "perturbations", data.get("perturbations", {}), PERTURBATIONS)
     _check_fixed(path, camp, pert, factors)
-    _check_controller(path, camp, factors)
+    check_controller(path, camp, factors, CAMPAIGN)
+    plugin, plugin_sha256 = parse_plugin(path, data.get("plugin"), camp["controller"])
     analysis = checked_table(path, "analysis", data.get("analysis", {}), ANALYSIS)
     return Spec(path=str(path), campaign=camp, factors=factors, perturbations=pert, text_sha256=text_sha256,
-                analysis=analysis)
+                analysis=analysis, plugin=plugin, plugin_sha256=plugin_sha256)
 
 
 def load_spec(path: str | Path) -> Spec:

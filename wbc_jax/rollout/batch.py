@@ -93,8 +93,7 @@ def _init_fn(sim: Sim, in_axes, n_runs: int):
     key = (sim, axes_key(in_axes), n)
     if key not in _INIT_FNS:
         fn = jax.vmap(functools.partial(init_state, sim, n_runs=n), in_axes=(in_axes, 0, 0))
-        _INIT_FNS[key] = aot.cached_jit("init", fn, aot.describe(sim, in_axes, n),
-                                        exportable=sim.robot.backend != "warp")
+        _INIT_FNS[key] = aot.cached_jit("init", fn, aot.describe(sim, in_axes, n), exportable=sim.exportable)
     return _INIT_FNS[key]
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -9,6 +10,7 @@ import numpy as np
 from wbc_jax.physics import contacts
 from wbc_jax.robot.model import Robot
 from wbc_jax.rollout.controllers import controller_class
+from wbc_jax.rollout.controllers import plugin as plugins
 from wbc_jax.runtime.static import ByValue
 
 SENSING = ("auto", "exact", "delayed")
@@ -72,6 +74,13 @@ class Sim(ByValue):
         return self.controller.cfg
 
     @property
+    def exportable(self) -> bool:
+        """Its programs may be kept on disk as exported programs (:mod:`wbc_jax.runtime.aot`): the JAX physics (MuJoCo
+        Warp's kernels are FFI calls registered per process) and a controller of the package (a plug-in's sources
+        are not in that cache's key)."""
+        return self.robot.backend != "warp" and plugins.built_in(self.controller)
+
+    @property
     def dt_control(self) -> float:
         """Control period [s] (= n_substeps x dt_physics)."""
         return self.cfg.dt
@@ -83,7 +92,7 @@ class Sim(ByValue):
 
 
 def make_sim(robot: Robot, cfg=None, n_substeps: int = 1, log_every: int = 20, sensor_noise: bool = False,
-             sensing: str = "exact", controller: str = "transport") -> Sim:
+             sensing: str = "exact", controller: str = "transport", plugin: tuple = ()) -> Sim:
     """The Sim of ``robot``.
 
     Args:
@@ -93,18 +102,22 @@ def make_sim(robot: Robot, cfg=None, n_substeps: int = 1, log_every: int = 20, s
         sensor_noise: the controller sees noisy velocities (``Push.qvel_noise_std``).
         sensing: :data:`SENSING` (:func:`resolve_sensing`).
         controller: the controller's name (:data:`wbc_jax.rollout.controllers.CONTROLLERS`).
+        plugin: ``()`` or (``"module:Class"``, ((field, value), ...)): a plug-in subclass of that controller with
+            its own fields set (:mod:`wbc_jax.rollout.controllers.plugin`).
 
     Raises:
         ValueError: ``n_substeps`` < 1, a control period that is not ``n_substeps`` physics steps, or a sensing
-            mode the backend does not support.
+            mode the backend does not support, a plug-in that does not load.
     """
     h = float(robot.mj_model.opt.timestep)
     n_substeps = int(n_substeps)
     if n_substeps < 1:
         raise ValueError(f"n_substeps = {n_substeps}: expected >= 1")
     sensing = resolve_sensing(sensing, robot.backend, n_substeps)
-    kind = controller_class(controller)
+    kind = controller_class(controller, plugin[0] if plugin else "")
     plug_in = kind.default(h * n_substeps) if cfg is None else kind(cfg)
+    if plugin:
+        plug_in = dataclasses.replace(plug_in, **dict(plugin[1]))
     cfg = plug_in.cfg
     if abs(cfg.dt - h * n_substeps) > 1e-9 * h:
         raise ValueError(f"control period cfg.dt = {cfg.dt} s != n_substeps ({n_substeps}) x the model's timestep "

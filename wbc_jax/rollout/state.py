@@ -119,9 +119,9 @@ def with_metric_window(state: RunState, t_end) -> RunState:
     return state._replace(acc=state.acc._replace(t_end=t_end))
 
 
-def with_variant(state: RunState, variant: Variant) -> RunState:
-    """``state`` (batched or not) with the controller's ablation switches set (:mod:`wbc_jax.control.variants`;
-    each field 0/1, scalar or (B,) per run)."""
-    control_state = state.cs
-    switches = Variant(*(_like(old, v) for old, v in zip(control_state.variant, variant)))
-    return state._replace(cs=control_state._replace(variant=switches))
+def with_variant(state: RunState, variant: Variant, controller) -> RunState:
+    """``state`` (batched or not) with the transport ``controller``'s ablation switches set
+    (:mod:`wbc_jax.control.variants`; each field 0/1, scalar or (B,) per run)."""
+    old = controller.variant(state.cs)
+    switches = Variant(*(_like(o, v) for o, v in zip(old, variant)))
+    return state._replace(cs=controller.with_variant(state.cs, switches))

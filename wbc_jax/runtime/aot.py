@@ -158,7 +158,8 @@ def cached_jit(name: str, fn: Callable, static: str, exportable: bool = True) ->
             processes without changing the sources or ``static``).
         static: text describing fn's closed-over configuration (part of the key).
         exportable: False for programs jax.export cannot hold (MuJoCo Warp's kernels are FFI calls registered per
-            process): plain ``jax.jit`` (the persistent compilation cache still applies).
+            process) or that depend on code outside the package (whose sources the key does not cover): plain
+            ``jax.jit`` (the persistent compilation cache still applies).
 
     Returns:
         a callable with fn's signature and results.

@@ -99,6 +99,7 @@ def _spec(folder: Path, manifest: dict, spec_path) -> Spec:
         spec = _spec_file(folder, manifest, path)
     elif spec_path is None and isinstance(manifest.get("spec"), dict):
         spec = parse_spec(manifest["spec"], f"{folder}/manifest.json spec")
+        _check_plugin(folder, manifest, spec)
         if spec.hash != manifest["spec_hash"]:
             raise SpecError(f"{folder}/manifest.json: its spec does not hash to its spec_hash (edited?); pass --spec "
                             "with the spec the campaign ran")
@@ -124,11 +125,22 @@ def _spec_file(folder: Path, manifest: dict, path: Path) -> Spec:
     """The spec file ``path``, refused unless its bytes and content are those the campaign ran."""
     recorded_backend = (manifest.get("spec") or {}).get("campaign", {}).get("backend")
     spec = with_backend(load_spec(path), recorded_backend)  # a campaign's --backend flag is in its spec's hash
+    _check_plugin(folder, manifest, spec)
     if spec.text_sha256 != manifest["spec_file_sha256"] or spec.hash != manifest["spec_hash"]:
         raise SpecError(f"{path}: sha256 {spec.text_sha256[:12]} differs from the spec campaign {folder} ran "
                         f"(manifest.json spec_file_sha256 {str(manifest['spec_file_sha256'])[:12]}): the spec changed "
                         "since; pass --spec with the campaign's own copy")
     return spec
+
+
+def _check_plugin(folder: Path, manifest: dict, spec: Spec) -> None:
+    """Refuse a spec whose plug-in's module file is not the one the campaign ran (``manifest.json``
+    ``plugin_sha256``)."""
+    ran = manifest.get("plugin_sha256")
+    if spec.plugin and ran is not None and ran != spec.plugin_sha256:
+        raise SpecError(f"{spec.path}: plugin.class {spec.plugin['class']!r}: its module file changed since campaign "
+                        f"{folder} ran (sha256 {spec.plugin_sha256[:12]}, manifest.json plugin_sha256 {ran[:12]}); "
+                        "replay needs the code the campaign ran")
 
 
 def read_results(path: Path) -> pd.DataFrame:

@@ -121,7 +121,7 @@ def record(spec: Spec, seconds: float, scene_file: str | None = None, chunk_step
         b = b._replace(om=b.om._replace(mu=jax.numpy.asarray(controller_mu, b.om.mu.dtype)))
     t_plan = np.asarray(b.plan.obj_path.t_knots)[:, -1]
     push = make_push(dz.push_force, dz.push_frac * t_plan, dz.push_duration, dz.qvel_noise_std, dz.seed)
-    state = with_variant(b.state, Variant(*dz.variant.T))
+    state = with_variant(b.state, Variant(*dz.variant.T), sim.controller)
     steps = min(chunk_steps, int(round(seconds / sim.dt_control)))
     fn = _step_fn(sim, b.in_axes, steps)
     parts = []

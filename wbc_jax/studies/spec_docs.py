@@ -301,6 +301,15 @@ def _campaign_section() -> list[str]:
         "",
         *key_table("analysis", spec.ANALYSIS, ANALYSIS_MEANING),
         "",
+        "### `[plugin]`: a controller from outside the package",
+        "",
+        "`class = \"module:Class\"` names a subclass of the spec's controller (`TransportController` or "
+        "`CentroidalController`) in a module importable from the current folder (or `PYTHONPATH`); every other key "
+        "sets one of the class's own fields (bool, int, float or str, the class's default otherwise). The campaign, "
+        "its results columns, report and regress bands are the named controller's; the module file's sha256 is "
+        "part of the spec hash. The rules a plug-in follows: `wbc_jax/rollout/controllers/plugin.py`; an example: "
+        "`examples/torque_lag.py` (`sweeps/torque_lag.toml`). `wbc-jax tune` searches the built-in controller only.",
+        "",
     ]
 
 

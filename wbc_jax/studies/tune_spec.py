@@ -167,6 +167,9 @@ def _campaign(path, rel: str, reps: int = 0, max_seconds: float = 0.0, qp_iters:
     if camp.campaign["controller"] != "transport":  # the search space is the transport controller's gains
         raise SpecError(f"{path}: campaign spec {rel!r}: campaign.controller {camp.campaign['controller']!r}; "
                         "tune searches the transport controller's gains (controller = \"transport\")")
+    if camp.plugin:  # tune's programs and confirmation campaign are the built-in controller's
+        raise SpecError(f"{path}: campaign spec {rel!r}: plugin.class {camp.plugin['class']!r}: tune searches the "
+                        "built-in transport controller's gains; leave out [plugin]")
     c = dict(camp.campaign)
     for key, v in (("reps", reps), ("max_seconds", max_seconds), ("qp_iters", qp_iters)):
         if v > 0:

@@ -22,11 +22,13 @@ definitions share compiled programs):
   finished batch; ``final_input`` is what finalization needs of the last log row, kept with the checkpoint.
 
 The shared parts (sensing, sensor noise, pushes, physics-rate monitors, failure freezing, batching, sharding,
-checkpoints, both physics backends) stay in the rollout. :data:`CONTROLLERS` names the implementations.
+checkpoints, both physics backends) stay in the rollout. :data:`CONTROLLERS` names the implementations; a
+subclass of one from outside the package is a plug-in (:mod:`wbc_jax.rollout.controllers.plugin`).
 """
 
 from __future__ import annotations
 
+from wbc_jax.rollout.controllers import plugin as plugins
 from wbc_jax.rollout.controllers.base import Controller, Record, object_in_tray
 from wbc_jax.rollout.controllers.centroidal import CentroidalController
 from wbc_jax.rollout.controllers.transport import TransportController
@@ -38,8 +40,12 @@ __all__ = ["CONTROLLERS", "CentroidalController", "Controller", "Record", "Trans
            "object_in_tray"]
 
 
-def controller_class(name: str):
-    """The :class:`Controller` subclass named ``name`` (:data:`CONTROLLERS`). Raises ValueError for another."""
+def controller_class(name: str, plugin: str = ""):
+    """The :class:`Controller` subclass named ``name`` (:data:`CONTROLLERS`), or with ``plugin`` (``"module:Class"``)
+    that plug-in, a subclass of it (:func:`wbc_jax.rollout.controllers.plugin.load`). Raises ValueError for another
+    name or a plug-in that does not load."""
     if name not in CONTROLLERS:
         raise ValueError(f"controller {name!r}: expected one of {', '.join(CONTROLLERS)}")
+    if plugin:
+        return plugins.load(plugin, CONTROLLERS[name])
     return CONTROLLERS[name]

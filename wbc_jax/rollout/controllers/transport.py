@@ -66,6 +66,14 @@ class TransportController(Controller, ByValue):
         kept = super().freeze(frozen, bare(new), bare(old))
         return kept._replace(warm=kept.warm._replace(factors=factors))
 
+    def variant(self, cs):
+        """The ablation switches (:class:`wbc_jax.control.variants.Variant`) of the controller state ``cs``."""
+        return cs.variant
+
+    def with_variant(self, cs, switches):
+        """``cs`` with its ablation switches replaced by ``switches``."""
+        return cs._replace(variant=switches)
+
     def make_plan(self, robot, course: bool, qpos0, kw: dict):
         """One plan (:func:`course_plan` when ``course``, else :func:`straight_plan`, with keyword arguments ``kw``)
         and numpy leaves, kept on disk like a compiled program (:func:`wbc_jax.runtime.aot.cached_value`: keyed by

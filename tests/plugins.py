@@ -1,0 +1,22 @@
+"""Controller plug-ins for tests/test_plugin.py (imported as ``tests.plugins`` from the repository root)."""
+
+from dataclasses import dataclass
+
+from wbc_jax.rollout.controllers import TransportController
+
+
+@dataclass(frozen=True, eq=False)
+class Same(TransportController):
+    """The transport controller unchanged, from outside the package."""
+
+
+@dataclass(frozen=True)
+class ByIdentity(TransportController):
+    """Compared by its generated dataclass equality, not by value: refused."""
+
+
+@dataclass(frozen=True, eq=False)
+class NoDefault(TransportController):
+    """A field without a default: refused."""
+
+    gain: float = None  # a default of a type a spec cannot set

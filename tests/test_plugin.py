@@ -1,0 +1,119 @@
+"""Controllers from outside the package (a spec's ``[plugin]`` table): validation, the cache keys, a plug-in that
+changes nothing against the built-in bit for bit, and examples/torque_lag.py against its equation."""
+
+import shutil
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from wbc_jax import cli
+from wbc_jax.campaign.spec import parse_spec
+from wbc_jax.errors import SpecError
+
+TINY = dict(m=[0.2, 0.4], mu=[0.4, 1.0], d=[0.06, 0.10])
+LAG = "examples.torque_lag:TorqueLag"
+
+
+def _spec(plugin, controller="transport"):
+    data = dict(campaign=dict(reps=1, controller=controller), factors=TINY)
+    if plugin is not None:
+        data["plugin"] = plugin
+    return parse_spec(data, "p.toml")
+
+
+@pytest.mark.parametrize("plugin, key, expect", [
+    (3, "plugin", "expected a table"),
+    ({"time_constant": 0.1}, "plugin.class", "module:Class"),
+    ({"class": "torque_lag"}, "plugin.class", "module:Class"),
+    ({"class": "no_such_module_xyz:C"}, "plugin.class", "cannot import module 'no_such_module_xyz'"),
+    ({"class": "examples.torque_lag:Nope"}, "plugin.class", "has no 'Nope'"),
+    ({"class": "examples.torque_lag:LagState"}, "plugin.class", "subclass of wbc_jax.rollout.controllers.Transport"),
+    ({"class": "tests.plugins:ByIdentity"}, "plugin.class", "eq=False"),
+    ({"class": "tests.plugins:NoDefault"}, "plugin.class", "needs a default of type bool, int, float or str"),
+    ({"class": LAG, "speed": 1.0}, "plugin.speed", "not a field of examples.torque_lag:TorqueLag; expected one of "
+                                                   "time_constant"),
+    ({"class": LAG, "time_constant": "fast"}, "plugin.time_constant", "expected a float like its default 0.02"),
+    ({"class": LAG, "time_constant": True}, "plugin.time_constant", "expected a float"),
+    ({"class": LAG, "time_constant": -0.01}, "plugin", "TorqueLag.time_constant = -0.01: expected >= 0"),
+])
+def test_bad_plugin_names_the_key(plugin, key, expect):
+    with pytest.raises(SpecError) as e:
+        _spec(plugin)
+    msg = str(e.value)
+    assert msg.startswith(f"p.toml: {key}: ") and expect in msg and "\n" not in msg, msg
+
+
+def test_plugin_must_subclass_the_spec_controller():
+    with pytest.raises(SpecError, match="plugin.class: .*subclass of wbc_jax.rollout.controllers.CentroidalController"):
+        _spec({"class": LAG}, controller="centroidal")
+
+
+def test_plugin_fields_defaults_and_hash(tmp_path, monkeypatch):
+    s = _spec({"class": LAG, "time_constant": 1})
+    assert s.plugin == {"class": LAG, "time_constant": 1.0} and isinstance(s.plugin["time_constant"], float)
+    assert _spec({"class": LAG}).plugin == {"class": LAG, "time_constant": 0.02}
+    plain = _spec(None)
+    assert plain.plugin == {} and "plugin" not in plain.canonical() and "plugin_sha256" not in plain.hashed()
+    assert s.hash != _spec({"class": LAG, "time_constant": 0.05}).hash != plain.hash
+    # the plug-in's source is in the hash: an edited module file gives another hash
+    mod = tmp_path / "lag_copy.py"
+    shutil.copy("examples/torque_lag.py", mod)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    before = _spec({"class": "lag_copy:TorqueLag"})
+    mod.write_text(mod.read_text() + "\n# edited\n")
+    del sys.modules["lag_copy"]
+    after = _spec({"class": "lag_copy:TorqueLag"})
+    assert before.plugin == after.plugin and before.plugin_sha256 != after.plugin_sha256 and before.hash != after.hash
+
+
+def test_bad_plugin_cli_is_one_line_exit_2_nothing_written(tiny_spec, tmp_path, capsys):
+    p = tmp_path / "bad.toml"
+    p.write_text(tiny_spec.read_text() + '\n[plugin]\nclass = "no_such_module_xyz:C"\n')
+    out = tmp_path / "out"
+    assert cli.main(["campaign", "--spec", str(p), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("wbc-jax campaign: error:") and "plugin.class" in err[0]
+    assert not out.exists() and list(tmp_path.iterdir()) == [p]
+
+
+def test_lag_equation_by_hand():
+    from examples.torque_lag import lag
+
+    prev, u = np.array([1.0, 2.0]), np.array([3.0, -2.0])
+    # a = dt / (T + dt) = 0.002 / 0.02 = 0.1: tau = prev + 0.1 (u - prev)
+    np.testing.assert_allclose(lag(prev, u, True, 0.002, 0.018), [1.2, 1.6], rtol=1e-6)  # float32
+    np.testing.assert_array_equal(lag(prev, u, False, 0.002, 0.018), u)  # the first step: the QP's torque
+
+
+def _run(tiny_spec, tmp_path, plugin: str):
+    from wbc_jax.campaign.runner import run_campaign
+
+    p = tmp_path / "spec.toml"
+    p.write_text(tiny_spec.read_text() + plugin)
+    out = tmp_path / "out"
+    return out, run_campaign(str(p), str(out), progress=False)
+
+
+def test_unchanged_plugin_equals_the_builtin_bit_for_bit(full_run, tiny_spec, tmp_path):
+    from wbc_jax.campaign import build
+
+    out, manifest = _run(tiny_spec, tmp_path, '\n[plugin]\nclass = "tests.plugins:Same"\n')
+    ref = pd.read_csv(full_run[0] / "results.csv")
+    got = pd.read_csv(out / "results.csv")
+    pd.testing.assert_frame_equal(got, ref, check_exact=True)
+    assert manifest["spec"]["plugin"] == {"class": "tests.plugins:Same"} and len(manifest["plugin_sha256"]) == 64
+    sims = [s for s in build._SIMS.values() if type(s.controller).__name__ == "Same"]
+    assert sims and not sims[0].exportable  # its programs are not kept as exported programs (sources not in the key)
+
+
+def test_lag_plugin_drives_the_motors(full_run, tiny_spec, tmp_path):
+    out, manifest = _run(tiny_spec, tmp_path, f'\n[plugin]\nclass = "{LAG}"\ntime_constant = 0.05\n')
+    ref = pd.read_csv(full_run[0] / "results.csv")
+    got = pd.read_csv(out / "results.csv")
+    assert list(got.columns) == list(ref.columns) and len(got) == len(ref)
+    assert np.all(np.isfinite(got[["R", "T", "S"]].to_numpy()))
+    # the lagged torques change every run's tracking and smoothness
+    assert np.all(got["T"].to_numpy() != ref["T"].to_numpy()) and np.all(got["S"].to_numpy() != ref["S"].to_numpy())
+    assert manifest["spec"]["plugin"] == {"class": LAG, "time_constant": 0.05}

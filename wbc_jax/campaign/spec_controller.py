@@ -1,0 +1,104 @@
+"""A spec's controller: the factors and keys it accepts, and a plug-in subclass of it (the ``[plugin]`` table).
+
+``[campaign] controller`` names a built-in controller (:mod:`wbc_jax.campaign.controllers`); a ``[plugin]`` table
+names a subclass of it from outside the package and sets the subclass's own fields
+(:mod:`wbc_jax.rollout.controllers.plugin`)::
+
+    [plugin]
+    class = "examples.torque_lag:TorqueLag"   # module:Class, the module importable from the current folder
+    time_constant = 0.02                      # its own fields (the class's defaults otherwise)
+
+The campaign, its results columns, report and ``regress`` bands are the named controller's. Loading a spec with a
+plug-in imports its module (and JAX); the module file's sha256 joins the spec's hash (``Spec.plugin_sha256``).
+"""
+
+from __future__ import annotations
+
+import math
+
+from wbc_jax.campaign import controllers as controllers_mod
+from wbc_jax.campaign import factors as factors_mod
+from wbc_jax.errors import SpecError
+
+CENTROIDAL_KEYS = ("mass_error", "walk_seconds", "step_time", "four_foot")  # campaign keys of the centroidal only
+TRANSPORT_KEYS = ("distance", "variant", "terrain", "com_plan", "obj_accel")  # ... of the transport only
+
+
+def check_controller(path, camp: dict, factors: dict, schema: dict) -> None:
+    """The factors and keys of the spec's controller: a factor it cannot vary, or a key of the other one away
+    from its default (``schema``: the campaign table's key -> (type, default, ...)), is an error; the centroidal
+    trot's four-foot support is shorter than its half-cycle. Raises SpecError naming the key."""
+    name = camp["controller"]
+    for key in factors:
+        if not controllers_mod.may_vary(name, key):
+            allowed = [f for f in factors_mod.REGISTRY if controllers_mod.may_vary(name, f)]
+            raise SpecError(f"{path}: factors.{key}: not a factor of controller {name!r}; expected one of "
+                            f"{', '.join(allowed)}")
+    for key in CENTROIDAL_KEYS if name == "transport" else TRANSPORT_KEYS:
+        if camp[key] != schema[key][1]:
+            raise SpecError(f"{path}: campaign.{key}: = {camp[key]!r}: not used by controller {name!r}; leave it out")
+    if name == "centroidal" and not camp["four_foot"] < camp["step_time"]:
+        raise SpecError(f"{path}: campaign.four_foot: = {camp['four_foot']}: expected < campaign.step_time "
+                        f"({camp['step_time']})")
+
+
+def parse_plugin(path, raw, family: str) -> tuple[dict, str]:
+    """The ``[plugin]`` table ``raw`` (None: the spec has none) of a spec whose controller is ``family``.
+
+    Returns:
+        ({"class": "module:Class", field: value for each of the class's own fields, defaults filled in}, the
+        sha256 of the class's module file), or ({}, "") without a table.
+
+    Raises:
+        SpecError: naming ``plugin.class`` (not "module:Class", no such module or class, not a by-value dataclass
+            subclass of the ``family`` controller) or ``plugin.<field>`` (not a field of the class, a value of
+            another type than its default's), or the ValueError of the class's own ``__post_init__`` checks (run
+            with ``cfg`` None).
+    """
+    if raw is None:
+        return {}, ""
+    if not isinstance(raw, dict):
+        raise SpecError(f"{path}: plugin: expected a table [plugin], got {type(raw).__name__}")
+    name = raw.get("class")
+    if not isinstance(name, str):
+        raise SpecError(f"{path}: plugin.class: expected \"module:Class\", a subclass of the {family} controller, "
+                        f"got {name!r}")
+    from wbc_jax.rollout.controllers import controller_class  # JAX, imported only for a spec with a plug-in
+    from wbc_jax.rollout.controllers import plugin as plugins
+
+    try:
+        cls = controller_class(family, name)
+        own = plugins.settable_fields(cls)
+    except ValueError as e:
+        raise SpecError(f"{path}: plugin.class: {e}") from None
+    for key in raw:
+        if key != "class" and key not in own:
+            raise SpecError(f"{path}: plugin.{key}: not a field of {name}; expected one of "
+                            f"{', '.join(own) or '(it has none)'}")
+    values = {key: _value(path, key, raw.get(key, default), default) for key, default in own.items()}
+    try:  # the class's own checks of its fields (a ValueError from __post_init__), before anything is built
+        cls(None, **values)
+    except ValueError as e:
+        raise SpecError(f"{path}: plugin: {e}") from None
+    except Exception:  # noqa: BLE001  (a check that needs the settings runs when the Sim is made)
+        pass
+    return {"class": name, **values}, plugins.source_sha256(cls)
+
+
+def _value(path, key: str, v, default):
+    """``v`` checked to be of the type of ``default`` (an int is taken for a float field); SpecError otherwise."""
+    typ = type(default)
+    ok = (isinstance(v, bool) if typ is bool else isinstance(v, str) if typ is str
+          else isinstance(v, int) and not isinstance(v, bool) if typ is int
+          else isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v))
+    if not ok:
+        raise SpecError(f"{path}: plugin.{key}: expected a{'n' if typ is int else ''} {typ.__name__} like its "
+                        f"default {default!r}, got {v!r}")
+    return typ(v)
+
+
+def plugin_of(spec) -> tuple:
+    """A spec's plug-in as :func:`wbc_jax.rollout.make_sim` takes it: ``()``, or (``"module:Class"``, ((field,
+    value), ...) in name order)."""
+    p = spec.plugin
+    return (p["class"], tuple(sorted((k, v) for k, v in p.items() if k != "class"))) if p else ()
