@@ -2,7 +2,7 @@
 
 from dataclasses import dataclass
 
-from wbc_jax.rollout.controllers import TransportController
+from wbc_jax.rollout.controllers import CentroidalController, TransportController
 
 
 @dataclass(frozen=True, eq=False)
@@ -20,3 +20,8 @@ class NoDefault(TransportController):
     """A field without a default: refused."""
 
     gain: float = None  # a default of a type a spec cannot set
+
+
+@dataclass(frozen=True, eq=False)
+class SameTrot(CentroidalController):
+    """The centroidal controller unchanged, from outside the package."""

@@ -2,7 +2,6 @@
 changes nothing against the built-in bit for bit, and examples/torque_lag.py against its equation."""
 
 import shutil
-import sys
 
 import numpy as np
 import pandas as pd
@@ -57,15 +56,19 @@ def test_plugin_fields_defaults_and_hash(tmp_path, monkeypatch):
     plain = _spec(None)
     assert plain.plugin == {} and "plugin" not in plain.canonical() and "plugin_sha256" not in plain.hashed()
     assert s.hash != _spec({"class": LAG, "time_constant": 0.05}).hash != plain.hash
-    # the plug-in's source is in the hash: an edited module file gives another hash
+    # the plug-in's source is in the hash, and an edited module file is imported again (the code that runs is the
+    # code hashed, also in one Python session)
     mod = tmp_path / "lag_copy.py"
     shutil.copy("examples/torque_lag.py", mod)
     monkeypatch.syspath_prepend(str(tmp_path))
     before = _spec({"class": "lag_copy:TorqueLag"})
-    mod.write_text(mod.read_text() + "\n# edited\n")
-    del sys.modules["lag_copy"]
+    text = mod.read_text()
+    mod.write_text(text.replace("time_constant: float = 0.02", "time_constant: float = 0.03"))
     after = _spec({"class": "lag_copy:TorqueLag"})
-    assert before.plugin == after.plugin and before.plugin_sha256 != after.plugin_sha256 and before.hash != after.hash
+    assert before.plugin["time_constant"] == 0.02 and after.plugin["time_constant"] == 0.03
+    assert before.plugin_sha256 != after.plugin_sha256 and before.hash != after.hash
+    mod.write_text(text)
+    assert _spec({"class": "lag_copy:TorqueLag"}).hash == before.hash
 
 
 def test_bad_plugin_cli_is_one_line_exit_2_nothing_written(tiny_spec, tmp_path, capsys):
@@ -106,6 +109,37 @@ def test_unchanged_plugin_equals_the_builtin_bit_for_bit(full_run, tiny_spec, tm
     assert manifest["spec"]["plugin"] == {"class": "tests.plugins:Same"} and len(manifest["plugin_sha256"]) == 64
     sims = [s for s in build._SIMS.values() if type(s.controller).__name__ == "Same"]
     assert sims and not sims[0].exportable  # its programs are not kept as exported programs (sources not in the key)
+
+
+def test_resume_refuses_an_edited_plugin(full_run, tiny_spec, tmp_path, monkeypatch):
+    from wbc_jax.campaign import runner
+    from wbc_jax.campaign.runner import run_campaign
+    from wbc_jax.errors import CheckpointError
+
+    mod = tmp_path / "same_copy.py"
+    shutil.copy("tests/plugins.py", mod)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    spec = tmp_path / "spec.toml"
+    spec.write_text(tiny_spec.read_text() + '\n[plugin]\nclass = "same_copy:Same"\n')
+    out = tmp_path / "out"
+    after_chunk = runner.after_chunk
+
+    def cut(done, n_chunks):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(runner, "after_chunk", cut)
+    with pytest.raises(KeyboardInterrupt):
+        run_campaign(str(spec), str(out), report=False, progress=False)
+    monkeypatch.setattr(runner, "after_chunk", after_chunk)
+    text = mod.read_text()
+    mod.write_text(text + "\n# edited\n")
+    with pytest.raises(CheckpointError, match="belongs to another run .spec_hash differ"):
+        run_campaign(str(spec), str(out), resume=True, report=False, progress=False)
+    mod.write_text(text)
+    man = run_campaign(str(spec), str(out), resume=True, report=False, progress=False)
+    assert man["resumed"]
+    pd.testing.assert_frame_equal(pd.read_csv(out / "results.csv"), pd.read_csv(full_run[0] / "results.csv"),
+                                  check_exact=True)
 
 
 def test_lag_plugin_drives_the_motors(full_run, tiny_spec, tmp_path):

@@ -95,3 +95,13 @@ def test_spec_keeps_each_controllers_factors_and_keys():
         parse_spec({"factors": {"mass_error": [-0.1, 0.1]}})
     with pytest.raises(SpecError, match="campaign.step_time"):
         parse_spec({"campaign": {"step_time": 0.3}, "factors": {"m": [0.2, 0.3]}})
+
+
+def test_unchanged_centroidal_plugin_equals_the_builtin_bit_for_bit(jax_run, tmp_path):
+    spec = tmp_path / "spec.toml"
+    spec.write_text(SPEC.read_text() + '\n[plugin]\nclass = "tests.plugins:SameTrot"\n')
+    out = tmp_path / "run"
+    manifest = run_campaign(str(spec), str(out), progress=False, backend="jax", report=False)
+    pd.testing.assert_frame_equal(pd.read_csv(out / "results.csv"), pd.read_csv(jax_run[0] / "results.csv"),
+                                  check_exact=True)
+    assert manifest["spec"]["plugin"] == {"class": "tests.plugins:SameTrot"}

@@ -145,7 +145,7 @@ def _sim(scene: str, iters: int, sensor_noise: bool = False, substeps: int = 1, 
         cfg = (TransportConfig(dt=dt, qp=control_qp_settings(iters)._replace(**dict(qp))) if controller == "transport"
                else CentroidalConfig(qp=centroidal_qp_settings(iters)._replace(**dict(qp)), dt=dt))
         _SIMS[key] = make_sim(robot, cfg, n_substeps=substeps, log_every=LOG_EVERY, sensor_noise=sensor_noise,
-                              sensing=sensing, controller=controller, plugin=plugin)
+                              sensing=sensing, controller=controller, plugin=plugin[:2])
     return _SIMS[key]
 
 

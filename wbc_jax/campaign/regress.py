@@ -232,7 +232,8 @@ def run_regress(baseline_dir: str, update: bool = False, gains=None, out: str | 
     if update:
         _check_writable(base_p)
     elif baseline["spec_hash"] != spec.hash:
-        raise WbcJaxError(f"{spec_p}: spec changed since the baseline was stored; rerun with --update")
+        raise WbcJaxError(f"{spec_p}: spec{' or its plug-in' if spec.plugin else ''} changed since the baseline was "
+                          "stored; rerun with --update")
     else:
         check_coverage(baseline, spec, base_p)
     with tempfile.TemporaryDirectory() as td:

@@ -98,7 +98,8 @@ def _value(path, key: str, v, default):
 
 
 def plugin_of(spec) -> tuple:
-    """A spec's plug-in as :func:`wbc_jax.rollout.make_sim` takes it: ``()``, or (``"module:Class"``, ((field,
-    value), ...) in name order)."""
+    """A spec's plug-in: ``()``, or (``"module:Class"``, ((field, value), ...) in name order, its module file's
+    sha256); the first two as :func:`wbc_jax.rollout.make_sim` takes them, the sha256 for cache keys."""
     p = spec.plugin
-    return (p["class"], tuple(sorted((k, v) for k, v in p.items() if k != "class"))) if p else ()
+    fields = tuple(sorted((k, v) for k, v in p.items() if k != "class"))
+    return (p["class"], fields, spec.plugin_sha256) if p else ()

@@ -31,6 +31,7 @@ import sys
 from wbc_jax.runtime.static import ByValue
 
 FIELD_TYPES = (bool, int, float, str)
+_SEEN: dict = {}  # module name -> its file's sha256 when last imported by load()
 
 
 def load(path: str, family: type) -> type:
@@ -43,7 +44,7 @@ def load(path: str, family: type) -> type:
     if os.getcwd() not in sys.path and "" not in sys.path:
         sys.path.insert(0, os.getcwd())
     try:
-        obj = importlib.import_module(module_name)
+        obj = _import(module_name)
     except ImportError as e:
         raise ValueError(f"{path!r}: cannot import module {module_name!r} ({e}); run from the folder that holds it "
                          "or put it on PYTHONPATH") from None
@@ -58,6 +59,25 @@ def load(path: str, family: type) -> type:
     if not dataclasses.is_dataclass(obj) or obj.__eq__ is not ByValue.__eq__ or obj.__hash__ is not ByValue.__hash__:
         raise ValueError(f"{path!r}: declare it @dataclass(frozen=True, eq=False) (compared by value)")
     return obj
+
+
+def _import(name: str):
+    """Module ``name``, imported again where its file changed since this function last imported it (so the code
+    that runs is the code :func:`source_sha256` hashes, also in a long-lived Python session)."""
+    module = importlib.import_module(name)
+    file = getattr(module, "__file__", None)
+    if file is None:
+        return module
+    digest = _file_sha256(file)
+    if _SEEN.get(name, digest) != digest:
+        module = importlib.reload(module)
+    _SEEN[name] = digest
+    return module
+
+
+def _file_sha256(path: str) -> str:
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
 
 
 def settable_fields(cls: type) -> dict:
@@ -76,8 +96,7 @@ def settable_fields(cls: type) -> dict:
 
 def source_sha256(cls: type) -> str:
     """sha256 of the file that defines ``cls`` (what it imports beyond it is not covered)."""
-    with open(inspect.getsourcefile(cls), "rb") as f:
-        return hashlib.sha256(f.read()).hexdigest()
+    return _file_sha256(inspect.getsourcefile(cls))
 
 
 def built_in(controller) -> bool:
