@@ -68,9 +68,9 @@ def test_other_run_is_untouched(pair):
         np.testing.assert_array_equal(unpushed[k].to_numpy(), ref[k].to_numpy(), err_msg=k)
 
 
-def test_frozen_run_keeps_its_controller_state_but_the_qp_factors():
-    """Controller.freeze: a frozen run keeps its controller state leaf for leaf (the base rule); the transport's
-    carried QP factors (QPSettings.reuse_factors) follow the new step's, which no kept value depends on."""
+def test_frozen_run_keeps_its_controller_state_but_the_qp_warm_start():
+    """Controller.freeze: a frozen run keeps its controller state leaf for leaf (the base rule); the transport's QP
+    warm start (solution, multipliers, carried factors) follows the new step's, which no kept value depends on."""
     import jax.numpy as jnp
 
     from wbc_jax.control.transport import ControlState, TransportConfig, control_qp_settings, initial_factors
@@ -89,5 +89,24 @@ def test_frozen_run_keeps_its_controller_state_but_the_qp_factors():
     old, new = state(1.0), state(2.0)
     ctl = TransportController(cfg)
     frozen, live = ctl.freeze(jnp.asarray(True), new, old), ctl.freeze(jnp.asarray(False), new, old)
-    assert float(frozen.warm.x[0]) == 1.0 and float(frozen.obs[0]) == 1.0 and float(frozen.warm.factors.c) == 2.0
+    assert float(frozen.warm.x[0]) == 2.0 and float(frozen.obs[0]) == 1.0 and float(frozen.warm.factors.c) == 2.0
+    assert float(frozen.q_post[0]) == 1.0 and float(frozen.warm.rho[0]) == 2.0
     assert float(live.warm.x[0]) == 2.0 and float(live.obs[0]) == 2.0 and float(live.warm.factors.c) == 2.0
+
+
+def test_frozen_centroidal_run_keeps_its_state_but_the_qp_warm_start():
+    import jax.numpy as jnp
+
+    from wbc_jax.control.centroidal import CentroidalConfig, CentroidalState
+    from wbc_jax.qp import QPResult
+    from wbc_jax.rollout.controllers.centroidal import CentroidalController
+
+    def state(v):
+        return CentroidalState(warm=QPResult(*(jnp.full((3,), v) for _ in range(8))),
+                               sw_int=jnp.full((4, 3), v), q_post=jnp.full((6,), v))
+
+    old, new = state(1.0), state(2.0)
+    ctl = CentroidalController(CentroidalConfig())
+    frozen, live = ctl.freeze(jnp.asarray(True), new, old), ctl.freeze(jnp.asarray(False), new, old)
+    assert float(frozen.warm.x[0]) == 2.0 and float(frozen.sw_int[0, 0]) == 1.0 and float(frozen.q_post[0]) == 1.0
+    assert float(live.warm.y[0]) == 2.0 and float(live.sw_int[0, 0]) == 2.0 and float(live.q_post[0]) == 2.0

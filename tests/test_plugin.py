@@ -2,6 +2,7 @@
 changes nothing against the built-in bit for bit, and examples/torque_lag.py against its equation."""
 
 import shutil
+import sys
 
 import numpy as np
 import pandas as pd
@@ -42,6 +43,20 @@ def test_bad_plugin_names_the_key(plugin, key, expect):
         _spec(plugin)
     msg = str(e.value)
     assert msg.startswith(f"p.toml: {key}: ") and expect in msg and "\n" not in msg, msg
+
+
+def test_plugin_without_a_source_file_is_refused(monkeypatch):
+    import dataclasses
+    import types
+
+    from wbc_jax.rollout.controllers import TransportController
+
+    mod = types.ModuleType("plugin_without_file")  # as a class defined in an interactive session
+    mod.Mine = dataclasses.dataclass(frozen=True, eq=False)(
+        type("Mine", (TransportController,), {"__module__": mod.__name__}))
+    monkeypatch.setitem(sys.modules, mod.__name__, mod)
+    with pytest.raises(SpecError, match="p.toml: plugin.class: plugin_without_file:Mine: no source file to hash"):
+        _spec({"class": "plugin_without_file:Mine"})
 
 
 def test_plugin_must_subclass_the_spec_controller():

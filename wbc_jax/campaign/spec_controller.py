@@ -69,6 +69,7 @@ def parse_plugin(path, raw, family: str) -> tuple[dict, str]:
     try:
         cls = controller_class(family, name)
         own = plugins.settable_fields(cls)
+        digest = plugins.source_sha256(cls)
     except ValueError as e:
         raise SpecError(f"{path}: plugin.class: {e}") from None
     for key in raw:
@@ -82,7 +83,7 @@ def parse_plugin(path, raw, family: str) -> tuple[dict, str]:
         raise SpecError(f"{path}: plugin: {e}") from None
     except Exception:  # noqa: BLE001  (a check that needs the settings runs when the Sim is made)
         pass
-    return {"class": name, **values}, plugins.source_sha256(cls)
+    return {"class": name, **values}, digest
 
 
 def _value(path, key: str, v, default):

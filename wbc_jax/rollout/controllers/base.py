@@ -14,6 +14,16 @@ def keep_where(frozen, new, old):
     return jax.tree_util.tree_map(lambda a, b: jnp.where(frozen, b, a), new, old)
 
 
+def keep_but_warm_start(frozen, new, old):
+    """:func:`keep_where` of two controller states (NamedTuples with a ``warm`` field, the QP's warm start) but the
+    warm start following ``new``: it only starts the next solve, whose result a frozen run discards. A frozen run
+    poses the same QP every step (its state is held), so from its last solution the next solve passes its first
+    convergence check instead of repeating the iterations of the step it failed at (a batch's solve lasts as long
+    as its longest)."""
+    kept = keep_where(frozen, new._replace(warm=None), old._replace(warm=None))
+    return kept._replace(warm=new.warm)
+
+
 class Record(NamedTuple):
     """What :meth:`Controller.record` returns for one control step of one run."""
 

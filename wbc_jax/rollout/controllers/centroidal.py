@@ -33,7 +33,7 @@ from wbc_jax.metrics.accumulate import ControlSample
 from wbc_jax.planner.capture_point import CPWalkPlan, cp_walk_plan, cp_walk_reference
 from wbc_jax.planner.gait import GaitParams
 from wbc_jax.rollout.controllers import trot_metrics
-from wbc_jax.rollout.controllers.base import Controller, Record, object_in_tray
+from wbc_jax.rollout.controllers.base import Controller, Record, keep_but_warm_start, object_in_tray
 from wbc_jax.rollout.controllers.trot_metrics import TrotLog, trunk_rpy
 from wbc_jax.runtime.static import ByValue
 
@@ -123,6 +123,10 @@ class CentroidalController(Controller, ByValue):
 
     def init_metrics(self, robot, d, dyn):
         return trot_metrics.init_metrics(dyn, robot.mj_model.nu)
+
+    def freeze(self, frozen, new, old):
+        """The base rule, but the QP's warm start follows ``new`` (:func:`keep_but_warm_start`)."""
+        return keep_but_warm_start(frozen, new, old)
 
     def make_plan(self, robot, course: bool, qpos0, kw: dict) -> TrotPlan:
         """:func:`walk_plan` from ``kw``: speed [m/s], step_time [s], four_foot [s], n_steps, t_start [s] (the

@@ -66,7 +66,7 @@ def _import(name: str):
     that runs is the code :func:`source_sha256` hashes, also in a long-lived Python session)."""
     module = importlib.import_module(name)
     file = getattr(module, "__file__", None)
-    if file is None:
+    if file is None or not os.path.isfile(file):  # no file (an interactive session): source_sha256 refuses it
         return module
     digest = _file_sha256(file)
     if _SEEN.get(name, digest) != digest:
@@ -95,8 +95,14 @@ def settable_fields(cls: type) -> dict:
 
 
 def source_sha256(cls: type) -> str:
-    """sha256 of the file that defines ``cls`` (what it imports beyond it is not covered)."""
-    return _file_sha256(inspect.getsourcefile(cls))
+    """sha256 of the file that defines ``cls`` (what it imports beyond it is not covered). Raises ValueError where
+    it has none (a class defined in an interactive session or a notebook)."""
+    try:
+        path = inspect.getsourcefile(cls)
+        return _file_sha256(path)
+    except (TypeError, OSError):
+        raise ValueError(f"{cls.__module__}:{cls.__qualname__}: no source file to hash; define it in a module "
+                         "file") from None
 
 
 def built_in(controller) -> bool:

@@ -14,7 +14,7 @@ from wbc_jax.metrics import paper
 from wbc_jax.metrics.accumulate import ControlSample
 from wbc_jax.planner.spline import pad_path
 from wbc_jax.planner.transport import course_plan, plan_duration, reference, straight_plan
-from wbc_jax.rollout.controllers.base import Controller, Record, object_in_tray
+from wbc_jax.rollout.controllers.base import Controller, Record, keep_but_warm_start, object_in_tray
 from wbc_jax.runtime import aot
 from wbc_jax.runtime.static import ByValue
 
@@ -59,12 +59,9 @@ class TransportController(Controller, ByValue):
         return init_control_state(self.cfg, dyn, robot.ids)
 
     def freeze(self, frozen, new, old):
-        """The base rule, but the QP's carried factors (``QPSettings.reuse_factors``) follow ``new``: they only
-        precondition the next solve, whose result a frozen run discards."""
-        factors = new.warm.factors
-        bare = lambda cs: cs._replace(warm=cs.warm._replace(factors=None))  # noqa: E731
-        kept = super().freeze(frozen, bare(new), bare(old))
-        return kept._replace(warm=kept.warm._replace(factors=factors))
+        """The base rule, but the QP's warm start (solution, multipliers, rho, carried factors) follows ``new``
+        (:func:`wbc_jax.rollout.controllers.base.keep_but_warm_start`)."""
+        return keep_but_warm_start(frozen, new, old)
 
     def variant(self, cs):
         """The ablation switches (:class:`wbc_jax.control.variants.Variant`) of the controller state ``cs``."""
