@@ -6,18 +6,16 @@ T dtau/dt = u - tau, discretized by backward Euler at the control period dt:
     tau_k = tau_{k-1} + a (u_k - tau_{k-1}),   a = dt / (T + dt),
 
 starting at the first step's QP torque (tau_0 = u_0). A convex combination of torques within the QP's limits
-stays within them. With T = 0, a = 1. It asks how much actuator bandwidth the paper's controller needs to
-carry the cube without sliding.
+stays within them; with T = 0 the motors receive the QP's torques. It asks how much actuator bandwidth the paper's
+controller needs to carry the cube without sliding.
 
-Run it (from the repository root, so that ``examples.torque_lag`` imports) on the quick spec's cells and
-compare it with the paper's controller cell by cell::
+A spec's ``[plugin]`` table names the class and sets ``time_constant``; a ``plugin.time_constant`` factor varies it
+per run in one batch (the state carries it: :meth:`TorqueLag.with_params`). Run from the repository root, so that
+``examples.torque_lag`` imports::
 
     wbc-jax campaign --spec sweeps/torque_lag.toml --out out/lag
-    wbc-jax campaign --spec sweeps/quick.toml --out out/quick
-    wbc-jax regress --compare out/quick out/lag
 
-A spec's ``[plugin]`` table names the class and sets its fields (``time_constant`` here); the rules a plug-in
-follows: :mod:`wbc_jax.rollout.controllers.plugin`.
+The rules a plug-in follows: :mod:`wbc_jax.rollout.controllers.plugin`.
 """
 
 from __future__ import annotations
@@ -30,20 +28,23 @@ import jax.numpy as jnp
 
 from wbc_jax.rollout.controllers import TransportController
 from wbc_jax.rollout.controllers.base import keep_where
+from wbc_jax.rollout.packed import broadcast_like
 
 
 class LagState(NamedTuple):
-    """The transport controller's state and the lag's memory."""
+    """The transport controller's state, the lag's memory and its time constant (per run)."""
 
     inner: Any  # wbc_jax.control.transport.ControlState
     tau: jax.Array  # (nu,) [N m] the torque the motors received at the last step
     started: jax.Array  # () bool: a step has run (tau holds a torque)
+    time_constant: jax.Array  # () [s] T of this run
 
 
-def lag(tau_prev, u, started, dt: float, time_constant: float):
-    """(nu,) [N m] the lagged torque: ``u`` on the first step, else tau_prev + dt / (T + dt) (u - tau_prev)."""
+def lag(tau_prev, u, started, dt: float, time_constant):
+    """(nu,) [N m] the lagged torque: ``u`` on the first step or with T = 0, else tau_prev + dt / (T + dt)
+    (u - tau_prev)."""
     a = dt / (time_constant + dt)
-    return jnp.where(started, tau_prev + a * (u - tau_prev), u)
+    return jnp.where(started & (time_constant > 0), tau_prev + a * (u - tau_prev), u)
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,18 +58,22 @@ class TorqueLag(TransportController):
             raise ValueError(f"TorqueLag.time_constant = {self.time_constant}: expected >= 0 [s]")
 
     def init_state(self, robot, d, dyn):
-        nu = robot.mj_model.nu
-        return LagState(super().init_state(robot, d, dyn), jnp.zeros(nu, d.qpos.dtype), jnp.zeros((), bool))
+        dtype = d.qpos.dtype
+        return LagState(super().init_state(robot, d, dyn), jnp.zeros(robot.mj_model.nu, dtype), jnp.zeros((), bool),
+                        jnp.asarray(self.time_constant, dtype))
+
+    def with_params(self, cs, params):
+        """``cs`` with each run's time constant (``params["time_constant"]``: (B,) [s])."""
+        return cs._replace(time_constant=broadcast_like(cs.time_constant, params["time_constant"]))
 
     def control(self, obs, ref, obj_model, gains, state, ids, mu):
         u, inner, diag = super().control(obs, ref, obj_model, gains, state.inner, ids, mu)
-        tau = lag(state.tau, u, state.started, self.cfg.dt, self.time_constant)
-        return tau, LagState(inner, tau, jnp.ones((), bool)), diag
+        tau = lag(state.tau, u, state.started, self.cfg.dt, state.time_constant)
+        return tau, state._replace(inner=inner, tau=tau, started=jnp.ones((), bool)), diag
 
     def freeze(self, frozen, new, old):
         inner = super().freeze(frozen, new.inner, old.inner)
-        tau, started = keep_where(frozen, (new.tau, new.started), (old.tau, old.started))
-        return LagState(inner, tau, started)
+        return keep_where(frozen, new._replace(inner=None), old._replace(inner=None))._replace(inner=inner)
 
     def variant(self, cs):
         return super().variant(cs.inner)

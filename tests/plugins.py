@@ -25,3 +25,10 @@ class NoDefault(TransportController):
 @dataclass(frozen=True, eq=False)
 class SameTrot(CentroidalController):
     """The centroidal controller unchanged, from outside the package."""
+
+
+@dataclass(frozen=True, eq=False)
+class NoParams(TransportController):
+    """A float field, but no with_params: a spec cannot vary it."""
+
+    gain: float = 1.0

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from wbc_jax import cli
-from wbc_jax.campaign.spec import parse_spec
+from wbc_jax.campaign.spec import load_spec, parse_spec
 from wbc_jax.errors import SpecError
 
 TINY = dict(m=[0.2, 0.4], mu=[0.4, 1.0], d=[0.06, 0.10])
@@ -57,6 +57,41 @@ def test_plugin_without_a_source_file_is_refused(monkeypatch):
     monkeypatch.setitem(sys.modules, mod.__name__, mod)
     with pytest.raises(SpecError, match="p.toml: plugin.class: plugin_without_file:Mine: no source file to hash"):
         _spec({"class": "plugin_without_file:Mine"})
+
+
+@pytest.mark.parametrize("plugin, levels, key, expect", [
+    (None, [0.0, 0.01], "factors.plugin.time_constant", "add a [plugin] table"),
+    ({"class": LAG}, [0.0, -0.01], "factors.plugin.time_constant", "TorqueLag.time_constant = -0.01: expected >= 0"),
+    ({"class": LAG, "time_constant": 0.01}, [0.0, 0.02], "plugin.time_constant", "the factor plugin.time_constant "
+                                                                                  "is varied; leave it out"),
+    ({"class": "tests.plugins:NoParams"}, [1.0, 2.0], "factors.plugin.gain", "does not implement with_params"),
+])
+def test_bad_plugin_factor_names_the_key(plugin, levels, key, expect):
+    field = "gain" if plugin and "NoParams" in plugin["class"] else "time_constant"
+    data = dict(campaign=dict(reps=1), factors={**TINY, f"plugin.{field}": levels})
+    if plugin is not None:
+        data["plugin"] = plugin
+    with pytest.raises(SpecError) as e:
+        parse_spec(data, "p.toml")
+    assert str(e.value).startswith(f"p.toml: {key}: ") and expect in str(e.value), str(e.value)
+
+
+def test_unquoted_dotted_factor_is_named(tmp_path):
+    p = tmp_path / "dotted.toml"
+    p.write_text(f'[factors]\nm = [0.2, 0.4]\nplugin.time_constant = [0.0, 0.01]\n[plugin]\nclass = "{LAG}"\n')
+    with pytest.raises(SpecError, match='factors.plugin.time_constant: a dotted factor name: quote it '
+                                        '\\("plugin.time_constant" = '):
+        load_spec(p)
+
+
+def test_plugin_factor_of_an_unknown_field():
+    data = dict(campaign=dict(reps=1), factors={**TINY, "plugin.tau": [0.0, 1.0]}, plugin={"class": LAG})
+    with pytest.raises(SpecError, match="factors.plugin.tau: not a float or bool field of .*TorqueLag; expected one "
+                                        "of plugin.time_constant"):
+        parse_spec(data, "p.toml")
+    ok = parse_spec(dict(data, factors={**TINY, "plugin.time_constant": [0, 0.02]}), "p.toml")
+    assert list(ok.factors) == ["m", "mu", "d", "plugin.time_constant"]
+    assert ok.factors["plugin.time_constant"] == [0.0, 0.02]
 
 
 def test_plugin_must_subclass_the_spec_controller():
@@ -155,6 +190,38 @@ def test_resume_refuses_an_edited_plugin(full_run, tiny_spec, tmp_path, monkeypa
     assert man["resumed"]
     pd.testing.assert_frame_equal(pd.read_csv(out / "results.csv"), pd.read_csv(full_run[0] / "results.csv"),
                                   check_exact=True)
+
+
+ZERO = "[perturbations]\nobject_xy_mm = 0.0\nobject_yaw_deg = 0.0\nbase_speed_std = 0.0\npush_max_N = 0.0\n" \
+       "qvel_noise_std = 0.0\n"
+
+
+def test_plugin_field_as_a_factor_equals_campaigns_of_one_value(tiny_spec, tmp_path):
+    """``plugin.time_constant`` varied per run in one batch: each run's row equals, bit for bit, the same run of a
+    campaign with that value in [plugin] (no perturbations, so a cell's repetitions equal its run; the same batch
+    size: the varied campaign's 2 levels against 2 repetitions)."""
+    from wbc_jax.campaign.runner import run_campaign
+
+    head = tiny_spec.read_text().split("[perturbations]")[0]
+
+    def run(name: str, text: str) -> pd.DataFrame:
+        p = tmp_path / f"{name}.toml"
+        p.write_text(text + ZERO)
+        run_campaign(str(p), str(tmp_path / name), report=False, progress=False)
+        return pd.read_csv(tmp_path / name / "results.csv")
+
+    varied = run("varied", head.replace("[factors]", '[factors]\n"plugin.time_constant" = [0.0, 0.05]')
+                 + f'[plugin]\nclass = "{LAG}"\n')
+    assert list(varied["plugin.time_constant"]) == [0.0, 0.05] * 8
+    metrics = ["m", "mu", "d", "success", "R", "T", "S", "max_slip_mm"]
+    outs = {}
+    for tc in (0.0, 0.05):
+        outs[tc] = run(f"static{tc}", head.replace("reps = 1", "reps = 2")
+                       + f'[plugin]\nclass = "{LAG}"\ntime_constant = {tc}\n')
+        rows = (varied["plugin.time_constant"] == tc).to_numpy()
+        pd.testing.assert_frame_equal(varied.loc[rows, metrics].reset_index(drop=True),
+                                      outs[tc].loc[rows, metrics].reset_index(drop=True), check_exact=True)
+    assert np.all(outs[0.0]["T"].to_numpy() != outs[0.05]["T"].to_numpy())  # the field reaches the motors
 
 
 def test_lag_plugin_drives_the_motors(full_run, tiny_spec, tmp_path):

@@ -253,7 +253,7 @@ def build_ahead(spec: Spec, gains=None) -> tuple[Built, Callable[[], Built]]:
 
 def _build(spec: Spec, gains, states: bool) -> tuple[Built, Callable[[], Built] | None]:
     from wbc_jax.control.variants import Variant
-    from wbc_jax.rollout import make_push, with_metric_window, with_variant
+    from wbc_jax.rollout import make_push, with_metric_window, with_plugin_params, with_variant
     from wbc_jax.rollout.batch import initial_states, prepare_batch
 
     c = spec.campaign
@@ -281,7 +281,7 @@ def _build(spec: Spec, gains, states: bool) -> tuple[Built, Callable[[], Built] 
         t_end = np.minimum(t_end, c["max_seconds"])
 
     def finish(state):
-        state = with_metric_window(state, t_end)
+        state = with_plugin_params(with_metric_window(state, t_end), dz.plugin_params, sim.controller)
         return with_variant(state, Variant(*dz.variant.T), sim.controller) if transport else state
 
     b = b._replace(push=push, state=finish(b.state))  # shapes stay shapes (Packed._replace, placed_like)

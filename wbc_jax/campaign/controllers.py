@@ -54,7 +54,9 @@ CENTROIDAL_ONLY = ("mass_error",)  # factors of the centroidal controller alone
 
 
 def may_vary(name: str, factor: str) -> bool:
-    """Controller ``name`` accepts the factor ``factor``."""
+    """Controller ``name`` accepts the factor ``factor`` (a plug-in's ``plugin.<field>`` whichever its family)."""
+    if factor.startswith("plugin."):
+        return True
     allowed = CONTROLLERS[name].factors
     return factor not in CENTROIDAL_ONLY if allowed is None else factor in allowed
 

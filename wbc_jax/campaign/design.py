@@ -31,7 +31,8 @@ class Design:
     scene's), speed [m/s] (cruise speed of the run's plan); variant (B, 3) the controller's ablation switches
     (tray_cone, observer, posture; :mod:`wbc_jax.control.variants`); mass_error: the centroidal controller's
     model mass error (fraction); gain_scale: leaf -> (B,) multiplier of that
-    ``TransportGains`` leaf (the ``gain.*`` factors); levels: factor name -> (B,) the run's level of each
+    ``TransportGains`` leaf (the ``gain.*`` factors); plugin_params: field -> (B,) the run's value of that field
+    of the ``[plugin]`` class (the ``plugin.*`` factors); levels: factor name -> (B,) the run's level of each
     varied factor (the results table's factor columns).
     """
 
@@ -53,6 +54,7 @@ class Design:
     variant: np.ndarray
     mass_error: np.ndarray
     gain_scale: dict
+    plugin_params: dict
     levels: dict
 
     @property
@@ -106,4 +108,6 @@ def design(spec) -> Design:
         speed=value("speed", c["speed"]), variant=switches, mass_error=value("mass_error", c["mass_error"]),
         gain_scale={k[len(factors_mod.GAIN_PREFIX):]: v for k, v in levels.items()
                     if k.startswith(factors_mod.GAIN_PREFIX)},
+        plugin_params={k[len(factors_mod.PLUGIN_PREFIX):]: v for k, v in levels.items()
+                       if k.startswith(factors_mod.PLUGIN_PREFIX)},
         levels=levels)

@@ -15,18 +15,22 @@ Kinds of level:
 
 ``gain.<leaf>`` (any leaf of :class:`wbc_jax.control.transport.TransportGains`, e.g. ``gain.kp_obj``) is a
 ``number`` factor: a multiplier of that leaf of the campaign's gains (the defaults or ``--gains``), 0..100.
+``plugin.<field>`` (a float or bool field of the spec's ``[plugin]`` class, :mod:`wbc_jax.campaign.spec_controller`)
+is a ``number`` (any finite value) or ``bool`` factor: the field's value per run, set in the controller's state.
 
 Plain Python (no JAX): the spec validator reads it.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from wbc_jax.control.variants import VARIANTS
 
 MAX_FACTORS = 5
 GAIN_PREFIX = "gain."
+PLUGIN_PREFIX = "plugin."
 # TransportGains._fields (wbc_jax.control.transport), listed here so that loading a spec needs no JAX;
 # tests/test_factors.py checks that they agree
 GAIN_LEAVES = ("kp_com", "kd_com", "kp_rot", "kd_rot", "kp_obj", "kd_obj", "kp_obj_rot", "kd_obj_rot", "kp_sw",
@@ -67,19 +71,36 @@ REGISTRY = {
 GAIN = FactorDef("number", "1 (the campaign's gains)", 0.0, 100.0, False, "[x the leaf's value]")
 
 
-def factor_def(name: str) -> FactorDef | None:
-    """The definition of factor ``name`` (``gain.<leaf>`` included); None for an unknown name."""
+def plugin_factor(default) -> FactorDef | None:
+    """The factor of a plug-in field whose default is ``default``: bool or number (a float field); None for
+    another type."""
+    fixed = "plugin.<field> (the [plugin] table's value or the class's default)"
+    if isinstance(default, bool):
+        return FactorDef("bool", fixed)
+    if isinstance(default, float):
+        return FactorDef("number", fixed, -math.inf, math.inf, False, "[the field's unit]")
+    return None
+
+
+def factor_def(name: str, plugin_fields: dict | None = None) -> FactorDef | None:
+    """The definition of factor ``name`` (``gain.<leaf>`` and, with the spec's plug-in fields ``plugin_fields``
+    (name -> default), ``plugin.<field>`` included); None for an unknown name."""
     if name.startswith(GAIN_PREFIX):
         return GAIN if name[len(GAIN_PREFIX):] in GAIN_LEAVES else None
+    if name.startswith(PLUGIN_PREFIX):
+        field = name[len(PLUGIN_PREFIX):]
+        return plugin_factor(plugin_fields[field]) if plugin_fields and field in plugin_fields else None
     return REGISTRY.get(name)
 
 
 def known_names() -> str:
     """The accepted names, for error messages."""
-    return ", ".join(REGISTRY) + f", {GAIN_PREFIX}<leaf> (leaf: {', '.join(GAIN_LEAVES)})"
+    return (", ".join(REGISTRY) + f", {GAIN_PREFIX}<leaf> (leaf: {', '.join(GAIN_LEAVES)}), {PLUGIN_PREFIX}<field> "
+            "(a float or bool field of the [plugin] class)")
 
 
-def design_order(names) -> list[str]:
-    """``names`` (known factors) in design order: the registry's, then ``gain.*`` in ``GAIN_LEAVES`` order."""
-    order = [*REGISTRY, *(GAIN_PREFIX + leaf for leaf in GAIN_LEAVES)]
+def design_order(names, plugin_fields=()) -> list[str]:
+    """``names`` (known factors) in design order: the registry's, then ``gain.*`` in ``GAIN_LEAVES`` order, then
+    ``plugin.*`` in the order of ``plugin_fields`` (the class's fields)."""
+    order = [*REGISTRY, *(GAIN_PREFIX + leaf for leaf in GAIN_LEAVES), *(PLUGIN_PREFIX + f for f in plugin_fields)]
     return sorted(names, key=order.index)

@@ -302,22 +302,25 @@ def _level(path, key, x, fd: factors_mod.FactorDef):
     return checked_number(path, key, x, float, fd.lo, fd.hi, fd.lo_open, fd.unit)
 
 
-def _parse_factors(path, raw_f) -> dict:
-    """The [factors] table: 1..MAX_FACTORS known factors, each a list of >= 2 distinct valid levels; returned
-    in design order (:func:`wbc_jax.campaign.factors.design_order`)."""
+def _parse_factors(path, raw_f, plugin_fields: dict) -> dict:
+    """The [factors] table: 1..MAX_FACTORS known factors (``plugin_fields``: the plug-in's, name -> default), each a
+    list of >= 2 distinct valid levels; returned in design order (:func:`wbc_jax.campaign.factors.design_order`)."""
     if not isinstance(raw_f, dict):
         raise spec_error(path, "factors", "expected a table")
     for key in sorted(raw_f):
-        if factors_mod.factor_def(key) is None:
+        if isinstance(raw_f[key], dict) and raw_f[key]:  # TOML read gain.kp_obj = [...] as a table
+            sub = next(iter(raw_f[key]))
+            raise spec_error(path, f"factors.{key}.{sub}", f'a dotted factor name: quote it ("{key}.{sub}" = [...])')
+        if factors_mod.factor_def(key, plugin_fields) is None:
             raise spec_error(path, f"factors.{key}", f"unknown factor; expected one of {factors_mod.known_names()}")
     if not 1 <= len(raw_f) <= factors_mod.MAX_FACTORS:
         raise spec_error(path, "factors", f"{len(raw_f)} factors: expected 1 to {factors_mod.MAX_FACTORS}")
     out = {}
-    for key in factors_mod.design_order(raw_f):
+    for key in factors_mod.design_order(raw_f, plugin_fields):
         full, v = f"factors.{key}", raw_f[key]
         if not isinstance(v, list) or len(v) < 2:
             raise spec_error(path, full, f"expected a list of at least 2 levels, got {v!r}")
-        levels = [_level(path, full, x, factors_mod.factor_def(key)) for x in v]
+        levels = [_level(path, full, x, factors_mod.factor_def(key, plugin_fields)) for x in v]
         if len(set(levels)) != len(levels):
             raise spec_error(path, full, f"= {v}: levels must be distinct")
         leaf = key[len(factors_mod.GAIN_PREFIX):] if key.startswith(factors_mod.GAIN_PREFIX) else None
@@ -328,12 +331,12 @@ def _parse_factors(path, raw_f) -> dict:
     return out
 
 
-def _check_fixed(path, camp: dict, pert: dict, factors: dict) -> None:
+def _check_fixed(path, camp: dict, pert: dict, factors: dict, plugin_fields: dict) -> None:
     """A varied factor's fixed-value key (FactorDef.fixed) must stay at its default; ``push_dir_deg`` needs the
     push_N factor; ``qp_max_iters`` is 0 or at least ``qp_iters`` (the fixed iterations come first)."""
     tables = {"campaign": (camp, CAMPAIGN), "perturbations": (pert, PERTURBATIONS)}
     for key in factors:
-        table, _, name = factors_mod.factor_def(key).fixed.partition(".")
+        table, _, name = factors_mod.factor_def(key, plugin_fields).fixed.partition(".")
         if table in tables and tables[table][0][name] != tables[table][1][name][1]:
             raise spec_error(path, f"{table}.{name}", f"= {tables[table][0][name]!r}: the factor {key} is varied; "
                                                      "leave this key out (or at its default)")
@@ -358,14 +361,14 @@ def parse_spec(data: dict, path: str = "<spec>", text_sha256: str = "") -> Spec:
             raise spec_error(path, f"campaign.{key}", f"= {camp[key]!r}: expected one of {', '.join(allowed)}")
     if "factors" not in data:
         raise spec_error(path, "factors", "missing table [factors] (level lists, e.g. m, mu, d)")
-    factors = _parse_factors(path, data["factors"])
+    plugin = parse_plugin(path, data.get("plugin"), camp["controller"], data["factors"])
+    factors = _parse_factors(path, data["factors"], plugin.fields)
     pert = checked_table(path, "perturbations", data.get("perturbations", {}), PERTURBATIONS)
-    _check_fixed(path, camp, pert, factors)
+    _check_fixed(path, camp, pert, factors, plugin.fields)
     check_controller(path, camp, factors, CAMPAIGN)
-    plugin, plugin_sha256 = parse_plugin(path, data.get("plugin"), camp["controller"])
     analysis = checked_table(path, "analysis", data.get("analysis", {}), ANALYSIS)
     return Spec(path=str(path), campaign=camp, factors=factors, perturbations=pert, text_sha256=text_sha256,
-                analysis=analysis, plugin=plugin, plugin_sha256=plugin_sha256)
+                analysis=analysis, plugin=plugin.values, plugin_sha256=plugin.sha256)
 
 
 def load_spec(path: str | Path) -> Spec:

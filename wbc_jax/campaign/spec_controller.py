@@ -15,11 +15,13 @@ plug-in imports its module (and JAX); the module file's sha256 joins the spec's 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 from wbc_jax.campaign import controllers as controllers_mod
 from wbc_jax.campaign import factors as factors_mod
 from wbc_jax.errors import SpecError
 
+PREFIX = factors_mod.PLUGIN_PREFIX
 CENTROIDAL_KEYS = ("mass_error", "walk_seconds", "step_time", "four_foot")  # campaign keys of the centroidal only
 TRANSPORT_KEYS = ("distance", "variant", "terrain", "com_plan", "obj_accel")  # ... of the transport only
 
@@ -42,28 +44,39 @@ def check_controller(path, camp: dict, factors: dict, schema: dict) -> None:
                         f"({camp['step_time']})")
 
 
-def parse_plugin(path, raw, family: str) -> tuple[dict, str]:
-    """The ``[plugin]`` table ``raw`` (None: the spec has none) of a spec whose controller is ``family``.
+class Plugin(NamedTuple):
+    """A spec's parsed ``[plugin]`` table: ``values`` ({"class": "module:Class", field: value ...}, defaults filled
+    in, the fields a factor varies left out; {} without a table), ``sha256`` (its module file's; "" without),
+    ``fields`` (the class's own fields, name -> default: what ``plugin.<field>`` factors may name)."""
 
-    Returns:
-        ({"class": "module:Class", field: value for each of the class's own fields, defaults filled in}, the
-        sha256 of the class's module file), or ({}, "") without a table.
+    values: dict
+    sha256: str
+    fields: dict
+
+
+def parse_plugin(path, raw, family: str, raw_factors=None) -> Plugin:
+    """The ``[plugin]`` table ``raw`` (None: the spec has none) of a spec whose controller is ``family``, with the
+    ``plugin.<field>`` keys of its raw ``[factors]`` table ``raw_factors`` checked against the class.
 
     Raises:
         SpecError: naming ``plugin.class`` (not "module:Class", no such module or class, not a by-value dataclass
-            subclass of the ``family`` controller) or ``plugin.<field>`` (not a field of the class, a value of
-            another type than its default's), or the ValueError of the class's own ``__post_init__`` checks (run
-            with ``cfg`` None).
+            subclass of the ``family`` controller, no source file), ``plugin.<field>`` (not a field of the class, a
+            value of another type than its default's, a field its factor varies) or ``factors.plugin.<field>`` (no
+            ``[plugin]`` table, not a float or bool field, a class without ``with_params``), or the ValueError of
+            the class's own ``__post_init__`` checks (run with ``cfg`` None).
     """
+    varied = [k for k in (raw_factors if isinstance(raw_factors, dict) else {}) if k.startswith(PREFIX)]
     if raw is None:
-        return {}, ""
+        if varied:
+            raise SpecError(f"{path}: factors.{varied[0]}: a plug-in's field; add a [plugin] table naming its class")
+        return Plugin({}, "", {})
     if not isinstance(raw, dict):
         raise SpecError(f"{path}: plugin: expected a table [plugin], got {type(raw).__name__}")
     name = raw.get("class")
     if not isinstance(name, str):
         raise SpecError(f"{path}: plugin.class: expected \"module:Class\", a subclass of the {family} controller, "
                         f"got {name!r}")
-    from wbc_jax.rollout.controllers import controller_class  # JAX, imported only for a spec with a plug-in
+    from wbc_jax.rollout.controllers import Controller, controller_class  # JAX, only for a spec with a plug-in
     from wbc_jax.rollout.controllers import plugin as plugins
 
     try:
@@ -76,14 +89,36 @@ def parse_plugin(path, raw, family: str) -> tuple[dict, str]:
         if key != "class" and key not in own:
             raise SpecError(f"{path}: plugin.{key}: not a field of {name}; expected one of "
                             f"{', '.join(own) or '(it has none)'}")
-    values = {key: _value(path, key, raw.get(key, default), default) for key, default in own.items()}
-    try:  # the class's own checks of its fields (a ValueError from __post_init__), before anything is built
+    for key in varied:
+        field = key[len(PREFIX):]
+        variable = [f for f, v in own.items() if factors_mod.plugin_factor(v) is not None]
+        if field not in variable:
+            raise SpecError(f"{path}: factors.{key}: not a float or bool field of {name}; expected one of "
+                            f"{', '.join(PREFIX + f for f in variable) or '(it has none)'}")
+        if field in raw:
+            raise SpecError(f"{path}: plugin.{field}: = {raw[field]!r}: the factor {key} is varied; leave it out")
+        if cls.with_params is Controller.with_params:
+            raise SpecError(f"{path}: factors.{key}: {name} does not implement with_params(state, params), which "
+                            "sets its fields per run")
+    values = {key: _value(path, key, raw.get(key, default), default) for key, default in own.items()
+              if PREFIX + key not in varied}  # a varied field's static value stays the class's default
+    _post_init(path, "plugin", cls, values)
+    for key in varied:  # each level through the class's own checks too
+        for level in raw_factors[key] if isinstance(raw_factors[key], list) else []:
+            if isinstance(level, (int, float)) and not isinstance(level, bool):
+                _post_init(path, f"factors.{key}", cls, {**values, key[len(PREFIX):]: float(level)})
+    return Plugin({"class": name, **values}, digest, own)
+
+
+def _post_init(path, where: str, cls: type, values: dict) -> None:
+    """The class's own checks of its field ``values`` (a ValueError from ``__post_init__``, run with ``cfg`` None)
+    as a SpecError naming ``where``; a check that needs the settings runs when the Sim is made."""
+    try:
         cls(None, **values)
     except ValueError as e:
-        raise SpecError(f"{path}: plugin: {e}") from None
-    except Exception:  # noqa: BLE001  (a check that needs the settings runs when the Sim is made)
+        raise SpecError(f"{path}: {where}: {e}") from None
+    except Exception:  # noqa: BLE001
         pass
-    return {"class": name, **values}, digest
 
 
 def _value(path, key: str, v, default):

@@ -23,6 +23,7 @@ if TYPE_CHECKING:
         no_push,
         state_axes,
         with_metric_window,
+        with_plugin_params,
         with_variant,
     )
     from wbc_jax.rollout.step import clearance, control_step, controller_inputs, seen_qvel
@@ -33,7 +34,7 @@ _HOMES = {
     "wbc_jax.rollout.loop": ("make_chunk_fn", "simulate"),
     "wbc_jax.rollout.results": ("clearance_name", "contact_name", "final_results"),
     "wbc_jax.rollout.state": ("Log", "Push", "RunState", "init_state", "make_push", "no_push", "state_axes",
-                              "with_metric_window", "with_variant"),
+                              "with_metric_window", "with_plugin_params", "with_variant"),
     "wbc_jax.rollout.step": ("clearance", "control_step", "controller_inputs", "seen_qvel"),
 }
 _HOME_OF = {name: module for module, names in _HOMES.items() for name in names}
@@ -61,6 +62,7 @@ __all__ = [
     "simulate",
     "state_axes",
     "with_metric_window",
+    "with_plugin_params",
     "with_variant",
 ]
 

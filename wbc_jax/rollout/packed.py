@@ -114,6 +114,12 @@ def placed_like(old, new: np.ndarray):
     return jax.device_put(new, old.sharding) if getattr(old, "committed", False) else to_device(new)
 
 
+def broadcast_like(old, value):
+    """``value`` broadcast to the shape and dtype of the leaf ``old`` and placed like it (:func:`placed_like`: a leaf
+    committed elsewhere would change the chunk function's input shardings)."""
+    return placed_like(old, np.array(np.broadcast_to(np.asarray(value, old.dtype), old.shape)))
+
+
 def pack(nt, layout: Layout | None = None) -> Packed:
     """:class:`Packed` of NamedTuple ``nt`` whose fields are scalars (or arrays with the same leading axes, each
     field one value per run). ``layout``: that of ``nt`` (:func:`layout_of`) when None. Floating fields are cast

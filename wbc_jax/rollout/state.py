@@ -15,11 +15,11 @@ from wbc_jax.robot.model import mjx
 from wbc_jax.rollout.config import Sim
 from wbc_jax.rollout.controllers.base import object_in_tray
 from wbc_jax.rollout.controllers.transport import Log
-from wbc_jax.rollout.packed import Packed, pack, placed_like
+from wbc_jax.rollout.packed import Packed, broadcast_like, pack
 from wbc_jax.runtime.transfer import to_device
 
 __all__ = ["Log", "Push", "RunState", "empty_log", "init_state", "make_push", "no_push", "object_in_tray",
-           "state_axes", "with_metric_window", "with_variant"]
+           "state_axes", "with_metric_window", "with_plugin_params", "with_variant"]
 
 
 class Push(NamedTuple):
@@ -108,20 +108,20 @@ def init_state(sim: Sim, m, qpos0, qvel0=None, n_runs: int = 1) -> RunState:
                     metrics=sim.controller.init_metrics(sim.robot, d, dyn))
 
 
-def _like(old, value):
-    """``value`` broadcast to the shape and dtype of the leaf ``old`` and placed like it (a leaf committed
-    elsewhere would change the chunk function's input shardings)."""
-    return placed_like(old, np.array(np.broadcast_to(np.asarray(value, old.dtype), old.shape)))
-
-
 def with_metric_window(state: RunState, t_end) -> RunState:
     """``state`` (batched or not) with its metric window set to [0, ``t_end``) [s] (scalar or (B,) per run)."""
     return state._replace(acc=state.acc._replace(t_end=t_end))
+
+
+def with_plugin_params(state: RunState, params: dict, controller) -> RunState:
+    """``state`` (batched) with a plug-in ``controller``'s per-run fields set (``params``: field -> (B,) levels of
+    the spec's ``plugin.<field>`` factors; :meth:`Controller.with_params`); unchanged for no ``params``."""
+    return state._replace(cs=controller.with_params(state.cs, params)) if params else state
 
 
 def with_variant(state: RunState, variant: Variant, controller) -> RunState:
     """``state`` (batched or not) with the transport ``controller``'s ablation switches set
     (:mod:`wbc_jax.control.variants`; each field 0/1, scalar or (B,) per run)."""
     old = controller.variant(state.cs)
-    switches = Variant(*(_like(o, v) for o, v in zip(old, variant)))
+    switches = Variant(*(broadcast_like(o, v) for o, v in zip(old, variant)))
     return state._replace(cs=controller.with_variant(state.cs, switches))

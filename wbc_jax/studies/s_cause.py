@@ -144,6 +144,6 @@ def load(path: str) -> Recording:
     """A recording written by :func:`save` (the design without its ``gain_scale`` and ``levels``)."""
     z = np.load(path)
     cols = {k[len("design_"):]: z[k] for k in z.files if k.startswith("design_")}
-    dz = Design(**cols, gain_scale={}, levels={})
+    dz = Design(**cols, gain_scale={}, plugin_params={}, levels={})
     return Recording(z["t"], float(z["dt"]), z["qpos0"], z["qvel0"], z["qpos"], z["qvel"], z["tau"], z["f_obj"], dz,
                      str(z["scene"]))

@@ -113,6 +113,8 @@ FACTOR_MEANING = {
                   "its model 20 % too light; the centroidal paper's Fig. 12)",
     "gain.<leaf>": "multiplier of that `TransportGains` leaf of the campaign's gains (defaults or `--gains`), "
                    "e.g. `gain.kp_obj`",
+    "plugin.<field>": "a float (any finite value) or bool field of the `[plugin]` class, per run (the class keeps "
+                      "it in its state: `with_params`); e.g. `\"plugin.time_constant\"` (quoted in TOML)",
 }
 PERTURB_MEANING = {
     "object_xy_mm": "object placement on the tray: uniform in +-value along x and y",
@@ -215,7 +217,8 @@ def key_table(name: str, schema: dict, meaning: dict) -> list[str]:
 
 def factor_table() -> list[str]:
     """Markdown rows of the ``[factors]`` table (each a list of at least 2 distinct levels), in design order."""
-    defs = {**spec.FACTORS, f"{factors.GAIN_PREFIX}<leaf>": factors.GAIN}
+    defs = {**spec.FACTORS, f"{factors.GAIN_PREFIX}<leaf>": factors.GAIN,
+            f"{factors.PLUGIN_PREFIX}<field>": factors.plugin_factor(0.0)}
     missing = sorted(set(defs) - set(FACTOR_MEANING))
     if missing:
         raise KeyError(f"[factors] {missing[0]}: no description in wbc_jax.studies.spec_docs")
@@ -305,7 +308,8 @@ def _campaign_section() -> list[str]:
         "",
         "`class = \"module:Class\"` names a subclass of the spec's controller (`TransportController` or "
         "`CentroidalController`) in a module importable from the current folder (or `PYTHONPATH`); every other key "
-        "sets one of the class's own fields (bool, int, float or str, the class's default otherwise). The campaign, "
+        "sets one of the class's own fields (bool, int, float or str, the class's default otherwise); a float or bool "
+        "field may instead be a factor, `\"plugin.<field>\"` in `[factors]`. The campaign, "
         "its results columns, report and regress bands are the named controller's; the module file's sha256 is "
         "part of the spec hash. The rules a plug-in follows: `wbc_jax/rollout/controllers/plugin.py`; an example: "
         "`examples/torque_lag.py` (`sweeps/torque_lag.toml`). `wbc-jax tune` searches the built-in controller only.",

@@ -48,6 +48,13 @@ class Controller:
         """The controller's own online reductions at t = 0 (None: it has none)."""
         return None
 
+    def with_params(self, cs, params: dict):
+        """The controller state ``cs`` (batched) with per-run values of the controller's own fields: ``params``
+        maps a field's name to its (B,) levels (numpy) of the spec's ``plugin.<field>`` factor. A plug-in whose
+        fields a spec varies keeps them in its state and sets them here
+        (:func:`wbc_jax.rollout.packed.broadcast_like` sets a leaf); the built-in controllers have none."""
+        raise NotImplementedError(f"{type(self).__qualname__} has no per-run fields (with_params)")
+
     def freeze(self, frozen, new, old):
         """The controller state a run keeps after a step: ``old`` where ``frozen`` (() bool: the run failed at an
         earlier step and keeps its state), else ``new``. A controller may let scratch that no kept value depends on
