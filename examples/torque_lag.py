@@ -25,6 +25,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from wbc_jax.rollout.controllers import TransportController
 from wbc_jax.rollout.controllers.base import keep_where
@@ -32,12 +33,14 @@ from wbc_jax.rollout.packed import broadcast_like
 
 
 class LagState(NamedTuple):
-    """The transport controller's state, the lag's memory and its time constant (per run)."""
+    """The transport controller's state, the lag's memory, its time constant (per run) and its own metric's sums."""
 
     inner: Any  # wbc_jax.control.transport.ControlState
     tau: jax.Array  # (nu,) [N m] the torque the motors received at the last step
     started: jax.Array  # () bool: a step has run (tau holds a torque)
     time_constant: jax.Array  # () [s] T of this run
+    err_sq_sum: jax.Array  # () [N^2 m^2] sum over control steps of mean_j (tau_j - u_j)^2
+    steps: jax.Array  # () control steps summed
 
 
 def lag(tau_prev, u, started, dt: float, time_constant):
@@ -52,15 +55,16 @@ class TorqueLag(TransportController):
     """The transport WBC whose torques reach the motors through a first-order lag (module docstring)."""
 
     time_constant: float = 0.02  # [s] T, >= 0
+    extra_columns = ("lag_err_rms_Nm",)  # results.csv: RMS of (tau - u) over joints and control steps [N m]
 
     def __post_init__(self):
         if not self.time_constant >= 0:
             raise ValueError(f"TorqueLag.time_constant = {self.time_constant}: expected >= 0 [s]")
 
     def init_state(self, robot, d, dyn):
-        dtype = d.qpos.dtype
+        dtype, zero = d.qpos.dtype, jnp.zeros((), d.qpos.dtype)
         return LagState(super().init_state(robot, d, dyn), jnp.zeros(robot.mj_model.nu, dtype), jnp.zeros((), bool),
-                        jnp.asarray(self.time_constant, dtype))
+                        jnp.asarray(self.time_constant, dtype), zero, zero)
 
     def with_params(self, cs, params):
         """``cs`` with each run's time constant (``params["time_constant"]``: (B,) [s])."""
@@ -69,11 +73,20 @@ class TorqueLag(TransportController):
     def control(self, obs, ref, obj_model, gains, state, ids, mu):
         u, inner, diag = super().control(obs, ref, obj_model, gains, state.inner, ids, mu)
         tau = lag(state.tau, u, state.started, self.cfg.dt, state.time_constant)
-        return tau, state._replace(inner=inner, tau=tau, started=jnp.ones((), bool)), diag
+        return tau, state._replace(inner=inner, tau=tau, started=jnp.ones((), bool),
+                                   err_sq_sum=state.err_sq_sum + jnp.mean((tau - u) ** 2), steps=state.steps + 1), diag
 
     def freeze(self, frozen, new, old):
         inner = super().freeze(frozen, new.inner, old.inner)
         return keep_where(frozen, new._replace(inner=None), old._replace(inner=None))._replace(inner=inner)
+
+    def finalize(self, sim, acc, state, p_goal, mu, n, course: bool) -> dict:
+        """The transport's results and ``lag_err_rms_Nm``: sqrt(sum / steps) of the run's sums (up to its failure,
+        where it failed: a frozen run keeps them)."""
+        out = super().finalize(sim, acc, state, p_goal, mu, n, course)
+        err, steps = (np.asarray(x)[:n] for x in (state.cs.err_sq_sum, state.cs.steps))
+        out["lag_err_rms_Nm"] = np.sqrt(err / np.maximum(steps, 1))
+        return out
 
     def variant(self, cs):
         return super().variant(cs.inner)

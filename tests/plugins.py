@@ -32,3 +32,10 @@ class NoParams(TransportController):
     """A float field, but no with_params: a spec cannot vary it."""
 
     gain: float = 1.0
+
+
+@dataclass(frozen=True, eq=False)
+class TakenColumn(TransportController):
+    """Claims a column the results table already has: refused."""
+
+    extra_columns = ("R",)

@@ -32,6 +32,7 @@ def _spec(plugin, controller="transport"):
     ({"class": "examples.torque_lag:LagState"}, "plugin.class", "subclass of wbc_jax.rollout.controllers.Transport"),
     ({"class": "tests.plugins:ByIdentity"}, "plugin.class", "eq=False"),
     ({"class": "tests.plugins:NoDefault"}, "plugin.class", "needs a default of type bool, int, float or str"),
+    ({"class": "tests.plugins:TakenColumn"}, "plugin.class", "extra_columns = ('R',): expected a tuple of new column"),
     ({"class": LAG, "speed": 1.0}, "plugin.speed", "not a field of examples.torque_lag:TorqueLag; expected one of "
                                                    "time_constant"),
     ({"class": LAG, "time_constant": "fast"}, "plugin.time_constant", "expected a float like its default 0.02"),
@@ -213,7 +214,7 @@ def test_plugin_field_as_a_factor_equals_campaigns_of_one_value(tiny_spec, tmp_p
     varied = run("varied", head.replace("[factors]", '[factors]\n"plugin.time_constant" = [0.0, 0.05]')
                  + f'[plugin]\nclass = "{LAG}"\n')
     assert list(varied["plugin.time_constant"]) == [0.0, 0.05] * 8
-    metrics = ["m", "mu", "d", "success", "R", "T", "S", "max_slip_mm"]
+    metrics = ["m", "mu", "d", "success", "R", "T", "S", "max_slip_mm", "lag_err_rms_Nm"]
     outs = {}
     for tc in (0.0, 0.05):
         outs[tc] = run(f"static{tc}", head.replace("reps = 1", "reps = 2")
@@ -222,13 +223,19 @@ def test_plugin_field_as_a_factor_equals_campaigns_of_one_value(tiny_spec, tmp_p
         pd.testing.assert_frame_equal(varied.loc[rows, metrics].reset_index(drop=True),
                                       outs[tc].loc[rows, metrics].reset_index(drop=True), check_exact=True)
     assert np.all(outs[0.0]["T"].to_numpy() != outs[0.05]["T"].to_numpy())  # the field reaches the motors
+    # the plug-in's own column (Controller.extra_columns): without a lag the motors receive the QP's torques exactly
+    assert np.all(outs[0.0]["lag_err_rms_Nm"] == 0.0) and np.all(outs[0.05]["lag_err_rms_Nm"] > 0.0)
 
 
 def test_lag_plugin_drives_the_motors(full_run, tiny_spec, tmp_path):
     out, manifest = _run(tiny_spec, tmp_path, f'\n[plugin]\nclass = "{LAG}"\ntime_constant = 0.05\n')
     ref = pd.read_csv(full_run[0] / "results.csv")
     got = pd.read_csv(out / "results.csv")
-    assert list(got.columns) == list(ref.columns) and len(got) == len(ref)
+    # the family's columns, then the plug-in's own (Controller.extra_columns) before the perturbations
+    cols = list(ref.columns)
+    at = cols.index("obj_dx_mm")
+    assert list(got.columns) == cols[:at] + ["lag_err_rms_Nm"] + cols[at:] and len(got) == len(ref)
+    assert np.all(got["lag_err_rms_Nm"] > 0)
     assert np.all(np.isfinite(got[["R", "T", "S"]].to_numpy()))
     # the lagged torques change every run's tracking and smoothness
     assert np.all(got["T"].to_numpy() != ref["T"].to_numpy()) and np.all(got["S"].to_numpy() != ref["S"].to_numpy())

@@ -7,6 +7,7 @@ writes the ANOVA report beside the table, keeping the table when the statistics 
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import NamedTuple
 
@@ -56,9 +57,10 @@ def factor_columns(spec: Spec) -> list[str]:
     return list(spec.factors)
 
 
-def results_table(spec: Spec, dz: Design, res: dict):
+def results_table(spec: Spec, dz: Design, res: dict, extra_columns=()):
     """One row per run: run, m, mu, d, the other factors' levels (one column each, named like the factor),
-    rep, seed, success, the metrics and flags, the perturbations."""
+    rep, seed, success, the metrics and flags (the controller's, then a plug-in's ``extra_columns``: NaN, with a
+    warning, where its finalize returned none), the perturbations."""
     import pandas as pd
 
     extra = {k: v for k, v in dz.levels.items() if k not in ("m", "mu", "d", "push_N")}
@@ -66,6 +68,11 @@ def results_table(spec: Spec, dz: Design, res: dict):
                            success=res["success"]))
     for k in controllers.info(spec.campaign).columns:
         df[k] = res[k]
+    for k in extra_columns:
+        if k not in res:
+            print(f"warning: the controller's finalize returned no {k!r} (Controller.extra_columns): NaN written",
+                  file=sys.stderr, flush=True)
+        df[k] = res.get(k, np.full(dz.n, np.nan))
     df["obj_dx_mm"] = dz.obj_dx * 1e3
     df["obj_dy_mm"] = dz.obj_dy * 1e3
     df["obj_yaw_deg"] = np.rad2deg(dz.obj_yaw)

@@ -234,7 +234,7 @@ def _write(job: Job, rollout: Rollout, clock: dict, report: bool, reporter, guar
 
     sim, dz = job.built.sim, job.built.design
     res = final_results(sim, rollout.state, rollout.p_goal, dz.mu)
-    df = results_table(job.spec, dz, res)
+    df = results_table(job.spec, dz, res, sim.controller.extra_columns)
     summary = summarize(job.spec, df)
     rates = throughput(rollout.marks, dz.n, job.chunk_s, job.seconds, sim.dt_physics, rollout.wall_s)
     wall_before = rollout.wall_before

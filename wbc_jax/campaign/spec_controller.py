@@ -22,6 +22,8 @@ from wbc_jax.campaign import factors as factors_mod
 from wbc_jax.errors import SpecError
 
 PREFIX = factors_mod.PLUGIN_PREFIX
+# the results table's own columns besides the controller's (wbc_jax.campaign.results.results_table)
+TABLE_COLUMNS = ("run", "m", "mu", "d", "rep", "seed", "success", "obj_dx_mm", "obj_dy_mm", "obj_yaw_deg", "push_N")
 CENTROIDAL_KEYS = ("mass_error", "walk_seconds", "step_time", "four_foot")  # campaign keys of the centroidal only
 TRANSPORT_KEYS = ("distance", "variant", "terrain", "com_plan", "obj_accel")  # ... of the transport only
 
@@ -60,7 +62,8 @@ def parse_plugin(path, raw, family: str, raw_factors=None) -> Plugin:
 
     Raises:
         SpecError: naming ``plugin.class`` (not "module:Class", no such module or class, not a by-value dataclass
-            subclass of the ``family`` controller, no source file), ``plugin.<field>`` (not a field of the class, a
+            subclass of the ``family`` controller, no source file, ``extra_columns`` that are not new column
+            names), ``plugin.<field>`` (not a field of the class, a
             value of another type than its default's, a field its factor varies) or ``factors.plugin.<field>`` (no
             ``[plugin]`` table, not a float or bool field, a class without ``with_params``), or the ValueError of
             the class's own ``__post_init__`` checks (run with ``cfg`` None).
@@ -85,6 +88,12 @@ def parse_plugin(path, raw, family: str, raw_factors=None) -> Plugin:
         digest = plugins.source_sha256(cls)
     except ValueError as e:
         raise SpecError(f"{path}: plugin.class: {e}") from None
+    taken = {*controllers_mod.CONTROLLERS[family].columns, *TABLE_COLUMNS,
+             *(raw_factors if isinstance(raw_factors, dict) else {})}
+    extra = cls.extra_columns
+    if not isinstance(extra, tuple) or not all(isinstance(c, str) and c and c not in taken for c in extra):
+        raise SpecError(f"{path}: plugin.class: {name}.extra_columns = {extra!r}: expected a tuple of new column "
+                        "names (not the results table's own)")
     for key in raw:
         if key != "class" and key not in own:
             raise SpecError(f"{path}: plugin.{key}: not a field of {name}; expected one of "

@@ -17,7 +17,10 @@ definitions share compiled programs):
   sample folded into the shared :class:`wbc_jax.metrics.accumulate.Accum`, the controller's own online
   reductions (``RunState.metrics``, from ``init_metrics``; None: none) and the step's log row (``empty_log``).
 - ``failed(acc, course)``: () bool, the run has failed (the rollout freezes it from the next control step).
-- ``freeze(frozen, new, old)`` (base: the old state where frozen): the controller state a run keeps after a step.
+- ``freeze(frozen, new, old)`` (base: the old state where frozen): the controller state a run keeps after a step
+  (the built-ins let the QP's warm start follow ``new``: :func:`~wbc_jax.rollout.controllers.base.keep_but_warm_start`).
+- ``with_params(cs, params)`` (a plug-in's, optional): its own fields set per run in its state (``plugin.<field>``
+  factors).
 - ``final_input(logs)`` and ``finalize(sim, state, final_input, mu, n)``: the per-run results (host, numpy) of a
   finished batch; ``final_input`` is what finalization needs of the last log row, kept with the checkpoint.
 

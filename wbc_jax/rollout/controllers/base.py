@@ -43,6 +43,7 @@ class Controller:
     field (static settings; ``cfg.dt``: the control period [s]) and a class attribute ``name``."""
 
     name = ""
+    extra_columns: tuple = ()  # results.csv columns a plug-in adds to its family's: its finalize returns each, (n,)
 
     def init_metrics(self, robot, d, dyn):
         """The controller's own online reductions at t = 0 (None: it has none)."""

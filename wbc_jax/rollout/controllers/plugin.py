@@ -13,7 +13,9 @@ float or str; a ``ValueError`` from its ``__post_init__`` (also run with ``cfg``
 the values. It inherits its family's planner, gains, metrics, results columns and report, and overrides what it
 changes: typically ``control`` (the torques that drive the motors) and, for memory of its own, ``init_state``,
 ``freeze`` and (transport) ``variant`` and ``with_variant``. A float or bool field a spec varies per run (a
-``plugin.<field>`` factor) lives in its state and is set by ``with_params``. ``examples/torque_lag.py`` is one.
+``plugin.<field>`` factor) lives in its state and is set by ``with_params``; columns of its own in results.csv
+are named by the class attribute ``extra_columns`` and returned by its ``finalize``. ``examples/torque_lag.py`` is
+one.
 
 Programs of a plug-in are not kept on disk as exported programs (:mod:`wbc_jax.runtime.aot` keys those by the
 package's sources, not the plug-in's); XLA's compilation cache still applies. Its module file's sha256 is part of
