@@ -130,7 +130,8 @@ LOOP = textwrap.dedent("""
     sp = Spread("blocks", process=pid, processes=2)
     axes = {"q": 0, "k": 0}
     state0 = {"q": np.arange(N * 3, dtype=np.float32).reshape(N, 3), "k": np.zeros(N, np.int32)}
-    sim = SimpleNamespace(controller=SimpleNamespace(final_input=lambda logs: logs.p_goal[:, -1]), dt_physics=0.01)
+    sim = SimpleNamespace(controller=SimpleNamespace(final_input=lambda logs: logs.p_goal[:, -1], extra_columns=()),
+                          dt_physics=0.01)
     built = SimpleNamespace(sim=sim, n_chunks=CHUNKS, logs_per_chunk=1, design=SimpleNamespace(n=N))
     batch = SimpleNamespace(model=None, plan=None, om=None, gains=None, push=None, mu_ground=None, in_axes=None,
                             state=sp.place_state(state0, N, axes), state_axes=axes)

@@ -149,7 +149,8 @@ def _job(tmp_path, monkeypatch):
         return {k: v + 1 for k, v in state.items()}, logs
 
     monkeypatch.setattr(runner, "chunk_fn", lambda *a, **k: chunk)
-    sim = SimpleNamespace(controller=SimpleNamespace(final_input=lambda logs: logs.p_goal[:, -1]), dt_physics=0.01)
+    sim = SimpleNamespace(controller=SimpleNamespace(final_input=lambda logs: logs.p_goal[:, -1], extra_columns=()),
+                          dt_physics=0.01)
     built = SimpleNamespace(sim=sim, n_chunks=N_CHUNKS, logs_per_chunk=1, design=SimpleNamespace(n=N_RUNS))
     state = {"q": jnp.arange(N_RUNS * 3, dtype=jnp.float32).reshape(N_RUNS, 3), "k": jnp.zeros(N_RUNS, jnp.int32)}
     batch = SimpleNamespace(model=None, plan=None, om=None, gains=None, push=None, mu_ground=None, in_axes=None,
@@ -251,7 +252,8 @@ def test_results_written_first_then_the_last_checkpoint_cancelled_or_kept(tmp_pa
     saver = checkpoint.Writer()
     rollout, _ = _run(job, saver)
     monkeypatch.setattr(rollout_pkg, "final_results", lambda *a: None)
-    monkeypatch.setattr(runner, "results_table", lambda spec, dz, res: pd.DataFrame({"success": [True] * N_RUNS}))
+    monkeypatch.setattr(runner, "results_table",
+                        lambda spec, dz, res, extra=(): pd.DataFrame({"success": [True] * N_RUNS}))
     monkeypatch.setattr(runner, "summarize", lambda spec, df: SimpleNamespace(warnings=[], qp_flagged_runs=0))
     monkeypatch.setattr(runner, "campaign_manifest", lambda *a, **k: {"warnings": []})
     monkeypatch.setattr(runner, "sensing_of", lambda spec: "delayed")

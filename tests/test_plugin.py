@@ -227,8 +227,12 @@ def test_plugin_field_as_a_factor_equals_campaigns_of_one_value(tiny_spec, tmp_p
     assert np.all(outs[0.0]["lag_err_rms_Nm"] == 0.0) and np.all(outs[0.05]["lag_err_rms_Nm"] > 0.0)
 
 
-def test_lag_plugin_drives_the_motors(full_run, tiny_spec, tmp_path):
+def test_lag_plugin_drives_the_motors(full_run, tiny_spec, tmp_path, capsys):
     out, manifest = _run(tiny_spec, tmp_path, f'\n[plugin]\nclass = "{LAG}"\ntime_constant = 0.05\n')
+    # replay re-simulates a plug-in campaign's run (its spec names the plug-in) and finds it bit for bit
+    assert cli.main(["replay", str(out), "--run", "3", "--out", str(tmp_path / "replay"), "--no-video",
+                     "--no-progress"]) == 0
+    assert "as in the campaign; R, T, S equal bit for bit" in capsys.readouterr().out
     ref = pd.read_csv(full_run[0] / "results.csv")
     got = pd.read_csv(out / "results.csv")
     # the family's columns, then the plug-in's own (Controller.extra_columns) before the perturbations
