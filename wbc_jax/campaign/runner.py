@@ -107,13 +107,13 @@ def _announce(job: Job) -> None:
         print(sp.note, flush=True)
     print(f"{'' if job.writer else f'process {jax.process_index()}: '}campaign {spec.campaign['name']!r} "
           f"({spec.path}): {dz.n} runs = {dz.n // spec.reps} cells x {spec.reps} reps, {job.seconds:.2f} s simulated "
-          f"in {job.built.n_chunks} chunks of {job.chunk_s:.2f} s, scene {spec.campaign['scene']}, device "
-          f"{jax.devices()[0].device_kind}{sp.describe()}", flush=True)
+          f"in {job.built.n_chunks} chunks of {job.chunk_s:.2f} s, scene {spec.campaign['scene']}, controller "
+          f"{spec.plugin.get('class', spec.campaign['controller'])}, device {jax.devices()[0].device_kind}"
+          f"{sp.describe()}", flush=True)
 
 
 def _meta(job: Job, start: Start, done: int, marks: list, t_run: float, p_goal) -> dict:
-    """The checkpoint's meta.json fields after chunk ``done`` (process 0; the state files' entries added by the
-    writer)."""
+    """The checkpoint's meta.json fields after chunk ``done`` (process 0; the writer adds the state files')."""
     return dict(identity=job.identity, chunks_done=done, n_chunks=job.built.n_chunks,
                 logs_per_chunk=job.built.logs_per_chunk, marks=list(marks),
                 p_goal=None if p_goal is None else p_goal.tolist(),
