@@ -240,6 +240,12 @@ def test_lag_plugin_drives_the_motors(full_run, tiny_spec, tmp_path, capsys):
     at = cols.index("obj_dx_mm")
     assert list(got.columns) == cols[:at] + ["lag_err_rms_Nm"] + cols[at:] and len(got) == len(ref)
     assert np.all(got["lag_err_rms_Nm"] > 0)
+    # spec_controller.TABLE_COLUMNS (what extra_columns may not take) is the table's own columns besides the
+    # controller's
+    from wbc_jax.campaign.controllers import CONTROLLERS
+    from wbc_jax.campaign.spec_controller import TABLE_COLUMNS
+
+    assert set(ref.columns) - set(CONTROLLERS["transport"].columns) == set(TABLE_COLUMNS)
     assert np.all(np.isfinite(got[["R", "T", "S"]].to_numpy()))
     # the lagged torques change every run's tracking and smoothness
     assert np.all(got["T"].to_numpy() != ref["T"].to_numpy()) and np.all(got["S"].to_numpy() != ref["S"].to_numpy())

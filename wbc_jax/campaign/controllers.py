@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+from wbc_jax.campaign.factors import PLUGIN_PREFIX
+
 # the report's responses (wbc_jax.analysis.report.inputs.CAMPAIGN_METRICS and TROT_METRICS, which read a results.csv
 # without its spec; not imported: spec loading stays free of pandas)
 CAMPAIGN_METRICS = ("R", "T", "S")
@@ -55,7 +57,7 @@ CENTROIDAL_ONLY = ("mass_error",)  # factors of the centroidal controller alone
 
 def may_vary(name: str, factor: str) -> bool:
     """Controller ``name`` accepts the factor ``factor`` (a plug-in's ``plugin.<field>`` whichever its family)."""
-    if factor.startswith("plugin."):
+    if factor.startswith(PLUGIN_PREFIX):
         return True
     allowed = CONTROLLERS[name].factors
     return factor not in CENTROIDAL_ONLY if allowed is None else factor in allowed

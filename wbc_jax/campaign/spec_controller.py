@@ -63,10 +63,10 @@ def parse_plugin(path, raw, family: str, raw_factors=None) -> Plugin:
     Raises:
         SpecError: naming ``plugin.class`` (not "module:Class", no such module or class, not a by-value dataclass
             subclass of the ``family`` controller, no source file, ``extra_columns`` that are not new column
-            names), ``plugin.<field>`` (not a field of the class, a
-            value of another type than its default's, a field its factor varies) or ``factors.plugin.<field>`` (no
-            ``[plugin]`` table, not a float or bool field, a class without ``with_params``), or the ValueError of
-            the class's own ``__post_init__`` checks (run with ``cfg`` None).
+            names), ``plugin.<field>`` (not a field of the class, a value of another type than its default's, a
+            field its factor varies) or ``factors.plugin.<field>`` (no ``[plugin]`` table, not a float or bool
+            field, a class without ``with_params``), or the ValueError of the class's own ``__post_init__`` checks
+            (run with ``cfg`` None).
     """
     varied = [k for k in (raw_factors if isinstance(raw_factors, dict) else {}) if k.startswith(PREFIX)]
     if raw is None:
@@ -98,9 +98,9 @@ def parse_plugin(path, raw, family: str, raw_factors=None) -> Plugin:
         if key != "class" and key not in own:
             raise SpecError(f"{path}: plugin.{key}: not a field of {name}; expected one of "
                             f"{', '.join(own) or '(it has none)'}")
+    variable = [f for f, v in own.items() if factors_mod.plugin_factor(v) is not None]  # fields a factor may vary
     for key in varied:
         field = key[len(PREFIX):]
-        variable = [f for f, v in own.items() if factors_mod.plugin_factor(v) is not None]
         if field not in variable:
             raise SpecError(f"{path}: factors.{key}: not a float or bool field of {name}; expected one of "
                             f"{', '.join(PREFIX + f for f in variable) or '(it has none)'}")
