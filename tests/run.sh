@@ -34,7 +34,7 @@ fi
 # Each group prints a line when it ends; the outputs follow, in group order, at the end.
 groups=(
   "transport backends"
-  "campaign replay window sharding tune plugin"
+  "campaign replay window sharding tune plugin dry_run"
   "substeps factors freeze"
   "course clearance model metrics"
   "qp"

@@ -77,10 +77,11 @@ def run_campaign(spec_path: str | Path | None, out: str | Path, *, gains: str | 
         out: output directory: ``results.csv``, ``report/``, ``manifest.json`` (replaced atomically on success).
         gains: optional gains TOML (``best_gains.toml`` of ``wbc-jax tune``) instead of the default gains.
         **options: passed to :func:`wbc_jax.campaign.runner.run_campaign`, e.g. ``resume=True``,
-            ``report=False``, ``progress=False``.
+            ``report=False``, ``progress=False``; ``dry_run=True``: check and describe the campaign without running
+            it (:func:`wbc_jax.campaign.dry_run.dry_run`; ``report`` and ``progress`` do not apply).
 
     Returns:
-        The campaign manifest (the content of ``manifest.json``).
+        The campaign manifest (the content of ``manifest.json``); with ``dry_run=True`` what it would run.
 
     Raises:
         wbc_jax.errors.SpecError: a bad spec or gains file, before anything runs.
@@ -96,6 +97,11 @@ def run_campaign(spec_path: str | Path | None, out: str | Path, *, gains: str | 
 
         options["gains"] = load_gains(gains)
     with _python_errors():
+        if options.pop("dry_run", False):
+            from wbc_jax.campaign.dry_run import dry_run
+
+            options = {k: v for k, v in options.items() if k not in ("report", "progress")}
+            return dry_run(None if spec_path is None else str(spec_path), str(out), **options)
         return _run(None if spec_path is None else str(spec_path), str(out), **options)
 
 

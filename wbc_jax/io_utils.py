@@ -334,6 +334,28 @@ def claim_out_dir(out, command: str) -> Path:
     return p
 
 
+def check_not_in_use(out) -> Path:
+    """:func:`claim_out_dir`'s check that no running command holds ``out``, without claiming it (nothing is
+    created; the path itself: :func:`check_out_dir`); return the output folder.
+
+    Raises:
+        OutputError: another running command holds the folder (the line names it).
+    """
+    p = output_path(out)
+    try:
+        fd = os.open(lock_path(p), os.O_RDONLY)
+    except OSError:  # no lock file: nobody holds the folder
+        return p
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        raise OutputError(f"--out {out}: in use by {_describe(_owner(fd))}; wait for it to end or name another "
+                          "folder") from None
+    finally:
+        os.close(fd)
+    return p
+
+
 def release_out_dir(out=None) -> None:
     """Release this process's claim on ``out`` (every claim when None); the lock file goes with the last one."""
     keys = list(_HELD) if out is None else [output_path(out)]

@@ -19,7 +19,7 @@ from wbc_jax.campaign.manifest import COMMAND
 from wbc_jax.campaign.size import check_size, memory_need, n_runs_of, own_memories
 from wbc_jax.campaign.spec import Spec
 from wbc_jax.errors import CheckpointError, OutputError, WbcJaxError
-from wbc_jax.io_utils import check_out_dir, claim_out_dir
+from wbc_jax.io_utils import check_not_in_use, check_out_dir, claim_out_dir
 from wbc_jax.rollout import distributed
 
 WRITES = ("results.csv", "manifest.json", "report", "report_error.txt")  # what a campaign writes into DIR
@@ -27,9 +27,11 @@ LARGE_RUNS = 20_000  # from this many runs the setup (design, plans, initial sta
 
 
 def check_outputs(spec: Spec, out, identity: dict, *, resume: bool, force: bool, allow_large: bool,
-                  inputs: tuple, backend_flag: str | None, parts: int = 1) -> tuple[Path | None, Path | None]:
+                  inputs: tuple, backend_flag: str | None, parts: int = 1,
+                  claim: bool = True) -> tuple[Path | None, Path | None]:
     """Process 0's output folder and checkpoint folder (None elsewhere), claimed and checked with the spec's size
-    (``parts``: the devices the runs are split over, :func:`wbc_jax.campaign.size.memory_need`).
+    (``parts``: the devices the runs are split over, :func:`wbc_jax.campaign.size.memory_need`). ``claim``:
+    False checks that no other command holds the folder without claiming it (a dry run: nothing is created).
 
     Raises:
         OutputError: DIR in use, unusable, or a checkpoint of finished chunks without ``resume`` or ``force``.
@@ -39,7 +41,7 @@ def check_outputs(spec: Spec, out, identity: dict, *, resume: bool, force: bool,
     out_p = ck = problem = None
     try:  # process 0's output folder and checkpoint (the others write nothing and read neither)
         if distributed.is_writer():
-            claim_out_dir(out, COMMAND)
+            claim_out_dir(out, COMMAND) if claim else check_not_in_use(out)
             out_p = check_out_dir(out, COMMAND, force=force, inputs=[spec.path, *inputs], writes=WRITES)
             ck = checkpoint.ckpt_dir(out_p)
             meta = checkpoint.peek(ck)

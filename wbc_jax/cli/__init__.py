@@ -160,7 +160,8 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
 
         load_spec(args.spec)
     stage("loading JAX, MuJoCo MJX and the controllers")
-    _join_processes(args)
+    if not args.dry_run:  # a dry run checks this process's devices alone
+        _join_processes(args)
     jaxcfg.start_backend()  # the device's client starts while MJX imports
     from wbc_jax.campaign.runner import run_campaign
 
@@ -170,8 +171,15 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
 
         gains = load_gains(args.gains)  # validated before anything runs or is written
         print(f"gains from {args.gains}", flush=True)
+    inputs = (args.gains,) if args.gains else ()
+    if args.dry_run:
+        from wbc_jax.campaign.dry_run import dry_run
+
+        dry_run(args.spec, args.out, resume=args.resume, force=args.force, allow_large=args.allow_large, gains=gains,
+                inputs=inputs, backend=args.backend)
+        return 0
     run_campaign(args.spec, args.out, resume=args.resume, report=not args.no_report, gains=gains, force=args.force,
-                 allow_large=args.allow_large, inputs=(args.gains,) if args.gains else (), backend=args.backend)
+                 allow_large=args.allow_large, inputs=inputs, backend=args.backend)
     return 0
 
 

@@ -159,6 +159,9 @@ def _add_campaign(sub) -> argparse.ArgumentParser:
     _backend_flag(c, "the spec's campaign.backend")
     c.add_argument("--allow-large", action="store_true", help="run even when the memory estimate of the batch "
                                                               "exceeds the available memory")
+    c.add_argument("--dry-run", action="store_true", help="check everything the campaign checks and print what it "
+                                                          "would simulate (runs, chunks, steps, memory, --out); "
+                                                          "nothing is compiled, simulated or written")
     _process_flags(c)
     return c
 

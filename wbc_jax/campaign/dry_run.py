@@ -1,0 +1,107 @@
+"""``wbc-jax campaign --dry-run``: what a campaign would simulate, and whether it would start, without running it.
+
+The same checks as the campaign's, in the same order (the spec, the gains, the output folder and its checkpoint, the
+batch's size against this machine's memory, the horizon), then the batch built with its plans but not its initial
+states (:func:`wbc_jax.campaign.build.build_ahead`), so that the figures are the run's own: runs, chunks, simulated
+time, physics steps. Nothing is compiled or simulated; nothing is written (the output folder is checked, not
+claimed). A campaign that would be refused raises the error the campaign would.
+"""
+
+from __future__ import annotations
+
+import jax
+
+from wbc_jax.campaign import checkpoint, preflight
+from wbc_jax.campaign import gains as gains_mod
+from wbc_jax.campaign.build import (
+    LOG_EVERY,
+    backend_of,
+    build_ahead,
+    check_horizon,
+    check_qp,
+    has_accelerator,
+    sensing_of,
+    with_backend,
+)
+from wbc_jax.campaign.manifest import run_identity
+from wbc_jax.campaign.progress import stage
+from wbc_jax.campaign.resume import kept
+from wbc_jax.campaign.size import memory_need, own_memories
+from wbc_jax.campaign.spec import default_spec_path, load_spec
+from wbc_jax.rollout.spread import choose
+
+
+def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = False, allow_large: bool = False,
+            gains=None, inputs: tuple = (), backend: str | None = None) -> dict:
+    """Check a campaign as ``wbc_jax.campaign.runner.run_campaign`` would with these arguments, print what it would
+    run, and return it.
+
+    Returns:
+        dict: ``spec``, ``name``, ``runs``, ``cells``, ``reps``, ``factors`` ({name: levels}), ``controller``,
+        ``scene``, ``backend`` (the physics), ``device``, ``seconds`` (simulated per run [s]), ``chunks``,
+        ``chunk_seconds`` [s], ``physics_steps`` (per run), ``env_steps`` (all runs), ``memory_bytes`` (a device's
+        estimate), ``available_bytes`` (None where unknown), ``out`` (the folder), ``out_state`` ("new",
+        "replaced": an earlier campaign replaced with ``force``, "resumed"), ``chunks_done`` (kept in the
+        checkpoint and not simulated again), ``checkpoint`` (with ``resume`` and none to resume: where none was
+        found; else None).
+
+    Raises:
+        SpecError, OutputError, CheckpointError, LimitError: what the campaign would raise, before it compiled.
+    """
+    spec_path = spec_path if spec_path is not None else default_spec_path(has_accelerator())
+    spec = with_backend(load_spec(spec_path), backend)
+    physics = backend_of(spec)
+    sensing_of(spec)
+    check_qp(spec)
+    gains_mod.check_design(spec, gains)
+    parts = choose(physics).parts
+    identity = run_identity(spec, gains, backend=physics)
+    out_p, ck = preflight.check_outputs(spec, out, identity, resume=resume,
+                                        force=force, allow_large=allow_large, inputs=inputs, backend_flag=backend,
+                                        parts=parts, claim=False)
+    for line in preflight.notes(spec, physics, allow_large, parts):
+        if line.startswith(("warning:", "note:")):
+            print(line, flush=True)
+    stage(f"planning the runs of {spec.path} (nothing is simulated or written)")
+    built, _ = build_ahead(spec, gains)
+    check_horizon(spec, built)
+    done = 0
+    if resume and checkpoint.read_meta(ck, identity, built.n_chunks, built.logs_per_chunk) is not None:
+        done = kept(ck)[0]
+    sim, n = built.sim, built.design.n
+    chunk_s = built.logs_per_chunk * LOG_EVERY * sim.dt_control
+    steps = int(round(built.n_chunks * chunk_s / sim.dt_physics))
+    need, avail = memory_need(spec, parts)
+    earlier = out_p is not None and out_p.is_dir() and any(out_p.iterdir())
+    plan = dict(spec=spec.path, name=spec.campaign["name"], runs=n, cells=n // spec.reps, reps=spec.reps,
+                factors={k: list(v) for k, v in spec.factors.items()},
+                controller=spec.plugin.get("class", spec.campaign["controller"]), scene=spec.campaign["scene"],
+                backend=physics, device=jax.devices()[0].device_kind, seconds=built.n_chunks * chunk_s,
+                chunks=built.n_chunks, chunk_seconds=chunk_s, physics_steps=steps, env_steps=steps * n,
+                memory_bytes=need, available_bytes=avail, out=str(out_p if out_p is not None else out),
+                out_state="resumed" if done else "replaced" if earlier else "new", chunks_done=done,
+                checkpoint=str(ck) if resume and not done else None)
+    for line in describe(plan, per_device=own_memories(parts) > 1, dt_physics=sim.dt_physics):
+        print(line, flush=True)
+    return plan
+
+
+def describe(plan: dict, per_device: bool = False, dt_physics: float | None = None) -> list[str]:
+    """The dry run's lines for a :func:`dry_run` result."""
+    levels = "; ".join(f"{k} = {', '.join(str(v) for v in vals)}" for k, vals in plan["factors"].items())
+    step = f" of {dt_physics * 1e3:g} ms" if dt_physics else ""
+    memory = f"about {plan['memory_bytes'] / 2**30:,.2f} GiB" + (" per device" if per_device else "")
+    if plan["available_bytes"]:
+        memory += f" of {plan['available_bytes'] / 2**30:,.1f} GiB available"
+    where = {"new": "a new folder" + (f"; no checkpoint at {plan['checkpoint']}: starts from the beginning"
+                                      if plan.get("checkpoint") else ""),
+             "replaced": "holds an earlier campaign, which --force replaces",
+             "resumed": f"resumes after {plan['chunks_done']} of {plan['chunks']} chunks (--resume)"}[plan["out_state"]]
+    return [f"dry run of campaign {plan['name']!r} ({plan['spec']}): nothing is simulated or written",
+            f"  {plan['runs']:,} runs = {plan['cells']} cells x {plan['reps']} reps; {levels}",
+            f"  each run {plan['seconds']:.2f} s simulated in {plan['chunks']} chunks of {plan['chunk_seconds']:.2f} s "
+            f"({plan['physics_steps']:,} physics steps{step}); {plan['env_steps']:,} env-steps in all",
+            f"  controller {plan['controller']}, scene {plan['scene']}, physics {plan['backend']} on "
+            f"{plan['device']}; memory {memory}",
+            f"  --out {plan['out']}: {where}",
+            "the campaign would start: the same command without --dry-run runs it"]
