@@ -107,3 +107,17 @@ def test_python_dry_run(tiny_spec, tmp_path):
 
     plan = wbc_jax.run_campaign(tiny_spec, tmp_path / "camp", dry_run=True, report=False, progress=False)
     assert plan["runs"] == load_spec(tiny_spec).reps * plan["cells"] and os.listdir(tmp_path) == []
+
+
+def test_processes_to_come_are_counted_not_joined(tiny_spec, tmp_path, monkeypatch):
+    import jax
+
+    from wbc_jax.campaign import dry_run as dry_run_mod
+
+    parts = dry_run_mod._parts
+    assert [parts(1, "warp", 4), parts(2, "jax", 4), parts(3, "jax", 1)] == [4, 8, 3]  # blocks; a mesh; one process
+    seen = {}
+    monkeypatch.setattr(dry_run_mod, "memory_need", lambda spec, parts: (seen.setdefault("parts", parts), None))
+    argv = ["campaign", "--spec", str(tiny_spec), "--out", str(tmp_path / "c"), "--dry-run", "--backend", "jax",
+            "--num-processes", "3", "--process-id", "0", "--coordinator", "localhost:1"]
+    assert cli.main(argv) == 0 and seen["parts"] == 3 * jax.local_device_count() and jax.process_count() == 1

@@ -32,15 +32,17 @@ from wbc_jax.rollout.spread import choose
 
 
 def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = False, allow_large: bool = False,
-            gains=None, inputs: tuple = (), backend: str | None = None) -> dict:
+            gains=None, inputs: tuple = (), backend: str | None = None, processes: int = 1) -> dict:
     """Check a campaign as ``wbc_jax.campaign.runner.run_campaign`` would with these arguments, print what it would
-    run, and return it.
+    run, and return it. ``processes``: the processes the campaign will run as (``--num-processes``, SLURM's tasks),
+    each with this process's devices; the dry run itself joins none.
 
     Returns:
         dict: ``spec``, ``name``, ``runs``, ``cells``, ``reps``, ``factors`` ({name: levels}), ``controller``,
         ``scene``, ``backend`` (the physics), ``device``, ``seconds`` (simulated per run [s]), ``chunks``,
         ``chunk_seconds`` [s], ``physics_steps`` (per run), ``env_steps`` (all runs), ``memory_bytes`` (a device's
-        estimate), ``available_bytes`` (None where unknown), ``out`` (the folder), ``out_state`` ("new",
+        estimate), ``available_bytes`` (None where unknown; this machine's), ``parts`` (the devices the runs are
+        split over), ``out`` (the folder), ``out_state`` ("new",
         "replaced": an earlier campaign replaced with ``force``, "resumed"), ``chunks_done`` (kept in the
         checkpoint and not simulated again), ``checkpoint`` (with ``resume`` and none to resume: where none was
         found; else None).
@@ -54,7 +56,7 @@ def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = F
     sensing_of(spec)
     check_qp(spec)
     gains_mod.check_design(spec, gains)
-    parts = choose(physics).parts
+    parts = _parts(choose(physics).parts, physics, processes)
     identity = run_identity(spec, gains, backend=physics)
     out_p, ck = preflight.check_outputs(spec, out, identity, resume=resume,
                                         force=force, allow_large=allow_large, inputs=inputs, backend_flag=backend,
@@ -78,7 +80,7 @@ def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = F
                 controller=spec.plugin.get("class", spec.campaign["controller"]), scene=spec.campaign["scene"],
                 backend=physics, device=jax.devices()[0].device_kind, seconds=built.n_chunks * chunk_s,
                 chunks=built.n_chunks, chunk_seconds=chunk_s, physics_steps=steps, env_steps=steps * n,
-                memory_bytes=need, available_bytes=avail, out=str(out_p if out_p is not None else out),
+                memory_bytes=need, available_bytes=avail, parts=parts, out=str(out_p if out_p is not None else out),
                 out_state="resumed" if done else "replaced" if earlier else "new", chunks_done=done,
                 checkpoint=str(ck) if resume and not done else None)
     for line in describe(plan, per_device=own_memories(parts) > 1, dt_physics=sim.dt_physics):
@@ -86,13 +88,23 @@ def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = F
     return plan
 
 
+def _parts(local: int, physics: str, processes: int) -> int:
+    """The devices a campaign of ``processes`` processes splits its runs over (``wbc_jax.rollout.spread``): on Warp
+    physics one block per process, on JAX physics one mesh over every process's devices (``local`` each)."""
+    if processes <= 1:
+        return local
+    return processes if physics == "warp" else processes * local
+
+
 def describe(plan: dict, per_device: bool = False, dt_physics: float | None = None) -> list[str]:
     """The dry run's lines for a :func:`dry_run` result."""
     levels = "; ".join(f"{k} = {', '.join(str(v) for v in vals)}" for k, vals in plan["factors"].items())
     step = f" of {dt_physics * 1e3:g} ms" if dt_physics else ""
-    memory = f"about {plan['memory_bytes'] / 2**30:,.2f} GiB" + (" per device" if per_device else "")
+    memory = f"about {plan['memory_bytes'] / 2**30:,.2f} GiB"
+    if per_device:
+        memory += f" on each of {plan['parts']} devices"
     if plan["available_bytes"]:
-        memory += f" of {plan['available_bytes'] / 2**30:,.1f} GiB available"
+        memory += f", {plan['available_bytes'] / 2**30:,.1f} GiB available"
     where = {"new": "a new folder" + (f"; no checkpoint at {plan['checkpoint']}: starts from the beginning"
                                       if plan.get("checkpoint") else ""),
              "replaced": "holds an earlier campaign, which --force replaces",

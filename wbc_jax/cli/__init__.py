@@ -172,11 +172,12 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
         gains = load_gains(args.gains)  # validated before anything runs or is written
         print(f"gains from {args.gains}", flush=True)
     inputs = (args.gains,) if args.gains else ()
-    if args.dry_run:
+    if args.dry_run:  # the processes the campaign will run as, from the flags or the environment, not joined
         from wbc_jax.campaign.dry_run import dry_run
 
+        layout = distributed.resolve(args.coordinator, args.num_processes, args.process_id, args.local_device_ids)
         dry_run(args.spec, args.out, resume=args.resume, force=args.force, allow_large=args.allow_large, gains=gains,
-                inputs=inputs, backend=args.backend)
+                inputs=inputs, backend=args.backend, processes=layout.num_processes if layout else 1)
         return 0
     run_campaign(args.spec, args.out, resume=args.resume, report=not args.no_report, gains=gains, force=args.force,
                  allow_large=args.allow_large, inputs=inputs, backend=args.backend)
