@@ -52,7 +52,7 @@ def test_cli_full_report_with_figures(tmp_path):
     p = _cli(csv, out)
     stdout, stderr = p.communicate(timeout=120)
     assert p.returncode == 0, stderr
-    assert {f.name for f in out.iterdir()} == {"report.md", "report.html", "anova.json", "design.csv",
+    assert {f.name for f in out.iterdir()} == {"report.md", "report.html", "anova.json", "anova.tex", "design.csv",
                                               "cell_means.csv", "manifest.json", "figures"}
     pngs = ["means.png", "interactions_R.png", "interactions_T.png", "interactions_S.png", "qq.png",
             "success_levels.png", "success_pairs.png"]

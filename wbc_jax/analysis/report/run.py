@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 
 from wbc_jax.analysis import stats
-from wbc_jax.analysis.report import output
+from wbc_jax.analysis.report import latex, output
 from wbc_jax.analysis.report.campaign_sections import R_PLAN, r_sources
 from wbc_jax.analysis.report.figure_jobs import figure_jobs, success_jobs
 from wbc_jax.analysis.report.inputs import Table, load_table
@@ -74,6 +74,7 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
         "report.md": doc.markdown().encode(),
         "report.html": doc.html(images, title=title(results_csv, table.campaign)).encode(),
         "anova.json": output.dumps(summary).encode(),
+        "anova.tex": latex.document(summary, results_csv).encode(),
         "design.csv": res["design"].to_csv(index=False).encode(),
         "cell_means.csv": res["cell_means"].to_csv(index=False).encode(),
         "manifest.json": output.dumps(manifest).encode(),

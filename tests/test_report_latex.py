@@ -1,0 +1,67 @@
+"""``report/anova.tex``: the ANOVA tables of ``anova.json`` as LaTeX, number for number."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+from test_stats import PLANTED, planted
+
+from wbc_jax.analysis import report
+from wbc_jax.analysis.report import latex
+
+
+def _value(cell: str) -> float | None:
+    """A table cell back to a number: ``$a \\times 10^{k}$`` or a plain decimal, bold or not; None when empty."""
+    cell = re.sub(r"^\\textbf\{(.*)\}$", r"\1", cell.strip())
+    if not cell:
+        return None
+    m = re.fullmatch(r"\$(-?[\d.]+) \\times 10\^\{(-?\d+)\}\$", cell)
+    return float(m.group(1)) * 10.0 ** int(m.group(2)) if m else float(cell)
+
+
+def _tables(tex: str) -> dict[str, list[list[str]]]:
+    out = {}
+    for label, body in re.findall(r"\\label\{tab:anova-(\w+)\}.*?\\midrule\n(.*?)\\bottomrule", tex, re.S):
+        out[label] = [[c.strip() for c in line.removesuffix(r" \\").split(" & ")] for line in body.splitlines()]
+    return out
+
+
+def test_tables_hold_the_json_numbers_and_bold_the_significant_terms(tmp_path):
+    df = planted(seed=5)
+    df.loc[df.index[:3], "success"] = False
+    df["S"] = 2.0 * df["m"] - df["d"]  # zero within-cell variance: no F, p, eta
+    csv = tmp_path / "results.csv"
+    df.to_csv(csv, index=False)
+    summary = report.run_report(str(csv), str(tmp_path / "rep"), figures=False)
+    tex = (tmp_path / "rep" / "anova.tex").read_text()
+    assert json.loads((tmp_path / "rep" / "anova.json").read_text())["metrics"].keys() == summary["metrics"].keys()
+    tables = _tables(tex)
+    assert list(tables) == list(summary["metrics"])
+    for metric, rows in tables.items():
+        ref = summary["metrics"][metric]
+        assert len(rows) == len(ref["anova"])
+        for cells, r in zip(rows, ref["anova"]):
+            assert cells[0].replace(r"\textbf{", "").replace("}", "").replace(r" $\times$ ", ":") == r["source"]
+            for cell, key, rel in zip(cells[1:], ("sum_sq", "df", "mean_sq", "F", "p"), (5e-4, 0, 5e-4, 5e-4, 5e-3)):
+                got, want = _value(cell), r[key]
+                assert (got is None) if want is None else np.isclose(got, want, rtol=rel, atol=0), (metric, key)
+            assert cells[6] == ("" if r["partial_eta_sq"] is None else f"{r['partial_eta_sq']:.3f}".join(
+                [r"\textbf{", "}"] if r["source"] in ref["significant"] else ["", ""]))
+            assert cells[0].startswith(r"\textbf{") == (r["source"] in ref["significant"])
+    assert {row[0] for row in tables["R"] if row[0].startswith(r"\textbf")} >= {rf"\textbf{{{t}}}" for t in PLANTED
+                                                                                 if ":" not in t}
+    assert "F tests unreliable" in tex.split(r"\label{tab:anova-S}")[0].rsplit(r"\caption", 1)[1]
+    assert tex.count(r"\begin{table}") == tex.count(r"\end{table}") == len(summary["metrics"])
+    assert tex.count("{") == tex.count("}") - tex.count(r"\}") + tex.count(r"\{")
+
+
+def test_escaping_and_numbers():
+    assert latex.escape("gain.kp_x & 5% #1 ~$") == r"gain.kp\_x \& 5\% \#1 \textasciitilde{}\$"
+    assert latex.escape("rad²") == "rad$^2$" and latex.escape("s²/m") == "s$^2$/m"
+    assert latex._source("mu:gain.k_p") == r"mu $\times$ gain.k\_p"
+    assert latex.number(156422.1479) == r"$1.564 \times 10^{5}$"
+    assert latex.number(9.1306e-06) == r"$9.131 \times 10^{-6}$"
+    assert latex.number(0.43638) == "0.4364" and latex.number(2.0) == "2" and latex.number(None) == ""
+    assert latex.number(float("nan")) == "" and latex.number(0.0016096, 3) == "0.00161"
