@@ -42,10 +42,9 @@ def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = F
         ``scene``, ``backend`` (the physics), ``device``, ``seconds`` (simulated per run [s]), ``chunks``,
         ``chunk_seconds`` [s], ``physics_steps`` (per run), ``env_steps`` (all runs), ``memory_bytes`` (a device's
         estimate), ``available_bytes`` (None where unknown; this machine's), ``parts`` (the devices the runs are
-        split over), ``out`` (the folder), ``out_state`` ("new",
-        "replaced": an earlier campaign replaced with ``force``, "resumed"), ``chunks_done`` (kept in the
-        checkpoint and not simulated again), ``checkpoint`` (with ``resume`` and none to resume: where none was
-        found; else None).
+        split over), ``out`` (the folder), ``out_state`` ("new"; "replaced": an earlier campaign replaced with
+        ``force``; "resumed"), ``chunks_done`` (kept in the checkpoint and not simulated again), ``checkpoint``
+        (with ``resume`` and none to resume: where none was found; else None).
 
     Raises:
         SpecError, OutputError, CheckpointError, LimitError: what the campaign would raise, before it compiled.
@@ -58,9 +57,8 @@ def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = F
     gains_mod.check_design(spec, gains)
     parts = _parts(choose(physics).parts, physics, processes)
     identity = run_identity(spec, gains, backend=physics)
-    out_p, ck = preflight.check_outputs(spec, out, identity, resume=resume,
-                                        force=force, allow_large=allow_large, inputs=inputs, backend_flag=backend,
-                                        parts=parts, claim=False)
+    out_p, ck = preflight.check_outputs(spec, out, identity, resume=resume, force=force, allow_large=allow_large,
+                                        inputs=inputs, backend_flag=backend, parts=parts, claim=False)
     for line in preflight.notes(spec, physics, allow_large, parts):
         if line.startswith(("warning:", "note:")):
             print(line, flush=True)
