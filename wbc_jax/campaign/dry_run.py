@@ -42,7 +42,7 @@ def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = F
         ``scene``, ``backend`` (the physics), ``device``, ``seconds`` (simulated per run [s]), ``chunks``,
         ``chunk_seconds`` [s], ``physics_steps`` (per run), ``env_steps`` (all runs), ``memory_bytes`` (a device's
         estimate), ``available_bytes`` (None where unknown; this machine's), ``parts`` (the devices the runs are
-        split over), ``out`` (the folder), ``out_state`` ("new"; "replaced": an earlier campaign replaced with
+        split over), ``out`` (as given), ``out_state`` ("new"; "replaced": an earlier campaign replaced with
         ``force``; "resumed"), ``chunks_done`` (kept in the checkpoint and not simulated again), ``checkpoint``
         (with ``resume`` and none to resume: where none was found; else None).
 
@@ -78,7 +78,7 @@ def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = F
                 controller=spec.plugin.get("class", spec.campaign["controller"]), scene=spec.campaign["scene"],
                 backend=physics, device=jax.devices()[0].device_kind, seconds=built.n_chunks * chunk_s,
                 chunks=built.n_chunks, chunk_seconds=chunk_s, physics_steps=steps, env_steps=steps * n,
-                memory_bytes=need, available_bytes=avail, parts=parts, out=str(out_p if out_p is not None else out),
+                memory_bytes=need, available_bytes=avail, parts=parts, out=str(out),
                 out_state="resumed" if done else "replaced" if earlier else "new", chunks_done=done,
                 checkpoint=str(ck) if resume and not done else None)
     for line in describe(plan, per_device=own_memories(parts) > 1, dt_physics=sim.dt_physics):
