@@ -38,7 +38,7 @@ groups=(
   "substeps factors freeze"
   "course clearance model metrics"
   "qp"
-  "report report_latex cli_docs stats safety"
+  "report report_latex sensitivity cli_docs stats safety"
   "trot_campaign"
 )
 light="reliability planner zmp capture_point interaction kernel_trace snapshots spec_docs packed aot api architecture

@@ -9,9 +9,9 @@ Reads the CSV, checks it, runs :func:`wbc_jax.analysis.stats.analyze`, and write
 - ``report.html``: the same, self-contained (figures embedded as base64 PNG).
 - ``anova.json``: ``metrics`` maps each metric to ``anova`` (a list of rows with keys
   source, sum_sq, df, mean_sq, F, p, partial_eta_sq; the last row is Residual),
-  ``f_tests_reliable``, ``significant``, ``assumptions``, ``simple_effects`` and
-  ``warnings``; plus ``alpha``, ``ss_type``, ``factors`` (levels), table-wide ``warnings``,
-  ``design`` and ``manifest``. NaN is written as null.
+  ``f_tests_reliable``, ``significant``, ``assumptions``, ``simple_effects``, ``warnings`` and ``sensitivity``
+  (the smallest main effect detected with 80 % power, :mod:`wbc_jax.analysis.sensitivity`); plus ``alpha``,
+  ``ss_type``, ``factors`` (levels), table-wide ``warnings``, ``design`` and ``manifest``. NaN is written as null.
 - ``anova.tex``: the ANOVA tables as LaTeX (``booktabs``, one per metric, significant terms bold; :mod:`~.latex`).
 - for a campaign's table with failed runs: a table of them (reason, instant, first non-foot contact) with each
   run's replay command (``wbc-jax replay DIR --run N``, :mod:`~.failed_runs`).

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pandas as pd
 
-from wbc_jax.analysis import interaction
+from wbc_jax.analysis import interaction, sensitivity
 from wbc_jax.analysis.report.document import Doc, fmt
 
 RESULT = {True: "ok", False: "REJECTED (p < {alpha:g})", None: "not run"}  # an assumption test's verdict
@@ -22,6 +22,7 @@ def metric_section(d: Doc, m: str, r: dict, level_means: pd.DataFrame, alpha: fl
             + ". F, p and partial eta squared are omitted below (anova.json keeps the raw numbers).")
     d.h(3, f"ANOVA (type {fit.ss_type} SS)")
     d.table(_anova_table(fit, r["significant"]))
+    _sensitivity(d, fit, level_means, alpha)
     d.h(3, "Assumptions")
     d.table(pd.DataFrame([{
         "test": a["test"], "assumption": a["assumption"], "statistic": fmt(a["statistic"]), "p": fmt(a["p"], ".3g"),
@@ -42,6 +43,20 @@ def metric_section(d: Doc, m: str, r: dict, level_means: pd.DataFrame, alpha: fl
     lm = level_means
     d.table(pd.DataFrame({"factor": lm["factor"], "level": lm["level"].map(lambda v: fmt(v, "g")),
                           "mean": lm["mean"].map(fmt), "SD": lm["sd"].map(fmt), "n": lm["n"]}))
+
+
+def _sensitivity(d: Doc, fit, level_means: pd.DataFrame, alpha: float) -> None:
+    """The smallest main effects the F tests detect with :data:`wbc_jax.analysis.sensitivity.POWER` probability
+    (factors with the same range shown together)."""
+    by_range: dict[str, list[str]] = {}
+    for f, v in sensitivity.main_effect_ranges(fit, level_means, alpha).items():
+        if v is not None:
+            by_range.setdefault(fmt(v), []).append(f)
+    if by_range:
+        d.p(f"Sensitivity: at alpha = {alpha:g}, with this MSE and n, the F test detects a main effect with "
+            f"{sensitivity.POWER * 100:g} % probability when two of its level means are at least "
+            + "; ".join(f"{v} apart ({', '.join(fs)})" for v, fs in by_range.items())
+            + ", the others between them; a smaller effect may go undetected.")
 
 
 def _anova_table(fit, significant: list[str]) -> pd.DataFrame:

@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
-from wbc_jax.analysis import interaction, stats
+from wbc_jax.analysis import interaction, sensitivity, stats
 from wbc_jax.errors import WbcJaxError
 from wbc_jax.io_utils import atomic_dir
 from wbc_jax.version import __version__
@@ -62,6 +62,8 @@ def summary(res: dict, data: pd.DataFrame, factors, alpha: float, manifest: dict
             "simple_effects": r["simple_effects"],
             "interaction_shapes": interaction.shapes(r["emms"]),
             "warnings": r["warnings"],
+            "sensitivity": {"power": sensitivity.POWER, "main_effect_range": sensitivity.main_effect_ranges(
+                fit, res["level_means"][res["level_means"]["metric"] == m], alpha)},
         }
     return {
         "schema": SCHEMA, "alpha": alpha, "ss_type": manifest["ss_type"],

@@ -1,0 +1,103 @@
+"""wbc_jax.analysis.sensitivity against statsmodels' ANOVA power and a Monte Carlo of the report's own F test."""
+
+from __future__ import annotations
+
+import itertools
+import json
+
+import numpy as np
+import pytest
+from scipy import stats as sps
+from statsmodels.stats.power import FTestAnovaPower
+from test_stats import LEVELS, design, planted
+
+from wbc_jax.analysis import report, sensitivity, stats
+
+
+@pytest.mark.parametrize("f,nobs,k,alpha", [(0.25, 60, 3, 0.05), (0.1, 300, 4, 0.01), (0.5, 20, 2, 0.1)])
+def test_power_equals_statsmodels_one_way(f, nobs, k, alpha):
+    # one-way ANOVA: noncentrality nobs * f^2, df (k - 1, nobs - k)
+    want = FTestAnovaPower().power(effect_size=f, nobs=nobs, alpha=alpha, k_groups=k)
+    assert sensitivity.power(nobs * f * f, k - 1, nobs - k, alpha) == pytest.approx(want, rel=1e-10)
+    lam = sensitivity.noncentrality(0.8, k - 1, nobs - k, alpha)
+    f_needed = FTestAnovaPower().solve_power(effect_size=None, nobs=nobs, alpha=alpha, k_groups=k, power=0.8)
+    assert np.sqrt(lam / nobs) == pytest.approx(f_needed, rel=1e-6)
+
+
+def test_detected_at_the_stated_rate_by_the_reports_f_test():
+    """The paper's 3 x 3 x 3 design, 3 runs per cell, the report's model (main effects + two-way interactions),
+    noise SD 1: an m effect of exactly the detectable range (levels -r/2, 0, +r/2) is found in 80 % of data sets."""
+    reps, sims, alpha = 3, 4000, 0.05
+    df = design(reps=reps)
+    n = len(df)
+    k = len(LEVELS["m"])
+    # the report's fit of one data set: its residual df and its F for m, reproduced by the projection below
+    one = planted(seed=1, reps=reps)
+    res = stats.analyze(stats.prepare(one, list(LEVELS), ["R"]), list(LEVELS), ["R"], alpha=alpha)
+    fit = res["metrics"]["R"]["fit"]
+    r = sensitivity.detectable_range(k, n, fit.df_resid, 1.0, alpha)
+    x = _two_way_design(df)
+    resid = np.eye(n) - x @ np.linalg.pinv(x)
+    m_idx = df["m"].map({v: i for i, v in enumerate(LEVELS["m"])}).to_numpy()
+    f_m = lambda y: _f_main(y, m_idx, k, resid, fit.df_resid)  # noqa: E731
+    table = fit.table.set_index("source")
+    assert f_m(one["R"].to_numpy()[:, None])[0] == pytest.approx(table.loc["m", "F"], rel=1e-9)
+    rng = np.random.default_rng(7)
+    y = np.array([-r / 2, 0.0, r / 2])[m_idx][:, None] + rng.standard_normal((n, sims))
+    rate = np.mean(f_m(y) > sps.f.isf(alpha, k - 1, fit.df_resid))
+    assert abs(rate - sensitivity.POWER) < 3.5 * np.sqrt(0.8 * 0.2 / sims), rate
+
+
+def _two_way_design(df):
+    """Sum-to-zero coded design matrix of main effects and two-way interactions (n x 19)."""
+    cols = {}
+    for f, levels in LEVELS.items():
+        idx = df[f].map({v: i for i, v in enumerate(levels)}).to_numpy()
+        cols[f] = [np.where(idx == j, 1.0, 0.0) - np.where(idx == len(levels) - 1, 1.0, 0.0)
+                   for j in range(len(levels) - 1)]
+    parts = [np.ones(len(df))] + [c for f in LEVELS for c in cols[f]]
+    for a, b in itertools.combinations(LEVELS, 2):
+        parts += [ca * cb for ca in cols[a] for cb in cols[b]]
+    return np.column_stack(parts)
+
+
+def _f_main(y, idx, k, resid, df2):
+    """F of a main effect in a balanced design, column by column of y (n x sims)."""
+    grand = y.mean(axis=0)
+    means = np.stack([y[idx == i].mean(axis=0) for i in range(k)])
+    ss = (len(y) / k) * ((means - grand) ** 2).sum(axis=0)
+    sse = ((resid @ y) ** 2).sum(axis=0)
+    return (ss / (k - 1)) / (sse / df2)
+
+
+def test_the_report_states_its_sensitivity(tmp_path):
+    df = planted(seed=3)
+    df["S"] = 2.0 * df["m"] - df["d"]  # deterministic: unreliable F tests, no sensitivity
+    csv = tmp_path / "results.csv"
+    df.to_csv(csv, index=False)
+    report.run_report(str(csv), str(tmp_path / "rep"), figures=False)
+    summary = json.loads((tmp_path / "rep" / "anova.json").read_text())
+    r = summary["metrics"]["R"]
+    ranges = r["sensitivity"]["main_effect_range"]
+    assert list(ranges) == list(LEVELS) and r["sensitivity"]["power"] == sensitivity.POWER
+    want = sensitivity.detectable_range(3, r["n"], r["df_resid"], r["mse"], summary["alpha"])
+    assert all(v == pytest.approx(want, rel=1e-12) for v in ranges.values())
+    assert summary["metrics"]["S"]["sensitivity"]["main_effect_range"] == {}
+    md = (tmp_path / "rep" / "report.md").read_text()
+    section_r = md.split("## Metric R")[1].split("## Metric")[0]
+    assert "Sensitivity: at alpha = 0.05" in section_r and f"{want:.4g} apart (m, mu, d)" in section_r
+    assert "Sensitivity" not in md.split("## Metric S")[1].split("## Cell means")[0]
+
+
+def test_no_power_to_speak_of_and_bad_targets():
+    assert sensitivity.detectable_range(1, 10, 5, 1.0, 0.05) is None
+    assert sensitivity.detectable_range(3, 10, 0, 1.0, 0.05) is None
+    assert sensitivity.detectable_range(3, 10, 5, 0.0, 0.05) is None
+    assert sensitivity.detectable_range(3, 10, 5, float("nan"), 0.05) is None
+    assert sensitivity.power(0.0, 2, 10, 0.05) == 0.05
+    with pytest.raises(ValueError, match="alpha < power < 1"):
+        sensitivity.noncentrality(0.04, 2, 10, 0.05)
+    # a larger MSE or fewer runs: a larger range needed; a larger alpha: a smaller one
+    base = sensitivity.detectable_range(3, 81, 62, 1.0, 0.05)
+    assert sensitivity.detectable_range(3, 81, 62, 4.0, 0.05) == pytest.approx(2 * base, rel=1e-9)
+    assert sensitivity.detectable_range(3, 27, 8, 1.0, 0.05) > base > sensitivity.detectable_range(3, 81, 62, 1.0, 0.1)
