@@ -101,3 +101,21 @@ def test_no_power_to_speak_of_and_bad_targets():
     base = sensitivity.detectable_range(3, 81, 62, 1.0, 0.05)
     assert sensitivity.detectable_range(3, 81, 62, 4.0, 0.05) == pytest.approx(2 * base, rel=1e-9)
     assert sensitivity.detectable_range(3, 27, 8, 1.0, 0.05) > base > sensitivity.detectable_range(3, 81, 62, 1.0, 0.1)
+
+
+def test_success_rate_intervals_are_clopper_pearson():
+    import pandas as pd
+    from statsmodels.stats.proportion import proportion_confint
+
+    from wbc_jax.analysis import success
+
+    k, n = np.array([0, 3, 17, 90, 5]), np.array([10, 20, 18, 90, 0])
+    low, high = success.interval(k, n)
+    for i in range(4):
+        want = proportion_confint(k[i], n[i], alpha=0.05, method="beta")
+        assert (low[i], high[i]) == pytest.approx(want, abs=1e-12)
+    assert low[3] == pytest.approx(0.025 ** (1 / 90), rel=1e-12)  # no failure in 90 runs: rate >= 96.0 %
+    assert np.isnan(low[4]) and np.isnan(high[4])
+    df = pd.DataFrame({"v": ["a"] * 90 + ["b"] * 10, "success": [True] * 90 + [True] * 7 + [False] * 3})
+    t = success.by_level(df, ["v"]).set_index("level")
+    assert t.loc["a", "ci_low"] == pytest.approx(low[3]) and t.loc["b", "ci_high"] < 1.0

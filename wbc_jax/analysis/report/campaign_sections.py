@@ -24,11 +24,16 @@ def success_sections(d: Doc, extra: dict, factors, alpha: float) -> None:
     """The report's success-rate tables and, for an ablation factor, the comparisons with the reference."""
     d.h(2, "Success rate (all runs)")
     d.p("Share of runs with success = True per factor level and per pair of factors, pooled over the other "
-        "factors and the repetitions (failed runs included; cells: successes/runs (rate)).")
+        "factors and the repetitions (failed runs included; cells: successes/runs (rate)); "
+        f"{success.CONFIDENCE * 100:g} % interval: Clopper-Pearson (exact binomial), so 0 failures in n runs still "
+        "bounds the failure rate.")
     lv = extra["by_level"]
     d.table(pd.DataFrame({"factor": lv["factor"], "level": lv["level"].map(lambda v: fmt(v, "g")),
                           "successes/runs": [f"{s}/{n}" for s, n in zip(lv["successes"], lv["runs"])],
-                          "rate [%]": (100 * lv["rate"]).map(lambda v: fmt(v, ".1f"))}))
+                          "rate [%]": (100 * lv["rate"]).map(lambda v: fmt(v, ".1f")),
+                          f"{success.CONFIDENCE * 100:g} % interval [%]": [
+                              "" if n == 0 else f"{100 * a:.1f}-{100 * b:.1f}"
+                              for a, b, n in zip(lv["ci_low"], lv["ci_high"], lv["runs"])]}))
     for (a, b), t in extra["by_pair"].items():
         d.h(3, f"{a} × {b}")
         d.table(success.wide(t, a, b, fmt=lambda v: fmt(v, "g")))
