@@ -290,6 +290,11 @@ def _describe(owner: dict) -> str:
             f"since {owner.get('started', '?')})")
 
 
+def _in_use(out, fd: int) -> OutputError:
+    """The refusal of ``--out out`` whose lock (open as ``fd``) another command holds, naming it."""
+    return OutputError(f"--out {out}: in use by {_describe(_owner(fd))}; wait for it to end or name another folder")
+
+
 def claim_out_dir(out, command: str) -> Path:
     """Make this process the one command writing ``out`` (a second claim by this process is a no-op); return the
     output folder. A lock left by a process that ended without releasing it is taken over, with a note on stdout.
@@ -311,11 +316,10 @@ def claim_out_dir(out, command: str) -> Path:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
-            owner = _owner(fd)
+            err = _in_use(out, fd)
             os.close(fd)
             _remove_empty(made)
-            raise OutputError(f"--out {out}: in use by {_describe(owner)}; wait for it to end or name another "
-                              "folder") from None
+            raise err from None
         try:  # the owner may have removed the file between our open and our lock: lock the current one
             if os.stat(path).st_ino == os.fstat(fd).st_ino:
                 break
@@ -349,8 +353,7 @@ def check_not_in_use(out) -> Path:
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except OSError:
-        raise OutputError(f"--out {out}: in use by {_describe(_owner(fd))}; wait for it to end or name another "
-                          "folder") from None
+        raise _in_use(out, fd) from None
     finally:
         os.close(fd)
     return p
