@@ -119,3 +119,48 @@ def test_success_rate_intervals_are_clopper_pearson():
     df = pd.DataFrame({"v": ["a"] * 90 + ["b"] * 10, "success": [True] * 90 + [True] * 7 + [False] * 3})
     t = success.by_level(df, ["v"]).set_index("level")
     assert t.loc["a", "ci_low"] == pytest.approx(low[3]) and t.loc["b", "ci_high"] < 1.0
+
+
+@pytest.mark.parametrize("n,alpha", [(16, 0.05), (45, 0.025), (8, 0.1)])
+def test_welch_difference_equals_statsmodels_with_equal_samples(n, alpha):
+    # equal sizes and SDs: Welch's df is n_a + n_b - 2 and its noncentrality Student's, so statsmodels' two-sample t
+    # power applies exactly (effect size = difference / SD)
+    from statsmodels.stats.power import TTestIndPower
+
+    sd = 0.7
+    d = TTestIndPower().solve_power(effect_size=None, nobs1=n, alpha=alpha, power=0.8, ratio=1.0)
+    assert sensitivity.detectable_difference(sd, n, sd, n, alpha) == pytest.approx(d * sd, rel=1e-6)
+
+
+def test_welch_difference_detected_at_the_stated_rate():
+    """Unequal sizes and SDs (Welch's df is not n_a + n_b - 2): scipy's Welch test on 6,000 pairs of samples whose
+    means differ by the detectable difference rejects 80 % of the time."""
+    n_a, n_b, sd_a, sd_b, alpha, sims = 12, 30, 2.0, 0.5, 0.05 / 3, 6000
+    diff = sensitivity.detectable_difference(sd_a, n_a, sd_b, n_b, alpha)
+    rng = np.random.default_rng(3)
+    a = diff + sd_a * rng.standard_normal((sims, n_a))
+    b = sd_b * rng.standard_normal((sims, n_b))
+    rate = np.mean(sps.ttest_ind(a, b, axis=1, equal_var=False).pvalue < alpha)
+    assert abs(rate - sensitivity.POWER) < 3.5 * np.sqrt(0.8 * 0.2 / sims), rate
+    assert sensitivity.detectable_difference(0.0, 5, 0.0, 5, 0.05) is None
+    assert sensitivity.detectable_difference(1.0, 1, 1.0, 5, 0.05) is None
+
+
+def test_the_ablation_states_what_it_would_have_found(tmp_path):
+    import pandas as pd
+    from test_factors import _ablation_table
+
+    df = _ablation_table()
+    df.to_csv(tmp_path / "results.csv", index=False)
+    out = report.run_report(str(tmp_path / "results.csv"), str(tmp_path / "rep"), factors=["variant", "mu"],
+                            figures=False)
+    t = pd.DataFrame(out["ablation"])
+    r = t[(t.metric == "R") & (t.test == "Welch t (mean)")].iloc[0]
+    ok = df["success"]
+    a = df.loc[ok & (df.variant == "no_tray_cone"), "R"].to_numpy()
+    b = df.loc[ok & (df.variant == "full"), "R"].to_numpy()
+    want = sensitivity.detectable_difference(a.std(ddof=1), len(a), b.std(ddof=1), len(b), 0.05)  # one level: k = 1
+    assert not r["differs"] and r["detectable"] == pytest.approx(want, rel=1e-12)
+    assert t.loc[t.test != "Welch t (mean)", "detectable"].isna().all()
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "no significant change in R (" in md and f"a mean difference of {want:.3g} or more would be found" in md

@@ -23,7 +23,7 @@ REFERENCE = {"variant": "full", "observer": 1}
 METRICS = ("max_slip_mm", "R")
 NAMES = {"max_slip_mm": "max slip [mm]", "R": "R", "success": "success"}
 COLUMNS = ["factor", "level", "reference", "metric", "test", "n", "n_ref", "value", "value_ref", "statistic", "p",
-           "p_bonf", "differs"]
+           "detectable", "p_bonf", "differs"]
 
 
 def ablation_factors(df: pd.DataFrame, factors) -> list[str]:
@@ -66,7 +66,10 @@ def compare(df: pd.DataFrame, factors, alpha: float = 0.05) -> pd.DataFrame:
     Returns:
         One row per (factor, level, metric, test), columns :data:`COLUMNS`: n and n_ref the runs compared
         (successful ones for a metric, all for success), value / value_ref the mean, median or success rate,
-        statistic (t, U or the odds ratio), p, p_bonf and ``differs`` (p_bonf < alpha).
+        statistic (t, U or the odds ratio), p, ``detectable`` (Welch rows: the smallest mean difference the test
+        detects with 80 % probability at the Bonferroni-adjusted level, from the samples' sizes and SDs,
+        :func:`wbc_jax.analysis.sensitivity.detectable_difference`; NaN elsewhere), p_bonf and ``differs``
+        (p_bonf < alpha).
     """
     from scipy import stats as sps
 
@@ -83,12 +86,13 @@ def compare(df: pd.DataFrame, factors, alpha: float = 0.05) -> pd.DataFrame:
                 a, b = y[in_lv & ok], y[in_ref & ok]
                 a, b = a[np.isfinite(a)], b[np.isfinite(b)]
                 for test, v, v_ref, stat, p in _continuous(a, b):
-                    rows.append([f, lv, ref, m, test, len(a), len(b), v, v_ref, stat, p])
+                    rows.append([f, lv, ref, m, test, len(a), len(b), v, v_ref, stat, p,
+                                 _detectable(a, b, alpha / len(others)) if test.startswith("Welch") else np.nan])
             s, s_ref = int(ok[in_lv].sum()), int(ok[in_ref].sum())
             n, n_ref = int(in_lv.sum()), int(in_ref.sum())
             odds, p = sps.fisher_exact([[s, n - s], [s_ref, n_ref - s_ref]])
             rows.append([f, lv, ref, "success", "Fisher exact (rate)", n, n_ref, s / n, s_ref / n_ref, float(odds),
-                         float(p)])
+                         float(p), np.nan])
     out = pd.DataFrame(rows, columns=COLUMNS[:-2])
     k = out.groupby(["factor", "metric", "test"])["level"].transform("size") if len(out) else 0
     out["p_bonf"] = np.minimum(out["p"] * k, 1.0)
@@ -96,8 +100,22 @@ def compare(df: pd.DataFrame, factors, alpha: float = 0.05) -> pd.DataFrame:
     return out
 
 
+def _detectable(a: np.ndarray, b: np.ndarray, alpha: float) -> float:
+    """:func:`wbc_jax.analysis.sensitivity.detectable_difference` of two samples at level ``alpha`` (NaN where
+    none)."""
+    from wbc_jax.analysis.sensitivity import detectable_difference
+
+    if len(a) < 2 or len(b) < 2:
+        return np.nan
+    d = detectable_difference(float(np.std(a, ddof=1)), len(a), float(np.std(b, ddof=1)), len(b), alpha)
+    return np.nan if d is None else d
+
+
 def answers(t: pd.DataFrame, alpha: float) -> list[str]:
-    """One sentence per (factor, level): does it change max slip, R and success, with the tests named."""
+    """One sentence per (factor, level): does it change max slip, R and success, with the tests named (and, where
+    Welch's test finds no change, the difference it would have found)."""
+    from wbc_jax.analysis.sensitivity import POWER
+
     out = []
     for (f, lv), g in t.groupby(["factor", "level"], sort=False):
         parts = []
@@ -105,6 +123,10 @@ def answers(t: pd.DataFrame, alpha: float) -> list[str]:
             tests = "; ".join(f"{r.test}: {r.value:.4g} vs {r.value_ref:.4g}, p = {r.p_bonf:.3g}" if np.isfinite(r.p)
                               else f"{r.test}: not testable (n = {r.n} vs {r.n_ref})" for r in gm.itertuples())
             verdict = "changes" if gm["differs"].any() else "no significant change in"
+            found = gm["detectable"].dropna()
+            if not gm["differs"].any() and len(found):
+                tests += (f"; a mean difference of {found.iloc[0]:.3g} or more would be found with "
+                          f"{POWER * 100:g} % probability")
             parts.append(f"{verdict} {NAMES.get(m, m)} ({tests})")
         ref = g["reference"].iloc[0]
         out.append(f"{f} = {lv} against {f} = {ref}: " + "; ".join(parts)

@@ -61,3 +61,25 @@ def main_effect_ranges(fit, level_means, alpha: float, target: float = POWER) ->
     return {f: detectable_range(int(g["level"].nunique()), int(fit.n), float(fit.df_resid), float(fit.mse), alpha,
                                 target)
             for f, g in with_runs.groupby("factor", sort=False)}
+
+
+def detectable_difference(sd_a: float, n_a: int, sd_b: float, n_b: int, alpha: float,
+                          target: float = POWER) -> float | None:
+    """Smallest difference of two means that Welch's two-sided t test at level ``alpha`` detects with probability
+    ``target``, for samples of sizes ``n_a``, ``n_b`` with SDs ``sd_a``, ``sd_b`` (the observed ones): the
+    statistic is noncentral t with the Welch-Satterthwaite df and noncentrality ``difference / se``,
+    ``se = sqrt(sd_a^2 / n_a + sd_b^2 / n_b)``. None where a sample has fewer than 2 values or neither varies."""
+    if n_a < 2 or n_b < 2 or not (math.isfinite(sd_a) and math.isfinite(sd_b)) or sd_a <= 0 and sd_b <= 0:
+        return None
+    va, vb = sd_a * sd_a / n_a, sd_b * sd_b / n_b
+    df = (va + vb) ** 2 / (va * va / (n_a - 1) + vb * vb / (n_b - 1))
+    crit = sps.t.isf(alpha / 2.0, df)
+
+    def power_t(nc: float) -> float:
+        return float(sps.nct.sf(crit, df, nc) + sps.nct.cdf(-crit, df, nc))
+
+    hi = 1.0
+    while power_t(hi) < target:
+        hi *= 2.0
+    nc = optimize.brentq(lambda x: power_t(x) - target, 0.0, hi, xtol=1e-12, rtol=1e-12)
+    return float(nc * math.sqrt(va + vb))

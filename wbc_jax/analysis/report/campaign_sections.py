@@ -54,6 +54,7 @@ def _ablation_section(d: Doc, t: pd.DataFrame, alpha: float) -> None:
         "test": t["test"], "n": t["n"], "n ref": t["n_ref"], "value": t["value"].map(fmt),
         "ref value": t["value_ref"].map(fmt), "statistic": t["statistic"].map(fmt),
         "p": t["p"].map(lambda v: fmt(v, ".3g")), "p Bonferroni": t["p_bonf"].map(lambda v: fmt(v, ".3g")),
+        "detectable (80 %)": t["detectable"].map(fmt),
         "differs": ["yes" if x else "no" for x in t["differs"]]}))
 
 
