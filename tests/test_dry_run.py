@@ -31,7 +31,8 @@ def test_figures_are_the_campaigns_own_and_nothing_is_written(full_run, tiny_spe
     assert plan["chunks"] == built.n_chunks and plan["out_state"] == "new" and plan["chunks_done"] == 0
     per_chunk = built.logs_per_chunk * LOG_EVERY * built.sim.dt_control
     assert plan["seconds"] == pytest.approx(built.n_chunks * per_chunk)
-    assert plan["physics_steps"] == round(plan["seconds"] / built.sim.dt_physics)  # a hand count of the steps
+    substeps = load_spec(tiny_spec).campaign["control_substeps"]  # the steps the chunks take, counted
+    assert plan["physics_steps"] == built.n_chunks * built.logs_per_chunk * LOG_EVERY * substeps
     assert plan["env_steps"] == plan["physics_steps"] * plan["runs"]
     assert plan["memory_bytes"] == size.memory_need(load_spec(tiny_spec))[0]
     lines = capsys.readouterr().out.splitlines()
@@ -67,6 +68,8 @@ def test_a_checkpoint_needs_resume_and_is_checked(full_run, tiny_spec, tmp_path,
     checkpoint.save_state(ck, {"x": np.zeros(3)}, meta)  # the campaign's writer (a stand-in state)
     with pytest.raises(OutputError, match="1 of .* chunks finished"):
         dry_run(str(tiny_spec), str(out))
+    forced = dry_run(str(tiny_spec), str(out), force=True)  # the campaign would delete them: said, not done
+    assert forced["chunks_discarded"] == 1 and "--force deletes the checkpoint of 1 finished" in capsys.readouterr().out
     plan = dry_run(str(tiny_spec), str(out), resume=True)
     assert plan["out_state"] == "resumed" and plan["chunks_done"] == 1
     assert "resumes after 1 of" in capsys.readouterr().out
@@ -94,7 +97,7 @@ def test_a_folder_in_use_and_a_batch_too_large_are_refused(tiny_spec, tmp_path, 
 def test_cli_dry_run_exit_codes(tiny_spec, tmp_path, capsys):
     out = tmp_path / "camp"
     assert cli.main(["campaign", "--spec", str(tiny_spec), "--out", str(out), "--dry-run"]) == 0
-    assert "nothing is simulated or written" in capsys.readouterr().out and not out.exists()
+    assert "nothing is simulated, nothing written in --out" in capsys.readouterr().out and not out.exists()
     out.mkdir()
     (out / "notes.txt").write_text("mine")
     assert cli.main(["campaign", "--spec", str(tiny_spec), "--out", str(out), "--dry-run", "--force"]) == 2
@@ -115,9 +118,10 @@ def test_processes_to_come_are_counted_not_joined(tiny_spec, tmp_path, monkeypat
     from wbc_jax.campaign import dry_run as dry_run_mod
 
     parts = dry_run_mod._parts
-    assert [parts(1, "warp", 4), parts(2, "jax", 4), parts(3, "jax", 1)] == [4, 8, 3]  # blocks; a mesh; one process
+    assert [parts(1, "warp", 4), parts(2, "jax", 4, 2), parts(3, "jax", 1), parts(1, "jax", 4, 1)] == [4, 8, 3, 4]
     seen = {}
     monkeypatch.setattr(dry_run_mod, "memory_need", lambda spec, parts: (seen.setdefault("parts", parts), None))
     argv = ["campaign", "--spec", str(tiny_spec), "--out", str(tmp_path / "c"), "--dry-run", "--backend", "jax",
             "--num-processes", "3", "--process-id", "0", "--coordinator", "localhost:1"]
-    assert cli.main(argv) == 0 and seen["parts"] == 3 * jax.local_device_count() and jax.process_count() == 1
+    assert cli.main(argv) == 0 and seen.pop("parts") == 3 * jax.local_device_count() and jax.process_count() == 1
+    assert cli.main(argv + ["--local-device-ids", "0,1"]) == 0 and seen["parts"] == 6  # two devices per process

@@ -348,8 +348,10 @@ def check_not_in_use(out) -> Path:
     p = output_path(out)
     try:
         fd = os.open(lock_path(p), os.O_RDONLY)
-    except OSError:  # no lock file: nobody holds the folder
+    except FileNotFoundError:  # no lock file: nobody holds the folder
         return p
+    except OSError as e:
+        raise OutputError(f"--out {out}: cannot read its lock {lock_path(p)} ({e.strerror or e})") from None
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except OSError:

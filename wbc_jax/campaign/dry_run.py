@@ -3,8 +3,10 @@
 The same checks as the campaign's, in the same order (the spec, the gains, the output folder and its checkpoint, the
 batch's size against this machine's memory, the horizon), then the batch built with its plans but not its initial
 states (:func:`wbc_jax.campaign.build.build_ahead`), so that the figures are the run's own: runs, chunks, simulated
-time, physics steps. Nothing is compiled or simulated; nothing is written (the output folder is checked, not
-claimed). A campaign that would be refused raises the error the campaign would.
+time, physics steps. The chunk program is not compiled and nothing is simulated; nothing is written in or beside the
+output folder (it is checked, not claimed). The plans and the planner's small programs go into the compilation cache
+as the campaign's would (its run then loads them). A campaign that would be refused raises the error the campaign
+would.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from wbc_jax.campaign.build import (
 )
 from wbc_jax.campaign.manifest import run_identity
 from wbc_jax.campaign.progress import stage
+from wbc_jax.campaign.results import zero_noise_warning
 from wbc_jax.campaign.resume import kept
 from wbc_jax.campaign.size import memory_need, own_memories
 from wbc_jax.campaign.spec import default_spec_path, load_spec
@@ -32,10 +35,11 @@ from wbc_jax.rollout.spread import choose
 
 
 def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = False, allow_large: bool = False,
-            gains=None, inputs: tuple = (), backend: str | None = None, processes: int = 1) -> dict:
+            gains=None, inputs: tuple = (), backend: str | None = None, processes: int = 1,
+            local_devices: int | None = None) -> dict:
     """Check a campaign as ``wbc_jax.campaign.runner.run_campaign`` would with these arguments, print what it would
     run, and return it. ``processes``: the processes the campaign will run as (``--num-processes``, SLURM's tasks),
-    each with this process's devices; the dry run itself joins none.
+    each with ``local_devices`` devices (``--local-device-ids``; None: this process's); the dry run joins none.
 
     Returns:
         dict: ``spec``, ``name``, ``runs``, ``cells``, ``reps``, ``factors`` ({name: levels}), ``controller``,
@@ -43,8 +47,9 @@ def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = F
         ``chunk_seconds`` [s], ``physics_steps`` (per run), ``env_steps`` (all runs), ``memory_bytes`` (a device's
         estimate), ``available_bytes`` (None where unknown; this machine's), ``parts`` (the devices the runs are
         split over), ``out`` (as given), ``out_state`` ("new"; "replaced": an earlier campaign replaced with
-        ``force``; "resumed"), ``chunks_done`` (kept in the checkpoint and not simulated again), ``checkpoint``
-        (with ``resume`` and none to resume: where none was found; else None).
+        ``force``; "resumed"), ``chunks_done`` (kept in the checkpoint and not simulated again),
+        ``chunks_discarded`` (finished chunks of a checkpoint that ``force`` deletes), ``checkpoint`` (with
+        ``resume`` and none to resume: where none was found; else None).
 
     Raises:
         SpecError, OutputError, CheckpointError, LimitError: what the campaign would raise, before it compiled.
@@ -55,14 +60,18 @@ def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = F
     sensing_of(spec)
     check_qp(spec)
     gains_mod.check_design(spec, gains)
-    parts = _parts(choose(physics).parts, physics, processes)
+    spread = choose(physics)
+    parts = _parts(spread.parts, physics, processes, local_devices)
     identity = run_identity(spec, gains, backend=physics)
     out_p, ck = preflight.check_outputs(spec, out, identity, resume=resume, force=force, allow_large=allow_large,
                                         inputs=inputs, backend_flag=backend, parts=parts, claim=False)
-    for line in preflight.notes(spec, physics, allow_large, parts):
+    discarded = 0 if resume else kept(ck)[0]  # a checkpoint --force lets the campaign delete
+    warning = zero_noise_warning(spec)
+    for line in [*([f"warning: {warning}"] if warning else []), *([spread.note] if spread.note else []),
+                 *preflight.notes(spec, physics, allow_large, parts)]:
         if line.startswith(("warning:", "note:")):
             print(line, flush=True)
-    stage(f"planning the runs of {spec.path} (nothing is simulated or written)")
+    stage(f"planning the runs of {spec.path} (nothing is simulated)")
     built, _ = build_ahead(spec, gains)
     check_horizon(spec, built)
     done = 0
@@ -80,18 +89,21 @@ def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = F
                 chunks=built.n_chunks, chunk_seconds=chunk_s, physics_steps=steps, env_steps=steps * n,
                 memory_bytes=need, available_bytes=avail, parts=parts, out=str(out),
                 out_state="resumed" if done else "replaced" if earlier else "new", chunks_done=done,
-                checkpoint=str(ck) if resume and not done else None)
+                chunks_discarded=discarded, checkpoint=str(ck) if resume and not done else None)
     for line in describe(plan, per_device=own_memories(parts) > 1, dt_physics=sim.dt_physics):
         print(line, flush=True)
     return plan
 
 
-def _parts(local: int, physics: str, processes: int) -> int:
-    """The devices a campaign of ``processes`` processes splits its runs over (``wbc_jax.rollout.spread``): on Warp
-    physics one block per process, on JAX physics one mesh over every process's devices (``local`` each)."""
+def _parts(here: int, physics: str, processes: int, local_devices: int | None = None) -> int:
+    """The devices a campaign of ``processes`` processes splits its runs over (``wbc_jax.rollout.spread``; ``here``:
+    this process's split): on Warp physics one block per process, on JAX physics one mesh over every process's
+    ``local_devices`` (None: as many as this process has)."""
     if processes <= 1:
-        return local
-    return processes if physics == "warp" else processes * local
+        return here
+    if physics == "warp":
+        return processes
+    return processes * (local_devices if local_devices else jax.local_device_count())
 
 
 def describe(plan: dict, per_device: bool = False, dt_physics: float | None = None) -> list[str]:
@@ -107,7 +119,9 @@ def describe(plan: dict, per_device: bool = False, dt_physics: float | None = No
                                       if plan.get("checkpoint") else ""),
              "replaced": "holds an earlier campaign, which --force replaces",
              "resumed": f"resumes after {plan['chunks_done']} of {plan['chunks']} chunks (--resume)"}[plan["out_state"]]
-    return [f"dry run of campaign {plan['name']!r} ({plan['spec']}): nothing is simulated or written",
+    if plan.get("chunks_discarded"):
+        where += f"; --force deletes the checkpoint of {plan['chunks_discarded']} finished chunks beside it"
+    return [f"dry run of campaign {plan['name']!r} ({plan['spec']}): nothing is simulated, nothing written in --out",
             f"  {plan['runs']:,} runs = {plan['cells']} cells x {plan['reps']} reps; {levels}",
             f"  each run {plan['seconds']:.2f} s simulated in {plan['chunks']} chunks of {plan['chunk_seconds']:.2f} s "
             f"({plan['physics_steps']:,} physics steps{step}); {plan['env_steps']:,} env-steps in all",

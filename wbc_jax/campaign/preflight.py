@@ -41,7 +41,10 @@ def check_outputs(spec: Spec, out, identity: dict, *, resume: bool, force: bool,
     out_p = ck = problem = None
     try:  # process 0's output folder and checkpoint (the others write nothing and read neither)
         if distributed.is_writer():
-            claim_out_dir(out, COMMAND) if claim else check_not_in_use(out)
+            if claim:
+                claim_out_dir(out, COMMAND)
+            else:
+                check_not_in_use(out)
             out_p = check_out_dir(out, COMMAND, force=force, inputs=[spec.path, *inputs], writes=WRITES)
             ck = checkpoint.ckpt_dir(out_p)
             meta = checkpoint.peek(ck)

@@ -177,7 +177,8 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
 
         layout = distributed.resolve(args.coordinator, args.num_processes, args.process_id, args.local_device_ids)
         dry_run(args.spec, args.out, resume=args.resume, force=args.force, allow_large=args.allow_large, gains=gains,
-                inputs=inputs, backend=args.backend, processes=layout.num_processes if layout else 1)
+                inputs=inputs, backend=args.backend, processes=layout.num_processes if layout else 1,
+                local_devices=len(layout.local_device_ids) if layout and layout.local_device_ids else None)
         return 0
     run_campaign(args.spec, args.out, resume=args.resume, report=not args.no_report, gains=gains, force=args.force,
                  allow_large=args.allow_large, inputs=inputs, backend=args.backend)

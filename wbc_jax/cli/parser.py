@@ -161,7 +161,7 @@ def _add_campaign(sub) -> argparse.ArgumentParser:
                                                               "exceeds the available memory")
     c.add_argument("--dry-run", action="store_true", help="check everything the campaign checks and print what it "
                                                           "would simulate (runs, chunks, steps, memory, --out); "
-                                                          "nothing is compiled, simulated or written")
+                                                          "nothing is simulated or written in or beside --out")
     _process_flags(c)
     return c
 

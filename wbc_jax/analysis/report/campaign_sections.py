@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from wbc_jax.analysis import ablation, stats, success
+from wbc_jax.analysis import ablation, sensitivity, stats, success
 from wbc_jax.analysis.report.document import Doc, fmt
 
 QP_FLAG = "qp_flag_fraction"  # a campaign's results.csv column: the report's QP convergence section
@@ -54,7 +54,7 @@ def _ablation_section(d: Doc, t: pd.DataFrame, alpha: float) -> None:
         "test": t["test"], "n": t["n"], "n ref": t["n_ref"], "value": t["value"].map(fmt),
         "ref value": t["value_ref"].map(fmt), "statistic": t["statistic"].map(fmt),
         "p": t["p"].map(lambda v: fmt(v, ".3g")), "p Bonferroni": t["p_bonf"].map(lambda v: fmt(v, ".3g")),
-        "detectable (80 %)": t["detectable"].map(fmt),
+        f"detectable ({sensitivity.POWER * 100:g} %)": t["detectable"].map(fmt),
         "differs": ["yes" if x else "no" for x in t["differs"]]}))
 
 

@@ -1,23 +1,42 @@
 r"""The report's ANOVA tables as LaTeX (``report/anova.tex``), for a paper: one ``booktabs`` table per metric.
 
 Each table holds what ``anova.json`` holds for the metric (sources, sums of squares, df, mean squares, F, p, partial
-eta squared), in the same display units, with the terms significant at the report's alpha in bold. The file is a
-fragment to ``\input`` into a document whose preamble loads ``booktabs``.
+eta squared; left out where the F tests are unreliable), in the same display units, with the terms significant at the
+report's alpha in bold. The file is a fragment to ``\input`` into a document whose preamble loads ``booktabs``.
 """
 
 from __future__ import annotations
 
 import math
 import re
+import unicodedata
 
 _SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_", "{": r"\{",
-            "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}"}
-_UNITS = {"²": "$^2$", "³": "$^3$", "μ": r"$\mu$", "η": r"$\eta$"}
+            "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}", "<": r"\textless{}",
+            ">": r"\textgreater{}", "|": r"\textbar{}"}
+_CAPITALS = {"Gamma", "Delta", "Theta", "Lambda", "Xi", "Pi", "Sigma", "Upsilon", "Phi", "Psi", "Omega"}
+_LATIN = {"alpha": "A", "beta": "B", "epsilon": "E", "zeta": "Z", "eta": "H", "iota": "I", "kappa": "K", "mu": "M",
+          "nu": "N", "omicron": "O", "rho": "P", "tau": "T", "chi": "X"}
+_SYMBOLS = {"²": "$^2$", "³": "$^3$", "°": r"$^\circ$", "µ": r"$\mu$", "±": r"$\pm$", "×": r"$\times$",
+            "≤": r"$\leq$", "≥": r"$\geq$", "−": "-"}
 
 
 def escape(text: str) -> str:
-    """``text`` with LaTeX's special characters escaped and the units' superscripts and Greek letters in math."""
-    return "".join(_SPECIAL.get(c, _UNITS.get(c, c)) for c in str(text))
+    """``text`` for LaTeX: its special characters escaped, Greek letters, superscripts and a few symbols in math, any
+    other non-ASCII character as ``?`` (pdfLaTeX has no glyph for most)."""
+    return "".join(_SPECIAL.get(c) or _SYMBOLS.get(c) or _greek(c) or (c if c.isascii() else "?") for c in str(text))
+
+
+def _greek(c: str) -> str | None:
+    r"""A Greek letter as math (``$\alpha$``, ``$\Delta$``; a capital LaTeX has no command for: its Latin twin),
+    else None."""
+    m = re.fullmatch(r"GREEK (SMALL|CAPITAL) LETTER (?:FINAL )?([A-Z]+)", unicodedata.name(c, ""))
+    if m is None:
+        return None
+    letter = m.group(2).lower()
+    if m.group(1) == "CAPITAL":
+        return f"$\\{letter.capitalize()}$" if letter.capitalize() in _CAPITALS else _LATIN.get(letter, "?")
+    return "o" if letter == "omicron" else f"$\\{letter}$"
 
 
 def number(x, digits: int = 4) -> str:
@@ -37,17 +56,19 @@ def _source(name: str) -> str:
 def metric_table(metric: str, result: dict, unit: str, alpha: float, label: str) -> str:
     """One metric's ANOVA table (``result``: the metric's entry of ``anova.json``'s ``metrics``)."""
     significant = set(result["significant"])
+    reliable = result.get("f_tests_reliable", True)
     rows = []
     for r in result["anova"]:
-        cells = [_source(r["source"]), number(r["sum_sq"]), number(r["df"]), number(r["mean_sq"]), number(r["F"]),
-                 number(r["p"], 3), "" if r["partial_eta_sq"] is None else f"{r['partial_eta_sq']:.3f}"]
+        tests = [number(r["F"]), number(r["p"], 3), "" if r["partial_eta_sq"] is None else f"{r['partial_eta_sq']:.3f}"]
+        cells = [_source(r["source"]), number(r["sum_sq"]), number(r["df"]), number(r["mean_sq"]),
+                 *(tests if reliable else ["", "", ""])]
         if r["source"] in significant:
-            cells = [rf"\textbf{{{c}}}" if c else c for c in cells]
+            cells = [rf"{{\boldmath\textbf{{{c}}}}}" if c else c for c in cells]
         rows.append(" & ".join(cells) + r" \\")
     caption = (f"ANOVA of {escape(metric)}" + (f" [{escape(unit)}]" if unit else "")
                + f" (type {escape(result['ss_type'])} sums of squares, $n = {result['n']}$, "
                f"residual df {number(result['df_resid'])}); bold: $p < {alpha:g}$"
-               + ("" if result.get("f_tests_reliable", True) else "; F tests unreliable: "
+               + ("" if reliable else "; F tests unreliable, F, $p$ and $\\eta^2_p$ left out: "
                   + escape("; ".join(result.get("unreliable_reasons") or []))) + ".")
     return "\n".join([r"\begin{table}[ht]", r"\centering", rf"\caption{{{caption}}}", rf"\label{{{label}}}",
                       r"\begin{tabular}{lrrrrrr}", r"\toprule",
@@ -60,6 +81,16 @@ def document(summary: dict, source: str) -> str:
     (the report's ``anova.json``)."""
     units = summary.get("units") or {}
     head = [f"% ANOVA tables of {source} (wbc-jax report); \\usepackage{{booktabs}} in the preamble", ""]
-    tables = [metric_table(m, r, units.get(m, ""), summary["alpha"], "tab:anova-" + re.sub(r"[^A-Za-z0-9]", "-", m))
-              for m, r in summary["metrics"].items()]
+    tables = [metric_table(m, r, units.get(m, ""), summary["alpha"], label)
+              for (m, r), label in zip(summary["metrics"].items(), _labels(list(summary["metrics"])))]
     return "\n".join(head + tables)
+
+
+def _labels(metrics: list[str]) -> list[str]:
+    """``tab:anova-<metric>`` with the metric's name reduced to letters, digits and ``-``; a name that reduces to
+    an earlier one's gets its position appended."""
+    out = []
+    for i, m in enumerate(metrics):
+        label = "tab:anova-" + (re.sub(r"[^A-Za-z0-9]+", "-", m).strip("-") or "metric")
+        out.append(label if label not in out else f"{label}-{i + 1}")
+    return out
