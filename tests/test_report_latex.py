@@ -59,7 +59,7 @@ def test_tables_hold_the_json_numbers_and_bold_the_significant_terms(tmp_path):
     assert {_plain(row[0]) for row in tables["R"] if row[0].startswith("{")} >= {t for t in PLANTED if ":" not in t}
     assert not any(row[4] or row[5] or row[6] for row in tables["S"])  # unreliable F tests: left out
     assert "F tests unreliable" in tex.split(r"\label{tab:anova-S}")[0].rsplit(r"\caption", 1)[1]
-    assert tex.count(r"\begin{table}") == tex.count(r"\end{table}") == len(summary["metrics"])
+    assert tex.count(r"\begin{table}") == tex.count(r"\end{table}") == len(summary["metrics"]) + 1  # + the means
     assert tex.count("{") == tex.count("}") - tex.count(r"\}") + tex.count(r"\{")
 
 
@@ -74,3 +74,23 @@ def test_escaping_and_numbers():
     assert latex.number(9.1306e-06) == r"$9.131 \times 10^{-6}$"
     assert latex.number(0.43638) == "0.4364" and latex.number(2.0) == "2" and latex.number(None) == ""
     assert latex.number(float("nan")) == "" and latex.number(0.0016096, 3) == "0.00161"
+
+
+def test_level_means_table_holds_each_levels_mean_and_sd(tmp_path):
+    df = planted(seed=6)
+    df.loc[df.index[:5], "success"] = False
+    csv = tmp_path / "results.csv"
+    df.to_csv(csv, index=False)
+    report.run_report(str(csv), str(tmp_path / "rep"), figures=False)
+    tex = (tmp_path / "rep" / "anova.tex").read_text()
+    body = re.search(r"\\label\{tab:level-means\}.*?\\toprule\n(.*?)\n\\midrule\n(.*?)\\bottomrule", tex, re.S)
+    assert body.group(1) == r"Factor & Level & R & T & $n$ \\"
+    ok = df[df["success"]]
+    rows = [[c.strip() for c in line.removesuffix(r" \\").split(" & ")] for line in body.group(2).splitlines()]
+    assert [(r[0], float(r[1])) for r in rows] == [(f, float(v)) for f in ("m", "mu", "d") for v in sorted(set(df[f]))]
+    for factor, level, *cells, n in rows:
+        sel = ok[np.isclose(ok[factor], float(level))]
+        assert int(n) == len(sel)
+        for cell, metric in zip(cells, ("R", "T")):
+            mean, sd = (_value(x) for x in cell.split(r" $\pm$ "))
+            assert np.isclose(mean, sel[metric].mean(), rtol=5e-4) and np.isclose(sd, sel[metric].std(), rtol=5e-2)

@@ -12,7 +12,8 @@ Reads the CSV, checks it, runs :func:`wbc_jax.analysis.stats.analyze`, and write
   ``f_tests_reliable``, ``significant``, ``assumptions``, ``simple_effects``, ``warnings`` and ``sensitivity``
   (the smallest main effect detected with 80 % power, :mod:`wbc_jax.analysis.sensitivity`); plus ``alpha``,
   ``ss_type``, ``factors`` (levels), table-wide ``warnings``, ``design`` and ``manifest``. NaN is written as null.
-- ``anova.tex``: the ANOVA tables as LaTeX (``booktabs``, one per metric, significant terms bold; :mod:`~.latex`).
+- ``anova.tex``: the ANOVA tables as LaTeX (``booktabs``, one per metric, significant terms bold) and the metrics'
+  mean +- SD per factor level (:mod:`~.latex`).
 - for a campaign's table with failed runs: a table of them (reason, instant, first non-foot contact) with each
   run's replay command (``wbc-jax replay DIR --run N``, :mod:`~.failed_runs`).
 - for a campaign's table with ``R_plan``: a section (and ``anova.json`` ``r_sources``) with R from the simulator's

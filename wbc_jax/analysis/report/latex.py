@@ -1,4 +1,5 @@
-r"""The report's ANOVA tables as LaTeX (``report/anova.tex``), for a paper: one ``booktabs`` table per metric.
+r"""The report's tables as LaTeX (``report/anova.tex``), for a paper: one ``booktabs`` ANOVA table per metric, then
+the metrics' mean +- SD per factor level.
 
 Each table holds what ``anova.json`` holds for the metric (sources, sums of squares, df, mean squares, F, p, partial
 eta squared; left out where the F tests are unreliable), in the same display units, with the terms significant at the
@@ -76,13 +77,37 @@ def metric_table(metric: str, result: dict, unit: str, alpha: float, label: str)
                       r"\end{tabular}", r"\end{table}", ""])
 
 
-def document(summary: dict, source: str) -> str:
-    """``anova.tex``: a comment naming the results table ``source``, then one table per metric of ``summary``
-    (the report's ``anova.json``)."""
+def means_table(level_means, metrics: list[str], units: dict) -> str:
+    """Each metric's mean and SD per factor level (successful runs; ``level_means``: the report's long table with
+    metric, factor, level, mean, sd, n), one column per metric, n of the first metric's runs."""
+    first = level_means[level_means["metric"] == metrics[0]]
+    rows = []
+    for f, level, n in zip(first["factor"], first["level"], first["n"]):
+        cells = [escape(f), escape(f"{level:g}" if isinstance(level, float) else level)]
+        for m in metrics:
+            row = level_means[(level_means["metric"] == m) & (level_means["factor"] == f)
+                              & (level_means["level"] == level)].iloc[0]
+            cells.append("" if not row["n"] else rf"{number(row['mean'])} $\pm$ {number(row['sd'], 2)}")
+        rows.append(" & ".join([*cells, str(int(n))]) + r" \\")
+    head = " & ".join(["Factor", "Level", *(escape(m) + (f" [{escape(units[m])}]" if units.get(m) else "")
+                                             for m in metrics), "$n$"]) + r" \\"
+    return "\n".join([r"\begin{table}[ht]", r"\centering",
+                      r"\caption{Mean $\pm$ SD per factor level (successful runs).}", r"\label{tab:level-means}",
+                      rf"\begin{{tabular}}{{ll{'r' * len(metrics)}r}}", r"\toprule", head, r"\midrule", *rows,
+                      r"\bottomrule", r"\end{tabular}", r"\end{table}", ""])
+
+
+def document(summary: dict, source: str, level_means=None) -> str:
+    """``anova.tex``: a comment naming the results table ``source``, one table per metric of ``summary`` (the
+    report's ``anova.json``), then the metrics' means per factor level (:func:`means_table`; ``level_means``:
+    the report's, None: left out)."""
     units = summary.get("units") or {}
     head = [f"% ANOVA tables of {source} (wbc-jax report); \\usepackage{{booktabs}} in the preamble", ""]
+    metrics = list(summary["metrics"])
     tables = [metric_table(m, r, units.get(m, ""), summary["alpha"], label)
-              for (m, r), label in zip(summary["metrics"].items(), _labels(list(summary["metrics"])))]
+              for (m, r), label in zip(summary["metrics"].items(), _labels(metrics))]
+    if level_means is not None and metrics:
+        tables.append(means_table(level_means, metrics, units))
     return "\n".join(head + tables)
 
 

@@ -74,7 +74,7 @@ def run_report(results_csv: str, out_dir: str, alpha: float = 0.05, factors: lis
         "report.md": doc.markdown().encode(),
         "report.html": doc.html(images, title=title(results_csv, table.campaign)).encode(),
         "anova.json": output.dumps(summary).encode(),
-        "anova.tex": latex.document(summary, results_csv).encode(),
+        "anova.tex": latex.document(summary, results_csv, res["level_means"]).encode(),
         "design.csv": res["design"].to_csv(index=False).encode(),
         "cell_means.csv": res["cell_means"].to_csv(index=False).encode(),
         "manifest.json": output.dumps(manifest).encode(),
