@@ -164,3 +164,14 @@ def test_the_ablation_states_what_it_would_have_found(tmp_path):
     assert t.loc[t.test != "Welch t (mean)", "detectable"].isna().all()
     md = (tmp_path / "rep" / "report.md").read_text()
     assert "no significant change in R (" in md and f"a mean difference of {want:.3g} or more would be found" in md
+
+
+def test_the_ablation_gives_both_success_rates_intervals():
+    from statsmodels.stats.proportion import proportion_confint
+    from test_factors import _ablation_table
+
+    from wbc_jax.analysis import ablation
+
+    line = ablation.answers(ablation.compare(_ablation_table(), ["variant", "mu"]), 0.05)[0]
+    (lo, hi), (lo_ref, hi_ref) = (proportion_confint(k, 16, alpha=0.05, method="beta") for k in (8, 16))
+    assert f"95 % intervals {100 * lo:.1f}-{100 * hi:.1f} % vs {100 * lo_ref:.1f}-{100 * hi_ref:.1f} %" in line

@@ -111,9 +111,20 @@ def _detectable(a: np.ndarray, b: np.ndarray, alpha: float) -> float:
     return np.nan if d is None else d
 
 
+def _rate_intervals(row) -> str:
+    """The 95 % Clopper-Pearson intervals of a success row's two rates (:func:`wbc_jax.analysis.success.interval`),
+    e.g. "95 % intervals 96.0-100 % vs 96.0-100 %": what no failure in n runs rules out."""
+    from wbc_jax.analysis.success import CONFIDENCE, interval
+
+    n = np.array([row.n, row.n_ref])
+    low, high = interval(np.rint(np.array([row.value, row.value_ref]) * n), n)
+    return (f"{CONFIDENCE * 100:g} % intervals " + " vs ".join(f"{100 * a:.1f}-{100 * b:.1f} %"
+                                                                for a, b in zip(low, high)))
+
+
 def answers(t: pd.DataFrame, alpha: float) -> list[str]:
-    """One sentence per (factor, level): does it change max slip, R and success, with the tests named (and, where
-    Welch's test finds no change, the difference it would have found)."""
+    """One sentence per (factor, level): does it change max slip, R and success, with the tests named (where Welch's
+    test finds no change, the difference it would have found; for success, both rates' 95 % intervals)."""
     from wbc_jax.analysis.sensitivity import POWER
 
     out = []
@@ -127,6 +138,8 @@ def answers(t: pd.DataFrame, alpha: float) -> list[str]:
             if not gm["differs"].any() and len(found):
                 tests += (f"; a mean difference of {found.iloc[0]:.3g} or more would be found with "
                           f"{POWER * 100:g} % probability")
+            if m == "success":
+                tests += "; " + _rate_intervals(gm.iloc[0])
             parts.append(f"{verdict} {NAMES.get(m, m)} ({tests})")
         ref = g["reference"].iloc[0]
         out.append(f"{f} = {lv} against {f} = {ref}: " + "; ".join(parts)
