@@ -13,10 +13,13 @@ from wbc_jax.analysis.report import latex
 
 
 def _value(cell: str) -> float | None:
-    """A table cell back to a number: ``$a \\times 10^{k}$`` or a plain decimal, bold or not; None when empty."""
+    """A table cell back to a number: ``$a \\times 10^{k}$`` or a plain decimal, bold or not; None when empty; 0
+    for a p value below the smallest float."""
     cell = _plain(cell)
     if not cell:
         return None
+    if cell == r"$< 10^{-300}$":
+        return 0.0
     m = re.fullmatch(r"\$(-?[\d.]+) \\times 10\^\{(-?\d+)\}\$", cell)
     return float(m.group(1)) * 10.0 ** int(m.group(2)) if m else float(cell)
 
@@ -94,3 +97,12 @@ def test_level_means_table_holds_each_levels_mean_and_sd(tmp_path):
         for cell, metric in zip(cells, ("R", "T")):
             mean, sd = (_value(x) for x in cell.split(r" $\pm$ "))
             assert np.isclose(mean, sel[metric].mean(), rtol=5e-4) and np.isclose(sd, sel[metric].std(), rtol=5e-2)
+
+
+def test_a_p_value_below_the_smallest_float_is_not_zero():
+    row = dict(source="mu", sum_sq=1.0, df=2.0, mean_sq=0.5, F=1e9, p=0.0, partial_eta_sq=1.0)
+    resid = dict(source="Residual", sum_sq=1e-9, df=10.0, mean_sq=1e-10, F=None, p=None, partial_eta_sq=None)
+    tex = latex.metric_table("R", dict(significant=["mu"], anova=[row, resid], ss_type="III", n=13, df_resid=10.0),
+                             "", 0.05, "tab:x")
+    cells = [c.strip() for c in tex.splitlines()[8].removesuffix(r" \\").split(" & ")]
+    assert _plain(cells[5]) == r"$< 10^{-300}$" and _value(cells[5]) == 0.0 and _plain(cells[0]) == "mu"

@@ -60,7 +60,8 @@ def metric_table(metric: str, result: dict, unit: str, alpha: float, label: str)
     reliable = result.get("f_tests_reliable", True)
     rows = []
     for r in result["anova"]:
-        tests = [number(r["F"]), number(r["p"], 3), "" if r["partial_eta_sq"] is None else f"{r['partial_eta_sq']:.3f}"]
+        p_value = r"$< 10^{-300}$" if r["p"] == 0 else number(r["p"], 3)  # below the smallest float: not zero
+        tests = [number(r["F"]), p_value, "" if r["partial_eta_sq"] is None else f"{r['partial_eta_sq']:.3f}"]
         cells = [_source(r["source"]), number(r["sum_sq"]), number(r["df"]), number(r["mean_sq"]),
                  *(tests if reliable else ["", "", ""])]
         if r["source"] in significant:
