@@ -39,21 +39,26 @@ def _ref(col: pd.Series, ref):
     return None
 
 
-def _continuous(a: np.ndarray, b: np.ndarray) -> list[tuple[str, float, float, float, float]]:
-    """(test, value, value_ref, statistic, p) of Welch's t (means) and Mann-Whitney U (medians); NaN where a
-    sample is too small (t: 2 per group, U: 1) or constant in both groups (t)."""
+def _continuous(a: np.ndarray, b: np.ndarray, alpha: float) -> list[tuple[str, float, float, float, float, float]]:
+    """(test, value, value_ref, statistic, p, detectable) of Welch's t (means; detectable: the smallest mean
+    difference it finds with :data:`~wbc_jax.analysis.sensitivity.POWER` probability at level ``alpha``) and
+    Mann-Whitney U (medians; detectable NaN); NaN where a sample is too small (t: 2 per group, U: 1) or constant in
+    both groups (t)."""
     from scipy import stats as sps
 
-    t = p = np.nan
+    from wbc_jax.analysis.sensitivity import detectable_difference
+
+    t = p = detect = np.nan
     if len(a) >= 2 and len(b) >= 2 and (np.ptp(a) > 0 or np.ptp(b) > 0):
         t, p = sps.ttest_ind(a, b, equal_var=False)
+        detect = detectable_difference(float(np.std(a, ddof=1)), len(a), float(np.std(b, ddof=1)), len(b), alpha)
     u = pu = np.nan
     if len(a) and len(b):
         u, pu = sps.mannwhitneyu(a, b, alternative="two-sided")
     mean = lambda x: float(np.mean(x)) if len(x) else np.nan  # noqa: E731
     med = lambda x: float(np.median(x)) if len(x) else np.nan  # noqa: E731
-    return [("Welch t (mean)", mean(a), mean(b), float(t), float(p)),
-            ("Mann-Whitney U (median)", med(a), med(b), float(u), float(pu))]
+    return [("Welch t (mean)", mean(a), mean(b), float(t), float(p), float(detect)),
+            ("Mann-Whitney U (median)", med(a), med(b), float(u), float(pu), np.nan)]
 
 
 def compare(df: pd.DataFrame, factors, alpha: float = 0.05) -> pd.DataFrame:
@@ -85,9 +90,8 @@ def compare(df: pd.DataFrame, factors, alpha: float = 0.05) -> pd.DataFrame:
                 y = pd.to_numeric(df[m], errors="coerce").to_numpy(float)
                 a, b = y[in_lv & ok], y[in_ref & ok]
                 a, b = a[np.isfinite(a)], b[np.isfinite(b)]
-                for test, v, v_ref, stat, p in _continuous(a, b):
-                    rows.append([f, lv, ref, m, test, len(a), len(b), v, v_ref, stat, p,
-                                 _detectable(a, b, alpha / len(others)) if test.startswith("Welch") else np.nan])
+                for test, v, v_ref, stat, p, detect in _continuous(a, b, alpha / len(others)):
+                    rows.append([f, lv, ref, m, test, len(a), len(b), v, v_ref, stat, p, detect])
             s, s_ref = int(ok[in_lv].sum()), int(ok[in_ref].sum())
             n, n_ref = int(in_lv.sum()), int(in_ref.sum())
             odds, p = sps.fisher_exact([[s, n - s], [s_ref, n_ref - s_ref]])
@@ -98,17 +102,6 @@ def compare(df: pd.DataFrame, factors, alpha: float = 0.05) -> pd.DataFrame:
     out["p_bonf"] = np.minimum(out["p"] * k, 1.0)
     out["differs"] = out["p_bonf"] < alpha
     return out
-
-
-def _detectable(a: np.ndarray, b: np.ndarray, alpha: float) -> float:
-    """:func:`wbc_jax.analysis.sensitivity.detectable_difference` of two samples at level ``alpha`` (NaN where
-    none)."""
-    from wbc_jax.analysis.sensitivity import detectable_difference
-
-    if len(a) < 2 or len(b) < 2:
-        return np.nan
-    d = detectable_difference(float(np.std(a, ddof=1)), len(a), float(np.std(b, ddof=1)), len(b), alpha)
-    return np.nan if d is None else d
 
 
 def _rate_intervals(row) -> str:

@@ -14,23 +14,19 @@ from __future__ import annotations
 import jax
 
 from wbc_jax.campaign import checkpoint, preflight
-from wbc_jax.campaign import gains as gains_mod
 from wbc_jax.campaign.build import (
     LOG_EVERY,
-    backend_of,
     build_ahead,
     check_horizon,
-    check_qp,
     has_accelerator,
-    sensing_of,
-    with_backend,
 )
-from wbc_jax.campaign.manifest import run_identity
+from wbc_jax.campaign.job import chunk_seconds
 from wbc_jax.campaign.progress import stage
 from wbc_jax.campaign.results import zero_noise_warning
 from wbc_jax.campaign.resume import kept
 from wbc_jax.campaign.size import memory_need, own_memories
-from wbc_jax.campaign.spec import default_spec_path, load_spec
+from wbc_jax.campaign.spec import default_spec_path
+from wbc_jax.campaign.spec_controller import controller_label
 from wbc_jax.rollout.spread import choose
 
 
@@ -55,14 +51,9 @@ def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = F
         SpecError, OutputError, CheckpointError, LimitError: what the campaign would raise, before it compiled.
     """
     spec_path = spec_path if spec_path is not None else default_spec_path(has_accelerator())
-    spec = with_backend(load_spec(spec_path), backend)
-    physics = backend_of(spec)
-    sensing_of(spec)
-    check_qp(spec)
-    gains_mod.check_design(spec, gains)
+    spec, physics, identity = preflight.checked_spec(spec_path, backend, gains)
     spread = choose(physics)
     parts = _parts(spread.parts, physics, processes, local_devices)
-    identity = run_identity(spec, gains, backend=physics)
     out_p, ck = preflight.check_outputs(spec, out, identity, resume=resume, force=force, allow_large=allow_large,
                                         inputs=inputs, backend_flag=backend, parts=parts, claim=False)
     discarded = 0 if resume else kept(ck)[0]  # a checkpoint --force lets the campaign delete
@@ -78,13 +69,13 @@ def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = F
     if resume and checkpoint.read_meta(ck, identity, built.n_chunks, built.logs_per_chunk) is not None:
         done = kept(ck)[0]
     sim, n = built.sim, built.design.n
-    chunk_s = built.logs_per_chunk * LOG_EVERY * sim.dt_control
-    steps = int(round(built.n_chunks * chunk_s / sim.dt_physics))
+    chunk_s = chunk_seconds(built)
+    steps = built.n_chunks * built.logs_per_chunk * LOG_EVERY * sim.n_substeps
     need, avail = memory_need(spec, parts)
     earlier = out_p is not None and out_p.is_dir() and any(out_p.iterdir())
     plan = dict(spec=spec.path, name=spec.campaign["name"], runs=n, cells=n // spec.reps, reps=spec.reps,
                 factors={k: list(v) for k, v in spec.factors.items()},
-                controller=spec.plugin.get("class", spec.campaign["controller"]), scene=spec.campaign["scene"],
+                controller=controller_label(spec), scene=spec.campaign["scene"],
                 backend=physics, device=jax.devices()[0].device_kind, seconds=built.n_chunks * chunk_s,
                 chunks=built.n_chunks, chunk_seconds=chunk_s, physics_steps=steps, env_steps=steps * n,
                 memory_bytes=need, available_bytes=avail, parts=parts, out=str(out),

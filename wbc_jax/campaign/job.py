@@ -11,6 +11,11 @@ from wbc_jax.campaign.build import LOG_EVERY, Built
 from wbc_jax.campaign.spec import Spec
 
 
+def chunk_seconds(built: Built) -> float:
+    """Simulated seconds per chunk of ``built`` (its logged samples per chunk x LOG_EVERY control periods) [s]."""
+    return built.logs_per_chunk * LOG_EVERY * built.sim.dt_control
+
+
 @dataclass
 class Status:
     """What a running campaign has left so far (process 0), for the line of an interrupt: the stage (setup,
@@ -69,7 +74,7 @@ class Job:
     @property
     def chunk_s(self) -> float:
         """Simulated seconds per chunk."""
-        return self.built.logs_per_chunk * LOG_EVERY * self.built.sim.dt_control
+        return chunk_seconds(self.built)
 
     @property
     def seconds(self) -> float:

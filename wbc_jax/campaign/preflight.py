@@ -14,16 +14,33 @@ from pathlib import Path
 import jax
 
 from wbc_jax.campaign import checkpoint
-from wbc_jax.campaign.build import qp_changes
-from wbc_jax.campaign.manifest import COMMAND
+from wbc_jax.campaign import gains as gains_mod
+from wbc_jax.campaign.build import backend_of, check_qp, qp_changes, sensing_of, with_backend
+from wbc_jax.campaign.manifest import COMMAND, run_identity
 from wbc_jax.campaign.size import check_size, memory_need, n_runs_of, own_memories
-from wbc_jax.campaign.spec import Spec
+from wbc_jax.campaign.spec import Spec, load_spec
 from wbc_jax.errors import CheckpointError, OutputError, WbcJaxError
 from wbc_jax.io_utils import check_not_in_use, check_out_dir, claim_out_dir
 from wbc_jax.rollout import distributed
 
 WRITES = ("results.csv", "manifest.json", "report", "report_error.txt")  # what a campaign writes into DIR
 LARGE_RUNS = 20_000  # from this many runs the setup (design, plans, initial states) takes long enough to announce
+
+
+def checked_spec(spec_path: str, backend: str | None, gains) -> tuple[Spec, str, dict]:
+    """The campaign's spec with ``--backend`` applied (``backend``; None: the spec's), checked before anything is
+    built or written: the physics backend and its sensing, the QP's settings, ``gains`` against the design.
+    Returns (spec, physics backend, the run's identity: :func:`wbc_jax.campaign.manifest.run_identity`).
+
+    Raises:
+        SpecError: a bad spec, combination or gains (one line naming the file and key).
+    """
+    spec = with_backend(load_spec(spec_path), backend)
+    physics = backend_of(spec)
+    sensing_of(spec)  # a bad combination fails here, before anything is written
+    check_qp(spec)
+    gains_mod.check_design(spec, gains)
+    return spec, physics, run_identity(spec, gains, backend=physics)
 
 
 def check_outputs(spec: Spec, out, identity: dict, *, resume: bool, force: bool, allow_large: bool,

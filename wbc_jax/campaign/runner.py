@@ -41,31 +41,28 @@ from typing import NamedTuple
 import jax
 
 from wbc_jax.campaign import checkpoint, interrupts, preflight
-from wbc_jax.campaign import gains as gains_mod
 from wbc_jax.campaign.blocks import Blocks
 from wbc_jax.campaign.build import (
     _sim,  # noqa: F401  (reached as runner._sim by callers of the campaign's Sim cache)
-    backend_of,
     build,
     build_ahead,
     check_horizon,
-    check_qp,
     chunk_fn,
     has_accelerator,
     initial_configuration,  # noqa: F401  (reached as runner.initial_configuration)
     sensing_of,
     states_and_program,
-    with_backend,
 )
 from wbc_jax.campaign.design import design
 from wbc_jax.campaign.job import Job, Status
-from wbc_jax.campaign.manifest import COMMAND, Timing, campaign_manifest, run_identity, setup_figures
+from wbc_jax.campaign.manifest import COMMAND, Timing, campaign_manifest, setup_figures
 from wbc_jax.campaign.manifest import git_commit as _git_commit  # noqa: F401  (reached as runner._git_commit)
 from wbc_jax.campaign.manifest import versions as _versions  # noqa: F401  (reached as runner._versions)
 from wbc_jax.campaign.progress import ProgressBar, stage, throughput
 from wbc_jax.campaign.results import campaign_report, results_table, summarize, zero_noise_warning
 from wbc_jax.campaign.resume import Start, kept, start_point
-from wbc_jax.campaign.spec import default_spec_path, load_spec
+from wbc_jax.campaign.spec import default_spec_path
+from wbc_jax.campaign.spec_controller import controller_label
 from wbc_jax.errors import OutputError, WbcJaxError
 from wbc_jax.io_utils import atomic_dir, release_out_dir, write_json_atomic
 from wbc_jax.physics import warp_kernels
@@ -108,7 +105,7 @@ def _announce(job: Job) -> None:
     print(f"{'' if job.writer else f'process {jax.process_index()}: '}campaign {spec.campaign['name']!r} "
           f"({spec.path}): {dz.n} runs = {dz.n // spec.reps} cells x {spec.reps} reps, {job.seconds:.2f} s simulated "
           f"in {job.built.n_chunks} chunks of {job.chunk_s:.2f} s, scene {spec.campaign['scene']}, controller "
-          f"{spec.plugin.get('class', spec.campaign['controller'])}, device {jax.devices()[0].device_kind}"
+          f"{controller_label(spec)}, device {jax.devices()[0].device_kind}"
           f"{sp.describe()}", flush=True)
 
 
@@ -332,12 +329,7 @@ def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guar
     spec_path = r["spec_path"] if r["spec_path"] is not None else default_spec_path(has_accelerator())
     if distributed.is_writer():
         stage(f"reading the spec {spec_path} and checking the output folder")
-    spec = with_backend(load_spec(spec_path), r["backend"])
-    physics_backend = backend_of(spec)
-    sensing_of(spec)  # a bad combination fails here, before anything is written
-    check_qp(spec)
-    gains_mod.check_design(spec, r["gains"])
-    identity = run_identity(spec, r["gains"], backend=physics_backend)
+    spec, physics_backend, identity = preflight.checked_spec(spec_path, r["backend"], r["gains"])
     status.writer = distributed.is_writer()
     sp = choose(physics_backend)  # several devices: each steps its own runs (wbc_jax.rollout.spread)
     out_p, ck = preflight.check_outputs(spec, r["out"], identity, resume=r["resume"], force=r["force"],

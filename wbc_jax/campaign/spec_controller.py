@@ -142,6 +142,11 @@ def _value(path, key: str, v, default):
     return typ(v)
 
 
+def controller_label(spec) -> str:
+    """The controller a spec runs, as the console names it: its ``[plugin]`` class, else ``campaign.controller``."""
+    return spec.plugin.get("class", spec.campaign["controller"])
+
+
 def plugin_of(spec) -> tuple:
     """A spec's plug-in: ``()``, or (``"module:Class"``, ((field, value), ...) in name order, its module file's
     sha256); the first two as :func:`wbc_jax.rollout.make_sim` takes them, the sha256 for cache keys."""

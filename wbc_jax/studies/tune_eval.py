@@ -24,7 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.campaign.build import LOG_EVERY, build, chunk_fn
+from wbc_jax.campaign.build import build, chunk_fn
+from wbc_jax.campaign.job import chunk_seconds
 from wbc_jax.control.transport import TransportGains
 from wbc_jax.rollout import final_results
 from wbc_jax.rollout.batch import take_runs, with_contact_list
@@ -55,7 +56,7 @@ class Evaluator:
             sel = np.where(np.isclose(have[:, None, :], np.asarray(cells)[None]).all(-1).any(-1))[0]
         self.camp, self.sim, self.n, self.n_chunks = camp, sim, len(sel), n_chunks
         self.m, self.mu, self.d, self.rep, self.seeds = dz.m[sel], dz.mu[sel], dz.d[sel], dz.rep[sel], dz.seed[sel]
-        self.chunk_s = logs_per_chunk * LOG_EVERY * sim.dt_control
+        self.chunk_s = chunk_seconds(built)
         self.seconds = n_chunks * self.chunk_s
         self.size = int(size)
         # every sub-batch has `size` runs taken from b: Warp's shared contact list sized for them, not for b's runs
