@@ -427,6 +427,43 @@ def test_best_gains_replayed_by_campaign(tiny_run, tmp_path):
 
 @pytest.mark.slow  # a fresh process compiles the one-run programs; the CEM run above covers the search end to end
 #                   and test_halving_schedule_and_survivors the halving bookkeeping
+def test_dry_run_describes_the_tune_it_would_run(tiny_run, tmp_path, capsys):
+    """`wbc-jax tune --dry-run`: the tiny tune's own figures (runs per candidate and per rollout call, the planned
+    run-seconds of its manifest) and a hand count of its physics steps; nothing written; an earlier tune's folder
+    refused without --force and named as what --force replaces (and left as it was); a folder another command holds
+    refused; exit 0 and 2 as the tune's."""
+    from wbc_jax.campaign.spec import load_spec
+    from wbc_jax.io_utils import claim_out_dir, release_out_dir
+    from wbc_jax.studies.tune import dry_run_tune
+
+    out, man, spec = tiny_run
+    new = tmp_path / "new"
+    assert cli.main(["tune", "--spec", spec.path, "--out", str(new), "--dry-run"]) == 0
+    text = capsys.readouterr().out
+    assert "nothing is simulated" in text and "the tune would start" in text and f"--out {new}: a new folder" in text
+    assert not new.exists() and list(tmp_path.iterdir()) == []
+    plan = dry_run_tune(spec.path, str(new))
+    assert (plan["runs_per_candidate"], plan["runs_per_call"]) == (man["runs_per_candidate"], man["runs_per_call"])
+    assert plan["search_run_s"] + plan["confirm_run_s"] == pytest.approx(man["planned_run_seconds"], rel=1e-12)
+    n, seconds = len(CELLS), man["simulated_s"]  # reps 1; no [confirm]: default and best on the tuning runs
+    assert plan["search_run_s"] == pytest.approx(ROUNDS * C * n * seconds)
+    assert plan["confirm_run_s"] == pytest.approx(2 * n * seconds) and plan["confirm_runs"] == 2 * n
+    dt = man["control_dt_s"] / load_spec(BASELINE_SPEC).campaign["control_substeps"]
+    assert plan["physics_steps"] == round((ROUNDS * C + 2) * n * seconds / dt)
+    before = sorted((f.name, f.stat().st_mtime_ns) for f in out.iterdir())
+    assert cli.main(["tune", "--spec", spec.path, "--out", str(out), "--dry-run"]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert cli.main(["tune", "--spec", spec.path, "--out", str(out), "--dry-run", "--force"]) == 0
+    assert "holds an earlier tune, which --force replaces" in capsys.readouterr().out
+    assert sorted((f.name, f.stat().st_mtime_ns) for f in out.iterdir()) == before
+    claim_out_dir(new, "wbc-jax campaign")
+    try:
+        assert cli.main(["tune", "--spec", spec.path, "--out", str(new), "--dry-run"]) == 2
+        assert "in use by" in capsys.readouterr().err
+    finally:
+        release_out_dir(new)
+
+
 def test_tiny_successive_halving_end_to_end(tmp_path):
     """`wbc-jax tune` with method = "halving" through the command line, in a subprocess under a time limit (a
     hang fails here instead of stalling CI): 4 candidates per bracket, 2 brackets, rungs at 1 and 3 chunks; the

@@ -186,10 +186,15 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
 
 
 def _cmd_tune(args: argparse.Namespace) -> int:
-    _join_processes(args)
+    if not args.dry_run:  # a dry run describes this process's devices alone
+        _join_processes(args)
     jaxcfg.start_backend()
-    from wbc_jax.studies.tune import run_tune
+    from wbc_jax.studies.tune import dry_run_tune, run_tune
 
+    if args.dry_run:
+        dry_run_tune(args.spec, args.out, candidates=args.candidates, rounds=args.rounds, batch=args.batch,
+                     force=args.force, backend=args.backend)
+        return 0
     if distributed.is_writer():  # process 0 writes --out
         claim_out_dir(args.out, "wbc-jax tune")
     run_tune(args.spec, args.out, candidates=args.candidates, rounds=args.rounds, batch=args.batch,

@@ -181,6 +181,9 @@ def _add_tune(sub) -> argparse.ArgumentParser:
                                                            "runs on an accelerator, 1 on a CPU (default: the spec's "
                                                            "tune.batch)")
     u.add_argument("--no-progress", action="store_true", help="no progress bar")
+    u.add_argument("--dry-run", action="store_true", help="check the spec, --out and a rollout call's memory, print "
+                                                          "what the tune would simulate, and exit: nothing "
+                                                          "simulated, nothing written in --out")
     _backend_flag(u, "the campaign specs' campaign.backend (tuning and confirmation)")
     _process_flags(u)
     return u

@@ -55,12 +55,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.campaign.build import backend_of, has_accelerator, sensing_of, with_backend
+from wbc_jax.campaign.design import design
 from wbc_jax.campaign.size import memory_need
 from wbc_jax.errors import LimitError, WbcJaxError
-from wbc_jax.io_utils import check_out_dir
+from wbc_jax.io_utils import check_not_in_use, check_out_dir, output_path
 from wbc_jax.rollout import distributed
 from wbc_jax.rollout.runs import take
-from wbc_jax.studies.tune_eval import Evaluator, candidate, rank_keys, score
+from wbc_jax.rollout.spread import choose
+from wbc_jax.studies.tune_eval import Evaluator, candidate, rank_keys, score, selected_runs
 from wbc_jax.studies.tune_report import leaderboard, make_rows, row_key
 from wbc_jax.studies.tune_results import SearchLog, Tuning, confirm, manifest, print_summary, write_outputs
 from wbc_jax.studies.tune_search import HalvingSearch, Space, halving_cost, halving_schedule, make_search
@@ -87,16 +89,16 @@ def _bracket(ev: Evaluator, search: HalvingSearch, x: np.ndarray, obj: dict, bar
     return last, idx, keys
 
 
-def _plan(spec: TuneSpec, search, ev: Evaluator, evc: Evaluator | None) -> float:
-    """Simulated run-seconds of the whole tuning (search + confirmation): the progress bar's total."""
+def _work(spec: TuneSpec, search, ev: Evaluator, evc: Evaluator | None) -> tuple[float, float]:
+    """Simulated run-seconds of the search and of the confirmation; their sum is the progress bar's total."""
     C, t = search.C, spec.tune
     if t["method"] == "halving":
         work = search.rounds * halving_cost(C, search.eta, search.rungs, ev.n_chunks) * ev.n * ev.chunk_s
     else:
         work = search.rounds * C * ev.n * ev.seconds
     if evc is not None:
-        return work + (1 + spec.confirm["top"]) * evc.n * evc.seconds
-    return work + 2 * ev.n * ev.seconds
+        return work, (1 + spec.confirm["top"]) * evc.n * evc.seconds
+    return work, 2 * ev.n * ev.seconds
 
 
 def _batch_size(spec: TuneSpec, runs: int) -> int:
@@ -107,17 +109,18 @@ def _batch_size(spec: TuneSpec, runs: int) -> int:
     return max(1, runs) if has_accelerator() else CPU_BATCH
 
 
-def _check_memory(spec: TuneSpec, ev) -> None:
-    """Refuse a rollout call whose ``ev.size`` runs would not fit in a device's memory (the campaign's estimate,
-    :func:`wbc_jax.campaign.size.memory_need`), before anything is compiled.
+def _check_memory(spec: TuneSpec, size: int) -> None:
+    """Refuse a rollout call of ``size`` runs that would not fit in a device's memory (the campaign's estimate,
+    :func:`wbc_jax.campaign.size.memory_need`, over the devices a sub-batch is spread over), before anything is
+    built or compiled.
 
     Raises:
         LimitError: naming ``tune.batch`` and ``--batch``.
     """
-    need, avail = memory_need(spec.campaign, ev.spread.parts, runs=ev.size)
+    need, avail = memory_need(spec.campaign, choose(backend_of(spec.campaign)).parts, runs=size)
     if avail and need > avail:
         auto = " (0: a round's runs at once)" if spec.tune["batch"] == 0 else ""
-        raise LimitError(f"{spec.path}: tune.batch{auto}: {ev.size:,} runs per rollout call need about "
+        raise LimitError(f"{spec.path}: tune.batch{auto}: {size:,} runs per rollout call need about "
                          f"{need / 2**30:,.1f} GiB, {avail / 2**30:,.1f} GiB available; a smaller tune.batch or "
                          "--batch")
 
@@ -140,28 +143,32 @@ def _say(writer: bool):
     return print if writer else (lambda *a, **k: None)
 
 
-def _prepare(spec_path, out, candidates, rounds, batch, force, backend) -> Tuning:
-    """Load and check the spec, check DIR (process 0), build the search and both evaluators with one batch shape."""
+def _prepare(spec_path, out, candidates, rounds, batch, force, backend, dry: bool = False) -> Tuning:
+    """Load and check the spec, check DIR (process 0), build the search and both evaluators with one batch shape
+    (``dry``: the runs planned, no initial state made; DIR checked against a command using it, not claimed)."""
     path = spec_path if spec_path is not None else default_tune_spec_path(has_accelerator())
     spec = _with_backend(load_tune_spec(path).with_overrides(candidates, rounds, batch), backend)
     writer = distributed.is_writer()
     problem = None
     try:  # process 0's output folder (the others write nothing)
         if writer:
+            if dry:  # the check of claim_out_dir (the command's), without the claim
+                check_not_in_use(out)
             check_out_dir(out, "wbc-jax tune", force=force, inputs=[spec.path])  # force: replace an earlier tune's
     except WbcJaxError as e:
         problem = e
     distributed.agree(problem)
     space = Space(spec.leaves, spec.start)
     search = make_search(spec, space)
-    ev = Evaluator(spec.campaign, spec.cells, 1)
-    evc = Evaluator(spec.confirm_campaign, None, 1) if spec.confirm_campaign is not None else None
-    # one shape for the search and the confirmation (one compilation when both use the same campaign settings)
-    ev.size = _batch_size(spec, max(search.C * ev.n, (1 + spec.confirm["top"]) * evc.n if evc else 2 * ev.n))
-    _check_memory(spec, ev)
-    if evc is not None:
-        evc.size = ev.size
-    return Tuning(spec, space, search, ev, evc, _plan(spec, search, ev, evc), writer)
+    # one shape for the search and the confirmation (one compilation when both use the same campaign settings),
+    # fixed before the batches are built: Warp's shared contact list is sized for it
+    n = len(selected_runs(design(spec.campaign), spec.cells))
+    confirm_runs = (1 + spec.confirm["top"]) * design(spec.confirm_campaign).n if spec.confirm_campaign else 2 * n
+    size = _batch_size(spec, max(search.C * n, confirm_runs))
+    _check_memory(spec, size)
+    ev = Evaluator(spec.campaign, spec.cells, size, ahead=dry)
+    evc = Evaluator(spec.confirm_campaign, None, size, ahead=dry) if spec.confirm_campaign is not None else None
+    return Tuning(spec, space, search, ev, evc, sum(_work(spec, search, ev, evc)), writer)
 
 
 def _announce(tuning: Tuning) -> None:
@@ -236,6 +243,47 @@ def _search(tuning: Tuning, bar) -> SearchLog:
                 f"({'feasible' if best[0]['feasible'] else 'infeasible'})")
         (bar.write if bar is not None else _say(tuning.writer))(line)
     return SearchLog(rows, walls, variants, per_run, best)
+
+
+def dry_run_tune(spec_path: str | None, out: str, candidates: int | None = None, rounds: int | None = None,
+                 batch: int | None = None, force: bool = False, backend: str | None = None) -> dict:
+    """``wbc-jax tune --dry-run``: :func:`run_tune`'s checks (the spec, ``out``, a rollout call's memory) and what
+    it would simulate, printed and returned. The runs are planned (no initial state is made; nothing is compiled or
+    simulated); ``out`` is checked, also against a command using it, but not claimed, and nothing is written in it.
+    Arguments as :func:`run_tune`'s; the processes of a multi-process run are not joined (this process's devices).
+
+    Returns:
+        dict: ``name``, ``spec``, ``method``, ``rounds``, ``candidates``, ``leaves`` (tuned), ``runs_per_candidate``,
+        ``runs_per_call``, ``confirm_runs`` (the confirmation's runs of all its gain sets), ``search_run_s``,
+        ``confirm_run_s`` (simulated run-seconds), ``physics_steps`` (of both, over every run), ``memory_bytes``
+        (a rollout call's, per device), ``available_bytes`` (None where unknown), ``backend``, ``device``, ``out``,
+        ``out_state`` ("new", or "replaced": an earlier tune that ``force`` replaces).
+
+    Raises:
+        SpecError, OutputError, LimitError: what the tune would raise before it compiled.
+    """
+    tuning = _prepare(spec_path, out, candidates, rounds, batch, force, backend, dry=True)
+    spec, ev, evc, search = tuning.spec, tuning.ev, tuning.evc, tuning.search
+    search_s, confirm_s = _work(spec, search, ev, evc)
+    steps = round(search_s / ev.sim.dt_physics + confirm_s / (evc or ev).sim.dt_physics)
+    need, avail = memory_need(spec.campaign, ev.spread.parts, runs=ev.size)
+    out_p = output_path(out)
+    plan = dict(name=spec.tune["name"], spec=str(spec.path), method=spec.tune["method"], rounds=search.rounds,
+                candidates=search.C, leaves=list(spec.leaves), runs_per_candidate=ev.n, runs_per_call=ev.size,
+                confirm_runs=((1 + spec.confirm["top"]) * evc.n) if evc else 2 * ev.n, search_run_s=search_s,
+                confirm_run_s=confirm_s, physics_steps=steps, memory_bytes=need, available_bytes=avail,
+                backend=backend_of(spec.campaign), device=jax.devices()[0].device_kind, out=str(out),
+                out_state="replaced" if out_p.is_dir() and any(out_p.iterdir()) else "new")
+    memory = (f"about {need / 2**30:,.2f} GiB" if need >= 2**30 else f"about {need / 2**20:,.0f} MiB") + (
+        f" of {avail / 2**30:,.1f} GiB available" if avail else "")
+    print(f"dry run of tune {plan['name']!r} ({spec.path}): nothing is simulated, nothing written in --out", flush=True)
+    _announce(tuning)
+    print(f"  search {search_s:,.1f} + confirmation {confirm_s:,.1f} run-seconds: {steps:,} physics steps; "
+          f"a rollout call of {ev.size:,} run{'s' * (ev.size != 1)} needs {memory}", flush=True)
+    print(f"  --out {out}: " + ("holds an earlier tune, which --force replaces" if plan["out_state"] == "replaced"
+                                else "a new folder"), flush=True)
+    print("the tune would start: the same command without --dry-run runs it", flush=True)
+    return plan
 
 
 def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rounds: int | None = None,

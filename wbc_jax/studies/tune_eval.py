@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from wbc_jax.campaign.build import build, chunk_fn
+from wbc_jax.campaign.build import build, build_ahead, chunk_fn
 from wbc_jax.campaign.job import chunk_seconds
 from wbc_jax.control.transport import TransportGains
 from wbc_jax.rollout import final_results
@@ -32,6 +32,15 @@ from wbc_jax.rollout.batch import take_runs, with_contact_list
 from wbc_jax.rollout.runs import concat, take
 from wbc_jax.rollout.spread import choose
 from wbc_jax.studies.tune_search import rank_key
+
+
+def selected_runs(dz, cells: list | None) -> np.ndarray:
+    """Design rows (int, ascending) of the runs in ``cells`` ([m, mu, d] each; None: every run) of design ``dz``
+    (:func:`wbc_jax.campaign.design.design`)."""
+    if cells is None:
+        return np.arange(dz.n)
+    have = np.stack([dz.m, dz.mu, dz.d], axis=1)
+    return np.where(np.isclose(have[:, None, :], np.asarray(cells)[None]).all(-1).any(-1))[0]
 
 
 class Evaluator:
@@ -43,26 +52,25 @@ class Evaluator:
         seconds: the full horizon [s]; sim: the Sim; fn: the compiled chunk function; calls: rollout calls made.
     """
 
-    def __init__(self, camp, cells: list | None, size: int):
+    def __init__(self, camp, cells: list | None, size: int, ahead: bool = False):
         """Args: camp: campaign Spec (reps, max_seconds, qp_iters applied); cells: [m, mu, d] cells to keep
-        (None: all); size: runs per rollout call (>= 1)."""
-        built = build(camp)
+        (None: all); size: runs per rollout call (>= 1); ahead: the runs planned but no initial state made and no
+        chunk function (``batch`` and ``fn`` None: a dry run's figures, no rollout)."""
+        built = build_ahead(camp)[0] if ahead else build(camp)
         sim, dz, b = built.sim, built.design, built.batch
         logs_per_chunk, n_chunks = built.logs_per_chunk, built.n_chunks
-        if cells is None:
-            sel = np.arange(dz.n)
-        else:
-            have = np.stack([dz.m, dz.mu, dz.d], axis=1)
-            sel = np.where(np.isclose(have[:, None, :], np.asarray(cells)[None]).all(-1).any(-1))[0]
+        sel = selected_runs(dz, cells)
         self.camp, self.sim, self.n, self.n_chunks = camp, sim, len(sel), n_chunks
         self.m, self.mu, self.d, self.rep, self.seeds = dz.m[sel], dz.mu[sel], dz.d[sel], dz.rep[sel], dz.seed[sel]
         self.chunk_s = chunk_seconds(built)
         self.seconds = n_chunks * self.chunk_s
         self.size = int(size)
-        # every sub-batch has `size` runs taken from b: Warp's shared contact list sized for them, not for b's runs
-        self.batch, self.sel = with_contact_list(b, self.size), np.asarray(sel)
+        self.sel = np.asarray(sel)
         self.spread = choose(sim.robot.backend)  # every sub-batch over every device (wbc_jax.rollout.spread)
-        self.fn = chunk_fn(sim, b.in_axes, logs_per_chunk, self.spread.mesh, self.batch.state_axes)
+        self.batch = self.fn = None
+        if not ahead:  # every sub-batch has `size` runs taken from b: Warp's contact list sized for them, not b's
+            self.batch = with_contact_list(b, self.size)
+            self.fn = chunk_fn(sim, b.in_axes, logs_per_chunk, self.spread.mesh, self.batch.state_axes)
         self.calls = 0
 
     def compiled_variants(self) -> int | None:
