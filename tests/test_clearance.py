@@ -27,8 +27,6 @@ CROUCH = ((-1.66, -0.14, 1.1, -2.2), (-1.70, -0.13, 1.15, -2.3), (-1.75, -0.10, 
 N_RANDOM = 24
 RECOMPUTE_TOL = 1e-7  # [m] a broad-phase candidate's distance against the all-pairs one: float32 rounding (XLA fuses
 #                       the two programs differently; measured <= 3.1e-8)
-CANDIDATE_AXIS_TOL = 1e-6  # [m] one pair's distance, two layouts of one program: float32 rounding at distances of a
-#                            few metres (ulp(4 m) = 4.8e-7)
 
 
 def _named_poses(robot) -> dict:
@@ -376,32 +374,3 @@ def test_broad_phase_non_finite_pose_and_empty_scene(at_poses):
     none = CL.bounded_min_clearance(empty, mjx.make_data(robot.mjx_model))
     assert float(none.distance) == np.inf and int(none.pair) == -1 and float(none.bound) == np.inf
 
-
-def test_pairs_at_once_equal_one_pair_at_a_time(at_poses):
-    """Each primitive and bound on a kind's pairs at once (``over_pairs``: the pairs on the components' last axis)
-    gives what ``jax.vmap`` over the pairs gives, at the named poses, 200 random ones and the NaN pose: the same bits
-    where the arithmetic is elementwise; within float32 rounding (CANDIDATE_AXIS_TOL) for the kinds that reduce over
-    a candidate axis, whose products XLA contracts differently in the two layouts."""
-    robot, _, pairs, poses, Q, _ = at_poses
-    Q = jnp.asarray(np.concatenate([Q[:len(poses) + 200], Q[-1:]]))
-
-    def per_kind(over):
-        def one(qp):
-            d = mjx.kinematics(robot.mjx_model, mjx.make_data(robot.mjx_model).replace(qpos=qp))
-            out = {}
-            for k, name in enumerate(CL.KINDS):
-                args = CL._kind_inputs(pairs, d, np.where(pairs.kind == k)[0])
-                for fn in (DI.PRIMITIVES[name], DI.BOUNDS.get(name)):
-                    if fn is not None and len(args[0]):
-                        out[fn.__name__] = DI.over_pairs(fn, args) if over else jax.vmap(fn)(*args)
-            return out
-        return jax.device_get(jax.jit(jax.vmap(one))(Q))
-
-    at_once, one_by_one = per_kind(True), per_kind(False)
-    assert set(at_once) == {"capsule_plane", "capsule_box", "box_plane", "box_box", "capsule_box_bound",
-                            "box_box_bound"}, set(at_once)
-    for name, v in one_by_one.items():
-        if name in ("capsule_box", "box_box"):
-            np.testing.assert_allclose(at_once[name], v, rtol=0, atol=CANDIDATE_AXIS_TOL, err_msg=name)
-        else:
-            np.testing.assert_array_equal(at_once[name], v, err_msg=name)

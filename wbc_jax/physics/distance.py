@@ -27,12 +27,13 @@ measures a scene's pairs with these functions:
 
 The primitives (:data:`PRIMITIVES`, by pair kind) and the bounds (:data:`BOUNDS`) take ``(pos, R, size, env_pos,
 env_R, env_size)``: positions (3,), rotations (3, 3) (columns = axes) and sizes (3,) (capsule: radius, half-length;
-sphere: radius; box: half-sizes; plane: unused) of one pair, or of a kind's pairs at once (:func:`over_pairs`), and
-return the signed distance [m] (a bound: at most the distance).
+sphere: radius; box: half-sizes; plane: unused) of one pair (:func:`over_pairs` maps them over a kind's pairs),
+and return the signed distance [m] (a bound: at most the distance).
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -44,7 +45,7 @@ _OTHER = ((1, 2), (0, 2), (0, 1))
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# primitives (one pair, or the pairs of a kind at once: :func:`over_pairs`). A point or vector is a 3-tuple of
+# primitives (one pair; :func:`over_pairs` maps them over a kind's pairs). A point or vector is a 3-tuple of
 # arrays (its components) and a box's half-sizes a 3-tuple too. Candidates that share one expression and differ by
 # constants (a box's vertices, its edge lines' signs) are one array over a leading candidate axis (:func:`_lead`),
 # reduced with a min: the program stays a few hundred operations per kind, which XLA traces and compiles quickly.
@@ -61,10 +62,9 @@ def _lead(c, like):
 
 
 def over_pairs(fn, args):
-    """(n,) ``fn`` (a primitive or a bound) of ``n`` pairs at once: ``args`` with the pairs on axis 0 moved to the
-    last axis, so that a component ``p[0]`` or ``M[i, j]`` holds every pair's. The same arithmetic as
-    ``jax.vmap(fn)``, traced without a batching level (the candidate-axis reductions may round differently)."""
-    return fn(*(jnp.moveaxis(a, 0, -1) for a in args))
+    """(n,) ``fn`` (a primitive or a bound) of ``n`` pairs at once: ``jax.vmap`` over the pairs on axis 0 of every
+    argument."""
+    return jax.vmap(fn)(*args)
 
 
 def _col(M, j):
