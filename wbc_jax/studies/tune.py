@@ -109,15 +109,23 @@ def _batch_size(spec: TuneSpec, runs: int) -> int:
     return max(1, runs) if has_accelerator() else CPU_BATCH
 
 
+def _call_memory(spec: TuneSpec, size: int) -> tuple[float, int | None]:
+    """(a device's memory estimate [bytes] for a rollout call of ``size`` runs of the tuning or the confirmation
+    campaign, whichever needs more; the available memory [bytes] or None): :func:`wbc_jax.campaign.size.memory_need`
+    over the devices a call is spread over."""
+    camps = [c for c in (spec.campaign, spec.confirm_campaign) if c is not None]
+    needs = [memory_need(c, choose(backend_of(c)).parts, runs=size) for c in camps]
+    return max(n for n, _ in needs), needs[0][1]
+
+
 def _check_memory(spec: TuneSpec, size: int) -> None:
-    """Refuse a rollout call of ``size`` runs that would not fit in a device's memory (the campaign's estimate,
-    :func:`wbc_jax.campaign.size.memory_need`, over the devices a sub-batch is spread over), before anything is
-    built or compiled.
+    """Refuse a rollout call of ``size`` runs that would not fit in a device's memory (:func:`_call_memory`), before
+    anything is built or compiled.
 
     Raises:
         LimitError: naming ``tune.batch`` and ``--batch``.
     """
-    need, avail = memory_need(spec.campaign, choose(backend_of(spec.campaign)).parts, runs=size)
+    need, avail = _call_memory(spec, size)
     if avail and need > avail:
         auto = " (0: a round's runs at once)" if spec.tune["batch"] == 0 else ""
         raise LimitError(f"{spec.path}: tune.batch{auto}: {size:,} runs per rollout call need about "
@@ -266,7 +274,7 @@ def dry_run_tune(spec_path: str | None, out: str, candidates: int | None = None,
     spec, ev, evc, search = tuning.spec, tuning.ev, tuning.evc, tuning.search
     search_s, confirm_s = _work(spec, search, ev, evc)
     steps = round(search_s / ev.sim.dt_physics + confirm_s / (evc or ev).sim.dt_physics)
-    need, avail = memory_need(spec.campaign, ev.spread.parts, runs=ev.size)
+    need, avail = _call_memory(spec, ev.size)
     out_p = output_path(out)
     plan = dict(name=spec.tune["name"], spec=str(spec.path), method=spec.tune["method"], rounds=search.rounds,
                 candidates=search.C, leaves=list(spec.leaves), runs_per_candidate=ev.n, runs_per_call=ev.size,
