@@ -462,11 +462,12 @@ def test_campaign_chunk_program_compiled_ahead(tmp_path, monkeypatch, capsys):
 
 
 def test_tune_on_warp_sizes_the_contact_list_for_its_rollout_calls(tmp_path):
-    """`wbc-jax tune` on Warp steps sub-batches of ``tune.batch`` runs taken from its design's batch (8 runs per
-    call, a design of 2): its evaluators are built with Warp's shared contact list sized for a call's runs
-    (``rollout.batch.with_contact_list``). With the list of one run (before: the evaluators were built before the
-    call size was known) every run of this tune overflowed the broad phase and failed, 0 of 4 candidates feasible;
-    now every run of the search and of the confirmation succeeds and none is flagged."""
+    """`wbc-jax tune` on Warp steps rollout calls of ``tune.batch`` runs taken from its campaign's batch (4 runs per
+    call: 2 candidates x the 2 chosen cells of a design of 8): its evaluators are built with Warp's shared contact
+    list sized for a call's runs (``rollout.batch.with_contact_list``), not the design's 8 nor one run's. With the
+    list of one run (before: the evaluators were built before the call size was known) every run of such a tune
+    overflowed the broad phase and failed; now every run of the search and of the confirmation succeeds and none is
+    flagged."""
     import pandas as pd
 
     from wbc_jax import cli
@@ -477,22 +478,22 @@ def test_tune_on_warp_sizes_the_contact_list_for_its_rollout_calls(tmp_path):
 name = "warp sub-batches"
 campaign = "{SWEEPS.parent / 'reports' / 'baseline' / 'spec.toml'}"
 method = "random"
-candidates = 4
+candidates = 2
 rounds = 1
 seed = 5
 cells = [[0.2, 0.4, 0.06], [0.4, 1.0, 0.10]]
-batch = 8
+batch = 4
 [start]
 [leaves]
 kp_com = [0.9, 1.1]
 """)
     t = tune._prepare(str(spec), str(tmp_path / "out"), None, None, None, False, "warp")
-    assert t.ev.size == 8 and t.ev.n == 2
-    assert t.ev.batch.state.d._impl.naconmax == 8 * physics.NACON_PER_RUN
+    assert t.ev.size == 4 and t.ev.n == 2 and t.evc is None
+    assert t.ev.batch.state.d._impl.naconmax == 4 * physics.NACON_PER_RUN
     assert cli.main(["tune", "--spec", str(spec), "--out", str(tmp_path / "out"), "--backend", "warp",
                      "--no-progress"]) == 0
     board = pd.read_csv(tmp_path / "out" / "leaderboard.csv")
-    assert len(board) == 4 and (board.success_rate == 1.0).all() and board.feasible.all()
+    assert len(board) == 2 and (board.success_rate == 1.0).all() and board.feasible.all()
     runs = pd.read_csv(tmp_path / "out" / "confirm_runs.csv")
     assert len(runs) == 4 and runs.success.all() and runs.fail_reason.isna().all()  # before: "contact capacity
     # overflow (Warp)" in every run

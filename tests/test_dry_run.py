@@ -117,7 +117,7 @@ def test_processes_to_come_are_counted_not_joined(tiny_spec, tmp_path, monkeypat
 
     from wbc_jax.campaign import dry_run as dry_run_mod
 
-    parts = dry_run_mod._parts
+    parts = dry_run_mod.layout_parts
     assert [parts(1, "warp", 4), parts(2, "jax", 4, 2), parts(3, "jax", 1), parts(1, "jax", 4, 1)] == [4, 8, 3, 4]
     seen = {}
     monkeypatch.setattr(dry_run_mod, "memory_need", lambda spec, parts: (seen.setdefault("parts", parts), None))

@@ -153,12 +153,12 @@ def test_bad_tune_spec_cli_exit_2_nothing_written(tmp_path, capsys):
 
 
 def test_a_rollout_call_too_large_for_memory_is_refused_before_compiling(tmp_path, capsys):
-    """A million runs per rollout call (``--batch``): one line naming tune.batch and --batch with the campaign's
+    """A million runs per rollout call (``--batch``): one line naming tune.batch, --batch and the campaign with its
     memory estimate (wbc_jax.campaign.size), exit 2, nothing written."""
     out = tmp_path / "out"
     assert cli.main(["tune", "--spec", str(_write(tmp_path, TINY)), "--out", str(out), "--batch", "1000000"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "tune.batch: 1,000,000 runs per rollout call need about" in err[0], err
+    assert len(err) == 1 and f"tune.batch: 1,000,000 runs per rollout call of {BASELINE_SPEC} need about" in err[0]
     assert "--batch" in err[0] and not out.exists()
 
 
@@ -425,8 +425,6 @@ def test_best_gains_replayed_by_campaign(tiny_run, tmp_path):
     assert json.loads((camp / "manifest.json").read_text())["default_gains"] is False
 
 
-@pytest.mark.slow  # a fresh process compiles the one-run programs; the CEM run above covers the search end to end
-#                   and test_halving_schedule_and_survivors the halving bookkeeping
 def test_dry_run_describes_the_tune_it_would_run(tiny_run, tmp_path, capsys):
     """`wbc-jax tune --dry-run`: the tiny tune's own figures (runs per candidate and per rollout call, the planned
     run-seconds of its manifest) and a hand count of its physics steps; nothing written; an earlier tune's folder
@@ -450,6 +448,8 @@ def test_dry_run_describes_the_tune_it_would_run(tiny_run, tmp_path, capsys):
     assert plan["confirm_run_s"] == pytest.approx(2 * n * seconds) and plan["confirm_runs"] == 2 * n
     dt = man["control_dt_s"] / load_spec(BASELINE_SPEC).campaign["control_substeps"]
     assert plan["physics_steps"] == round((ROUNDS * C + 2) * n * seconds / dt)
+    assert plan["parts"] == 1 and dry_run_tune(spec.path, str(new), processes=3)["parts"] == 3  # JAX: a mesh over
+    # the 3 processes' devices (one CPU device each here)
     before = sorted((f.name, f.stat().st_mtime_ns) for f in out.iterdir())
     assert cli.main(["tune", "--spec", spec.path, "--out", str(out), "--dry-run"]) == 2
     assert "--force" in capsys.readouterr().err
@@ -464,6 +464,8 @@ def test_dry_run_describes_the_tune_it_would_run(tiny_run, tmp_path, capsys):
         release_out_dir(new)
 
 
+@pytest.mark.slow  # a fresh process compiles the one-run programs; the CEM run above covers the search end to end
+#                   and test_halving_schedule_and_survivors the halving bookkeeping
 def test_tiny_successive_halving_end_to_end(tmp_path):
     """`wbc-jax tune` with method = "halving" through the command line, in a subprocess under a time limit (a
     hang fails here instead of stalling CI): 4 candidates per bracket, 2 brackets, rungs at 1 and 3 chunks; the

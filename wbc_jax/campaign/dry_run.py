@@ -53,7 +53,7 @@ def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = F
     spec_path = spec_path if spec_path is not None else default_spec_path(has_accelerator())
     spec, physics, identity = preflight.checked_spec(spec_path, backend, gains)
     spread = choose(physics)
-    parts = _parts(spread.parts, physics, processes, local_devices)
+    parts = layout_parts(spread.parts, physics, processes, local_devices)
     out_p, ck = preflight.check_outputs(spec, out, identity, resume=resume, force=force, allow_large=allow_large,
                                         inputs=inputs, backend_flag=backend, parts=parts, claim=False)
     discarded = 0 if resume else kept(ck)[0]  # a checkpoint --force lets the campaign delete
@@ -86,7 +86,7 @@ def dry_run(spec_path: str | None, out, *, resume: bool = False, force: bool = F
     return plan
 
 
-def _parts(here: int, physics: str, processes: int, local_devices: int | None = None) -> int:
+def layout_parts(here: int, physics: str, processes: int, local_devices: int | None = None) -> int:
     """The devices a campaign of ``processes`` processes splits its runs over (``wbc_jax.rollout.spread``; ``here``:
     this process's split): on Warp physics one block per process, on JAX physics one mesh over every process's
     ``local_devices`` (None: as many as this process has)."""

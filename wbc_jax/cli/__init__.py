@@ -186,14 +186,16 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
 
 
 def _cmd_tune(args: argparse.Namespace) -> int:
-    if not args.dry_run:  # a dry run describes this process's devices alone
+    if not args.dry_run:  # a dry run joins no process (it counts them)
         _join_processes(args)
     jaxcfg.start_backend()
     from wbc_jax.studies.tune import dry_run_tune, run_tune
 
-    if args.dry_run:
+    if args.dry_run:  # the processes the tune will run as, from the flags or the environment, not joined
+        layout = distributed.resolve(args.coordinator, args.num_processes, args.process_id, args.local_device_ids)
         dry_run_tune(args.spec, args.out, candidates=args.candidates, rounds=args.rounds, batch=args.batch,
-                     force=args.force, backend=args.backend)
+                     force=args.force, backend=args.backend, processes=layout.num_processes if layout else 1,
+                     local_devices=len(layout.local_device_ids) if layout and layout.local_device_ids else None)
         return 0
     if distributed.is_writer():  # process 0 writes --out
         claim_out_dir(args.out, "wbc-jax tune")

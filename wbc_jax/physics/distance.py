@@ -51,13 +51,14 @@ _OTHER = ((1, 2), (0, 2), (0, 1))
 # reduced with a min: the program stays a few hundred operations per kind, which XLA traces and compiles quickly.
 
 def _v(p):
-    """The components of a (3,) array (or of the leading axis of a (3, ...) array)."""
+    """The components of a (3,) array."""
     return (p[0], p[1], p[2])
 
 
 def _lead(c, like):
-    """A constant (k,) array of candidates shaped to lead ``like``'s axes: (k, 1, ...), so that it broadcasts against
-    a batch of pairs (their components' shape) and a reduction over axis 0 is over the candidates."""
+    """A constant (k,) array of candidates shaped to lead ``like``'s axes ((k,) for a scalar component, (k, 1, ...)
+    for a candidate array), so that it broadcasts against ``like`` and a reduction over axis 0 is over the
+    candidates."""
     return np.reshape(c, (-1,) + (1,) * jnp.ndim(like))
 
 

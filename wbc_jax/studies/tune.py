@@ -56,7 +56,8 @@ import numpy as np
 
 from wbc_jax.campaign.build import backend_of, has_accelerator, sensing_of, with_backend
 from wbc_jax.campaign.design import design
-from wbc_jax.campaign.size import memory_need
+from wbc_jax.campaign.dry_run import layout_parts
+from wbc_jax.campaign.size import INPUT_BYTES, memory_need, own_memories
 from wbc_jax.errors import LimitError, WbcJaxError
 from wbc_jax.io_utils import check_not_in_use, check_out_dir, output_path
 from wbc_jax.rollout import distributed
@@ -109,26 +110,29 @@ def _batch_size(spec: TuneSpec, runs: int) -> int:
     return max(1, runs) if has_accelerator() else CPU_BATCH
 
 
-def _call_memory(spec: TuneSpec, size: int) -> tuple[float, int | None]:
-    """(a device's memory estimate [bytes] for a rollout call of ``size`` runs of the tuning or the confirmation
-    campaign, whichever needs more; the available memory [bytes] or None): :func:`wbc_jax.campaign.size.memory_need`
-    over the devices a call is spread over."""
+def _call_memory(spec: TuneSpec, size: int, parts: int | None = None) -> tuple[float, int | None, object]:
+    """(a device's memory estimate [bytes], the available memory [bytes] or None, the campaign Spec it is for) of a
+    rollout call of ``size`` runs of the tuning or the confirmation campaign, whichever needs more
+    (:func:`wbc_jax.campaign.size.memory_need` over ``parts`` devices; None: those a call is spread over here), plus
+    the campaigns' whole design batches the evaluators keep, INPUT_BYTES a run."""
     camps = [c for c in (spec.campaign, spec.confirm_campaign) if c is not None]
-    needs = [memory_need(c, choose(backend_of(c)).parts, runs=size) for c in camps]
-    return max(n for n, _ in needs), needs[0][1]
+    needs = [memory_need(c, parts or choose(backend_of(c)).parts, runs=size) for c in camps]
+    kept = sum(design(c).n for c in camps) * INPUT_BYTES
+    k = int(np.argmax([n for n, _ in needs]))
+    return needs[k][0] + kept, needs[k][1], camps[k]
 
 
-def _check_memory(spec: TuneSpec, size: int) -> None:
+def _check_memory(spec: TuneSpec, size: int, parts: int | None = None) -> None:
     """Refuse a rollout call of ``size`` runs that would not fit in a device's memory (:func:`_call_memory`), before
     anything is built or compiled.
 
     Raises:
-        LimitError: naming ``tune.batch`` and ``--batch``.
+        LimitError: naming ``tune.batch``, ``--batch`` and the campaign.
     """
-    need, avail = _call_memory(spec, size)
+    need, avail, camp = _call_memory(spec, size, parts)
     if avail and need > avail:
         auto = " (0: a round's runs at once)" if spec.tune["batch"] == 0 else ""
-        raise LimitError(f"{spec.path}: tune.batch{auto}: {size:,} runs per rollout call need about "
+        raise LimitError(f"{spec.path}: tune.batch{auto}: {size:,} runs per rollout call of {camp.path} need about "
                          f"{need / 2**30:,.1f} GiB, {avail / 2**30:,.1f} GiB available; a smaller tune.batch or "
                          "--batch")
 
@@ -151,17 +155,17 @@ def _say(writer: bool):
     return print if writer else (lambda *a, **k: None)
 
 
-def _prepare(spec_path, out, candidates, rounds, batch, force, backend, dry: bool = False) -> Tuning:
+def _prepare(spec_path, out, candidates, rounds, batch, force, backend, dry: bool = False,
+             layout: tuple = (1, None)) -> Tuning:
     """Load and check the spec, check DIR (process 0), build the search and both evaluators with one batch shape
-    (``dry``: the runs planned, no initial state made; DIR checked against a command using it, not claimed)."""
+    (``dry``: the runs planned, no initial state made; ``layout``: (processes, local devices or None) a dry run's
+    memory check counts instead of this process's devices)."""
     path = spec_path if spec_path is not None else default_tune_spec_path(has_accelerator())
     spec = _with_backend(load_tune_spec(path).with_overrides(candidates, rounds, batch), backend)
     writer = distributed.is_writer()
     problem = None
     try:  # process 0's output folder (the others write nothing)
         if writer:
-            if dry:  # the check of claim_out_dir (the command's), without the claim
-                check_not_in_use(out)
             check_out_dir(out, "wbc-jax tune", force=force, inputs=[spec.path])  # force: replace an earlier tune's
     except WbcJaxError as e:
         problem = e
@@ -173,7 +177,8 @@ def _prepare(spec_path, out, candidates, rounds, batch, force, backend, dry: boo
     n = len(selected_runs(design(spec.campaign), spec.cells))
     confirm_runs = (1 + spec.confirm["top"]) * design(spec.confirm_campaign).n if spec.confirm_campaign else 2 * n
     size = _batch_size(spec, max(search.C * n, confirm_runs))
-    _check_memory(spec, size)
+    physics = backend_of(spec.campaign)
+    _check_memory(spec, size, layout_parts(choose(physics).parts, physics, *layout) if layout[0] > 1 else None)
     ev = Evaluator(spec.campaign, spec.cells, size, ahead=dry)
     evc = Evaluator(spec.confirm_campaign, None, size, ahead=dry) if spec.confirm_campaign is not None else None
     return Tuning(spec, space, search, ev, evc, sum(_work(spec, search, ev, evc)), writer)
@@ -254,40 +259,48 @@ def _search(tuning: Tuning, bar) -> SearchLog:
 
 
 def dry_run_tune(spec_path: str | None, out: str, candidates: int | None = None, rounds: int | None = None,
-                 batch: int | None = None, force: bool = False, backend: str | None = None) -> dict:
-    """``wbc-jax tune --dry-run``: :func:`run_tune`'s checks (the spec, ``out``, a rollout call's memory) and what
-    it would simulate, printed and returned. The runs are planned (no initial state is made; nothing is compiled or
-    simulated); ``out`` is checked, also against a command using it, but not claimed, and nothing is written in it.
-    Arguments as :func:`run_tune`'s; the processes of a multi-process run are not joined (this process's devices).
+                 batch: int | None = None, force: bool = False, backend: str | None = None, processes: int = 1,
+                 local_devices: int | None = None) -> dict:
+    """``wbc-jax tune --dry-run``: :func:`run_tune`'s checks (``out`` against a command using it, the spec,
+    ``out``'s content, a rollout call's memory) and what it would simulate, printed and returned. The runs are
+    planned (no initial state is made; nothing is compiled or simulated); ``out`` is not claimed and nothing is
+    written in it. Arguments as :func:`run_tune`'s; ``processes`` (each with ``local_devices`` devices, None: this
+    process's): the processes the tune will run as, whose devices the memory check counts; none is joined.
 
     Returns:
         dict: ``name``, ``spec``, ``method``, ``rounds``, ``candidates``, ``leaves`` (tuned), ``runs_per_candidate``,
         ``runs_per_call``, ``confirm_runs`` (the confirmation's runs of all its gain sets), ``search_run_s``,
-        ``confirm_run_s`` (simulated run-seconds), ``physics_steps`` (of both, over every run), ``memory_bytes``
-        (a rollout call's, per device), ``available_bytes`` (None where unknown), ``backend``, ``device``, ``out``,
-        ``out_state`` ("new", or "replaced": an earlier tune that ``force`` replaces).
+        ``confirm_run_s`` (simulated run-seconds), ``physics_steps`` (of both, over the real runs: a last
+        sub-batch's padding copies not counted), ``memory_bytes`` (a device's, :func:`_call_memory`),
+        ``available_bytes`` (None where unknown), ``parts`` (the devices a call is spread over), ``backend``,
+        ``device``, ``out``, ``out_state`` ("new", or "replaced": an earlier tune that ``force`` replaces).
 
     Raises:
         SpecError, OutputError, LimitError: what the tune would raise before it compiled.
     """
-    tuning = _prepare(spec_path, out, candidates, rounds, batch, force, backend, dry=True)
+    check_not_in_use(out)  # the command's claim comes first (wbc_jax.cli), then the spec
+    tuning = _prepare(spec_path, out, candidates, rounds, batch, force, backend, dry=True,
+                      layout=(processes, local_devices))
     spec, ev, evc, search = tuning.spec, tuning.ev, tuning.evc, tuning.search
     search_s, confirm_s = _work(spec, search, ev, evc)
     steps = round(search_s / ev.sim.dt_physics + confirm_s / (evc or ev).sim.dt_physics)
-    need, avail = _call_memory(spec, ev.size)
+    physics = backend_of(spec.campaign)
+    parts = layout_parts(ev.spread.parts, physics, processes, local_devices) if processes > 1 else ev.spread.parts
+    need, avail, _ = _call_memory(spec, ev.size, parts)
     out_p = output_path(out)
     plan = dict(name=spec.tune["name"], spec=str(spec.path), method=spec.tune["method"], rounds=search.rounds,
                 candidates=search.C, leaves=list(spec.leaves), runs_per_candidate=ev.n, runs_per_call=ev.size,
                 confirm_runs=((1 + spec.confirm["top"]) * evc.n) if evc else 2 * ev.n, search_run_s=search_s,
-                confirm_run_s=confirm_s, physics_steps=steps, memory_bytes=need, available_bytes=avail,
-                backend=backend_of(spec.campaign), device=jax.devices()[0].device_kind, out=str(out),
+                confirm_run_s=confirm_s, physics_steps=steps, memory_bytes=need, available_bytes=avail, parts=parts,
+                backend=physics, device=jax.devices()[0].device_kind, out=str(out),
                 out_state="replaced" if out_p.is_dir() and any(out_p.iterdir()) else "new")
     memory = (f"about {need / 2**30:,.2f} GiB" if need >= 2**30 else f"about {need / 2**20:,.0f} MiB") + (
-        f" of {avail / 2**30:,.1f} GiB available" if avail else "")
+        f" on each of {parts} devices" if own_memories(parts) > 1 else "") + (
+        f", {avail / 2**30:,.1f} GiB available" if avail else "")
     print(f"dry run of tune {plan['name']!r} ({spec.path}): nothing is simulated, nothing written in --out", flush=True)
     _announce(tuning)
     print(f"  search {search_s:,.1f} + confirmation {confirm_s:,.1f} run-seconds: {steps:,} physics steps; "
-          f"a rollout call of {ev.size:,} run{'s' * (ev.size != 1)} needs {memory}", flush=True)
+          f"a rollout call of {ev.size:,} run{'s' * (ev.size != 1)}: memory {memory}", flush=True)
     print(f"  --out {out}: " + ("holds an earlier tune, which --force replaces" if plan["out_state"] == "replaced"
                                 else "a new folder"), flush=True)
     print("the tune would start: the same command without --dry-run runs it", flush=True)
