@@ -461,7 +461,7 @@ def test_campaign_chunk_program_compiled_ahead(tmp_path, monkeypatch, capsys):
     pd.testing.assert_frame_equal(a, b, check_exact=True)
 
 
-def test_tune_on_warp_sizes_the_contact_list_for_its_rollout_calls(tmp_path):
+def test_tune_on_warp_sizes_the_contact_list_for_its_rollout_calls(tmp_path, capsys):
     """`wbc-jax tune` on Warp steps rollout calls of ``tune.batch`` runs taken from its campaign's batch (4 runs per
     call: 2 candidates x the 2 chosen cells of a design of 8): its evaluators are built with Warp's shared contact
     list sized for a call's runs (``rollout.batch.with_contact_list``), not the design's 8 nor one run's. With the
@@ -496,4 +496,5 @@ kp_com = [0.9, 1.1]
     assert len(board) == 2 and (board.success_rate == 1.0).all() and board.feasible.all()
     runs = pd.read_csv(tmp_path / "out" / "confirm_runs.csv")
     assert len(runs) == 4 and runs.success.all() and runs.fail_reason.isna().all()  # before: "contact capacity
-    # overflow (Warp)" in every run
+    # overflow (Warp)" in every run, which the closing lines now name
+    assert "failed runs: default none, rank 1 none" in capsys.readouterr().out

@@ -464,6 +464,17 @@ def test_dry_run_describes_the_tune_it_would_run(tiny_run, tmp_path, capsys):
         release_out_dir(new)
 
 
+def test_failure_summary_counts_runs_and_reasons():
+    """The tune's line on the confirmation's failed runs: per gain set the failed runs and their reasons, most
+    frequent first (hand count)."""
+    from wbc_jax.studies.tune_results import failure_summary
+
+    per = {"default": dict(success=np.array([True, False, False, True, False]),
+                           fail_reason=np.array(["", "fell", "body contact", "", "body contact"])),
+           "rank 1": dict(success=np.ones(5, bool), fail_reason=np.array([""] * 5))}
+    assert failure_summary(per) == "failed runs: default 3 of 5 (body contact 2, fell 1), rank 1 none"
+
+
 @pytest.mark.slow  # a fresh process compiles the one-run programs; the CEM run above covers the search end to end
 #                   and test_halving_schedule_and_survivors the halving bookkeeping
 def test_tiny_successive_halving_end_to_end(tmp_path):
@@ -509,6 +520,9 @@ def test_tiny_successive_halving_end_to_end(tmp_path):
                                .to_numpy(float), rtol=METRIC_RTOL)
     report = (out / "report.md").read_text()
     assert "Wilcoxon signed-rank" in report and "McNemar" in report and "| J |" in report
+    fails = [f"{who} {(~g.success).sum()} of {len(g)}" if (~g.success).any() else f"{who} none"
+             for who, g in conf.groupby("candidate", sort=False)]
+    assert ("failed runs: " + ", ".join(fails)).split(" (")[0] in r.stdout  # the counts, as confirm_runs.csv's
     assert len(man["comparison"]) == 5 and man["confirmation"]["runs"] == 8
 
 

@@ -341,5 +341,5 @@ def run_tune(spec_path: str | None, out: str, candidates: int | None = None, rou
         print(f"process {jax.process_index()}: done; process 0 writes {out}", flush=True)
         return None
     write_outputs(out, tuning, log, df, conf, record, t_start, wall_tune)
-    print_summary(out, tuning, log, record, conf.comparison)
+    print_summary(out, tuning, log, record, conf)
     return record

@@ -134,6 +134,25 @@ def _gains_info(tuning: Tuning, conf: Confirmation) -> dict:
                 **{f"{n}_x": float(chosen[f"{n}_x"]) for n in tuning.space.names})
 
 
+def gain_set_runs(conf: Confirmation) -> dict:
+    """Per gain set of the confirmation ("default", then the confirmed candidates' labels), its per-run results."""
+    return {"default": candidate(conf.results, 0),
+            **{g["label"]: candidate(conf.results, 1 + j) for j, g in enumerate(conf.gain_sets[1:])}}
+
+
+def failure_summary(per_set: dict) -> str:
+    """One line on the failed runs of each gain set: per set (label -> per-run dict with ``success`` and
+    ``fail_reason``, :func:`wbc_jax.metrics.paper.finalize`) how many of its runs failed and why, e.g. "failed runs:
+    default 2 of 270 (body contact 2), rank 1 none"."""
+    parts = []
+    for label, runs in per_set.items():
+        ok = np.asarray(runs["success"], bool)
+        reasons, counts = np.unique(np.asarray(runs["fail_reason"])[~ok].astype(str), return_counts=True)
+        why = ", ".join(f"{r or 'unnamed'} {c}" for r, c in sorted(zip(reasons, counts), key=lambda x: -x[1]))
+        parts.append(f"{label} {(~ok).sum()} of {ok.size} ({why})" if (~ok).any() else f"{label} none")
+    return "failed runs: " + ", ".join(parts)
+
+
 def write_outputs(out: str, tuning: Tuning, log: SearchLog, df, conf: Confirmation, record: dict, t_start: float,
                   wall_tune: float) -> None:
     """DIR, atomically: leaderboard, per-run tables, best gains, report, figures and the manifest."""
@@ -148,13 +167,12 @@ def write_outputs(out: str, tuning: Tuning, log: SearchLog, df, conf: Confirmati
              "Confirmed gain sets (on the comparison runs): " + "; ".join(
                  f"{g['label']}: J {g['objective']:.4f}, success {g['success_rate']:.0%}, T {g['T_mm']:.2f} mm"
                  for g in conf.gain_sets) + f". best_gains.toml = search rank {int(chosen['rank'])}.",
+             "", failure_summary(gain_set_runs(conf)) + ".",
              "", f"Replay: `wbc-jax campaign --spec {ce.camp.path} --gains {Path(out) / 'best_gains.toml'}`."]
     with atomic_dir(Path(out).absolute()) as tmp:
         df.to_csv(tmp / "leaderboard.csv", index=False)
         runs_table(ev, log.per_run, obj).to_csv(tmp / "best_runs.csv", index=False)
-        gain_set_runs = {"default": candidate(conf.results, 0),
-                         **{g["label"]: candidate(conf.results, 1 + j) for j, g in enumerate(conf.gain_sets[1:])}}
-        runs_table(ce, gain_set_runs, obj).to_csv(tmp / "confirm_runs.csv", index=False)
+        runs_table(ce, gain_set_runs(conf), obj).to_csv(tmp / "confirm_runs.csv", index=False)
         (tmp / "best_gains.toml").write_text(gains_toml(
             best_gains, f"wbc-jax tune: best gains of {spec.path} (search rank {int(chosen['rank'])} of {len(rows)}, "
                         f"best of {len(conf.picks)} confirmed on {ce.camp.path})\n"
@@ -167,17 +185,19 @@ def write_outputs(out: str, tuning: Tuning, log: SearchLog, df, conf: Confirmati
         write_json_atomic(tmp / "manifest.json", record)
 
 
-def print_summary(out: str, tuning: Tuning, log: SearchLog, record: dict, comparison: list[dict]) -> None:
-    """The closing lines: candidates, wall time, start vs search best, the paired comparison."""
+def print_summary(out: str, tuning: Tuning, log: SearchLog, record: dict, conf: Confirmation) -> None:
+    """The closing lines: candidates, wall time, start vs search best, the paired comparison, the confirmation's
+    failed runs and why."""
     start, top = log.rows[0], log.best[0]
     print(f"{len(log.rows)} candidates in {record['wall_s_total']:.1f} s ({tuning.ev.calls} rollout calls of "
           f"{tuning.ev.size} runs); feasible {record['n_feasible']}, Pareto front {record['n_pareto']}", flush=True)
     print(f"start: J {start['objective']:.4f}, success {start['success_rate']:.0%}; search best (round "
           f"{top['round']}): J {top['objective']:.4f}, success {top['success_rate']:.0%}, T {top['T_mm']:.2f} mm",
           flush=True)
-    for c in comparison:
+    for c in conf.comparison:
         print(f"  {c['metric']}: default {c['default']:.4g}, tuned {c['tuned']:.4g} ({c['test']}, p = {c['p']:.3g})",
               flush=True)
+    print(f"confirmation ({conf.evaluator.camp.path}), {failure_summary(gain_set_runs(conf))}", flush=True)
     print(f"written to {out}", flush=True)
 
 
