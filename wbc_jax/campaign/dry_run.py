@@ -97,15 +97,18 @@ def layout_parts(here: int, physics: str, processes: int, local_devices: int | N
     return processes * (local_devices if local_devices else jax.local_device_count())
 
 
+def memory_phrase(need: float, available: int | None, devices: int = 1) -> str:
+    """A dry run's memory estimate ``need`` [bytes] (a device's, on each of ``devices`` when more than one) with the
+    ``available`` memory [bytes] when known, e.g. "about 28.94 GiB, 104.4 GiB available"."""
+    return (f"about {need / 2**30:,.2f} GiB" + (f" on each of {devices} devices" if devices > 1 else "")
+            + (f", {available / 2**30:,.1f} GiB available" if available else ""))
+
+
 def describe(plan: dict, per_device: bool = False, dt_physics: float | None = None) -> list[str]:
     """The dry run's lines for a :func:`dry_run` result."""
     levels = "; ".join(f"{k} = {', '.join(str(v) for v in vals)}" for k, vals in plan["factors"].items())
     step = f" of {dt_physics * 1e3:g} ms" if dt_physics else ""
-    memory = f"about {plan['memory_bytes'] / 2**30:,.2f} GiB"
-    if per_device:
-        memory += f" on each of {plan['parts']} devices"
-    if plan["available_bytes"]:
-        memory += f", {plan['available_bytes'] / 2**30:,.1f} GiB available"
+    memory = memory_phrase(plan["memory_bytes"], plan["available_bytes"], plan["parts"] if per_device else 1)
     where = {"new": "a new folder" + (f"; no checkpoint at {plan['checkpoint']}: starts from the beginning"
                                       if plan.get("checkpoint") else ""),
              "replaced": "holds an earlier campaign, which --force replaces",

@@ -154,6 +154,15 @@ def _join_processes(args: argparse.Namespace) -> None:
                                                args.local_device_ids))
 
 
+def _layout_to_come(args: argparse.Namespace) -> dict:
+    """A dry run's ``processes`` and ``local_devices``: the processes the command will run as, from the
+    ``--coordinator`` / ``--num-processes`` / ``--process-id`` / ``--local-device-ids`` flags or the environment,
+    resolved without joining them."""
+    layout = distributed.resolve(args.coordinator, args.num_processes, args.process_id, args.local_device_ids)
+    return dict(processes=layout.num_processes if layout else 1,
+                local_devices=len(layout.local_device_ids) if layout and layout.local_device_ids else None)
+
+
 def _cmd_campaign(args: argparse.Namespace) -> int:
     if args.spec is not None:  # a bad spec fails in a second, before JAX and MuJoCo MJX load (seconds)
         from wbc_jax.campaign.spec import load_spec
@@ -175,10 +184,8 @@ def _cmd_campaign(args: argparse.Namespace) -> int:
     if args.dry_run:  # the processes the campaign will run as, from the flags or the environment, not joined
         from wbc_jax.campaign.dry_run import dry_run
 
-        layout = distributed.resolve(args.coordinator, args.num_processes, args.process_id, args.local_device_ids)
         dry_run(args.spec, args.out, resume=args.resume, force=args.force, allow_large=args.allow_large, gains=gains,
-                inputs=inputs, backend=args.backend, processes=layout.num_processes if layout else 1,
-                local_devices=len(layout.local_device_ids) if layout and layout.local_device_ids else None)
+                inputs=inputs, backend=args.backend, **_layout_to_come(args))
         return 0
     run_campaign(args.spec, args.out, resume=args.resume, report=not args.no_report, gains=gains, force=args.force,
                  allow_large=args.allow_large, inputs=inputs, backend=args.backend)
@@ -192,10 +199,8 @@ def _cmd_tune(args: argparse.Namespace) -> int:
     from wbc_jax.studies.tune import dry_run_tune, run_tune
 
     if args.dry_run:  # the processes the tune will run as, from the flags or the environment, not joined
-        layout = distributed.resolve(args.coordinator, args.num_processes, args.process_id, args.local_device_ids)
         dry_run_tune(args.spec, args.out, candidates=args.candidates, rounds=args.rounds, batch=args.batch,
-                     force=args.force, backend=args.backend, processes=layout.num_processes if layout else 1,
-                     local_devices=len(layout.local_device_ids) if layout and layout.local_device_ids else None)
+                     force=args.force, backend=args.backend, **_layout_to_come(args))
         return 0
     if distributed.is_writer():  # process 0 writes --out
         claim_out_dir(args.out, "wbc-jax tune")

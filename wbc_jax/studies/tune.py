@@ -56,7 +56,7 @@ import numpy as np
 
 from wbc_jax.campaign.build import backend_of, has_accelerator, sensing_of, with_backend
 from wbc_jax.campaign.design import design
-from wbc_jax.campaign.dry_run import layout_parts
+from wbc_jax.campaign.dry_run import layout_parts, memory_phrase
 from wbc_jax.campaign.size import INPUT_BYTES, memory_need, own_memories
 from wbc_jax.errors import LimitError, WbcJaxError
 from wbc_jax.io_utils import check_not_in_use, check_out_dir, output_path
@@ -97,9 +97,13 @@ def _work(spec: TuneSpec, search, ev: Evaluator, evc: Evaluator | None) -> tuple
         work = search.rounds * halving_cost(C, search.eta, search.rungs, ev.n_chunks) * ev.n * ev.chunk_s
     else:
         work = search.rounds * C * ev.n * ev.seconds
-    if evc is not None:
-        return work, (1 + spec.confirm["top"]) * evc.n * evc.seconds
-    return work, 2 * ev.n * ev.seconds
+    return work, _confirm_runs(spec, ev.n, evc.n if evc else 0) * (evc or ev).seconds
+
+
+def _confirm_runs(spec: TuneSpec, n: int, n_confirm: int) -> int:
+    """Runs of the confirmation, every gain set's: the default gains and ``confirm.top`` candidates on the
+    ``[confirm]`` campaign's ``n_confirm`` runs, or (none) the default gains and the best on the ``n`` tuning runs."""
+    return (1 + spec.confirm["top"]) * n_confirm if spec.confirm_campaign is not None else 2 * n
 
 
 def _batch_size(spec: TuneSpec, runs: int) -> int:
@@ -120,6 +124,16 @@ def _call_memory(spec: TuneSpec, size: int, parts: int | None = None) -> tuple[f
     kept = sum(design(c).n for c in camps) * INPUT_BYTES
     k = int(np.argmax([n for n, _ in needs]))
     return needs[k][0] + kept, needs[k][1], camps[k]
+
+
+def _memory_parts(spec: TuneSpec, layout: tuple) -> int | None:
+    """The devices a rollout call's memory is counted over for ``layout`` = (processes, local devices or None): None
+    for one process (each campaign's spread here, :func:`_call_memory`), else those of the processes to come
+    (``wbc_jax.campaign.dry_run.layout_parts``)."""
+    if layout[0] <= 1:
+        return None
+    physics = backend_of(spec.campaign)
+    return layout_parts(choose(physics).parts, physics, *layout)
 
 
 def _check_memory(spec: TuneSpec, size: int, parts: int | None = None) -> None:
@@ -175,10 +189,9 @@ def _prepare(spec_path, out, candidates, rounds, batch, force, backend, dry: boo
     # one shape for the search and the confirmation (one compilation when both use the same campaign settings),
     # fixed before the batches are built: Warp's shared contact list is sized for it
     n = len(selected_runs(design(spec.campaign), spec.cells))
-    confirm_runs = (1 + spec.confirm["top"]) * design(spec.confirm_campaign).n if spec.confirm_campaign else 2 * n
-    size = _batch_size(spec, max(search.C * n, confirm_runs))
-    physics = backend_of(spec.campaign)
-    _check_memory(spec, size, layout_parts(choose(physics).parts, physics, *layout) if layout[0] > 1 else None)
+    n_confirm = design(spec.confirm_campaign).n if spec.confirm_campaign is not None else 0
+    size = _batch_size(spec, max(search.C * n, _confirm_runs(spec, n, n_confirm)))
+    _check_memory(spec, size, _memory_parts(spec, layout))
     ev = Evaluator(spec.campaign, spec.cells, size, ahead=dry)
     evc = Evaluator(spec.confirm_campaign, None, size, ahead=dry) if spec.confirm_campaign is not None else None
     return Tuning(spec, space, search, ev, evc, sum(_work(spec, search, ev, evc)), writer)
@@ -285,18 +298,17 @@ def dry_run_tune(spec_path: str | None, out: str, candidates: int | None = None,
     search_s, confirm_s = _work(spec, search, ev, evc)
     steps = round(search_s / ev.sim.dt_physics + confirm_s / (evc or ev).sim.dt_physics)
     physics = backend_of(spec.campaign)
-    parts = layout_parts(ev.spread.parts, physics, processes, local_devices) if processes > 1 else ev.spread.parts
+    parts = _memory_parts(spec, (processes, local_devices))  # the memory _prepare checked
     need, avail, _ = _call_memory(spec, ev.size, parts)
+    parts = parts or ev.spread.parts
     out_p = output_path(out)
     plan = dict(name=spec.tune["name"], spec=str(spec.path), method=spec.tune["method"], rounds=search.rounds,
                 candidates=search.C, leaves=list(spec.leaves), runs_per_candidate=ev.n, runs_per_call=ev.size,
-                confirm_runs=((1 + spec.confirm["top"]) * evc.n) if evc else 2 * ev.n, search_run_s=search_s,
+                confirm_runs=_confirm_runs(spec, ev.n, evc.n if evc else 0), search_run_s=search_s,
                 confirm_run_s=confirm_s, physics_steps=steps, memory_bytes=need, available_bytes=avail, parts=parts,
                 backend=physics, device=jax.devices()[0].device_kind, out=str(out),
                 out_state="replaced" if out_p.is_dir() and any(out_p.iterdir()) else "new")
-    memory = (f"about {need / 2**30:,.2f} GiB" if need >= 2**30 else f"about {need / 2**20:,.0f} MiB") + (
-        f" on each of {parts} devices" if own_memories(parts) > 1 else "") + (
-        f", {avail / 2**30:,.1f} GiB available" if avail else "")
+    memory = memory_phrase(need, avail, parts if own_memories(parts) > 1 else 1)
     print(f"dry run of tune {plan['name']!r} ({spec.path}): nothing is simulated, nothing written in --out", flush=True)
     _announce(tuning)
     print(f"  search {search_s:,.1f} + confirmation {confirm_s:,.1f} run-seconds: {steps:,} physics steps; "
