@@ -53,7 +53,6 @@ from wbc_jax.campaign.build import (
     sensing_of,
     states_and_program,
 )
-from wbc_jax.campaign.design import design
 from wbc_jax.campaign.job import Job, Status
 from wbc_jax.campaign.manifest import COMMAND, Timing, campaign_manifest, setup_figures
 from wbc_jax.campaign.manifest import git_commit as _git_commit  # noqa: F401  (reached as runner._git_commit)
@@ -61,6 +60,7 @@ from wbc_jax.campaign.manifest import versions as _versions  # noqa: F401  (reac
 from wbc_jax.campaign.progress import ProgressBar, stage, throughput
 from wbc_jax.campaign.results import campaign_report, results_table, summarize, zero_noise_warning
 from wbc_jax.campaign.resume import Start, kept, start_point
+from wbc_jax.campaign.size import n_runs_of
 from wbc_jax.campaign.spec import default_spec_path
 from wbc_jax.campaign.spec_controller import controller_label
 from wbc_jax.errors import OutputError, WbcJaxError
@@ -344,7 +344,7 @@ def _campaign(request: dict, clock: dict, status: Status, guard: interrupts.Guar
     # the initial states' first MuJoCo Warp call compiles the model's kernels (build.states_and_program)
     ahead = physics_backend == "warp" and sp.mode == "one" and status.saved == 0
     if status.writer:
-        stage(f"building {design(spec).n} runs on scene {spec.campaign['scene']} (initial states, plans, pushes)"
+        stage(f"building {n_runs_of(spec)} runs on scene {spec.campaign['scene']} (initial states, plans, pushes)"
               + ("; MuJoCo Warp's kernels compiling meanwhile" if preload else ""))
     compiled = None
     with guard.deferred():  # the batch's initial states compile

@@ -57,7 +57,7 @@ import numpy as np
 from wbc_jax.campaign.build import backend_of, has_accelerator, sensing_of, with_backend
 from wbc_jax.campaign.design import design
 from wbc_jax.campaign.dry_run import layout_parts, memory_phrase
-from wbc_jax.campaign.size import INPUT_BYTES, memory_need, own_memories
+from wbc_jax.campaign.size import INPUT_BYTES, memory_need, n_runs_of, own_memories
 from wbc_jax.errors import LimitError, WbcJaxError
 from wbc_jax.io_utils import check_not_in_use, check_out_dir, output_path
 from wbc_jax.rollout import distributed
@@ -121,7 +121,7 @@ def _call_memory(spec: TuneSpec, size: int, parts: int | None = None) -> tuple[f
     the campaigns' whole design batches the evaluators keep, INPUT_BYTES a run."""
     camps = [c for c in (spec.campaign, spec.confirm_campaign) if c is not None]
     needs = [memory_need(c, parts or choose(backend_of(c)).parts, runs=size) for c in camps]
-    kept = sum(design(c).n for c in camps) * INPUT_BYTES
+    kept = sum(n_runs_of(c) for c in camps) * INPUT_BYTES
     k = int(np.argmax([n for n, _ in needs]))
     return needs[k][0] + kept, needs[k][1], camps[k]
 
@@ -189,7 +189,7 @@ def _prepare(spec_path, out, candidates, rounds, batch, force, backend, dry: boo
     # one shape for the search and the confirmation (one compilation when both use the same campaign settings),
     # fixed before the batches are built: Warp's shared contact list is sized for it
     n = len(selected_runs(design(spec.campaign), spec.cells))
-    n_confirm = design(spec.confirm_campaign).n if spec.confirm_campaign is not None else 0
+    n_confirm = n_runs_of(spec.confirm_campaign) if spec.confirm_campaign is not None else 0
     size = _batch_size(spec, max(search.C * n, _confirm_runs(spec, n, n_confirm)))
     _check_memory(spec, size, _memory_parts(spec, layout))
     ev = Evaluator(spec.campaign, spec.cells, size, ahead=dry)
