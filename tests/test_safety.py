@@ -363,7 +363,7 @@ def test_huge_spec_with_allow_large_says_what_it_is_doing(tmp_path, monkeypatch,
     scene's 1 ms step x 20 control steps per sample)."""
     from test_reliability import HUGE_SPEC
 
-    from wbc_jax.campaign import runner
+    from wbc_jax.campaign import build
     from wbc_jax.campaign.size import LOG_SAMPLE_BYTES, RUN_BYTES
 
     def stop(*a, **k):
@@ -371,7 +371,7 @@ def test_huge_spec_with_allow_large_says_what_it_is_doing(tmp_path, monkeypatch,
 
     spec = tmp_path / "huge.toml"
     spec.write_text(HUGE_SPEC)
-    monkeypatch.setattr(runner, "design", stop)  # the line comes first: nothing of the million runs is built
+    monkeypatch.setattr(build, "design", stop)  # the line comes first: nothing of the million runs is built
     assert cli.main(["campaign", "--spec", str(spec), "--out", str(tmp_path / "big"), "--allow-large"]) == 2
     out = capsys.readouterr().out
     assert "setting up 1,000,000 runs (--allow-large): design, plans and initial states first" in out, out
