@@ -41,6 +41,8 @@ from wbc_jax.rollout import distributed, make_chunk_fn, make_sim, resolve_sensin
 from wbc_jax.rollout.batch import chunk_args, prepare_batch
 from wbc_jax.rollout.sharding import over_runs, run_mesh, shard_batch
 
+ROUND_SPREAD = 1.10  # a call's slowest round over its fastest above which a round is reported as disturbed
+
 
 def timed(f, *args):
     """(f(*args) once it is ready on the device, seconds it took)."""
@@ -142,7 +144,22 @@ def round_figures(t_phys, t_wbc, batch: int, n_env: int, steps: int) -> dict:
     tp, tw = float(np.median(t_phys)), float(np.median(t_wbc))
     return dict(rounds=len(diff), physics_steps_per_s=batch * n_env / tp, wbc_steps_per_s=batch * n_env / tw,
                 ratio=tp / tw, non_physics_ms_per_step=float(np.median(diff)),
-                non_physics_ms_per_step_range=[float(diff.min()), float(diff.max())])
+                non_physics_ms_per_step_range=[float(diff.min()), float(diff.max())],
+                physics_round_s=t_phys.tolist(), wbc_round_s=t_wbc.tolist())
+
+
+def spread_warning(t_phys, t_wbc, batch: int) -> str | None:
+    """A warning line where a call's slowest round took more than :data:`ROUND_SPREAD` times its fastest
+    ((rounds,) seconds of the physics-only and of the physics + WBC call): a round was disturbed (another process
+    on the device, its clocks), and with two rounds the median is their mean. None where the rounds agree."""
+    for name, t in (("physics-only", t_phys), ("physics + WBC", t_wbc)):
+        t = np.asarray(t, float)
+        if len(t) > 1 and t.max() > ROUND_SPREAD * t.min():
+            advice = ("with 2 rounds the figures are their mean: rerun with --rounds 3 or more" if len(t) == 2
+                      else f"the figures are the medians of {len(t)} rounds")
+            return (f"warning: batch {batch}: the {name} call's rounds took {t.min():.3f} to {t.max():.3f} s "
+                    f"({t.max() / t.min():.2f}x): a round was disturbed; {advice}")
+    return None
 
 
 def _peak_bytes() -> int | None:
@@ -192,6 +209,9 @@ def _time_one_device(case: _Case, row: dict):
           f"compile {row['compile_wbc_s']:.1f} s"
           + (f"   peak memory {row['peak_device_bytes'] / 2**30:.2f} GiB" if row["peak_device_bytes"] else ""),
           flush=True)
+    warning = spread_warning(phys_rounds, wbc_rounds, B)
+    if warning:
+        print(warning, flush=True)
     return b, t_wbc
 
 
