@@ -36,7 +36,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from wbc_jax.bench.rollout import physics_only_fn, qp_iterations, run_bench, solver_cap_share, timed
+from wbc_jax.bench.rollout import disturbed, physics_only_fn, qp_iterations, run_bench, solver_cap_share, timed
 from wbc_jax.campaign.build import LOG_EVERY, build, with_backend
 from wbc_jax.campaign.spec import load_spec
 from wbc_jax.rollout import make_chunk_fn, runs
@@ -147,6 +147,9 @@ def _time_batch(sim, batch_at, n_states: int, n_logs: int, ablations, n_env: int
             walls["physics"].append(timed(phys, b.model, b.state.d)[1])
         for name, w in walls.items():
             times[name].append(float(np.median(w)))
+            phrase = disturbed(f"{name} program", w)
+            if phrase:
+                print(f"warning: the campaign's step, state {i}: {phrase}", flush=True)
         del b
     return first, times, counts
 

@@ -148,18 +148,24 @@ def round_figures(t_phys, t_wbc, batch: int, n_env: int, steps: int) -> dict:
                 physics_round_s=t_phys.tolist(), wbc_round_s=t_wbc.tolist())
 
 
+def disturbed(what: str, t) -> str | None:
+    """Where the slowest of a call's rounds (``t``: (rounds,) seconds) took more than :data:`ROUND_SPREAD` times the
+    fastest, a phrase naming ``what`` (e.g. "physics-only call") and the range (a round was disturbed: another
+    process on the device, its clocks; with two rounds the median is their mean); None where the rounds agree."""
+    t = np.asarray(t, float)
+    if len(t) < 2 or t.max() <= ROUND_SPREAD * t.min():
+        return None
+    advice = ("with 2 rounds the figures are their mean: rerun with --rounds 3 or more" if len(t) == 2
+              else f"the figures are the medians of {len(t)} rounds")
+    return f"the {what}'s rounds took {t.min():.3f} to {t.max():.3f} s ({t.max() / t.min():.2f}x): a round " \
+           f"was disturbed; {advice}"
+
+
 def spread_warning(t_phys, t_wbc, batch: int) -> str | None:
-    """A warning line where a call's slowest round took more than :data:`ROUND_SPREAD` times its fastest
-    ((rounds,) seconds of the physics-only and of the physics + WBC call): a round was disturbed (another process
-    on the device, its clocks), and with two rounds the median is their mean. None where the rounds agree."""
-    for name, t in (("physics-only", t_phys), ("physics + WBC", t_wbc)):
-        t = np.asarray(t, float)
-        if len(t) > 1 and t.max() > ROUND_SPREAD * t.min():
-            advice = ("with 2 rounds the figures are their mean: rerun with --rounds 3 or more" if len(t) == 2
-                      else f"the figures are the medians of {len(t)} rounds")
-            return (f"warning: batch {batch}: the {name} call's rounds took {t.min():.3f} to {t.max():.3f} s "
-                    f"({t.max() / t.min():.2f}x): a round was disturbed; {advice}")
-    return None
+    """The warning line of a batch whose physics-only or physics + WBC rounds disagree (:func:`disturbed`), else
+    None."""
+    phrase = disturbed("physics-only call", t_phys) or disturbed("physics + WBC call", t_wbc)
+    return f"warning: batch {batch}: {phrase}" if phrase else None
 
 
 def _peak_bytes() -> int | None:
