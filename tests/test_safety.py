@@ -78,6 +78,22 @@ def test_report_failure_keeps_results_and_report_can_be_rerun(tmp_path, monkeypa
     assert (out / "report" / "report.md").exists() and (out / "results.csv").exists()
 
 
+def test_campaign_report_in_a_worker_leaves_the_statistics_unloaded(tmp_path):
+    """With a report worker, the campaign's process does not import the report's statistics (the worker writes it):
+    ``wbc_jax.analysis.report`` stays out of its modules."""
+    code = (
+        "import json, sys\n"
+        "from pathlib import Path\n"
+        "from wbc_jax.campaign.results import campaign_report\n"
+        "class Worker:\n"
+        "    def run_report(self, *a, **k): return {}\n"
+        "    def close(self): pass\n"
+        f"campaign_report(Path({str(tmp_path)!r}), {{'warnings': []}}, [], Worker())\n"
+        "print(json.dumps('wbc_jax.analysis.report' in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True)
+    assert json.loads(out.stdout.strip().splitlines()[-1]) is False, out.stdout + out.stderr
+
+
 @pytest.mark.parametrize("case, warning", [
     ("all_success", None),
     ("nan_metric_1rep", "main effects only"),

@@ -126,9 +126,10 @@ def campaign_report(out: Path, manifest: dict, warnings: list[str], reporter=Non
         ReportError: the statistics failed; the failure is written to ``out/report_error.txt`` and the manifest,
             and results.csv stays.
     """
-    from wbc_jax.analysis.report import run_report
-
-    write = run_report if reporter is None else reporter.run_report  # the same function, in the worker
+    if reporter is None:  # the statistics loaded here only where this process writes the report
+        from wbc_jax.analysis.report import run_report as write
+    else:
+        write = reporter.run_report  # the same function, in the worker
     spec = manifest.get("spec", {})
     analysis = spec.get("analysis", {})
     metrics = list(controllers.info(spec.get("campaign", {})).report)
