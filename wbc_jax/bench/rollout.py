@@ -149,16 +149,15 @@ def round_figures(t_phys, t_wbc, batch: int, n_env: int, steps: int) -> dict:
 
 
 def disturbed(what: str, t) -> str | None:
-    """Where the slowest of a call's rounds (``t``: (rounds,) seconds) took more than :data:`ROUND_SPREAD` times the
-    fastest, a phrase naming ``what`` (e.g. "physics-only call") and the range (a round was disturbed: another
-    process on the device, its clocks; with two rounds the median is their mean); None where the rounds agree."""
+    """With two rounds (``t``: (2,) seconds of a call), whose median is their mean, where the slower took more than
+    :data:`ROUND_SPREAD` times the faster: a phrase naming ``what`` (e.g. "physics-only call") and the range (a
+    round was disturbed: another process on the device, its clocks). None otherwise: from three rounds the median
+    leaves one disturbed round out, and the range of everything but physics is printed."""
     t = np.asarray(t, float)
-    if len(t) < 2 or t.max() <= ROUND_SPREAD * t.min():
+    if len(t) != 2 or t.max() <= ROUND_SPREAD * t.min():
         return None
-    advice = ("with 2 rounds the figures are their mean: rerun with --rounds 3 or more" if len(t) == 2
-              else f"the figures are the medians of {len(t)} rounds")
-    return f"the {what}'s rounds took {t.min():.3f} to {t.max():.3f} s ({t.max() / t.min():.2f}x): a round " \
-           f"was disturbed; {advice}"
+    return (f"the {what}'s rounds took {t.min():.3f} to {t.max():.3f} s ({t.max() / t.min():.2f}x): a round was "
+            "disturbed and with 2 rounds the figures are their mean: rerun with --rounds 3 or more")
 
 
 def spread_warning(t_phys, t_wbc, batch: int) -> str | None:
