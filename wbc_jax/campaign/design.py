@@ -69,14 +69,28 @@ def run_seed(base: int, i: int) -> int:
     return int(np.random.SeedSequence([int(base), int(i)]).generate_state(1)[0])
 
 
+def run_levels(spec) -> tuple[dict, np.ndarray]:
+    """``(levels, rep)`` of ``spec``'s runs in design order, without their seeds and perturbations: factor name ->
+    (B,) each run's level of that factor, and (B,) each run's repetition index."""
+    f = spec.factors
+    cells = list(itertools.product(*f.values()))  # spec.factors is in design order
+    rows = [(cell, r) for cell in cells for r in range(spec.reps)]
+    return {k: np.array([cell[j] for cell, _ in rows]) for j, k in enumerate(f)}, np.array([r for _, r in rows])
+
+
+def object_levels(spec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(B,) each of the runs' m, mu and d (:class:`Design`'s, the factor's level or the campaign's value), without
+    the rest of the design."""
+    levels, rep = run_levels(spec)
+    return tuple(levels[k] if k in levels else np.full(len(rep), spec.campaign[k]) for k in ("m", "mu", "d"))
+
+
 def design(spec) -> Design:
     """The design table of ``spec`` (a validated :class:`wbc_jax.campaign.spec.Spec`) with every run's seed and
     perturbations (host-side, deterministic)."""
-    f, p, c = spec.factors, spec.perturbations, spec.campaign
-    cells = list(itertools.product(*f.values()))  # spec.factors is in design order
-    rows = [(cell, r) for cell in cells for r in range(spec.reps)]
-    B = len(rows)
-    levels = {k: np.array([cell[j] for cell, _ in rows]) for j, k in enumerate(f)}
+    p, c = spec.perturbations, spec.campaign
+    levels, rep = run_levels(spec)
+    B = len(rep)
 
     def value(key, fixed):
         """(B,) the run's level of factor ``key``, or ``fixed`` for every run when it is not varied."""
@@ -99,7 +113,7 @@ def design(spec) -> Design:
     switches = np.array([VARIANTS[v] for v in value("variant", c["variant"])], dtype=float)  # (B, 3)
     switches[:, 1] *= value("observer", 1)
     return Design(
-        m=value("m", c["m"]), mu=value("mu", c["mu"]), d=value("d", c["d"]), rep=np.array([r for _, r in rows]),
+        m=value("m", c["m"]), mu=value("mu", c["mu"]), d=value("d", c["d"]), rep=rep,
         seed=seeds, obj_dx=draws[:, 0] * p["object_xy_mm"] * 1e-3, obj_dy=draws[:, 1] * p["object_xy_mm"] * 1e-3,
         obj_yaw=np.deg2rad(draws[:, 2] * p["object_yaw_deg"]), v0=draws[:, 3:5] * p["base_speed_std"],
         push_force=push, push_frac=a + (b - a) * draws[:, 7],

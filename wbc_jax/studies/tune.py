@@ -55,7 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from wbc_jax.campaign.build import backend_of, has_accelerator, sensing_of, with_backend
-from wbc_jax.campaign.design import design
+from wbc_jax.campaign.design import object_levels
 from wbc_jax.campaign.dry_run import layout_parts, memory_phrase
 from wbc_jax.campaign.size import INPUT_BYTES, memory_need, n_runs_of, own_memories
 from wbc_jax.errors import LimitError, WbcJaxError
@@ -188,7 +188,7 @@ def _prepare(spec_path, out, candidates, rounds, batch, force, backend, dry: boo
     search = make_search(spec, space)
     # one shape for the search and the confirmation (one compilation when both use the same campaign settings),
     # fixed before the batches are built: Warp's shared contact list is sized for it
-    n = len(selected_runs(design(spec.campaign), spec.cells))
+    n = len(selected_runs(*object_levels(spec.campaign), spec.cells))  # the runs' levels, not the whole design
     n_confirm = n_runs_of(spec.confirm_campaign) if spec.confirm_campaign is not None else 0
     size = _batch_size(spec, max(search.C * n, _confirm_runs(spec, n, n_confirm)))
     _check_memory(spec, size, _memory_parts(spec, layout))

@@ -34,12 +34,12 @@ from wbc_jax.rollout.spread import choose
 from wbc_jax.studies.tune_search import rank_key
 
 
-def selected_runs(dz, cells: list | None) -> np.ndarray:
-    """Design rows (int, ascending) of the runs in ``cells`` ([m, mu, d] each; None: every run) of design ``dz``
-    (:func:`wbc_jax.campaign.design.design`)."""
+def selected_runs(m, mu, d, cells: list | None) -> np.ndarray:
+    """Design rows (int, ascending) of the runs in ``cells`` ([m, mu, d] each; None: every run) of a design whose
+    runs have the (B,) levels ``m``, ``mu``, ``d`` (:func:`wbc_jax.campaign.design.object_levels`)."""
     if cells is None:
-        return np.arange(dz.n)
-    have = np.stack([dz.m, dz.mu, dz.d], axis=1)
+        return np.arange(len(m))
+    have = np.stack([m, mu, d], axis=1)
     return np.where(np.isclose(have[:, None, :], np.asarray(cells)[None]).all(-1).any(-1))[0]
 
 
@@ -59,7 +59,7 @@ class Evaluator:
         built = build_ahead(camp)[0] if ahead else build(camp)
         sim, dz, b = built.sim, built.design, built.batch
         logs_per_chunk, n_chunks = built.logs_per_chunk, built.n_chunks
-        sel = selected_runs(dz, cells)
+        sel = selected_runs(dz.m, dz.mu, dz.d, cells)
         self.camp, self.sim, self.n, self.n_chunks = camp, sim, len(sel), n_chunks
         self.m, self.mu, self.d, self.rep, self.seeds = dz.m[sel], dz.mu[sel], dz.d[sel], dz.rep[sel], dz.seed[sel]
         self.chunk_s = chunk_seconds(built)
