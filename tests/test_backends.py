@@ -295,19 +295,27 @@ def test_contact_sensor_slots_hold_every_match():
     assert over1 and not over4
 
 
-def test_box_box_pairs_on_the_primitive_as_mujoco_c():
+def test_box_box_pairs_on_the_primitive_and_the_wall_body_sensor_as_mujoco_c(monkeypatch):
     """The Warp scene collides box-box pairs with MuJoCo Warp's box_box primitive (native CCD disabled in
-    :func:`wbc_jax.robot.sensors.with_contact_sensors`; the JAX backend's model untouched), so its contact-sensor
-    slots are 8 (:func:`max_pair_contacts`). The transport scene's tray pushed 0.125 m into the wall's lintel, the
-    cube (side 0.08 m) yawed 45 deg 10 mm into its underside at its edge (5 contacts), one physics step: every wall
-    sensor's count equals MuJoCo C's contacts of its pair (float64 ``mj_forward``, ``mjc_BoxBox``) and its ``dist``
-    the nearest of them (float32 tolerance); no match overflow."""
+    :func:`wbc_jax.robot.sensors.with_contact_sensors`; the JAX backend's model untouched), and watches the wall's
+    21 pairs with one sensor of the wall's body (:func:`~wbc_jax.robot.sensors.whole_wall_bodies`), so its slots
+    are the non-foot pairs' 4. The transport scene's tray pushed 0.125 m into the wall's lintel, the cube (side
+    0.08 m) yawed 45 deg 10 mm into its underside at its edge (5 contacts), one physics step: the wall sensor counts
+    MuJoCo C's contacts of every wall pair (float64 ``mj_forward``, ``mjc_BoxBox``: more than 4 a pair, more than
+    its slots in all), its ``dist`` is a penetration no deeper than their nearest, and no match overflow is
+    reported. The scene with one sensor per wall pair (8 slots) gives each pair's count and nearest ``dist``, the
+    same wall flag (``contacts.wall_dist`` < 0), and the other sensors' values bit for bit."""
     from types import SimpleNamespace
 
+    from wbc_jax.robot import sensors
+
     robot = Robot("transport", backend="warp")
+    monkeypatch.setattr(sensors, "whole_wall_bodies", lambda *a: {})
+    per_pair = Robot("transport", backend="warp")
     ccd = int(mujoco.mjtDisableBit.mjDSBL_NATIVECCD)
     assert robot.mj_model.opt.disableflags & ccd and not Robot("transport").mj_model.opt.disableflags & ccd
-    assert physics.contact_sensor_slots(robot.mjx_model) == 8
+    assert physics.contact_sensor_slots(robot.mjx_model) == 4 and physics.contact_sensor_slots(per_pair.mjx_model) == 8
+    assert robot.sensors.n_wall_bodies == 1 and len(robot.sensors.wall) == 1 and len(per_pair.sensors.wall) == 21
     mj = robot.mj_model
     qpos = robot.home_qpos(0.08)
     tray = mj.geom("tray").id
@@ -323,21 +331,35 @@ def test_box_box_pairs_on_the_primitive_as_mujoco_c():
     qpos[obj:obj + 7] = [0.0, face - 0.02, bottom - 0.03, np.cos(np.pi / 8), 0.0, 0.0, np.sin(np.pi / 8)]
     data.qpos[:] = qpos
     mujoco.mj_forward(mj, data)
-    d = jax.vmap(lambda q: physics.make_data(robot, 1).replace(qpos=q))(jax.numpy.asarray(qpos)[None])
-    d1 = jax.jit(jax.vmap(physics.mjx.step, in_axes=(None, 0)))(robot.mjx_model, d)
-    over = jax.jit(jax.vmap(lambda d: contacts.match_overflow(SimpleNamespace(robot=robot), robot.mjx_model, d)))(d1)
-    sd = np.asarray(d1.sensordata[0])
-    wall = robot.ids.wall_pair.astype(int)
+
+    def step(r, q):
+        d = jax.vmap(lambda q: physics.make_data(r, 1).replace(qpos=q))(jax.numpy.asarray(q)[None])
+        d1 = jax.jit(jax.vmap(physics.mjx.step, in_axes=(None, 0)))(r.mjx_model, d)
+        sim = SimpleNamespace(robot=r, wall_slots=r.sensors.wall)
+        over, wall = jax.jit(jax.vmap(lambda d: (contacts.match_overflow(sim, r.mjx_model, d),
+                                                 jax.numpy.any(contacts.wall_dist(sim, d) < 0.0))))(d1)
+        return np.asarray(d1.sensordata[0]), bool(np.asarray(over)[0]), bool(np.asarray(wall)[0])
+
+    (sd, over, wall), (sdp, overp, wallp) = step(robot, qpos), step(per_pair, qpos)
+    pairs = robot.ids.wall_pair.astype(int)
     box = int(mujoco.mjtGeom.mjGEOM_BOX)
     mine = [[c for c in data.contact[:data.ncon]
-             if {int(c.geom1), int(c.geom2)} == {int(mj.pair_geom1[p]), int(mj.pair_geom2[p])}] for p in wall]
-    np.testing.assert_array_equal(sd[robot.sensors.wall], [len(c) for c in mine])
-    boxes = [i for i, p in enumerate(wall) if mj.geom_type[mj.pair_geom1[p]] == mj.geom_type[mj.pair_geom2[p]] == box]
+             if {int(c.geom1), int(c.geom2)} == {int(mj.pair_geom1[p]), int(mj.pair_geom2[p])}] for p in pairs]
+    np.testing.assert_array_equal(sdp[per_pair.sensors.wall], [len(c) for c in mine])
+    boxes = [i for i, p in enumerate(pairs) if mj.geom_type[mj.pair_geom1[p]] == mj.geom_type[mj.pair_geom2[p]] == box]
     touching = [i for i in boxes if mine[i]]
     assert len(touching) == 2 and max(len(mine[i]) for i in touching) > 4  # tray and cube, more than 4 points
     nearest = [min(c.dist for c in mine[i]) for i in touching]
-    np.testing.assert_allclose(sd[robot.sensors.wall[touching] + DIST], nearest, atol=2e-6)
-    assert not bool(np.asarray(over)[0])
+    np.testing.assert_allclose(sdp[per_pair.sensors.wall[touching] + DIST], nearest, atol=2e-6)
+    n_wall = sum(len(c) for c in mine)
+    assert sd[robot.sensors.wall[0]] == n_wall > 4  # every match counted beyond the slots
+    assert min(nearest) - 2e-6 <= sd[robot.sensors.wall[0] + DIST] < 0.0
+    assert wall and wallp and not over and not overp
+    for key in ("obj", "nonfoot"):
+        np.testing.assert_array_equal(sd[np.add.outer(getattr(robot.sensors, key), np.arange(5))],
+                                      sdp[np.add.outer(getattr(per_pair.sensors, key), np.arange(5))])
+    home = robot.home_qpos(0.08)  # nothing in the wall: both flags off
+    assert not step(robot, home)[2] and not step(per_pair, home)[2]
 
 
 def test_backend_choice(monkeypatch):

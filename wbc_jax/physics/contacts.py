@@ -11,7 +11,8 @@ part's and the wall's penetration (falls, grazes). The two MJX implementations k
   run's contacts are read through MJCF contact sensors, which MuJoCo evaluates per run into ``sensordata``
   (as MJX's documentation and Playground do). :func:`wbc_jax.robot.sensors.with_contact_sensors` adds them: per
   object sphere its contact with the tray (``found``, contact-frame ``force``, ``dist``), per non-foot ground pair
-  and per wall pair ``found`` and ``dist``. The pairs' margin is 0, so a listed contact is a penetrating one. The
+  ``found`` and ``dist``, and per wall (a whole body's contacts in one sensor where they all are wall pairs') its
+  ``dist`` of a penetration. The pairs' margin is 0, so a listed contact is a penetrating one. The
   near-contact distances the rollout also needs (a foot within 1 mm of the ground, an object sphere more than 1 mm
   off the tray) are computed from the geometry (:func:`sphere_distance`: sphere vs plane or box, as MuJoCo's
   collision functions do). Listing contacts up to 1 mm through ``margin = gap = 1 mm`` instead is not the same
@@ -180,7 +181,8 @@ def nonfoot_dist(sim, d) -> jax.Array:
 
 
 def match_overflow(sim, m, d) -> jax.Array:
-    """() bool: a contact sensor matched more contacts than the model ``m``'s slots per sensor hold
+    """() bool: a contact sensor whose nearest contact is read (``ContactSensors.found``: not a wall body's) matched
+    more contacts than the model ``m``'s slots per sensor hold
     (:func:`wbc_jax.physics.backend.contact_sensor_slots`; its nearest contact may then be missed:
     :mod:`wbc_jax.robot.sensors`), read from the sensors' ``found`` (every match counted); always False on JAX."""
     sensors, slots = sim.robot.sensors, physics.contact_sensor_slots(m)
@@ -190,7 +192,8 @@ def match_overflow(sim, m, d) -> jax.Array:
 
 
 def wall_dist(sim, d) -> jax.Array:
-    """(w,) distance of each wall slot (JAX) or pair (Warp) [m]; < 0 is penetration."""
+    """(w,) distance of each wall slot (JAX) or wall sensor (Warp: a body's or a pair's, ``ContactSensors.wall``)
+    [m]; < 0 is penetration."""
     if sim.robot.backend == "warp":
         return _sensor_dist(d, sim.wall_slots)
     return _slot_dist(d, sim.wall_slots)
