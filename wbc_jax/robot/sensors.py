@@ -177,8 +177,8 @@ def with_contact_sensors(path: Path, base: mujoco.MjModel, ids) -> tuple[mujoco.
         return add(name, mujoco.mjtObj.mjOBJ_GEOM, geom_name(g1[p]), geom_name(g2[p]))
 
     bodies = whole_wall_bodies(base, ids.wall_pair)
-    in_body = np.concatenate([np.zeros(0, np.int64), *bodies.values()])
-    wall_pairs = [int(p) for p in ids.wall_pair if p not in in_body]
+    in_body = {int(p) for pairs in bodies.values() for p in pairs}
+    wall_pairs = [int(p) for p in ids.wall_pair if int(p) not in in_body]
     names = {key: [add_pair(f"wbc_{key}{i}", p) for i, p in enumerate(pairs)]
              for key, pairs in (("obj", ids.obj_pair), ("nonfoot", ids.nonfoot_floor_pair))}
     names["wall"] = ([add(f"wbc_wall_body{b}", mujoco.mjtObj.mjOBJ_BODY, base.body(b).name) for b in bodies]
