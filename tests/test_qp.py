@@ -592,6 +592,18 @@ def test_warm_first_test_fused_equals_xla():
         assert np.max(np.abs(a - c)) <= 1e-9 * np.max(np.abs(np.asarray(getattr(ref, scale)))) + 1e-15, k
 
 
+def test_flag_precedence_as_osqp():
+    """``rules.status``: non-finite first, then an empty box, then converged before OSQP's certificates (OSQP
+    tests them only where the residuals fail), primal before dual infeasible, else the cap; every combination."""
+    from wbc_jax.qp import rules
+
+    for finite, empty, pinf, dinf, conv in itertools.product((True, False), repeat=5):
+        want = (FLAG_NONFINITE if not finite else FLAG_PRIMAL_INFEASIBLE if empty else FLAG_SOLVED if conv
+                else FLAG_PRIMAL_INFEASIBLE if pinf else FLAG_DUAL_INFEASIBLE if dinf else FLAG_MAX_ITER)
+        got = rules.status(jnp.bool_(finite), jnp.bool_(empty), jnp.bool_(pinf), jnp.bool_(dinf), jnp.bool_(conv))
+        assert int(got) == want, (finite, empty, pinf, dinf, conv)
+
+
 def test_fused_kernel_flags():
     """The fused path's flags (Pallas interpreter, float64) equal the XLA path's and the expected ones on small
     problems: contradictory equalities and an empty box (primal infeasible), an unbounded cost (dual infeasible),

@@ -208,23 +208,22 @@ def _iterations(pg: _Program, st, iters: int, max_iters: int, check_every: int, 
 
 
 def _infeasibility(pg: _Program, dx, dy, D, cs, E, l_refs, u_refs):
-    """``(pinf, dinf, empty)``: OSQP's certificates on the last step's deltas ``dx``, ``dy`` (scaled) and the
-    empty-box test, in the user's units (:mod:`wbc_jax.qp.rules`)."""
+    """``(pinf, dinf)``: OSQP's certificates on the last step's deltas ``dx``, ``dy`` (scaled), in the user's
+    units (:mod:`wbc_jax.qp.rules`)."""
     ops, dims, Ei, s = pg.ops, pg.dims, pg.Ei, pg.s
     l, u = list(read_blocks(l_refs, dims)), list(read_blocks(u_refs, dims))
     pinf = rules.primal_infeasible(l, u, [e * a / cs for a, e in zip(dy, E)],
                                    lambda v: _rows_t(ops, [a * e for a, e in zip(v, Ei)]) / D, s)
     dinf = rules.dual_infeasible(l, u, D * dx, [a * e for a, e in zip(_rows(ops, dx), Ei)],
                                  matvec(ops.P(0), dx) * pg.Dc, jnp.sum(ops.q(0) * dx) / cs, s)
-    empty = rules.amax(*[jnp.where(a > b, 1.0, 0.0) for a, b in zip(l, u)]) > 0.0
-    return pinf, dinf, empty
+    return pinf, dinf
 
 
 def _finish(pg: _Program, st, k, c, l_refs, u_refs, test=None) -> None:
     """The result in the user's units, its residuals, flag and next rho, written to the outputs; ``test``: the
     final iterate's :func:`_termination` where the loop computed it (else computed here). In phases with a
-    barrier between them (straight-line, the compiler interleaved them and ran out of registers): the
-    certificates, then the residuals and rho, then the writes."""
+    barrier between them (straight-line, the compiler interleaved them and ran out of registers): the residuals
+    and, for an unconverged solve only, the certificates; then rho; then the writes."""
     ops, s, dims, out = pg.ops, pg.s, pg.dims, pg.out
     x, ax, z, y, bad = c
     pg.sync()  # every thread's last deltas written
@@ -232,9 +231,12 @@ def _finish(pg: _Program, st, k, c, l_refs, u_refs, test=None) -> None:
     D, scal = st.D[...], st.scal[...]
     cs = entry(scal, 0)
     E = [1.0 / e for e in pg.Ei]
-    pinf, dinf, empty = _infeasibility(pg, dx, dy, D, cs, E, l_refs, u_refs)
-    pg.sync()
     prim, dual, conv = _termination(pg, x, ax, z, y) if test is None else test
+    l, u = read_blocks(l_refs, dims), read_blocks(u_refs, dims)
+    empty = rules.amax(*[jnp.where(a > b, 1.0, 0.0) for a, b in zip(l, u)]) > 0.0
+    no = jnp.zeros((), jnp.bool_)  # a converged solve's flag does not read the certificates (rules.status)
+    pinf, dinf = jax.lax.cond(conv, lambda: (no, no), lambda: _infeasibility(pg, dx, dy, D, cs, E, l_refs, u_refs))
+    pg.sync()
     xu, zu, yu = D * x, [a * e for a, e in zip(z, pg.Ei)], [e * a / cs for a, e in zip(y, E)]
     flag = rules.status(is_finite(xu, *zu, *yu, prim, dual) & (bad == 0.0), empty, pinf, dinf, conv)
     rho_out = entry(scal, 1)
