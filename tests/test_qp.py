@@ -444,7 +444,8 @@ def test_fused_kernel_equals_xla_iterations(eq_rows, max_iters, box):
     or 150 iterations, some reach the cap), then the same problems perturbed by 1 %, warm-started from the cold
     results; with the multiplier rows stored as the kernel's box block (box_rows, which the XLA path ignores) or as
     dense rows. (With the extension the paths re-estimate rho from different iterates: the XLA path after the fixed
-    iterations, the fused path from the final one; rho is compared without it.)"""
+    iterations, the fused path from the final one; rho is compared without it. The residuals, the kernel's from its
+    last test in the loop, within what the iterates' differences and float64 rounding allow.)"""
     b = pr.make_batch(3, 6, "wbc")
     bp = pr.QPProblem(*pr.perturb(b, 4, WARM_PERTURBATION), b.x, b.y, b.f)
     (prob, nb), (prob_p, _) = (_box_last(b), _box_last(bp)) if box else ((b[:5], 0), (bp[:5], 0))
@@ -461,12 +462,25 @@ def test_fused_kernel_equals_xla_iterations(eq_rows, max_iters, box):
                 solve_qp(*data, settings=s._replace(kernel="fused", **bad))
         with pytest.raises(ValueError, match="box_rows"):  # more box rows than rows after the exact ones
             solve_qp(*data, settings=s._replace(box_rows=data[2].shape[-2]))
-    for r, f in ((ref, fus), (ref_w, fus_w)):
+    for r, f, (P, q, A) in ((ref, fus, prob[:3]), (ref_w, fus_w, prob_p[:3])):
         np.testing.assert_array_equal(np.asarray(f.iters), np.asarray(r.iters))
         np.testing.assert_array_equal(np.asarray(f.flag), np.asarray(r.flag))
-        for k in ("x", "y", "z", "prim_res", "dual_res") + (() if max_iters else ("rho",)):
+        for k in ("x", "y", "z") + (() if max_iters else ("rho",)):
             a, c = np.asarray(getattr(r, k)), np.asarray(getattr(f, k))
             assert np.max(np.abs(a - c)) <= 1e-9 * np.max(np.abs(a)) + 1e-15, k
+        # the residuals (the kernel's from its last test inside the loop, the XLA path's after it): within what the
+        # iterates' differences and the float64 rounding of their sums allow (|A| |dx| + |dz| + 2 n u sum|terms|,
+        # |P| |dx| + |A'| |dy| + ..., per problem); they cancel terms up to 1e7 times larger
+        x, y, z = (np.abs(np.asarray(getattr(f, k))) for k in ("x", "y", "z"))
+        dx, dy, dz = (np.abs(np.asarray(getattr(f, k)) - np.asarray(getattr(r, k))) for k in ("x", "y", "z"))
+        P, q, A = (np.abs(np.asarray(a)) for a in (P, q, A))
+        mv, rmv = (lambda M, v: np.einsum("bij,bj->bi", M, v)), (lambda M, v: np.einsum("bij,bi->bj", M, v))
+        u = (A.shape[-1] + A.shape[-2] + 1) * np.finfo(np.float64).eps
+        bounds = dict(prim_res=mv(A, dx) + dz + u * (mv(A, x) + z),
+                      dual_res=mv(P, dx) + rmv(A, dy) + u * (mv(P, x) + q + rmv(A, y)))
+        for k, b in bounds.items():
+            diff = np.abs(np.asarray(getattr(r, k)) - np.asarray(getattr(f, k)))
+            assert np.all(diff <= b.max(axis=-1)), k
     assert not np.allclose(np.asarray(ref.rho), s.rho)  # rho was re-estimated
     if max_iters:
         assert len(np.unique(np.asarray(ref.iters))) > 1  # problems stopped at different counts
@@ -576,6 +590,18 @@ def test_warm_first_test_fused_equals_xla():
     for k, scale in (("x", "x"), ("y", "y"), ("z", "z"), ("prim_res", "z"), ("dual_res", "y")):  # residuals: rounding
         a, c = np.asarray(getattr(ref, k)), np.asarray(getattr(fus, k))                          # of their rows
         assert np.max(np.abs(a - c)) <= 1e-9 * np.max(np.abs(np.asarray(getattr(ref, scale)))) + 1e-15, k
+
+
+def test_flag_precedence_as_osqp():
+    """``rules.status``: non-finite first, then an empty box, then converged before OSQP's certificates (OSQP
+    tests them only where the residuals fail), primal before dual infeasible, else the cap; every combination."""
+    from wbc_jax.qp import rules
+
+    for finite, empty, pinf, dinf, conv in itertools.product((True, False), repeat=5):
+        want = (FLAG_NONFINITE if not finite else FLAG_PRIMAL_INFEASIBLE if empty else FLAG_SOLVED if conv
+                else FLAG_PRIMAL_INFEASIBLE if pinf else FLAG_DUAL_INFEASIBLE if dinf else FLAG_MAX_ITER)
+        got = rules.status(jnp.bool_(finite), jnp.bool_(empty), jnp.bool_(pinf), jnp.bool_(dinf), jnp.bool_(conv))
+        assert int(got) == want, (finite, empty, pinf, dinf, conv)
 
 
 def test_fused_kernel_flags():

@@ -172,7 +172,8 @@ def _termination(pg: _Program, x, ax, z, y):
 
 def _iterations(pg: _Program, st, iters: int, max_iters: int, check_every: int, first=None):
     """``iters`` steps from the stage's start, then blocks of ``check_every`` while unconverged, up to
-    ``max_iters``: ``(k, carry)``, the steps run (() int32) and the final ``(x, ax, z, y, bad)``.
+    ``max_iters``: ``(k, carry, test)``, the steps run (() int32), the final ``(x, ax, z, y, bad)`` and the last
+    block's :func:`_termination` of it ``(prim, dual, converged)`` (None with no test: ``max_iters <= iters``).
 
     One loop of blocks, the fixed steps its first block, each block starting with :func:`_block_start` and the
     test after it: the step and the test are each emitted once in the kernel (a second copy of the step, in a
@@ -186,10 +187,10 @@ def _iterations(pg: _Program, st, iters: int, max_iters: int, check_every: int, 
     step = lambda _, c: _step(pg, c)  # noqa: E731
     if max_iters <= iters:
         c = _block_start(pg.ops, x0, (z0, y0, jnp.zeros((), x0.dtype)))
-        return jnp.int32(iters), jax.lax.fori_loop(0, iters, step, c)
+        return jnp.int32(iters), jax.lax.fori_loop(0, iters, step, c), None
 
     def unconverged(w):
-        k, c, done = w
+        k, c, (_, _, done) = w
         return (k < max_iters) & (c[4] == 0.0) & (done == 0)
 
     def block(w):
@@ -197,30 +198,32 @@ def _iterations(pg: _Program, st, iters: int, max_iters: int, check_every: int, 
         n = jnp.where(k == 0, iters if first is None else first, jnp.minimum(check_every, max_iters - k))
         c = jax.lax.fori_loop(0, n, step, _block_start(pg.ops, c[0], c[2:]))
         x, ax, z, y, _ = c
-        return k + n, c, _termination(pg, x, ax, z, y)[2].astype(jnp.int32)
+        prim, dual, conv = _termination(pg, x, ax, z, y)
+        return k + n, c, (prim, dual, conv.astype(jnp.int32))
 
     c = (x0, [jnp.zeros_like(v) for v in z0], z0, y0, jnp.zeros((), x0.dtype))  # ax: set by the block's start
-    k, c, _ = jax.lax.while_loop(unconverged, block, (jnp.int32(0), c, jnp.int32(0)))
-    return k, c
+    zero = jnp.zeros((), x0.dtype)
+    k, c, (prim, dual, done) = jax.lax.while_loop(unconverged, block, (jnp.int32(0), c, (zero, zero, jnp.int32(0))))
+    return k, c, (prim, dual, done > 0)
 
 
 def _infeasibility(pg: _Program, dx, dy, D, cs, E, l_refs, u_refs):
-    """``(pinf, dinf, empty)``: OSQP's certificates on the last step's deltas ``dx``, ``dy`` (scaled) and the
-    empty-box test, in the user's units (:mod:`wbc_jax.qp.rules`)."""
+    """``(pinf, dinf)``: OSQP's certificates on the last step's deltas ``dx``, ``dy`` (scaled), in the user's
+    units (:mod:`wbc_jax.qp.rules`)."""
     ops, dims, Ei, s = pg.ops, pg.dims, pg.Ei, pg.s
     l, u = list(read_blocks(l_refs, dims)), list(read_blocks(u_refs, dims))
     pinf = rules.primal_infeasible(l, u, [e * a / cs for a, e in zip(dy, E)],
                                    lambda v: _rows_t(ops, [a * e for a, e in zip(v, Ei)]) / D, s)
     dinf = rules.dual_infeasible(l, u, D * dx, [a * e for a, e in zip(_rows(ops, dx), Ei)],
                                  matvec(ops.P(0), dx) * pg.Dc, jnp.sum(ops.q(0) * dx) / cs, s)
-    empty = rules.amax(*[jnp.where(a > b, 1.0, 0.0) for a, b in zip(l, u)]) > 0.0
-    return pinf, dinf, empty
+    return pinf, dinf
 
 
-def _finish(pg: _Program, st, k, c, l_refs, u_refs) -> None:
-    """The result in the user's units, its residuals, flag and next rho, written to the outputs. In phases with a
-    barrier between them (straight-line, the compiler interleaved them and ran out of registers): the
-    certificates, then the residuals and rho, then the writes."""
+def _finish(pg: _Program, st, k, c, l_refs, u_refs, test=None) -> None:
+    """The result in the user's units, its residuals, flag and next rho, written to the outputs; ``test``: the
+    final iterate's :func:`_termination` where the loop computed it (else computed here). In phases with a
+    barrier between them (straight-line, the compiler interleaved them and ran out of registers): the residuals
+    and, for an unconverged solve only, the certificates; then rho; then the writes."""
     ops, s, dims, out = pg.ops, pg.s, pg.dims, pg.out
     x, ax, z, y, bad = c
     pg.sync()  # every thread's last deltas written
@@ -228,9 +231,12 @@ def _finish(pg: _Program, st, k, c, l_refs, u_refs) -> None:
     D, scal = st.D[...], st.scal[...]
     cs = entry(scal, 0)
     E = [1.0 / e for e in pg.Ei]
-    pinf, dinf, empty = _infeasibility(pg, dx, dy, D, cs, E, l_refs, u_refs)
+    prim, dual, conv = _termination(pg, x, ax, z, y) if test is None else test
+    l, u = read_blocks(l_refs, dims), read_blocks(u_refs, dims)
+    empty = rules.amax(*[jnp.where(a > b, 1.0, 0.0) for a, b in zip(l, u)]) > 0.0
+    no = jnp.zeros((), jnp.bool_)  # a converged solve's flag does not read the certificates (rules.status)
+    pinf, dinf = jax.lax.cond(conv, lambda: (no, no), lambda: _infeasibility(pg, dx, dy, D, cs, E, l_refs, u_refs))
     pg.sync()
-    prim, dual, conv = _termination(pg, x, ax, z, y)
     xu, zu, yu = D * x, [a * e for a, e in zip(z, pg.Ei)], [e * a / cs for a, e in zip(y, E)]
     flag = rules.status(is_finite(xu, *zu, *yu, prim, dual) & (bad == 0.0), empty, pinf, dinf, conv)
     rho_out = entry(scal, 1)
@@ -271,5 +277,5 @@ def iterate_kernel(*refs, s: QPSettings, iters: int, max_iters: int, check_every
     Dc = st.Dc[...]
     Ei = [r[...] for r in st.Ei]
     pg = _Program(_operands(st, Ki_ref, W_ref, Si_ref, dims), s, dims, out, Dc, Ei, sync)
-    k, c = _iterations(pg, st, iters, max_iters, check_every, first_len)
-    _finish(pg, st, k, c, l_refs, u_refs)
+    k, c, test = _iterations(pg, st, iters, max_iters, check_every, first_len)
+    _finish(pg, st, k, c, l_refs, u_refs, test)

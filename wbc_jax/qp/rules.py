@@ -167,12 +167,15 @@ def dual_infeasible(l, u, dx, adx, pdx, qdx, s: QPSettings):
 
 
 def status(finite, empty, pinf, dinf, converged):
-    """() the result's ``FLAG_*`` in order of precedence, as a float (the caller casts). Arithmetic on the tests as
-    0/1 rather than ``where``: Pallas' Triton lowering types a scalar ``where``'s constant cases after its
+    """() the result's ``FLAG_*`` in order of precedence, as a float (the caller casts): non-finite, an empty box
+    (primal infeasible), converged, then OSQP's certificates (primal, dual infeasible; OSQP tests them only where
+    the residuals fail, so ``pinf`` and ``dinf`` are not read where ``converged``), else the cap. Arithmetic on the
+    tests as 0/1 rather than ``where``: Pallas' Triton lowering types a scalar ``where``'s constant cases after its
     predicate (bool)."""
-    nf, pi, di, cv = (jnp.asarray(b).astype(jnp.float32) for b in (~finite, empty | pinf, dinf, converged))
-    rest = di * FLAG_DUAL_INFEASIBLE + (1.0 - di) * (cv * FLAG_SOLVED + (1.0 - cv) * FLAG_MAX_ITER)
-    return nf * FLAG_NONFINITE + (1.0 - nf) * (pi * FLAG_PRIMAL_INFEASIBLE + (1.0 - pi) * rest)
+    nf, em, pi, di, cv = (jnp.asarray(b).astype(jnp.float32) for b in (~finite, empty, pinf, dinf, converged))
+    cert = pi * FLAG_PRIMAL_INFEASIBLE + (1.0 - pi) * (di * FLAG_DUAL_INFEASIBLE + (1.0 - di) * FLAG_MAX_ITER)
+    rest = cv * FLAG_SOLVED + (1.0 - cv) * cert
+    return nf * FLAG_NONFINITE + (1.0 - nf) * (em * FLAG_PRIMAL_INFEASIBLE + (1.0 - em) * rest)
 
 
 def clean(v, nan, big):
