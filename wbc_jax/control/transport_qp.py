@@ -271,25 +271,33 @@ def _cost_swing_feet(dyn: DynTerms, ref: Reference, gains, cols) -> CostRows:
 
 def _quadratic_cost(blocks, gains, cols):
     """``(P, q)`` of ``||H zeta - l||_Q + ||zeta||_R`` from the cost blocks (R: ``r_vdot``, ``r_lam``): each run of
-    consecutive blocks on the same columns gives its block of P and q, the products over its rows only (the
-    stacked rows' products, whose other terms are zeros, in the same order). ValueError where two runs' columns
-    overlap."""
+    consecutive blocks on the same columns gives its diagonal block of P (plus R's) and its part of q, the products
+    over its rows only (the stacked rows' products, whose other terms are zeros, in the same order); P is then
+    assembled in one pass. ValueError where two runs' columns overlap."""
     runs = []
     for b in blocks:
         if runs and b.cols == runs[-1][0].cols:
             runs[-1].append(b)
         else:
             runs.append([b])
-    spans = sorted((r[0].cols.start, r[0].cols.stop) for r in runs)
-    if any(a[1] > b[0] for a, b in zip(spans, spans[1:])):
-        raise ValueError(f"cost blocks: columns {spans} overlap")
-    P, q = jnp.zeros((cols.n, cols.n)), jnp.zeros(cols.n)
+    runs.sort(key=lambda r: r[0].cols.start)
+    Rw = jnp.concatenate([jnp.full(cols.nv, gains.r_vdot), jnp.full(cols.ng + cols.nb, gains.r_lam)])
+    segs, at = [], 0  # (columns, their block of P, their part of q), in column order
     for r in runs:
         c = r[0].cols
+        if c.start < at:
+            raise ValueError(f"cost blocks: columns {[(x[0].cols.start, x[0].cols.stop) for x in runs]} overlap")
+        if c.start > at:  # columns no cost row spans: R only
+            segs.append((slice(at, c.start), jnp.zeros((c.start - at, c.start - at)), jnp.zeros(c.start - at)))
         H, l, w = (jnp.concatenate([getattr(b, f) for b in r]) for f in ("H", "l", "w"))
-        P, q = P.at[c, c].set(H.T @ (w[:, None] * H)), q.at[c].set(-H.T @ (w * l))
-    Rw = jnp.concatenate([jnp.full(cols.nv, gains.r_vdot), jnp.full(cols.ng + cols.nb, gains.r_lam)])
-    return P + jnp.diag(Rw), q
+        segs.append((c, H.T @ (w[:, None] * H), -H.T @ (w * l)))
+        at = c.stop
+    if at < cols.n:
+        segs.append((slice(at, cols.n), jnp.zeros((cols.n - at, cols.n - at)), jnp.zeros(cols.n - at)))
+    diag = [Pc + jnp.diag(Rw[c]) for c, Pc, _ in segs]
+    P = jnp.block([[d if i == j else jnp.zeros((d.shape[0], e.shape[1])) for j, e in enumerate(diag)]
+                   for i, d in enumerate(diag)])
+    return P, jnp.concatenate([qc for _, _, qc in segs])
 
 
 def _floating_base(dyn: DynTerms, maps: ContactMaps, cols) -> ConstraintRows:
