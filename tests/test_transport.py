@@ -223,3 +223,38 @@ def test_short_loaded_trot_segment(setup):
     dy = np.asarray(logs.p_obj[:, -1, 1] - logs.p_obj[:, 0, 1])
     assert np.all(dy < -0.02), dy
     assert np.all(np.abs(feet_z - robot.ids.foot_radius) < 0.02)
+
+
+def test_cost_blocks_equal_the_stacked_rows():
+    """``transport_qp._quadratic_cost`` (each run of cost blocks on the same columns: its own block of P and q)
+    equals the stacked rows' ``H' Q H + diag(R)`` and ``-H' Q l`` (hand-stacked, float64) on the transport QP's
+    layout: ground-force rows, tray-force rows, then a posture block and a swing block on the vdot columns;
+    overlapping runs are refused."""
+    from types import SimpleNamespace
+
+    from wbc_jax.control.transport_qp import Columns, CostRows, _quadratic_cost
+
+    cols = Columns(24, 4)
+    rng = np.random.default_rng(3)
+    post = np.zeros((6, cols.nv))
+    post[np.arange(6), np.arange(18, 24)] = 1.0
+    spec = [(rng.normal(size=(6, cols.ng)), cols.ig), (rng.normal(size=(6, cols.nb)), cols.ib), (post, cols.iv),
+            (rng.normal(size=(12, cols.nv)), cols.iv)]
+    gains = SimpleNamespace(r_vdot=1e-4, r_lam=1e-3)
+    with jax.enable_x64(True):
+        blocks = [CostRows(jnp.asarray(H), jnp.asarray(rng.normal(size=len(H))),
+                           jnp.asarray(rng.uniform(0.1, 2.0, size=len(H))), c) for H, c in spec]
+        P, q = (np.asarray(a) for a in _quadratic_cost(blocks, gains, cols))
+        with pytest.raises(ValueError, match="overlap"):
+            _quadratic_cost([blocks[0], blocks[2]._replace(cols=slice(20, 30), H=np.zeros((6, 10)))], gains, cols)
+    H = np.zeros((30, cols.n))
+    for (Hb, c), r in zip(spec, (slice(0, 6), slice(6, 12), slice(12, 18), slice(18, 30))):
+        H[r, c] = Hb
+    w, l = (np.concatenate([np.asarray(getattr(b, f)) for b in blocks]) for f in ("w", "l"))
+    R = np.concatenate([np.full(cols.nv, 1e-4), np.full(cols.ng + cols.nb, 1e-3)])
+    np.testing.assert_allclose(P, H.T @ (w[:, None] * H) + np.diag(R), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(q, -H.T @ (w * l), rtol=1e-12, atol=1e-12)
+    with jax.enable_x64(True):  # the vdot columns spanned by no row: R alone there
+        P2, q2 = (np.asarray(a) for a in _quadratic_cost(blocks[:2], gains, cols))
+    np.testing.assert_allclose(P2, H[:12].T @ (w[:12, None] * H[:12]) + np.diag(R), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(q2, -H[:12].T @ (w[:12] * l[:12]), rtol=1e-12, atol=1e-12)

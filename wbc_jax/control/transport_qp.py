@@ -177,11 +177,13 @@ class ObjectTarget(NamedTuple):
 
 
 class CostRows(NamedTuple):
-    """Rows of the cost 1/2 sum_i w_i (H_i zeta - l_i)^2 (the paper's ||H zeta - l||_Q)."""
+    """Rows of the cost 1/2 sum_i w_i (H_i zeta - l_i)^2 (the paper's ||H zeta - l||_Q), zero outside the columns
+    ``cols`` (static)."""
 
-    H: jax.Array  # (r, n)
+    H: jax.Array  # (r, len(cols)): the rows on their columns
     l: jax.Array  # (r,) target
     w: jax.Array  # (r,) weight
+    cols: slice  # the columns of zeta the rows span
 
 
 class ConstraintRows(NamedTuple):
@@ -238,27 +240,25 @@ def _object_target(obj: ObjectState, ref: Reference, om: ObjectModel, gains: Tra
 def _cost_com_wrench(dyn, obj, ref, maps: ContactMaps, target: ObjectTarget, r_ext, gains, cols) -> CostRows:
     """(7) f_1: the ground contact wrench about the robot's CoM tracks F_com,ref minus the observer's estimate
     ``r_ext`` (6,), plus the object's target wrench moved to the robot's CoM (the ground also carries the object)."""
-    H = jnp.zeros((6, cols.n)).at[:, cols.ig].set(edge_wrenches(dyn.p_foot, dyn.com, maps.Eg))
     l = _com_wrench_reference(dyn, ref, gains) - r_ext
     l = l + jnp.concatenate([target.force, target.torque + jnp.cross(obj.p - dyn.com, target.force)])
-    return CostRows(H, l, gains.w_com)
+    return CostRows(edge_wrenches(dyn.p_foot, dyn.com, maps.Eg), l, gains.w_com, cols.ig)
 
 
 def _cost_object_wrench(maps: ContactMaps, target: ObjectTarget, gains, variant: Variant, cols) -> CostRows:
     """(8) f_2: the object wrench of the tray's contact forces tracks F_b,ref (weight scaled by ``tray_cone``)."""
-    H = jnp.zeros((6, cols.n)).at[:, cols.ib].set(maps.Wb)
     w = jnp.concatenate([jnp.full(3, gains.w_obj_f * variant.tray_cone),
                          jnp.full(3, gains.w_obj_t * variant.tray_cone)])
-    return CostRows(H, jnp.concatenate([target.force, target.torque]), w)
+    return CostRows(maps.Wb, jnp.concatenate([target.force, target.torque]), w, cols.ib)
 
 
 def _cost_arm_posture(dyn: DynTerms, ids: RobotIds, q_post, gains, variant: Variant, cols) -> CostRows:
     """Arm posture: vdot_arm tracks Kp (q_post - q) - Kd qdot. Without it the null space of (11) is free and the
     QP uses the arm as a reaction wheel for the moment two stance feet cannot produce."""
     arm_v, arm_q = ids.act_dof[12:], ids.act_qpos[12:]
-    H = jnp.zeros((6, cols.n)).at[jnp.arange(6), arm_v].set(1.0)
+    H = jnp.zeros((6, cols.nv)).at[jnp.arange(6), arm_v].set(1.0)
     a_post = gains.kp_post * (q_post - dyn.q[arm_q]) - gains.kd_post * dyn.v[arm_v]
-    return CostRows(H, a_post, jnp.full(6, gains.w_post * variant.posture))
+    return CostRows(H, a_post, jnp.full(6, gains.w_post * variant.posture), cols.iv)
 
 
 def _cost_swing_feet(dyn: DynTerms, ref: Reference, gains, cols) -> CostRows:
@@ -266,17 +266,38 @@ def _cost_swing_feet(dyn: DynTerms, ref: Reference, gains, cols) -> CostRows:
     sw3 = jnp.repeat(ref.swing, 3)
     a_cmd = ref.a_sw + gains.kd_sw * (ref.v_sw - dyn.v_foot) + gains.kp_sw * (ref.p_sw - dyn.p_foot)
     b14 = (a_cmd - dyn.Jdv_foot).reshape(12)
-    H = jnp.zeros((12, cols.n)).at[:, :cols.nv].set(dyn.J_foot.reshape(12, cols.nv))
-    return CostRows(H, b14, jnp.where(sw3, gains.r_slack, 0.0))
+    return CostRows(dyn.J_foot.reshape(12, cols.nv), b14, jnp.where(sw3, gains.r_slack, 0.0), cols.iv)
 
 
 def _quadratic_cost(blocks, gains, cols):
-    """``(P, q)`` of ``||H zeta - l||_Q + ||zeta||_R`` stacked from the cost blocks (R: ``r_vdot``, ``r_lam``)."""
-    H = jnp.concatenate([b.H for b in blocks])
-    l = jnp.concatenate([b.l for b in blocks])
-    Qw = jnp.concatenate([b.w for b in blocks])
+    """``(P, q)`` of ``||H zeta - l||_Q + ||zeta||_R`` from the cost blocks (R: ``r_vdot``, ``r_lam``): each run of
+    consecutive blocks on the same columns gives its diagonal block of P (plus R's) and its part of q, the products
+    over its rows only (the stacked rows' products, whose other terms are zeros, in the same order); P is then
+    assembled in one pass. ValueError where two runs' columns overlap."""
+    runs = []
+    for b in blocks:
+        if runs and b.cols == runs[-1][0].cols:
+            runs[-1].append(b)
+        else:
+            runs.append([b])
+    runs.sort(key=lambda r: r[0].cols.start)
     Rw = jnp.concatenate([jnp.full(cols.nv, gains.r_vdot), jnp.full(cols.ng + cols.nb, gains.r_lam)])
-    return H.T @ (Qw[:, None] * H) + jnp.diag(Rw), -H.T @ (Qw * l)
+    segs, at = [], 0  # (columns, their block of P, their part of q), in column order
+    for r in runs:
+        c = r[0].cols
+        if c.start < at:
+            raise ValueError(f"cost blocks: columns {[(x[0].cols.start, x[0].cols.stop) for x in runs]} overlap")
+        if c.start > at:  # columns no cost row spans: R only
+            segs.append((slice(at, c.start), jnp.zeros((c.start - at, c.start - at)), jnp.zeros(c.start - at)))
+        H, l, w = (jnp.concatenate([getattr(b, f) for b in r]) for f in ("H", "l", "w"))
+        segs.append((c, H.T @ (w[:, None] * H), -H.T @ (w * l)))
+        at = c.stop
+    if at < cols.n:
+        segs.append((slice(at, cols.n), jnp.zeros((cols.n - at, cols.n - at)), jnp.zeros(cols.n - at)))
+    diag = [Pc + jnp.diag(Rw[c]) for c, Pc, _ in segs]
+    P = jnp.block([[d if i == j else jnp.zeros((d.shape[0], e.shape[1])) for j, e in enumerate(diag)]
+                   for i, d in enumerate(diag)])
+    return P, jnp.concatenate([qc for _, _, qc in segs])
 
 
 def _floating_base(dyn: DynTerms, maps: ContactMaps, cols) -> ConstraintRows:
@@ -356,6 +377,7 @@ def build_qp(dyn: DynTerms, obj: ObjectState, J_o, Jdv_o, ref: Reference, om: Ob
     rows = [_floating_base(dyn, maps, cols), _stance_feet(dyn, ref, gains, cols),
             _tray_motion(J_o, Jdv_o, target, cols), _normal_force(maps, ref, gains, cols),
             _torque_limits(A_tau, h_a, ids, gains), _multipliers(ref, variant, cols)]
-    H_com = com.H.at[:, cols.ib].set(-edge_wrenches(maps.p_c, dyn.com, maps.Ec))  # plus the object's reaction
+    H_com = jnp.zeros((6, cols.n)).at[:, com.cols].set(com.H).at[:, cols.ib].set(  # plus the object's reaction
+        -edge_wrenches(maps.p_c, dyn.com, maps.Ec))
     return TransportQP(P, q, jnp.concatenate([r.A for r in rows]), jnp.concatenate([r.l for r in rows]),
                        jnp.concatenate([r.u for r in rows]), A_tau, h_a, H_com)
