@@ -41,13 +41,14 @@ from wbc_jax.qp.kernel_prepare import prepare_kernel, stage_shapes
 from wbc_jax.qp.settings import QPResult, QPSettings
 
 
-def solve_fused(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
+def solve_fused(P, q, A, l, u, warm, s: QPSettings, iters: int, interpret: bool | None = None) -> QPResult:
     """One problem (already in one floating dtype, bounds finite) through :func:`fused_solve`: the rows split into
     the kernels' blocks, the first ``ne`` exact, the last ``box_rows`` a diagonal, the dense rows between.
 
     Args:
         warm: None (cold) or ``(x, z, y, rho or None, iters or None, factors or None)`` in the user's units
             (``factors``: :class:`~wbc_jax.qp.kernel_layout.Factors`, read with ``s.reuse_factors``).
+        interpret: :func:`fused_solve`'s.
     """
     dt = P.dtype
     m, n = A.shape
@@ -65,7 +66,8 @@ def solve_fused(P, q, A, l, u, warm, s: QPSettings, iters: int) -> QPResult:
     if s.launch_order == "predicted" and warm is not None:
         wk = jnp.zeros((), jnp.int32) if warm[4] is None else warm[4]
         key = predicted_length(l, u, wz, wk, s)
-    return fused_solve(P, A, q, l, u, wx, wz, wy, rho, first, old, key, s=s, iters=iters, warm=warm is not None)
+    return fused_solve(P, A, q, l, u, wx, wz, wy, rho, first, old, key, s=s, iters=iters, warm=warm is not None,
+                       interpret=interpret)
 
 
 def _dims(n: int, m: int, s: QPSettings) -> Dims:
@@ -124,9 +126,9 @@ def _compiler_params(interpret: bool, num_warps: int, factor_warps: int):
             plgpu.CompilerParams(num_warps=factor_warps, num_stages=1), plgpu.debug_barrier)
 
 
-@functools.partial(jax.jit, static_argnames=("s", "iters", "warm", "num_warps", "factor_warps"))
+@functools.partial(jax.jit, static_argnames=("s", "iters", "warm", "num_warps", "factor_warps", "interpret"))
 def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, key=None, *, s: QPSettings, iters: int,
-                warm: bool, num_warps: int = 2, factor_warps: int = 2) -> QPResult:
+                warm: bool, num_warps: int = 2, factor_warps: int = 2, interpret: bool | None = None) -> QPResult:
     """One QP solved by the three kernels.
 
     Args:
@@ -145,7 +147,7 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, key=None, 
         key: None, or () the problem's launch key under ``vmap`` (``s.launch_order``, :mod:`~.kernel_order`).
         s: the solver's settings; iters: the fixed iterations; warm: start from ``wx, wz, wy``.
         num_warps, factor_warps: Triton warps per program of the preparation and iterations kernels, and of the
-            factorization kernel.
+            factorization kernel; interpret: Pallas' interpreter (None: on a CPU; False lowers for a GPU anywhere).
 
     Returns:
         :class:`~wbc_jax.qp.settings.QPResult`, rows in their order (exact, dense, box).
@@ -156,7 +158,7 @@ def fused_solve(P, A, q, l, u, wx, wz, wy, rho, first=None, old=None, key=None, 
     given = old is not None
     N, NE = pow2(n), pow2(ne)
     dt = P.dtype
-    interpret = jax.default_backend() == "cpu"
+    interpret = jax.default_backend() == "cpu" if interpret is None else interpret
     P, A = _pad_matrices(P, A, dims, interpret)
     lb, ub = _bound_blocks(l, dims, dt), _bound_blocks(u, dims, dt)
     ins = [P, A, q, *lb, *ub, wy, jnp.reshape(rho, (1,)).astype(dt), wx, wz]

@@ -234,8 +234,10 @@ def _finish(pg: _Program, st, k, c, l_refs, u_refs, test=None) -> None:
     prim, dual, conv = _termination(pg, x, ax, z, y) if test is None else test
     l, u = read_blocks(l_refs, dims), read_blocks(u_refs, dims)
     empty = rules.amax(*[jnp.where(a > b, 1.0, 0.0) for a, b in zip(l, u)]) > 0.0
-    no = jnp.zeros((), jnp.bool_)  # a converged solve's flag does not read the certificates (rules.status)
-    pinf, dinf = jax.lax.cond(conv, lambda: (no, no), lambda: _infeasibility(pg, dx, dy, D, cs, E, l_refs, u_refs))
+    # a converged solve's flag does not read the certificates (rules.status); the skipped branch returns values
+    # computed from ``conv`` (Triton's lowering of a branch cannot yield a constant)
+    no = lambda: (conv & ~conv, conv & ~conv)  # noqa: E731
+    pinf, dinf = jax.lax.cond(conv, no, lambda: _infeasibility(pg, dx, dy, D, cs, E, l_refs, u_refs))
     pg.sync()
     xu, zu, yu = D * x, [a * e for a, e in zip(z, pg.Ei)], [e * a / cs for a, e in zip(y, E)]
     flag = rules.status(is_finite(xu, *zu, *yu, prim, dual) & (bad == 0.0), empty, pinf, dinf, conv)
