@@ -42,7 +42,7 @@ groups=(
   "trot_campaign"
 )
 light="reliability planner zmp capture_point interaction kernel_trace snapshots spec_docs packed aot api architecture
-  progress qp_fma qp_lowering jaxcfg transfer"
+  progress qp_fma gpu_lowering jaxcfg transfer"
 light2="centroidal bench_campaign distributed envelope s_cause warmup checkpoint_writer blocks"
 named=" ${groups[*]} $light $light2 "
 rest=()

@@ -1,4 +1,4 @@
-"""The fused QP kernels lowered for a GPU on a CPU-only machine.
+"""Programs lowered for a GPU on a CPU-only machine: the fused QP kernels, and the paper campaign's chunk program.
 
 Pallas lowers a kernel to Triton's IR when the program is lowered, before any GPU is involved: a kernel body that
 Triton's lowering rejects (e.g. a ``lax.cond`` branch that yields a constant) fails here, where the interpreter the
@@ -8,6 +8,7 @@ other tests use runs it. Lowered with ``lowering_platforms=("cuda",)``; nothing 
 from __future__ import annotations
 
 import functools
+import tomllib
 
 import jax
 import jax.numpy as jnp
@@ -47,3 +48,32 @@ def test_fused_kernels_lower_for_a_gpu(warm, settings):
     text = _lowered_text(control_qp_settings(8, kernel="fused", **settings), warm)
     for name in ("admm_prepare", "admm_factor", "admm_iterations"):
         assert name in text, name
+
+
+def test_paper_campaign_program_lowers_for_a_gpu(monkeypatch):
+    """The paper spec's campaign chunk program as a GPU would build it (Warp physics through MJX's FFI calls, the
+    fused QP kernels with the spec's settings: JAX's default backend reported as "gpu" while it is built and traced,
+    the build's caches fresh), 1 repetition (27 runs), lowered for CUDA: the three Triton kernels and MuJoCo Warp's
+    calls are in the program."""
+    pytest.importorskip("warp")
+    from wbc_jax.campaign import build
+    from wbc_jax.campaign.spec import SWEEPS, parse_spec
+    from wbc_jax.rollout import loop
+    from wbc_jax.rollout.batch import chunk_args
+
+    data = tomllib.loads((SWEEPS / "paper_campaign.toml").read_text())
+    data["campaign"]["reps"] = 1
+    for name, fresh in (("_SIMS", {}), ("_FNS", {})):
+        monkeypatch.setattr(build, name, fresh)
+    monkeypatch.setattr(loop, "_CHUNK_FNS", {})
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    try:
+        built, _ = build.build_ahead(build.with_backend(parse_spec(data), "warp"))
+        b = built.batch
+        fn = build.chunk_fn(built.sim, b.in_axes, built.logs_per_chunk, None, b.state_axes)
+        text = fn.trace(*chunk_args(b)).lower(lowering_platforms=("cuda",)).as_text()
+    finally:
+        jax.clear_caches()  # no trace made as for a GPU is reused by a later test on the CPU
+    for name in ("admm_prepare", "admm_factor", "admm_iterations"):
+        assert name in text, name
+    assert text.count("stablehlo.custom_call") >= 3 + 1  # the kernels and MuJoCo Warp's calls
