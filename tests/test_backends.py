@@ -26,7 +26,6 @@ from wbc_jax.physics.observe import mass_matrix  # noqa: E402
 from wbc_jax.planner.gait import GaitParams
 from wbc_jax.robot import scenario  # noqa: E402
 from wbc_jax.robot.model import Robot  # noqa: E402
-from wbc_jax.robot.sensors import DIST  # noqa: E402
 from wbc_jax.rollout import final_results, make_sim, simulate  # noqa: E402
 from wbc_jax.rollout.batch import prepare_batch  # noqa: E402
 
@@ -257,109 +256,102 @@ def test_solver_cap_is_counted(walks):
     assert np.all((frac >= 0) & (frac <= 1)) and np.all(np.isnan(walks["jax"][3]["solver_cap_fraction"]))
 
 
-def test_contact_sensor_slots_hold_every_match():
-    """The Warp scene's ``contact_sensor_maxmatch`` (:func:`wbc_jax.robot.sensors.max_pair_contacts`, 4 on the
-    flat scene) against MuJoCo Warp's default 64: the robot at home lowered 0.25 m into the floor (its trunk, thighs
-    and shanks, capsules and boxes, penetrate), one physics step: every sensor's count equals MuJoCo C's contacts
-    of its pair at that configuration (float64 ``mj_forward``), and the sensordata equal bit for bit; with one
-    slot the pairs of more contacts read as a match overflow (``contacts.match_overflow``), with four none does."""
+def _stepped(robot, qpos, m=None):
+    """One Warp physics step of the runs at ``qpos`` (runs, nq) from rest: the batched mjx.Data after it."""
+    d = jax.vmap(lambda q: physics.make_data(robot, len(qpos)).replace(qpos=q))(jax.numpy.asarray(qpos))
+    return jax.jit(jax.vmap(physics.mjx.step, in_axes=(None, 0)))(m or robot.mjx_model, d)
+
+
+def _mujoco_contacts(robot, qpos, pairs):
+    """Per pair of ``pairs`` (ids) the dists of MuJoCo C's contacts at ``qpos`` (float64 ``mj_forward``)."""
+    mj = robot.mj_model
+    data = mujoco.MjData(mj)
+    data.qpos[:] = qpos
+    mujoco.mj_forward(mj, data)
+    return [[float(c.dist) for c in data.contact[:data.ncon]
+             if {int(c.geom1), int(c.geom2)} == {int(mj.pair_geom1[p]), int(mj.pair_geom2[p])}] for p in pairs]
+
+
+def test_object_sensor_slots_hold_every_match(monkeypatch):
+    """The Warp scene's contact sensors are the object spheres' (one per sphere vs the tray), their slots
+    ``contact_sensor_maxmatch`` the most contacts of a sphere's pair (:func:`wbc_jax.robot.sensors.max_pair_contacts`:
+    1) instead of MuJoCo Warp's default 64: the cube resting on the tray, one physics step: each sensor's count
+    equals MuJoCo C's contacts of its pair (float64 ``mj_forward``), the sensordata equal bit for bit, and no match
+    overflow is read (``contacts.match_overflow``), which reads one where the slots are fewer than the count."""
     import dataclasses
     from types import SimpleNamespace
 
-    robot = Robot("flat", backend="warp")
-    assert physics.contact_sensor_slots(robot.mjx_model) == 4
-    assert physics.contact_sensor_slots(Robot("flat").mjx_model) is None  # JAX: no sensors
+    robot = Robot("transport", backend="warp")
+    mx = robot.mjx_model
+    assert physics.contact_sensor_slots(mx) == 1 and len(robot.sensors.obj) == 4
+    assert robot.mj_model.nsensor == 4 and physics.contact_sensor_slots(Robot("flat").mjx_model) is None
     qpos = robot.home_qpos(0.08)
-    qpos[2] -= 0.25
-    d = jax.vmap(lambda q: physics.make_data(robot, 1).replace(qpos=q))(jax.numpy.asarray(qpos)[None])
+    qpos[robot.mj_model.jnt_qposadr[robot.mj_model.body_jntadr[robot.ids.obj_body]] + 2] -= 1e-3
     sim = SimpleNamespace(robot=robot)
-
-    def step(k):
-        mx = robot.mjx_model
-        m = mx.replace(opt=mx.opt.replace(_impl=dataclasses.replace(mx.opt._impl, contact_sensor_maxmatch=k)))
-        d1 = jax.jit(jax.vmap(physics.mjx.step, in_axes=(None, 0)))(m, d)
-        over = jax.jit(jax.vmap(lambda d: contacts.match_overflow(sim, m, d)))(d1)
-        return np.asarray(d1.sensordata[0]), bool(np.asarray(over)[0])
-
-    (sd4, over4), (sd64, _), (_, over1) = step(4), step(64), step(1)
-    mj, data = robot.mj_model, mujoco.MjData(robot.mj_model)
-    data.qpos[:] = qpos
-    mujoco.mj_forward(mj, data)
-    pairs = np.concatenate([robot.ids.obj_pair, robot.ids.nonfoot_floor_pair, robot.ids.wall_pair]).astype(int)
-    n_c = [sum({int(c.geom1), int(c.geom2)} == {int(mj.pair_geom1[p]), int(mj.pair_geom2[p])}
-               for c in data.contact[:data.ncon]) for p in pairs]
-    found = sd4[robot.sensors.found]
-    np.testing.assert_array_equal(found, n_c)
-    assert found.max() > 1 and np.sum(found > 0) > 5  # several pairs touch, some at several points
-    np.testing.assert_array_equal(sd4, sd64)
-    assert over1 and not over4
+    wide = mx.replace(opt=mx.opt.replace(_impl=dataclasses.replace(mx.opt._impl, contact_sensor_maxmatch=64)))
+    d1, d64 = _stepped(robot, qpos[None]), _stepped(robot, qpos[None], wide)
+    sd = np.asarray(d1.sensordata[0])
+    np.testing.assert_array_equal(sd, np.asarray(d64.sensordata[0]))
+    want = [len(c) for c in _mujoco_contacts(robot, qpos, robot.ids.obj_pair)]
+    np.testing.assert_array_equal(sd[robot.sensors.found], want)
+    assert sum(want) == 4  # the cube, pressed 1 mm into the tray, touches it at its four spheres
+    def over():
+        return bool(np.asarray(jax.jit(jax.vmap(lambda d: contacts.match_overflow(sim, mx, d)))(d1))[0])
+    assert not over()
+    monkeypatch.setattr(physics, "contact_sensor_slots", lambda m: 0)  # fewer slots than a sensor's count
+    assert over()
 
 
-def test_box_box_pairs_on_the_primitive_and_the_wall_body_sensor_as_mujoco_c(monkeypatch):
-    """The Warp scene collides box-box pairs with MuJoCo Warp's box_box primitive (native CCD disabled in
-    :func:`wbc_jax.robot.sensors.with_contact_sensors`; the JAX backend's model untouched), and watches the wall's
-    21 pairs with one sensor of the wall's body (:func:`~wbc_jax.robot.sensors.whole_wall_bodies`), so its slots
-    are the non-foot pairs' 4. The transport scene's tray pushed 0.125 m into the wall's lintel, the cube (side
-    0.08 m) yawed 45 deg 10 mm into its underside at its edge (5 contacts), one physics step: the wall sensor counts
-    MuJoCo C's contacts of every wall pair (float64 ``mj_forward``, ``mjc_BoxBox``: more than 4 a pair, more than
-    its slots in all), its ``dist`` is a penetration no deeper than their nearest, and no match overflow is
-    reported. The scene with one sensor per wall pair (8 slots) gives each pair's count and nearest ``dist``, the
-    same wall flag (``contacts.wall_dist`` < 0), and the other sensors' values bit for bit."""
+def test_pair_minima_as_mujoco_c():
+    """The non-foot and wall distances read from MuJoCo Warp's shared contact list (``contacts.pair_minima``, one
+    reduction for the batch): three runs stepped at once, one physics step each: at home (nothing listed: +inf),
+    the tray pushed 25 mm into the wall's lintel with the cube yawed 45 deg 10 mm into its underside (box-box pairs on
+    MuJoCo Warp's box_box primitive, native CCD disabled in the Warp scene, more than 4 contacts a pair), and the
+    robot lowered 0.25 m into the floor (trunk, thighs and shanks, boxes and capsules, several contacts a pair).
+    Each run's entries equal the smallest dist of MuJoCo C's contacts of each non-foot pair and of all wall pairs
+    (float64 ``mj_forward``; +inf where MuJoCo C lists none), so the runs' contacts land in their own entries, every
+    contact counted; ``contacts.penetrations`` flags the wall and the floor where they are."""
     from types import SimpleNamespace
 
-    from wbc_jax.robot import sensors
-
     robot = Robot("transport", backend="warp")
-    monkeypatch.setattr(sensors, "whole_wall_bodies", lambda *a: {})
-    per_pair = Robot("transport", backend="warp")
     ccd = int(mujoco.mjtDisableBit.mjDSBL_NATIVECCD)
     assert robot.mj_model.opt.disableflags & ccd and not Robot("transport").mj_model.opt.disableflags & ccd
-    assert physics.contact_sensor_slots(robot.mjx_model) == 4 and physics.contact_sensor_slots(per_pair.mjx_model) == 8
-    assert robot.sensors.n_wall_bodies == 1 and len(robot.sensors.wall) == 1 and len(per_pair.sensors.wall) == 21
-    mj = robot.mj_model
-    qpos = robot.home_qpos(0.08)
-    tray = mj.geom("tray").id
+    mj, ids = robot.mj_model, robot.ids
+    home = robot.home_qpos(0.08)
     data = mujoco.MjData(mj)
-    data.qpos[:] = qpos
+    data.qpos[:] = home
     mujoco.mj_kinematics(mj, data)
-    lintel = mj.geom("wall_lintel").id  # its face toward the robot at y = -2.375
+    lintel, tray = mj.geom("wall_lintel").id, mj.geom("tray").id  # the lintel's face toward the robot
     face = data.geom_xpos[lintel, 1] + mj.geom_size[lintel, 1]
-    qpos[1] += face - 0.025 - data.geom_xpos[tray, 1]  # the tray's centre 25 mm behind the face
-    qpos[2] += 0.02  # the feet off the ground
+    wall = home.copy()
+    wall[1] += face - 0.025 - data.geom_xpos[tray, 1]  # the tray's centre 25 mm behind the face
+    wall[2] += 0.02  # the feet off the ground
     obj = mj.jnt_qposadr[mj.body_jntadr[mj.geom_bodyid[mj.geom("object").id]]]  # the cube, yawed 45 deg, 10 mm
     bottom = data.geom_xpos[lintel, 2] - mj.geom_size[lintel, 2]  # into the lintel's underside by its edge
-    qpos[obj:obj + 7] = [0.0, face - 0.02, bottom - 0.03, np.cos(np.pi / 8), 0.0, 0.0, np.sin(np.pi / 8)]
-    data.qpos[:] = qpos
-    mujoco.mj_forward(mj, data)
-
-    def step(r, q):
-        d = jax.vmap(lambda q: physics.make_data(r, 1).replace(qpos=q))(jax.numpy.asarray(q)[None])
-        d1 = jax.jit(jax.vmap(physics.mjx.step, in_axes=(None, 0)))(r.mjx_model, d)
-        sim = SimpleNamespace(robot=r, wall_slots=r.sensors.wall)
-        over, wall = jax.jit(jax.vmap(lambda d: (contacts.match_overflow(sim, r.mjx_model, d),
-                                                 jax.numpy.any(contacts.wall_dist(sim, d) < 0.0))))(d1)
-        return np.asarray(d1.sensordata[0]), bool(np.asarray(over)[0]), bool(np.asarray(wall)[0])
-
-    (sd, over, wall), (sdp, overp, wallp) = step(robot, qpos), step(per_pair, qpos)
-    pairs = robot.ids.wall_pair.astype(int)
-    box = int(mujoco.mjtGeom.mjGEOM_BOX)
-    mine = [[c for c in data.contact[:data.ncon]
-             if {int(c.geom1), int(c.geom2)} == {int(mj.pair_geom1[p]), int(mj.pair_geom2[p])}] for p in pairs]
-    np.testing.assert_array_equal(sdp[per_pair.sensors.wall], [len(c) for c in mine])
-    boxes = [i for i, p in enumerate(pairs) if mj.geom_type[mj.pair_geom1[p]] == mj.geom_type[mj.pair_geom2[p]] == box]
-    touching = [i for i in boxes if mine[i]]
-    assert len(touching) == 2 and max(len(mine[i]) for i in touching) > 4  # tray and cube, more than 4 points
-    nearest = [min(c.dist for c in mine[i]) for i in touching]
-    np.testing.assert_allclose(sdp[per_pair.sensors.wall[touching] + DIST], nearest, atol=2e-6)
-    n_wall = sum(len(c) for c in mine)
-    assert sd[robot.sensors.wall[0]] == n_wall > 4  # every match counted beyond the slots
-    assert min(nearest) - 2e-6 <= sd[robot.sensors.wall[0] + DIST] < 0.0
-    assert wall and wallp and not over and not overp
-    for key in ("obj", "nonfoot"):
-        np.testing.assert_array_equal(sd[np.add.outer(getattr(robot.sensors, key), np.arange(5))],
-                                      sdp[np.add.outer(getattr(per_pair.sensors, key), np.arange(5))])
-    home = robot.home_qpos(0.08)  # nothing in the wall: both flags off
-    assert not step(robot, home)[2] and not step(per_pair, home)[2]
+    wall[obj:obj + 7] = [0.0, face - 0.02, bottom - 0.03, np.cos(np.pi / 8), 0.0, 0.0, np.sin(np.pi / 8)]
+    sunk = home.copy()
+    sunk[2] -= 0.25
+    runs = np.stack([home, wall, sunk])
+    d1 = _stepped(robot, runs)
+    sim = SimpleNamespace(robot=robot, **dict(zip(("nonfoot_slots", "wall_slots"),
+                                                  contacts.sim_indices(robot)[:2])))
+    minima, (nonfoot, walls) = jax.jit(jax.vmap(lambda d: (contacts.pair_minima(sim, d),
+                                                           contacts.penetrations(sim, d))))(d1)
+    minima = np.asarray(minima)
+    assert minima.shape == (3, len(ids.nonfoot_floor_pair) + 1)
+    n_wall, n_floor = [], []
+    for r, q in enumerate(runs):
+        nf = _mujoco_contacts(robot, q, ids.nonfoot_floor_pair)
+        wl = _mujoco_contacts(robot, q, ids.wall_pair)
+        want = np.array([min(c, default=np.inf) for c in nf] + [min(sum(wl, []), default=np.inf)])
+        np.testing.assert_array_equal(np.isinf(minima[r]), np.isinf(want))
+        fin = np.isfinite(want)
+        np.testing.assert_allclose(minima[r][fin], want[fin], atol=2e-6)
+        n_wall.append(max(len(c) for c in wl))
+        n_floor.append(sum(len(c) > 1 for c in nf))
+    assert np.all(np.isinf(minima[0])) and n_wall[1] > 4 and n_floor[2] > 3
+    np.testing.assert_array_equal(np.asarray(walls).ravel() < 0, [False, True, False])
+    np.testing.assert_array_equal(np.any(np.asarray(nonfoot) < 0, axis=1), [False, False, True])
 
 
 def test_backend_choice(monkeypatch):

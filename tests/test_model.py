@@ -254,41 +254,6 @@ def test_max_pair_contacts_by_geom_types():
     assert max_pair_contacts(m, [(g["plane"], g["box"])]) == 4
 
 
-def test_whole_wall_bodies_only_where_every_contact_is_a_penetrating_wall_pair():
-    """``robot.sensors.whole_wall_bodies``: a body gets one sensor for its wall pairs only where every pair of its
-    geoms is a wall pair with margin <= 0 and gap 0 and its geoms make no contacts outside the pairs (contype and
-    conaffinity 0), for two or more pairs, a pair once. Hand-built scene: only the body "wall" qualifies (its two
-    pairs); "post" has a geom of contype 1, "gate" a pair with a margin, "door" one pair, the robot's body a floor
-    pair; the transport scene's wall body takes all 21 of its wall pairs."""
-    from wbc_jax.robot.sensors import whole_wall_bodies
-
-    box = 'type="box" size=".1 .1 .1"'
-    off = 'contype="0" conaffinity="0"'
-    m = mujoco.MjModel.from_xml_string(f"""<mujoco><worldbody>
-      <geom name="floor" type="plane" size="1 1 .1" {off}/>
-      <body name="wall" pos="0 1 0"><geom name="wall_a" {box} {off}/><geom name="wall_b" {box} pos="0 0 .3" {off}/>
-      </body>
-      <body name="post" pos="1 1 0"><geom name="wall_post" {box} contype="1" conaffinity="0"/></body>
-      <body name="gate" pos="2 1 0"><geom name="wall_gate" {box} {off}/></body>
-      <body name="door" pos="3 1 0"><geom name="wall_door" {box} {off}/></body>
-      <body name="bot"><freejoint/><geom name="trunk" {box} {off}/><geom name="arm" {box} pos="0 0 .3" {off}/></body>
-      </worldbody><contact>
-      <pair geom1="trunk" geom2="wall_a"/><pair geom1="arm" geom2="wall_b"/><pair geom1="trunk" geom2="wall_post"/>
-      <pair geom1="arm" geom2="wall_post"/><pair geom1="trunk" geom2="wall_gate" margin="0.01"/>
-      <pair geom1="arm" geom2="wall_gate"/><pair geom1="arm" geom2="wall_door"/><pair geom1="trunk" geom2="floor"/>
-      </contact></mujoco>""")
-    names = [(m.geom(int(a)).name, m.geom(int(b)).name) for a, b in zip(m.pair_geom1, m.pair_geom2)]
-    wall = [p for p, n in enumerate(names) if any(g.startswith("wall") for g in n)]
-    own = [p for p, n in enumerate(names) if {"wall_a", "wall_b"} & set(n)]
-    assert len(wall) == 7 and len(own) == 2
-    chosen = whole_wall_bodies(m, wall)
-    assert list(chosen) == [m.body("wall").id] and chosen[m.body("wall").id].tolist() == own
-    t = Robot("transport").mj_model
-    wall = resolve_ids(t, "transport").wall_pair
-    assert len(wall) == 21 and {b: p.tolist() for b, p in whole_wall_bodies(t, wall).items()} == {
-        t.body("wall").id: sorted(wall.tolist())}
-
-
 def test_zero_stages_are_off_only_where_mujoco_c_computes_zeros(robot):
     """``robot.sensors.zero_stages``: the transport scene (no joint stiffness or damping, no friction loss, no
     gravity compensation, no fluid) gets springs, dampers and friction loss off, and MuJoCo C steps the scene with

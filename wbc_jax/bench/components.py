@@ -49,7 +49,7 @@ def _stages(sim, b, iters: int) -> list:
     f_qp = jax.jit(jax.vmap(lambda P, q, A, l, u, w: solve_qp(P, q, A, l, u, warm=w, settings=cfg.qp)))
     res = f_qp(P, q, A, l, u, rs.cs.warm)
     tau = jnp.clip(jnp.einsum("bij,bj->bi", A_tau, res.x) + h_a, -ids.tau_max, ids.tau_max)
-    f_adv = V(lambda m, d, tau: physics.advance(m, d, tau), 2)
+    f_adv = V(physics.finish, 2)
     d_next = f_adv(b.model, ds, tau)
     oa = ids.obj_dof_adr
     f_met = V(lambda m, d0, d1, mu: metrics.step_integrands(contacts.object_contacts(sim, m, d1)[0], mu,
@@ -61,7 +61,7 @@ def _stages(sim, b, iters: int) -> list:
             ("reference", f_ref, (b.model, ds, obs, b.plan, rs.p_lift)),
             ("assemble (observer, build_qp)", f_asm, (obs, ref, b.om, b.gains, rs.cs, b.mu_ground)),
             (f"solve_qp ({iters} iterations)", f_qp, (P, q, A, l, u, rs.cs.warm)),
-            ("advance (actuation, constraint solve, integrate)", f_adv, (b.model, ds, tau)),
+            ("finish (actuation, constraint solve, integrate)", f_adv, (b.model, ds, tau)),
             ("metrics.step_integrands", f_met, (b.model, ds, d_next, b.om.mu)),
             ("whole control step", f_step, (b.model, rs, b.plan, b.om, b.gains, b.push, b.mu_ground)),
             ("physics only (mjx.step)", f_phys, (b.model, rs.d))]

@@ -8,7 +8,8 @@ step, both exact (on Warp ``sensing = "delayed"`` drops :func:`sense`, ``wbc_jax
 On Warp both are MJX's own generated XLA calls running other MuJoCo Warp functions (:func:`_mjx_warp_call`):
 ``step1``, then the rest of ``step``; the same arithmetic as ``mjx.forward`` then ``mjx.step``. A control period
 of ``n_substeps`` physics steps is :func:`finish` then ``n_substeps - 1`` plain ``mjx.step`` calls
-(:func:`advance`). :func:`resolve_backend` turns "auto" into Warp on a CUDA GPU with warp-lang installed, else JAX.
+(``wbc_jax.rollout.step.physics_period``). :func:`resolve_backend` turns "auto" into Warp on a CUDA GPU with
+warp-lang installed, else JAX.
 
 After any of these steps, ``d.contact`` (and ``efc_force``) belong to the positions at the *start* of that
 step (collision runs before integration): after :func:`finish` they are the sensed ``d``'s contacts.
@@ -242,23 +243,6 @@ def finish(m, d, ctrl, sensed: bool = True):
     return mjx.euler(m, d)
 
 
-def hold(m, d, n: int):
-    """``n`` (static, >= 0) further plain ``mjx.step`` calls with ``d.ctrl`` held (``lax.scan``, one traced step)."""
-    if n <= 0:
-        return d
-    return jax.lax.scan(lambda d, _: (mjx.step(m, d), None), d, None, length=n)[0]
-
-
-def advance(m, d, ctrl, n_substeps: int = 1):
-    """Finish the forward pass of a sensed ``d`` with ``ctrl``, integrate, then n_substeps - 1 more steps.
-
-    Args:
-        m: mjx.Model; d: mjx.Data returned by :func:`sense`; ctrl: (nu,) actuator torques [N m].
-        n_substeps: physics steps per control step (static, >= 1); the torques are held over all of them.
-    """
-    return hold(m, finish(m, d, ctrl), n_substeps - 1)
-
-
 # ---- the package's only reads of MJX internals (``mujoco.mjx._src``, ``Data._impl``, ``Option._impl``, MuJoCo Warp)
 
 
@@ -335,15 +319,23 @@ _warp_forward = functools.cache(lambda: _mjx_warp_call("forward", _forward))  # 
 
 def put_model(mj_model, impl: str, device):
     """``mjx.put_model`` on ``device``; a Warp model does not print iteration limits (the scenes cap the solver on
-    purpose; :func:`solver_capped` counts it) nor contact match overflows (a wall body's sensor may match more than
-    its slots, harmlessly; ``contacts.match_overflow`` counts the others'); the other overflows do."""
+    purpose; :func:`solver_capped` counts it); the other overflows do."""
     if impl != "warp":
         return mjx.put_model(mj_model, device=device)
-    from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
+    from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType as T
     mx = mjx.put_model(mj_model, impl="warp", device=device)
-    o, T = mx.opt, OverflowType
-    quiet = int(o._impl.warn_overflow) & ~int(T.ITERATIONS | T.LS_ITERATIONS | T.CONTACT_MATCH)
-    return mx.replace(opt=o.replace(_impl=dataclasses.replace(o._impl, warn_overflow=quiet)))
+    quiet = int(mx.opt._impl.warn_overflow) & ~int(T.ITERATIONS | T.LS_ITERATIONS)
+    return mx.replace(opt=mx.opt.replace(_impl=dataclasses.replace(mx.opt._impl, warn_overflow=quiet)))
+
+
+def contact_list(d):
+    """Warp: MuJoCo Warp's contact list of the step that made ``d``, shared by the runs (unbatched under their vmap):
+    ``(dist (L,) [m], geom (L, 2) ids, world (L,) run index, listed (L,) bool)``, ``listed`` where the entry is one
+    of the ``nacon`` contacts and a constraint (the contacts MuJoCo Warp's contact sensors match)."""
+    from mujoco.mjx.third_party.mujoco_warp._src.types import ContactType
+    i = d._impl
+    listed = (jnp.arange(i.contact__dist.shape[0]) < i.nacon[0]) & (i.contact__type & int(ContactType.CONSTRAINT) > 0)
+    return i.contact__dist, i.contact__geom, i.contact__worldid, listed
 
 
 def motion_cross(u, v):

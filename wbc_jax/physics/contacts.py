@@ -7,20 +7,22 @@ part's and the wall's penetration (falls, grazes). The two MJX implementations k
 * **JAX** (``impl="jax"``): one fixed slot per candidate contact of every ``<pair>``, per run, with the distance
   filled in whether or not the pair touches, and its force (read through :mod:`wbc_jax.physics.backend`'s
   ``slot_*`` accessors). :func:`contact_slots` finds the slots of each role once per model.
-* **Warp** (``impl="warp"``): one list of the contacts that exist, shared by all runs (``naconmax`` in total), so a
-  run's contacts are read through MJCF contact sensors, which MuJoCo evaluates per run into ``sensordata``
-  (as MJX's documentation and Playground do). :func:`wbc_jax.robot.sensors.with_contact_sensors` adds them: per
-  object sphere its contact with the tray (``found``, contact-frame ``force``, ``dist``), per non-foot ground pair
-  ``found`` and ``dist``, and per wall (a whole body's contacts in one sensor where they all are wall pairs') its
-  ``dist`` of a penetration. The pairs' margin is 0, so a listed contact is a penetrating one. The
-  near-contact distances the rollout also needs (a foot within 1 mm of the ground, an object sphere more than 1 mm
-  off the tray) are computed from the geometry (:func:`sphere_distance`: sphere vs plane or box, as MuJoCo's
+* **Warp** (``impl="warp"``): one list of the contacts that exist, shared by all runs (``naconmax`` in total).
+  The non-foot and wall distances are the smallest ``dist`` of each watched pair's listed contacts per run,
+  reduced from the whole list at once (:func:`pair_minima`: one scatter over the list, each contact to its run's
+  entry of its pair's role); every contact counts, so no pair can hold more contacts than a slot. The object's
+  forces come from MJCF contact sensors, which MuJoCo evaluates per run into ``sensordata`` (as MJX's documentation
+  and Playground do): :func:`wbc_jax.robot.sensors.with_contact_sensors` adds one per object sphere vs the tray
+  (``found``, contact-frame ``force``, ``dist``). The pairs' margin is 0, so a listed contact is a penetrating one.
+  The near-contact distances the rollout also needs (a foot within 1 mm of the ground, an object sphere more than
+  1 mm off the tray) are computed from the geometry (:func:`sphere_distance`: sphere vs plane or box, as MuJoCo's
   collision functions do). Listing contacts up to 1 mm through ``margin = gap = 1 mm`` instead is not the same
   physics on Warp: MuJoCo Warp 1.18 does not subtract ``gap`` from the constraint's margin.
 
 :class:`wbc_jax.rollout.config.Sim` holds the indices of both kinds in the same fields (``foot_slots``,
-``obj_slots``, ``nonfoot_slots``, ``wall_slots``): contact slots on JAX, sensordata addresses on Warp; the
-readers below take a Sim and dispatch on ``sim.robot.backend`` (static). A distance that the backend does not
+``obj_slots``, ``nonfoot_slots``, ``wall_slots``): contact slots on JAX; on Warp sensordata addresses (object),
+pair ids (feet) and entries of :func:`pair_minima` (non-foot, wall); the readers below take a Sim and dispatch on
+``sim.robot.backend`` (static). A distance that the backend does not
 report (no contact listed) reads as ``+inf``.
 
 The run's clearance (``wbc_jax.rollout.step.clearance``) does not read contacts: neither backend reports a
@@ -39,7 +41,6 @@ import mujoco
 import numpy as np
 
 from wbc_jax.physics import backend as physics
-from wbc_jax.robot.sensors import DIST as SENSOR_DIST
 from wbc_jax.robot.sensors import FORCE as SENSOR_FORCE
 from wbc_jax.runtime import aot
 
@@ -95,19 +96,64 @@ def _contact_slots(robot):
 
 
 def sim_indices(robot) -> ContactIndices:
-    """The :class:`ContactIndices` of ``robot``'s backend: contact slots (JAX) or sensordata addresses (Warp)."""
+    """The :class:`ContactIndices` of ``robot``'s backend: contact slots (JAX); on Warp the object's sensordata
+    addresses, the foot pairs' ids and the non-foot and wall entries of :func:`pair_minima`."""
     s = robot.sensors
     if s is None:
         return contact_slots(robot)
-    return ContactIndices(nonfoot=s.nonfoot, wall=s.wall, foot=np.asarray(robot.ids.foot_pair), obj=s.obj,
-                          nonfoot_geoms=s.nonfoot_geoms)
+    m, ids = robot.mj_model, robot.ids
+    nf = np.asarray(ids.nonfoot_floor_pair, int).reshape(-1)
+    return ContactIndices(nonfoot=np.arange(nf.size), wall=np.arange(nf.size, nf.size + (len(ids.wall_pair) > 0)),
+                          foot=np.asarray(ids.foot_pair), obj=s.obj,
+                          nonfoot_geoms=np.stack([m.pair_geom1[nf], m.pair_geom2[nf]], axis=1).astype(np.int64))
 
 
-def _sensor_dist(d, adr):
-    """Distance field of contact sensors (``wbc_jax.robot.sensors``: found, force, dist): +inf where nothing was
-    found."""
-    sd = d.sensordata
-    return jnp.where(sd[adr] > 0, sd[adr + SENSOR_DIST], jnp.inf)
+_READERS: dict = {}
+
+
+def pair_minima(sim, d) -> jax.Array:
+    """Warp: (k + 1,) the smallest ``dist`` [m] of this run's listed contacts (:func:`physics.contact_list
+    <wbc_jax.physics.backend.contact_list>`) of each non-foot ground pair (``RobotIds.nonfoot_floor_pair`` order),
+    then of all wall pairs together; +inf where none is listed. Called per run under the vmap over runs (one level:
+    MuJoCo Warp's world index is the run's index in it), it reduces the shared list once for the whole batch (a
+    ``custom_vmap`` rule: one ``segment_min``); the same values as a contact sensor per pair whose slots hold all its
+    contacts."""
+    robot = sim.robot
+    if robot not in _READERS:
+        _READERS[robot] = _minima_reader(robot)
+    dist, geom, world, listed = physics.contact_list(d)
+    return _READERS[robot](dist, geom, world, listed, d.time)
+
+
+def _minima_reader(robot):
+    """The ``custom_vmap`` function of :func:`pair_minima` for ``robot``'s pairs: a role per geom pair (its
+    non-foot pair's index, k for a wall pair, -1 for the others) looked up from a static (ngeom, ngeom) table."""
+    m, ids = robot.mj_model, robot.ids
+    nf, wall = (np.asarray(p, int).reshape(-1) for p in (ids.nonfoot_floor_pair, ids.wall_pair))
+    table = np.full((m.ngeom, m.ngeom), -1, np.int32)
+    for role, pairs in [(k, [p]) for k, p in enumerate(nf)] + [(nf.size, wall)]:
+        for p in pairs:
+            table[m.pair_geom1[p], m.pair_geom2[p]] = table[m.pair_geom2[p], m.pair_geom1[p]] = role
+    n_roles = nf.size + 1
+
+    def minima(dist, geom, world, listed, n_runs: int):  # (n_runs, n_roles)
+        role = jnp.asarray(table)[geom[:, 0], geom[:, 1]]
+        ok = listed & (role >= 0) & (world >= 0) & (world < n_runs)
+        seg = jnp.where(ok, world * n_roles + role, n_runs * n_roles)  # the others to a dropped last segment
+        return jax.ops.segment_min(dist, seg, num_segments=n_runs * n_roles + 1)[:-1].reshape(n_runs, n_roles)
+
+    @jax.custom_batching.custom_vmap
+    def reader(dist, geom, world, listed, anchor):  # one run, not vmapped: world 0
+        del anchor
+        return minima(dist, geom, world, listed, 1)[0]
+
+    @reader.def_vmap
+    def _(axis_size, in_batched, dist, geom, world, listed, anchor):  # anchor: a per-run leaf, so the rule runs
+        if any(in_batched[:4]):
+            raise ValueError("pair_minima: MuJoCo Warp's contact list is batched (more than one vmap over runs?)")
+        return minima(dist, geom, world, listed, axis_size), True
+
+    return reader
 
 
 def _slot_dist(d, slots):
@@ -173,27 +219,20 @@ def object_contacts(sim, m, d) -> tuple[jax.Array, jax.Array]:
     return contact_forces(m, d, sim.obj_slots), _slot_dist(d, sim.obj_slots)
 
 
-def nonfoot_dist(sim, d) -> jax.Array:
-    """(k,) distance of each non-foot ground slot (JAX) or pair (Warp) [m]; < 0 is penetration."""
+def penetrations(sim, d) -> tuple[jax.Array, jax.Array]:
+    """(k,) distance [m] of each non-foot ground slot (JAX) or pair (Warp), and (w,) of each wall slot (JAX) or of
+    all wall pairs (Warp, w = 1); < 0 is penetration, +inf where nothing is listed (Warp)."""
     if sim.robot.backend == "warp":
-        return _sensor_dist(d, sim.nonfoot_slots)
-    return _slot_dist(d, sim.nonfoot_slots)
+        minima = pair_minima(sim, d)
+        return minima[sim.nonfoot_slots], minima[sim.wall_slots]
+    return _slot_dist(d, sim.nonfoot_slots), _slot_dist(d, sim.wall_slots)
 
 
 def match_overflow(sim, m, d) -> jax.Array:
-    """() bool: a contact sensor whose nearest contact is read (``ContactSensors.found``: not a wall body's) matched
-    more contacts than the model ``m``'s slots per sensor hold
+    """() bool: a contact sensor (the object's) matched more contacts than the model ``m``'s slots per sensor hold
     (:func:`wbc_jax.physics.backend.contact_sensor_slots`; its nearest contact may then be missed:
     :mod:`wbc_jax.robot.sensors`), read from the sensors' ``found`` (every match counted); always False on JAX."""
     sensors, slots = sim.robot.sensors, physics.contact_sensor_slots(m)
     if sensors is None or slots is None:
         return jnp.bool_(False)
     return jnp.any(d.sensordata[sensors.found] > slots)
-
-
-def wall_dist(sim, d) -> jax.Array:
-    """(w,) distance of each wall slot (JAX) or wall sensor (Warp: a body's or a pair's, ``ContactSensors.wall``)
-    [m]; < 0 is penetration."""
-    if sim.robot.backend == "warp":
-        return _sensor_dist(d, sim.wall_slots)
-    return _slot_dist(d, sim.wall_slots)

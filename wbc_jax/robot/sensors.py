@@ -1,10 +1,10 @@
-"""The MJCF contact sensors the Warp backend reads (:mod:`wbc_jax.physics.contacts` explains why).
+"""The MJCF contact sensors the Warp backend reads: the object's contact forces (:mod:`wbc_jax.physics.contacts`).
 
-Per object contact sphere its contact with the tray, per non-foot ground pair, and per wall (one per wall pair
-where :func:`whole_wall_bodies` finds none): ``found``, contact-frame ``force``, ``dist`` (at :data:`DIST`), the same
-fields for every sensor, so that all are of one stage (acceleration: the force needs it) and MuJoCo Warp matches and
-sorts them in one pass a step instead of one per stage; added to the scene's spec before it is compiled. MuJoCo Warp
-launches its matching, sorting and evaluation per run and sensor every physics step, so fewer sensors are less work.
+Per object contact sphere its contact with the tray: ``found``, contact-frame ``force``, ``dist`` (at :data:`DIST`),
+added to the scene's spec before it is compiled. The rollout's other contacts (a non-foot robot part in the floor or
+the terrain, anything in a wall) need only distances, which it reads from MuJoCo Warp's contact list itself
+(:func:`wbc_jax.physics.contacts.pair_minima`): MuJoCo Warp matches, sorts and evaluates its contact sensors per run
+and sensor every physics step, so fewer sensors are less work.
 
 The Warp scene also disables native CCD (``mjDSBL_NATIVECCD``): MuJoCo Warp then collides box-box pairs with its
 ``box_box`` primitive (up to 8 contacts, like MuJoCo C's ``mjc_BoxBox``) instead of its convex GJK/EPA kernel,
@@ -14,11 +14,9 @@ kernels MuJoCo Warp would otherwise launch every physics step; the physics is th
 
 MuJoCo Warp matches each sensor against the contact list in slots of ``contact_sensor_maxmatch`` contacts per run
 and sensor (64 by default, from the model's numeric of that name), filled and sorted every physics step. The scene
-gets the most contacts one of its sensed pairs can produce instead (:func:`max_pair_contacts`): the same matches,
-sorted in smaller slots. ``found`` counts every match, so a pair with more is detected
-(:func:`wbc_jax.physics.contacts.match_overflow`). A wall body's sensor needs no slots of its own: its flag reads
-``found`` alone (every contact it matches penetrates), so its pairs do not size the slots and an overflow there is
-harmless.
+gets the most contacts one of its sensed pairs can produce instead (:func:`max_pair_contacts`; a sphere's pair 1):
+the same matches in smaller slots. ``found`` counts every match, so a pair with more is detected
+(:func:`wbc_jax.physics.contacts.match_overflow`).
 """
 
 from __future__ import annotations
@@ -54,25 +52,15 @@ class ContactSensors:
     (at :data:`DIST`).
 
     Attributes:
-        obj: (4,) per object contact sphere vs the tray.
-        nonfoot: (k,) per non-foot robot part vs ground pair (``RobotIds.nonfoot_floor_pair`` order).
-        nonfoot_geoms: (k, 2) the geom ids of each of those pairs.
-        wall: (w,) per wall body of :func:`whole_wall_bodies`, then per other wall pair (``RobotIds.wall_pair``
-            order); any of them with ``dist`` < 0 is the robot or the object in a wall.
-        n_wall_bodies: how many of ``wall`` are whole bodies' (the first).
+        obj: (4,) per object contact sphere vs the tray (``RobotIds.obj_pair`` order).
     """
 
     obj: np.ndarray
-    nonfoot: np.ndarray
-    nonfoot_geoms: np.ndarray
-    wall: np.ndarray
-    n_wall_bodies: int = 0
 
     @property
     def found(self) -> np.ndarray:
-        """The ``found`` address of every sensor whose slots must hold all its matches (its nearest contact is
-        read): the object's, the non-foot pairs', the wall pairs' not of a whole body, in that order."""
-        return np.concatenate([self.obj, self.nonfoot, self.wall[self.n_wall_bodies:]])
+        """The ``found`` address of every sensor, whose slots must hold all its matches."""
+        return self.obj
 
 
 _SPRING_DAMPER_FIELDS = ("jnt_stiffness", "jnt_stiffnesspoly", "dof_damping", "dof_dampingpoly", "tendon_stiffness",
@@ -111,35 +99,6 @@ def max_pair_contacts(model: mujoco.MjModel, pairs, primitive_boxes: bool | None
     return max((one(a, b) for a, b in np.asarray(pairs).reshape(-1, 2)), default=1)
 
 
-def whole_wall_bodies(model: mujoco.MjModel, wall_pair) -> dict[int, np.ndarray]:
-    """The bodies of ``model`` that one contact sensor (object type body) can watch for all the wall pairs
-    ``wall_pair`` (pair ids) they take part in: {body: (j,) those pairs}, chosen greedily, most pairs first, each
-    pair once. A body qualifies where each contact MuJoCo can list for one of its geoms comes from a wall pair and
-    penetrates: every pair of one of its geoms is a wall pair with margin <= 0 and gap 0 (a listed contact then
-    has dist < 0; MuJoCo Warp's sensors match active contacts only), and its geoms have contype and conaffinity 0
-    (no contacts outside the pairs); it has a name. The world body (0) never does."""
-    g1, g2 = model.pair_geom1, model.pair_geom2
-    wall = set(int(p) for p in np.asarray(wall_pair).ravel())
-    pair_bodies = [(int(model.geom_bodyid[g1[p]]), int(model.geom_bodyid[g2[p]])) for p in range(model.npair)]
-    candidates = {}
-    for b in {b for p in wall for b in pair_bodies[p]} - {0}:
-        pairs = [p for p in range(model.npair) if b in pair_bodies[p]]
-        geoms = np.where(model.geom_bodyid == b)[0]
-        penetrating = all(p in wall and pair_bodies[p].count(b) == 1 and model.pair_margin[p] <= 0
-                          and model.pair_gap[p] == 0 for p in pairs)
-        listed_only = not np.any(model.geom_contype[geoms]) and not np.any(model.geom_conaffinity[geoms])
-        if model.body(b).name and penetrating and listed_only:
-            candidates[b] = set(pairs)
-    chosen, left = {}, set(wall)
-    while candidates:
-        b = max(sorted(candidates), key=lambda b: len(candidates[b] & left))
-        if len(candidates[b] & left) < 2:  # a body of one pair: that pair's own sensor is the same work
-            break
-        chosen[b] = np.array(sorted(candidates.pop(b) & left), dtype=np.int64)
-        left -= set(chosen[b].tolist())
-    return chosen
-
-
 def with_contact_sensors(path: Path, base: mujoco.MjModel, ids) -> tuple[mujoco.MjModel, ContactSensors]:
     """The scene at ``path`` compiled with the contact sensors the Warp backend reads (module docstring).
 
@@ -160,41 +119,22 @@ def with_contact_sensors(path: Path, base: mujoco.MjModel, ids) -> tuple[mujoco.
                 raise SceneError(f"scene {path}: geom {base.geom(int(g)).name!r} of a foot or object pair is neither "
                                  "a sphere, a plane nor a box (the Warp backend measures those distances itself)")
 
-    def geom_name(g) -> str:
-        return base.geom(int(g)).name
-
-    def add(name, objtype, objname, refname=None):
-        s = spec.add_sensor(name=name, type=mujoco.mjtSensor.mjSENS_CONTACT, objtype=objtype, objname=objname)
-        if refname is not None:  # same order as the pair, so the force's normal points as the pair's contact does
-            s.reftype = mujoco.mjtObj.mjOBJ_GEOM
-            s.refname = refname
+    def add(name, p):  # geoms in the pair's order, so the force's normal points as the pair's contact does
+        s = spec.add_sensor(name=name, type=mujoco.mjtSensor.mjSENS_CONTACT, objtype=mujoco.mjtObj.mjOBJ_GEOM,
+                            objname=base.geom(int(g1[p])).name)
+        s.reftype = mujoco.mjtObj.mjOBJ_GEOM
+        s.refname = base.geom(int(g2[p])).name
         s.intprm[0] = sum(1 << f for f in (_FOUND, _FORCE, _DIST))
         s.intprm[1] = _MINDIST
         s.intprm[2] = 1
         return name
 
-    def add_pair(name, p):
-        return add(name, mujoco.mjtObj.mjOBJ_GEOM, geom_name(g1[p]), geom_name(g2[p]))
-
-    bodies = whole_wall_bodies(base, ids.wall_pair)
-    in_body = {int(p) for pairs in bodies.values() for p in pairs}
-    wall_pairs = [int(p) for p in ids.wall_pair if int(p) not in in_body]
-    names = {key: [add_pair(f"wbc_{key}{i}", p) for i, p in enumerate(pairs)]
-             for key, pairs in (("obj", ids.obj_pair), ("nonfoot", ids.nonfoot_floor_pair))}
-    names["wall"] = ([add(f"wbc_wall_body{b}", mujoco.mjtObj.mjOBJ_BODY, base.body(b).name) for b in bodies]
-                     + [add_pair(f"wbc_wall{i}", p) for i, p in enumerate(wall_pairs)])
-    sensed = np.concatenate([ids.obj_pair, ids.nonfoot_floor_pair, wall_pairs]).astype(int)
+    sensed = ids.obj_pair.astype(int)
+    names = [add(f"wbc_obj{i}", p) for i, p in enumerate(sensed)]
     maxmatch = max_pair_contacts(base, np.stack([g1[sensed], g2[sensed]], axis=1), primitive_boxes=True)
     if "contact_sensor_maxmatch" not in [n.name for n in spec.numerics]:
         spec.add_numeric(name="contact_sensor_maxmatch", data=[float(maxmatch)])
     m = spec.compile()
     if m.npair != base.npair or m.ngeom != base.ngeom:
         raise AssertionError("adding contact sensors changed the scene's pairs or geoms")
-
-    def adr(key):
-        return np.array([m.sensor_adr[m.sensor(n).id] for n in names[key]], dtype=np.int64)
-
-    nf = ids.nonfoot_floor_pair.astype(int)
-    return m, ContactSensors(obj=adr("obj"), nonfoot=adr("nonfoot"),
-                             nonfoot_geoms=np.stack([g1[nf], g2[nf]], axis=1).astype(np.int64).reshape(-1, 2),
-                             wall=adr("wall"), n_wall_bodies=len(bodies))
+    return m, ContactSensors(obj=np.array([m.sensor_adr[m.sensor(n).id] for n in names], dtype=np.int64))

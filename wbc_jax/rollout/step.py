@@ -124,10 +124,9 @@ def substep_monitors(sim: Sim, m, obj_model: ObjectModel, tau, d, d_after) -> Su
     """Monitor values of the physics step ``d`` -> ``d_after`` taken with torques ``tau`` (nu,) [N m]."""
     finite = jnp.all(jnp.isfinite(d_after.qpos)) & jnp.all(jnp.isfinite(tau))
     inv_h, acc_norm, cone, off = _object_monitors(sim, m, obj_model, d, d_after, finite)
-    wall_dist = contacts.wall_dist(sim, d_after) if sim.wall_slots.size else None
-    nonfoot_dist = contacts.nonfoot_dist(sim, d_after) if sim.nonfoot_slots.size else None
-    wall = jnp.any(wall_dist < 0.0) if wall_dist is not None else jnp.bool_(False)
-    if nonfoot_dist is not None:
+    nonfoot_dist, wall_dist = contacts.penetrations(sim, d_after)
+    wall = jnp.any(wall_dist < 0.0)
+    if nonfoot_dist.size:
         nonfoot = jnp.any(nonfoot_dist < 0.0)
         nonfoot_k = jnp.where(nonfoot, jnp.argmin(nonfoot_dist), -1).astype(jnp.int32)
     else:
