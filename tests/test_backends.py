@@ -275,15 +275,16 @@ def _mujoco_contacts(robot, qpos, pairs):
 def test_object_sensor_slots_hold_every_match(monkeypatch):
     """The Warp scene's contact sensors are the object spheres' (one per sphere vs the tray), their slots
     ``contact_sensor_maxmatch`` the most contacts of a sphere's pair (:func:`wbc_jax.robot.sensors.max_pair_contacts`:
-    1) instead of MuJoCo Warp's default 64: the cube resting on the tray, one physics step: each sensor's count
-    equals MuJoCo C's contacts of its pair (float64 ``mj_forward``), the sensordata equal bit for bit, and no match
-    overflow is read (``contacts.match_overflow``), which reads one where the slots are fewer than the count."""
+    1), at least ``sensors.MIN_SLOTS`` (2), instead of MuJoCo Warp's default 64: the cube pressed 1 mm into the tray,
+    one physics step: each sensor's count equals MuJoCo C's contacts of its pair (float64 ``mj_forward``), the
+    sensordata equal bit for bit, and no match overflow is read (``contacts.match_overflow``), which reads one where
+    the slots are fewer than the count."""
     import dataclasses
     from types import SimpleNamespace
 
     robot = Robot("transport", backend="warp")
     mx = robot.mjx_model
-    assert physics.contact_sensor_slots(mx) == 1 and len(robot.sensors.obj) == 4
+    assert physics.contact_sensor_slots(mx) == 2 and len(robot.sensors.obj) == 4
     assert robot.mj_model.nsensor == 4 and physics.contact_sensor_slots(Robot("flat").mjx_model) is None
     qpos = robot.home_qpos(0.08)
     qpos[robot.mj_model.jnt_qposadr[robot.mj_model.body_jntadr[robot.ids.obj_body]] + 2] -= 1e-3

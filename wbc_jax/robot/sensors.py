@@ -14,9 +14,9 @@ kernels MuJoCo Warp would otherwise launch every physics step; the physics is th
 
 MuJoCo Warp matches each sensor against the contact list in slots of ``contact_sensor_maxmatch`` contacts per run
 and sensor (64 by default, from the model's numeric of that name), filled and sorted every physics step. The scene
-gets the most contacts one of its sensed pairs can produce instead (:func:`max_pair_contacts`; a sphere's pair 1):
-the same matches in smaller slots. ``found`` counts every match, so a pair with more is detected
-(:func:`wbc_jax.physics.contacts.match_overflow`).
+gets the most contacts one of its sensed pairs can produce instead (:func:`max_pair_contacts`; a sphere's pair 1),
+at least :data:`MIN_SLOTS`: the same matches in smaller slots. ``found`` counts every match, so a pair with more is
+detected (:func:`wbc_jax.physics.contacts.match_overflow`).
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ _PAIR_CONTACTS = {frozenset((_G.mjGEOM_SPHERE, _G.mjGEOM_PLANE)): 1, frozenset((
                   frozenset((_G.mjGEOM_CAPSULE, _G.mjGEOM_BOX)): 2, frozenset((_G.mjGEOM_BOX, _G.mjGEOM_PLANE)): 4,
                   frozenset((_G.mjGEOM_BOX,)): 4}
 WARP_MAXMATCH = 64  # MuJoCo Warp's contact_sensor_maxmatch without the numeric
+MIN_SLOTS = 2  # the fewest slots set: MuJoCo Warp sorts a sensor's slots with Warp's tile sort, tested from 2 keys
 
 
 @dataclass(frozen=True, eq=False)
@@ -131,7 +132,8 @@ def with_contact_sensors(path: Path, base: mujoco.MjModel, ids) -> tuple[mujoco.
 
     sensed = ids.obj_pair.astype(int)
     names = [add(f"wbc_obj{i}", p) for i, p in enumerate(sensed)]
-    maxmatch = max_pair_contacts(base, np.stack([g1[sensed], g2[sensed]], axis=1), primitive_boxes=True)
+    maxmatch = max(max_pair_contacts(base, np.stack([g1[sensed], g2[sensed]], axis=1), primitive_boxes=True),
+                   MIN_SLOTS)
     if "contact_sensor_maxmatch" not in [n.name for n in spec.numerics]:
         spec.add_numeric(name="contact_sensor_maxmatch", data=[float(maxmatch)])
     m = spec.compile()
