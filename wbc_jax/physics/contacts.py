@@ -139,8 +139,10 @@ def _minima_reader(robot):
     def minima(dist, geom, world, listed, n_runs: int):  # (n_runs, n_roles)
         role = jnp.asarray(table)[geom[:, 0], geom[:, 1]]
         ok = listed & (role >= 0) & (world >= 0) & (world < n_runs)
-        seg = jnp.where(ok, world * n_roles + role, n_runs * n_roles)  # the others to a dropped last segment
-        return jax.ops.segment_min(dist, seg, num_segments=n_runs * n_roles + 1)[:-1].reshape(n_runs, n_roles)
+        seg = jnp.where(ok, world * n_roles + role, n_runs * n_roles)  # the others out of bounds: dropped, not
+        #                                                                   written (no atomics on one address)
+        out = jax.ops.segment_min(dist, seg, num_segments=n_runs * n_roles, mode="drop")
+        return out.reshape(n_runs, n_roles)
 
     @jax.custom_batching.custom_vmap
     def reader(dist, geom, world, listed, anchor):  # one run, not vmapped: world 0
