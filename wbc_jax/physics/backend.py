@@ -318,14 +318,16 @@ _warp_forward = functools.cache(lambda: _mjx_warp_call("forward", _forward))  # 
 
 
 def put_model(mj_model, impl: str, device):
-    """``mjx.put_model`` on ``device``; a Warp model does not print iteration limits (the scenes cap the solver on
-    purpose; :func:`solver_capped` counts it); the other overflows do."""
+    """``mjx.put_model`` on ``device``; a Warp model does not print "solver/linesearch iterations limit reached"
+    (the scenes cap the solver at ``opt.iterations`` on purpose; :func:`solver_capped` counts it); overflows do."""
     if impl != "warp":
         return mjx.put_model(mj_model, device=device)
-    from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType as T
+    from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
+
     mx = mjx.put_model(mj_model, impl="warp", device=device)
-    quiet = int(mx.opt._impl.warn_overflow) & ~int(T.ITERATIONS | T.LS_ITERATIONS)
-    return mx.replace(opt=mx.opt.replace(_impl=dataclasses.replace(mx.opt._impl, warn_overflow=quiet)))
+    opt = mx.opt
+    quiet = int(opt._impl.warn_overflow) & ~int(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)
+    return mx.replace(opt=opt.replace(_impl=dataclasses.replace(opt._impl, warn_overflow=quiet)))
 
 
 def contact_list(d):

@@ -207,11 +207,10 @@ def _iterations(pg: _Program, st, iters: int, max_iters: int, check_every: int, 
     return k, c, (prim, dual, done > 0)
 
 
-def _infeasibility(pg: _Program, dx, dy, D, cs, E, l_refs, u_refs):
+def _infeasibility(pg: _Program, dx, dy, D, cs, E, l, u):
     """``(pinf, dinf)``: OSQP's certificates on the last step's deltas ``dx``, ``dy`` (scaled), in the user's
-    units (:mod:`wbc_jax.qp.rules`)."""
-    ops, dims, Ei, s = pg.ops, pg.dims, pg.Ei, pg.s
-    l, u = list(read_blocks(l_refs, dims)), list(read_blocks(u_refs, dims))
+    units (:mod:`wbc_jax.qp.rules`); ``l``, ``u``: the bounds' blocks (:func:`~.kernel_layout.read_blocks`)."""
+    ops, Ei, s = pg.ops, pg.Ei, pg.s
     pinf = rules.primal_infeasible(l, u, [e * a / cs for a, e in zip(dy, E)],
                                    lambda v: _rows_t(ops, [a * e for a, e in zip(v, Ei)]) / D, s)
     dinf = rules.dual_infeasible(l, u, D * dx, [a * e for a, e in zip(_rows(ops, dx), Ei)],
@@ -232,12 +231,12 @@ def _finish(pg: _Program, st, k, c, l_refs, u_refs, test=None) -> None:
     cs = entry(scal, 0)
     E = [1.0 / e for e in pg.Ei]
     prim, dual, conv = _termination(pg, x, ax, z, y) if test is None else test
-    l, u = read_blocks(l_refs, dims), read_blocks(u_refs, dims)
+    l, u = list(read_blocks(l_refs, dims)), list(read_blocks(u_refs, dims))
     empty = rules.amax(*[jnp.where(a > b, 1.0, 0.0) for a, b in zip(l, u)]) > 0.0
     # a converged solve's flag does not read the certificates (rules.status); the skipped branch returns values
     # computed from ``conv`` (Triton's lowering of a branch cannot yield a constant)
     no = lambda: (conv & ~conv, conv & ~conv)  # noqa: E731
-    pinf, dinf = jax.lax.cond(conv, no, lambda: _infeasibility(pg, dx, dy, D, cs, E, l_refs, u_refs))
+    pinf, dinf = jax.lax.cond(conv, no, lambda: _infeasibility(pg, dx, dy, D, cs, E, l, u))
     pg.sync()
     xu, zu, yu = D * x, [a * e for a, e in zip(z, pg.Ei)], [e * a / cs for a, e in zip(y, E)]
     flag = rules.status(is_finite(xu, *zu, *yu, prim, dual) & (bad == 0.0), empty, pinf, dinf, conv)
