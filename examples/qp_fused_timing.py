@@ -22,17 +22,11 @@ import numpy as np
 from wbc_jax.bench import qp_problems
 from wbc_jax.qp import QPSettings, solve_qp
 
-REP = 50
+sys.path.insert(0, "examples")
+from qp_kernel_warps import REP, chained  # noqa: E402
+
 SETTINGS = QPSettings(iters=8, max_iters=200, check_every=4, eps_abs=1e-4, eps_rel=1e-4, linsolve="inv",
                       adapt_every=0, rho=2.0, alpha=1.3, ruiz_iters=2, eq_rows=24, kernel="fused")
-
-
-def chained(solve):
-    """A jitted function solving its problems REP times in a chain."""
-    def chain(P, q, *rest):
-        step = lambda x, _: (solve(P, q + 1e-30 * x[..., :1], *rest).x, None)  # noqa: E731
-        return jax.lax.scan(step, solve(P, q, *rest).x, None, length=REP - 1)[0]
-    return jax.jit(chain)
 
 
 def main(out_path: str) -> None:
