@@ -33,6 +33,7 @@ a pair beyond the margin reads 1 m; Warp: penetrations only), so it is measured 
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -59,7 +60,8 @@ def contact_forces(m, d, slots) -> jax.Array:
 
 
 class ContactIndices(NamedTuple):
-    """Where the rollout reads each role's contacts: MJX contact slots (JAX) or contact-sensor addresses (Warp)."""
+    """Where the rollout reads each role's contacts: MJX contact slots (JAX); on Warp (:func:`sim_indices`) the
+    object's contact-sensor addresses, the foot pairs' ids and entries of :func:`pair_minima`."""
 
     nonfoot: np.ndarray  # (k,) non-foot robot parts vs the floor or terrain
     wall: np.ndarray  # anything vs a wall part
@@ -108,9 +110,6 @@ def sim_indices(robot) -> ContactIndices:
                           nonfoot_geoms=np.stack([m.pair_geom1[nf], m.pair_geom2[nf]], axis=1).astype(np.int64))
 
 
-_READERS: dict = {}
-
-
 def pair_minima(sim, d) -> jax.Array:
     """Warp: (k + 1,) the smallest ``dist`` [m] of this run's listed contacts (:func:`physics.contact_list
     <wbc_jax.physics.backend.contact_list>`) of each non-foot ground pair (``RobotIds.nonfoot_floor_pair`` order),
@@ -118,13 +117,11 @@ def pair_minima(sim, d) -> jax.Array:
     MuJoCo Warp's world index is the run's index in it), it reduces the shared list once for the whole batch (a
     ``custom_vmap`` rule: one ``segment_min``); the same values as a contact sensor per pair whose slots hold all its
     contacts."""
-    robot = sim.robot
-    if robot not in _READERS:
-        _READERS[robot] = _minima_reader(robot)
     dist, geom, world, listed = physics.contact_list(d)
-    return _READERS[robot](dist, geom, world, listed, d.time)
+    return _minima_reader(sim.robot)(dist, geom, world, listed, d.time)
 
 
+@functools.cache
 def _minima_reader(robot):
     """The ``custom_vmap`` function of :func:`pair_minima` for ``robot``'s pairs: a role per geom pair (its
     non-foot pair's index, k for a wall pair, -1 for the others) looked up from a static (ngeom, ngeom) table."""
